@@ -1,0 +1,1 @@
+"""Shipped reference flow data and ready maps (the embedded default)."""

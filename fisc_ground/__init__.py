@@ -1,0 +1,1 @@
+"""FISC ground tools: reference fields, control volumes, velocity fitting, command maps, swarm fields."""

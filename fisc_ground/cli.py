@@ -1,0 +1,230 @@
+"""``fisc-ground``: fit, sign, inspect, plot and distribute FISC command maps.
+
+Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes:
+0 success, 1 a failed check or bad input (the message says which), 2 usage errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger("fisc_ground")
+
+
+def _n_range(text: list[str]) -> tuple[int, int]:
+    lo, hi = int(text[0]), int(text[1])
+    if not 1 <= lo <= hi:
+        raise argparse.ArgumentTypeError(f"--n-range needs 1 <= N_MIN <= N_MAX, got {lo} {hi}")
+    return lo, hi
+
+
+def _scale(text: str) -> float | None:
+    if text == "auto":
+        return None
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError("--scale must be positive or 'auto'")
+    return value
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from fisc_ground.mapbuild import FitConfig, build_map
+    from fisc_ground.mapwrite import read_signing_key, write_map
+    from fisc_ground.reference.load import load_reference
+
+    n_min, n_max = _n_range(args.n_range)
+    config = FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
+                       max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
+                       min_nodes=args.min_nodes, seed=args.seed)
+    key = read_signing_key(args.sign) if args.sign else None
+    with _status(f"loading reference {args.reference}"):
+        field = load_reference(args.reference, pressure_kind=args.pressure_kind)
+    log.info("reference %s: %d nodes (%s pressure)", field.name, field.n_nodes, field.pressure_kind)
+    with _status("partitioning and fitting"):
+        meta, arrays = build_map(field, config)
+    sha = write_map(args.output, meta, arrays, key)
+    fit = meta["fit"]
+    print(f"wrote {args.output}: {meta['n_cv']} CVs, S={meta['scale']:.4g}, kappa={meta['kappa']:.4g}, "
+          f"fit {fit['seconds'] * 1e3:.1f} ms, velocity RMSE {fit['velocity_rmse']:.2e} m/s, "
+          f"pressure RMSE {fit['pressure_rmse']:.2e}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
+    return 0
+
+
+def inspect_summary(cmap) -> dict:
+    """The ``inspect --json`` object (its keys are a contract)."""
+    body = cmap.body
+    return {
+        "n_cv": cmap.n_cv,
+        "cell_size": cmap.cell_size_m,
+        "scale": cmap.scale,
+        "kappa": float(body["kappa"]),
+        "n_range": list(body["n_range"]),
+        "schema_version": body["schema_version"],
+        "map_version": cmap.map_version,
+        "sha256": cmap.sha256,
+        "signed": cmap.signed,
+        "public_key": cmap.public_key,
+        "fit_seconds": body.get("fit", {}).get("seconds"),
+        "fit_velocity_rmse": body.get("fit", {}).get("velocity_rmse"),
+        "fit_pressure_rmse": body.get("fit", {}).get("pressure_rmse"),
+        "agent_mass_kg": body["agent_mass_kg"],
+        "max_speed_m_s": body.get("max_speed_m_s"),
+        "grid": body["grid"],
+        "created_utc": body.get("created_utc"),
+        "software_version": body.get("software_version"),
+        "reference": body.get("provenance", {}).get("reference"),
+        "n_star_histogram": {str(int(k)): int(v) for k, v in zip(*_unique(cmap["n_star"]))},
+        "reversed_flow_cvs": int((cmap["target_velocity_m_s"][:, 0] < 0).sum()),
+    }
+
+
+def _unique(a):
+    import numpy as np
+
+    return np.unique(a, return_counts=True)
+
+
+def run_inspect(args: argparse.Namespace) -> int:
+    from fisc_agent.mapfile import load_map
+
+    cmap = load_map(args.map, trusted_key=args.trusted_key)
+    summary = inspect_summary(cmap)
+    if args.json:
+        print(json.dumps(summary, indent=None if args.compact else 2))
+        return 0
+    ref = summary["reference"] or {}
+    print(f"{args.map}: OK (schema v{summary['schema_version']}, sha256 {summary['sha256']})")
+    print(f"  signature    : {'verified, key ' + summary['public_key'] if summary['signed'] else 'none'}"
+          + (" (trusted)" if args.trusted_key and summary['signed'] else ""))
+    print(f"  reference    : {ref.get('name')} ({ref.get('source')}, {ref.get('pressure_kind')} pressure)")
+    print(f"  control vols : {summary['n_cv']} cubes of {summary['cell_size']} m, grid {summary['grid']['shape']}")
+    print(f"  scaling      : S = {summary['scale']:.4g}, kappa = {summary['kappa']:.4g}, max speed "
+          f"{summary['max_speed_m_s']} m/s, agent mass {summary['agent_mass_kg']} kg")
+    print(f"  N range      : {summary['n_range']}, N* histogram {summary['n_star_histogram']}")
+    print(f"  fit          : {summary['fit_seconds'] * 1e3:.1f} ms, velocity RMSE "
+          f"{summary['fit_velocity_rmse']:.3e} m/s, pressure RMSE {summary['fit_pressure_rmse']:.3e}")
+    print(f"  reversed flow: {summary['reversed_flow_cvs']} CVs; created {summary['created_utc']} "
+          f"by fisc {summary['software_version']}; map version {summary['map_version']}")
+    return 0
+
+
+def run_keygen(args: argparse.Namespace) -> int:
+    from fisc_ground.mapwrite import generate_keypair
+
+    key_path, pub_path = generate_keypair(args.output)
+    print(f"wrote {key_path} (private, keep on the ground station) and {pub_path} (give to agents)")
+    return 0
+
+
+def run_plot(args: argparse.Namespace) -> int:
+    from fisc_agent.mapfile import load_map
+    from fisc_ground.plots import plot_map_figures
+
+    cmap = load_map(args.map, trusted_key=args.trusted_key)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    for path in plot_map_figures(cmap, out):
+        print(path)
+    return 0
+
+
+class _status:
+    """A spinner on stderr while a step runs (silent when stderr is not a terminal)."""
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self._cm = None
+
+    def __enter__(self):
+        if sys.stderr.isatty():
+            from rich.console import Console
+
+            self._cm = Console(stderr=True).status(self.text)
+            self._cm.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._cm is not None:
+            self._cm.__exit__(*exc)
+        return False
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("fit", help="fit a command map from a CFD reference field",
+                       description="Import REFERENCE, partition it into cubic control volumes, run the "
+                                   "paper's velocity fitting and write a verified (optionally signed) map.")
+    p.add_argument("reference", metavar="REFERENCE",
+                   help="a built-in name (cd_nozzle_inviscid, cd_nozzle, analytic) or a file: Fluent-style "
+                        "node CSV, axisymmetric CSV (x,r,u_x,u_r,p[,rho]) or VTK/VTU")
+    p.add_argument("-o", "--output", required=True, type=Path, metavar="MAP", help="map file to write (.fiscmap)")
+    p.add_argument("--cell-size", type=float, default=0.5, metavar="L", help="CV edge length [m] (default 0.5)")
+    p.add_argument("--n-range", nargs=2, default=["2", "10"], metavar=("N_MIN", "N_MAX"),
+                   help="candidate agent counts per CV (default 2 10)")
+    p.add_argument("--scale", type=_scale, default=None, metavar="S|auto",
+                   help="speed scaling S (default auto: largest S keeping commands within --max-speed)")
+    p.add_argument("--max-speed", type=float, default=5.0, metavar="V", help="agent speed limit [m/s] (default 5)")
+    p.add_argument("--kappa", type=float, default=None, help="pressure mapping factor (default: auto)")
+    p.add_argument("--agent-mass", type=float, default=1.0, metavar="KG", help="agent mass (default 1 kg)")
+    p.add_argument("--min-nodes", type=int, default=1, help="reference nodes a CV needs to exist (default 1)")
+    p.add_argument("--pressure-kind", choices=["auto", "gauge", "absolute"], default="auto",
+                   help="how the file states pressure (default: detect)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the fit's perturbed initialisation")
+    p.add_argument("--sign", type=Path, metavar="KEYFILE", help="sign with this Ed25519 key (from keygen)")
+    p.set_defaults(func=run_fit)
+
+    p = sub.add_parser("inspect", help="verify a map and summarise it",
+                       description="Verify a map (structure, schema version, sha256, signature) and summarise it. "
+                                   "Any failed check exits 1 with the reason.")
+    p.add_argument("map", metavar="MAP", type=Path)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--compact", action="store_true", help="with --json: one line")
+    p.add_argument("--trusted-key", type=Path, metavar="PUB", help="require a valid signature by this key")
+    p.set_defaults(func=run_inspect)
+
+    p = sub.add_parser("keygen", help="create an Ed25519 ground key pair",
+                       description="Write NAME.key (private) and NAME.pub (public) for signing maps and commands.")
+    p.add_argument("-o", "--output", required=True, metavar="NAME", help="path stem of the key files")
+    p.set_defaults(func=run_keygen)
+
+    p = sub.add_parser("plot", help="draw CFD-target vs fitted fields of a map (PNG)",
+                       description="XZ-plane contours of CFD target vs fitted velocity, pressure, density and N* "
+                                   "(the paper's figures 5a/5b, 7a/7b, 8a/8b) with the CV grid.")
+    p.add_argument("map", metavar="MAP", type=Path)
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--trusted-key", type=Path, metavar="PUB", help="require a valid signature by this key")
+    p.set_defaults(func=run_plot)
+
+    try:
+        from fisc_ground.zenoh_cli import add_parsers
+    except ImportError as exc:  # the Zenoh commands need eclipse-zenoh
+        log.debug("zenoh commands unavailable: %s", exc)
+    else:
+        add_parsers(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2) if args.verbose else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    from fisc_agent.mapfile import MapError
+    from fisc_ground.reference.field import ReferenceError
+
+    try:
+        return int(args.func(args) or 0)
+    except (MapError, ReferenceError, FileExistsError, FileNotFoundError, ValueError) as exc:
+        print(f"fisc-ground {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

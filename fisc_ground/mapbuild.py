@@ -1,0 +1,154 @@
+"""The ground pipeline: reference field -> control volumes -> velocity fitting -> command map."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fisc_agent.mapfile import CommandMap, decode_map, load_map
+from fisc_ground.fitting import fit_rmse, fit_velocities
+from fisc_ground.mapwrite import encode_map
+from fisc_ground.partition import ControlVolumes, partition_field
+from fisc_ground.reference.field import ReferenceField
+from fisc_ground.reference.load import load_reference
+from fisc_ground.scaling import choose_kappa, choose_scale
+
+log = logging.getLogger(__name__)
+
+DEFAULT_REFERENCE = "cd_nozzle_inviscid"
+DEFAULT_MAP_FILE = "default.fiscmap"
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Parameters of one map build; all of them are recorded in the map's provenance."""
+
+    cell_size_m: float = 0.5
+    """CV edge length l [m] (paper: 0.5 m)."""
+    n_min: int = 2
+    """Smallest candidate agent count N per CV (paper: 2)."""
+    n_max: int = 10
+    """Largest candidate agent count N per CV (paper: 10)."""
+    scale: float | None = None
+    """Speed scaling S; None chooses the largest S that keeps every command within ``max_speed_m_s``."""
+    max_speed_m_s: float = 5.0
+    """Agent speed limit used to choose S [m/s] (agents fly 2-10 m/s)."""
+    kappa: float | None = None
+    """Pressure mapping P_target = kappa (P_cfd - min P_cfd); None chooses it from ``max_dispersion_m_s``."""
+    max_dispersion_m_s: float | None = None
+    """Largest rms per-agent velocity dispersion the fit may ask for, before scaling; None = scaling default."""
+    agent_mass_kg: float = 1.0
+    """Agent mass m_i [kg] in the fitting equations (paper: 1 kg)."""
+    min_nodes: int = 1
+    """Minimum reference nodes for a CV to exist."""
+    alpha: float = 1.0
+    """Weight of the pressure term in the fitting objective."""
+    tolerance: float = 1e-6
+    """Newton convergence tolerance on the update norm (paper: 1e-6)."""
+    seed: int = 0
+    """Seed of the perturbed initialisation."""
+    map_version: int | None = None
+    """Monotonic map version; None uses the creation time in milliseconds."""
+
+
+def _software_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("fisc")
+    except Exception:  # noqa: BLE001 - metadata is absent when run from a source tree
+        return "0+unknown"
+
+
+def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Partition, fit and scale; returns the map header fields and arrays (ready for ``encode_map``)."""
+    cvs: ControlVolumes = partition_field(field, cell_size_m=config.cell_size_m, min_nodes=config.min_nodes)
+    cell_volume = config.cell_size_m ** 3
+    p = cvs.target_pressure_gauge_pa
+    if config.kappa is None:
+        kw = {} if config.max_dispersion_m_s is None else {"max_dispersion_m_s": config.max_dispersion_m_s}
+        kappa = choose_kappa(p, cell_volume, config.agent_mass_kg, config.n_min, **kw)
+    else:
+        kappa = float(config.kappa)
+    swarm_p = kappa * (p - np.min(p))
+    log.info("fitting %d CVs for N in [%d, %d]", p.size, config.n_min, config.n_max)
+    fit = fit_velocities(cvs.target_velocity_m_s, swarm_p, cell_volume, config.agent_mass_kg,
+                         n_min=config.n_min, n_max=config.n_max, alpha=config.alpha,
+                         tol=config.tolerance, seed=config.seed)
+    scale = choose_scale(fit.velocities_m_s, config.max_speed_m_s) if config.scale is None else float(config.scale)
+    vel_rmse, p_rmse = fit_rmse(fit, cvs.target_velocity_m_s, swarm_p)
+    arrays = {
+        "cv_center_m": cvs.center_m,
+        "cv_index": cvs.index,
+        "grid_cv": cvs.grid_cv,
+        "n_star": fit.n_star,
+        "fit_velocity_m_s": fit.velocities_m_s,
+        "fit_mean_velocity_m_s": fit.mean_velocity_m_s,
+        "fit_pressure": fit.pressure,
+        "fit_loss": fit.loss,
+        "target_velocity_m_s": cvs.target_velocity_m_s,
+        "target_pressure_gauge_pa": cvs.target_pressure_gauge_pa,
+        "target_density_kg_m3": cvs.target_density_kg_m3,
+        "swarm_pressure_target": swarm_p,
+        "node_count": cvs.node_count,
+    }
+    now = datetime.now(timezone.utc)
+    meta = {
+        "map_version": int(config.map_version if config.map_version is not None else time.time() * 1000),
+        "created_utc": now.isoformat(timespec="seconds"),
+        "software_version": _software_version(),
+        "frame": {"name": "reference", "axis": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]},
+        "n_cv": int(cvs.center_m.shape[0]),
+        "grid": {"origin_m": [float(v) for v in cvs.origin_m], "cell_size_m": float(config.cell_size_m),
+                 "shape": [int(s) for s in cvs.grid_cv.shape]},
+        "n_range": [int(config.n_min), int(config.n_max)],
+        "scale": float(scale),
+        "kappa": float(kappa),
+        "agent_mass_kg": float(config.agent_mass_kg),
+        "max_speed_m_s": float(config.max_speed_m_s),
+        "fit": {
+            "seconds": float(fit.seconds),
+            "velocity_rmse": float(vel_rmse),
+            "pressure_rmse": float(p_rmse),
+            "tolerance": float(config.tolerance),
+            "alpha": float(config.alpha),
+            "converged_fraction": float(np.mean(fit.converged)),
+            "max_iterations": int(np.max(fit.iterations)) if fit.iterations.size else 0,
+        },
+        "provenance": {
+            "reference": {"name": field.name, "source": field.source, "sha256": field.source_sha256,
+                          "pressure_kind": field.pressure_kind, "n_nodes": field.n_nodes},
+            "config": {k: v for k, v in asdict(config).items()},
+        },
+    }
+    return meta, arrays
+
+
+def build_map_from_reference(spec: str, config: FitConfig = FitConfig(),
+                             signing_key: bytes | None = None) -> CommandMap:
+    """Load ``spec`` (built-in name or path), build, encode and verify a map in memory."""
+    meta, arrays = build_map(load_reference(spec), config)
+    data = encode_map(meta, arrays, signing_key)
+    return decode_map(data, source=f"map of {spec}")
+
+
+def default_map_path() -> Path:
+    """Path of the shipped embedded-default map (``field_maps/default.fiscmap``)."""
+    return Path(str(resources.files("field_maps").joinpath(DEFAULT_MAP_FILE)))
+
+
+def build_default_map(config: FitConfig = FitConfig()) -> CommandMap:
+    """The embedded default: the built-in inviscid reference fitted with ``config`` (milliseconds)."""
+    return build_map_from_reference(DEFAULT_REFERENCE, config)
+
+
+def load_shipped_default_map() -> CommandMap:
+    """The ready-made default map shipped in ``field_maps/`` (for agents without a ground station)."""
+    return load_map(default_map_path())

@@ -1,0 +1,1 @@
+"""Reference flow-field importers (Fluent CSV, VTK/VTU, axisymmetric CSV) and the analytic reference."""

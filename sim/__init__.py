@@ -1,0 +1,1 @@
+"""FISC simulation: VelocityPlant, swarm simulator, MAVLink autopilot emulator, reports."""
