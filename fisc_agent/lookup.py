@@ -34,6 +34,11 @@ def slot_hash(agent_id: np.ndarray | int, cv_id: np.ndarray | int) -> np.ndarray
     return h
 
 
+def slot_index(agent_id: np.ndarray | int, cv_id: np.ndarray | int, n_star: np.ndarray | int) -> np.ndarray:
+    """k = h(agent_id, j) mod N*_j as int64: the fitted vector agent ``agent_id`` flies in CV ``cv_id``."""
+    return (slot_hash(agent_id, cv_id) % np.asarray(n_star, dtype=np.uint64)).astype(np.int64)
+
+
 @dataclass(frozen=True)
 class CommandField:
     """A map's commands prepared for fast lookup (all arrays in the map/reference frame)."""
@@ -113,9 +118,8 @@ class CommandField:
             out[ok] = self.mean_cmd_m_s[cv[ok]]
         elif mode == "slot":
             j = cv[ok]
-            k = (slot_hash(np.asarray(agent_ids)[ok] if np.ndim(agent_ids) else agent_ids, j)
-                 % self.n_star[j].astype(np.uint64)).astype(np.int64)
-            out[ok] = self.slot_cmd_m_s[j, k]
+            ids = np.asarray(agent_ids)[ok] if np.ndim(agent_ids) else agent_ids
+            out[ok] = self.slot_cmd_m_s[j, slot_index(ids, j, self.n_star[j])]
         elif mode == "interpolated":
             out[ok] = self._interpolate(pts[ok], cv[ok])
         else:

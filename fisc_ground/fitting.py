@@ -23,9 +23,11 @@ cost.  Geometrically the step corrects the mean exactly and scales the deviation
 ``(1 + P_t / P) / 2``, i.e. it is Newton's square-root iteration on the rms deviation; the
 iteration therefore converges to ``v_target + d0 sqrt(P_t / P(v0))`` (tested).
 
-Layout: CVs are processed in chunks; inside a chunk every array is
-``(n_chunk, n_candidates, n_max, 3)`` with a slot mask for N < n_max.  There is no Python loop
-over CVs; the loops are over chunks and Newton iterations.
+Layout: CVs are processed in chunks (bounded memory); inside a chunk each candidate N is one
+slot-major array ``(N, 3, n_chunk)``, so every operation is a contiguous vectorised pass over
+all CVs of the chunk and no padding is computed.  Systems drop out of the working set as they
+converge.  There is no Python loop over CVs; the loops are over chunks, the candidates and the
+Newton iterations.
 """
 
 from __future__ import annotations
@@ -174,35 +176,33 @@ def initial_guess(
     n_max: int,
     seed: int,
     first_cv: int = 0,
-) -> np.ndarray:
-    """Perturbed initialisation ``v^(0) = v_target + sigma xi``, ``xi ~ N(0, I)`` (paper).
+) -> list[np.ndarray]:
+    """Perturbed initialisation ``v^(0) = v_target + sigma_N xi``, ``xi ~ N(0, I)`` (paper).
 
-    Returns (n, n_candidates, n_max, 3); slots k >= N of a candidate are 0.  The noise of CV
-    ``first_cv + i`` comes from ``np.random.default_rng([seed, block])`` with
-    ``block = (first_cv + i) // NOISE_BLOCK_CVS``, so a CV's start does not depend on how the
+    Returns one array per candidate N, in the slot-major layout of the solver: shape
+    (N, 3, n), element [i, x, j] = component x of agent i's start velocity in CV j.
+    Per CV one set of n_max standard-normal vectors is drawn and candidate N uses its first N
+    (every candidate's start is still ``v_target + sigma_N xi`` with ``xi ~ N(0, I)``).
+    The noise of CV ``first_cv + j`` comes from ``np.random.default_rng([seed, block])`` with
+    ``block = (first_cv + j) // NOISE_BLOCK_CVS``, so a CV's start does not depend on how the
     CVs are chunked.  ``cell_volume_m3`` is an (n,) array.
     """
     vt = np.asarray(target_velocity_m_s, dtype=np.float64)
     n = vt.shape[0]
-    cand = np.asarray(candidate_n)
-    n_cand = cand.size
-    xi = np.empty((n, n_cand, n_max, 3))
+    xi = np.empty((n_max, 3, n))
     b0 = first_cv // NOISE_BLOCK_CVS
     b1 = -(-(first_cv + n) // NOISE_BLOCK_CVS)
     for block in range(b0, b1):
         lo = block * NOISE_BLOCK_CVS
-        noise = np.random.default_rng([seed, block]).standard_normal(
-            (NOISE_BLOCK_CVS, n_cand, n_max, 3)
-        )
+        noise = np.random.default_rng([seed, block]).standard_normal((n_max, 3, NOISE_BLOCK_CVS))
         s = max(lo, first_cv)
         e = min(lo + NOISE_BLOCK_CVS, first_cv + n)
-        xi[s - first_cv : e - first_cv] = noise[s - lo : e - lo]
-    sigma = initial_dispersion(pressure_target[:, None], cell_volume_m3[:, None], agent_mass_kg, cand[None, :])
-    slot = (np.arange(n_max)[None, :] < cand[:, None]).astype(np.float64)
-    xi *= sigma[:, :, None, None]
-    xi += vt[:, None, None, :]
-    xi *= slot[None, :, :, None]
-    return xi
+        xi[:, :, s - first_cv : e - first_cv] = noise[:, :, s - lo : e - lo]
+    starts = []
+    for n_agents in np.asarray(candidate_n):
+        sigma = initial_dispersion(pressure_target, cell_volume_m3, agent_mass_kg, n_agents)
+        starts.append(xi[:n_agents] * sigma + vt.T)
+    return starts
 
 
 def arrow_solve(
@@ -210,19 +210,18 @@ def arrow_solve(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Solve the batched 4x4 system ``[[inv_n I3, b], [b^T, q]] [y_v; y_p] = [r_v; r_p]`` exactly.
 
-    Shapes: ``inv_n``, ``q``, ``r_p`` (...,); ``b``, ``r_v`` (..., 3).  Schur complement on the
-    scalar corner; this is ``J J^T y = r`` of the Newton step.
+    Shapes: ``inv_n``, ``q``, ``r_p`` (...,); ``b``, ``r_v`` (3, ...) (component axis first).
+    Schur complement on the scalar corner; this is ``(J J^T + mu I) y = r`` of the Newton step.
     """
-    a = inv_n[..., None]
-    y_p = (r_p - np.einsum("...x,...x->...", b, r_v) / inv_n) / (q - np.einsum("...x,...x->...", b, b) / inv_n)
-    y_v = (r_v - b * y_p[..., None]) / a
+    y_p = (r_p - np.einsum("x...,x...->...", b, r_v) / inv_n) / (
+        q - np.einsum("x...,x...->...", b, b) / inv_n
+    )
+    y_v = (r_v - b * y_p) / inv_n
     return y_v, y_p
 
 
 def _newton(
     v: np.ndarray,
-    slot: np.ndarray,
-    candidate_n: np.ndarray,
     vt: np.ndarray,
     pt: np.ndarray,
     c: np.ndarray,
@@ -230,39 +229,48 @@ def _newton(
     tol: float,
     max_iter: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum-norm Newton iteration in place on v (B, C, K, 3); returns v, iterations, converged."""
-    bsz, n_cand = v.shape[:2]
-    n_f = candidate_n.astype(np.float64)[None, :]  # (1, C)
-    inv_n = 1.0 / n_f
-    w = slot[None, :, :, None]  # (1, C, K, 1)
-    sqa = np.sqrt(alpha)
-    g = (2.0 * sqa * c)[:, None]  # (B, 1): d r_p / d v_i = g d_i
-    active = np.ones((bsz, n_cand), dtype=bool)
-    iterations = np.zeros((bsz, n_cand), dtype=np.int32)
-    d = np.empty_like(v)
-    for it in range(max_iter):
-        vbar = v.sum(axis=2) * inv_n[..., None]  # padded slots are 0
-        np.subtract(v, vbar[:, :, None, :], out=d)
-        d *= w
-        s = np.einsum("bckx,bckx->bc", d, d)
-        r_v = vbar - vt[:, None, :]
-        r_p = sqa * (c[:, None] * s - pt[:, None])
-        b = (g * inv_n)[..., None] * d.sum(axis=2)
+    """Minimum-norm Newton iteration for one candidate N on v (N, 3, B), in place.
+
+    ``vt`` (3, B), ``pt`` and ``c`` (B,).  Converged systems drop out of the working set.
+    Returns v, iterations (B,) int32, converged (B,) bool.
+    """
+    n_agents, _, bsz = v.shape
+    inv_n = 1.0 / n_agents
+    sqa = float(np.sqrt(alpha))
+    iterations = np.zeros(bsz, dtype=np.int32)
+    converged = np.zeros(bsz, dtype=bool)
+    idx = np.arange(bsz)
+    w, vt_w, pt_w, c_w = v, vt, pt, c
+    for _ in range(max_iter):
+        vbar = w.sum(axis=0) * inv_n  # (3, b)
+        d = w - vbar  # deviations d_i (N, 3, b)
+        s = np.einsum("kxb,kxb->b", d, d)
+        g = 2.0 * sqa * c_w  # d r_p / d v_i = g d_i
+        r_v = vbar - vt_w
+        r_p = sqa * (c_w * s - pt_w)
+        b = (g * inv_n) * d.sum(axis=0)
         q = g * g * s
         mu = _DAMPING * np.maximum(inv_n, q)
         y_v, y_p = arrow_solve(inv_n + mu, b, q + mu, r_v, r_p)
-        # dv_i = -J_i^T y = -(y_v / N + g d_i y_p) for i < N
-        gy = (g * y_p * active)[:, :, None, None]
-        d *= gy
-        d += (y_v * (inv_n * active)[..., None])[:, :, None, :]
-        d *= w
-        step = np.sqrt(np.einsum("bckx,bckx->bc", d, d))
-        v -= d
-        iterations += active
-        active &= ~(step < tol)
-        if not active.any():
-            break
-    return v, iterations, ~active
+        # dv_i = -J_i^T y = -(y_v / N + g d_i y_p)
+        d *= g * y_p
+        d += y_v * inv_n
+        w -= d
+        step = np.sqrt(np.einsum("kxb,kxb->b", d, d))
+        iterations[idx] += 1
+        done = step < tol
+        if done.any():
+            converged[idx[done]] = True
+            if w is not v:
+                v[:, :, idx[done]] = w[:, :, done]
+            keep = ~done
+            if not keep.any():
+                w = None
+                break
+            w, vt_w, pt_w, c_w, idx = w[:, :, keep], vt_w[:, keep], pt_w[keep], c_w[keep], idx[keep]
+    if w is not None and w is not v:
+        v[:, :, idx] = w
+    return v, iterations, converged
 
 
 def _validate(vt, pt, vol, agent_mass_kg, n_min, n_max, alpha, tol, max_iter):
@@ -289,18 +297,18 @@ def _validate(vt, pt, vol, agent_mass_kg, n_min, n_max, alpha, tol, max_iter):
         raise ValueError(f"CV {j}: target velocity is not finite: {vt[j].tolist()}")
     if not np.all(np.isfinite(pt)):
         j = int(np.flatnonzero(~np.isfinite(pt))[0])
-        raise ValueError(f"CV {j}: pressure target is not finite: {pt[j]!r}")
+        raise ValueError(f"CV {j}: pressure target is not finite: {float(pt[j])!r}")
     if np.any(pt < 0):
         j = int(np.flatnonzero(pt < 0)[0])
         raise ValueError(
-            f"CV {j}: pressure target {pt[j]!r} is negative, which no set of velocities can "
+            f"CV {j}: pressure target {float(pt[j])!r} is negative, which no set of velocities can "
             "realise (the swarm pressure of eq. pressure_constraint is >= 0); map CFD pressure "
             "with fisc_ground.scaling.swarm_pressure_target first"
         )
     bad_vol = ~(np.isfinite(vol) & (vol > 0))
     if bad_vol.any():
         j = int(np.flatnonzero(bad_vol)[0])
-        raise ValueError(f"CV {j}: cell volume {vol[j]!r} is not positive and finite")
+        raise ValueError(f"CV {j}: cell volume {float(vol[j])!r} is not positive and finite")
 
 
 def fit_velocities(
@@ -332,15 +340,15 @@ def fit_velocities(
     vt = np.asarray(target_velocity_m_s, dtype=np.float64)
     pt = np.asarray(pressure_target, dtype=np.float64)
     n = vt.shape[0] if vt.ndim >= 1 else 0
-    vol = np.broadcast_to(np.asarray(cell_volume_m3, dtype=np.float64), (n,)) if np.ndim(cell_volume_m3) == 0 \
-        else np.asarray(cell_volume_m3, dtype=np.float64)
+    vol = np.asarray(cell_volume_m3, dtype=np.float64)
+    if vol.ndim == 0:
+        vol = np.full(n, float(vol))
     n_min, n_max, max_iter = int(n_min), int(n_max), int(max_iter)
     _validate(vt, pt, vol, agent_mass_kg, n_min, n_max, alpha, tol, max_iter)
 
     t0 = time.perf_counter()
     cand = np.arange(n_min, n_max + 1)
     n_cand = cand.size
-    slot = (np.arange(n_max)[None, :] < cand[:, None]).astype(np.float64)  # (C, K)
     c_all = pressure_coefficient(agent_mass_kg, vol)
 
     velocities = np.full((n, n_max, 3), np.nan)
@@ -353,26 +361,31 @@ def fit_velocities(
     chunk = max(1, -(-int(chunk_cvs) // NOISE_BLOCK_CVS)) * NOISE_BLOCK_CVS
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
-        vt_c, pt_c, c_c = vt[s:e], pt[s:e], c_all[s:e]
-        v = initial_guess(vt_c, pt_c, vol[s:e], agent_mass_kg, cand, n_max, seed, first_cv=s)
-        v, it_c, conv_c = _newton(v, slot, cand, vt_c, pt_c, c_c, alpha, tol, max_iter)
-
-        # final loss, eq. iterative_objective, per candidate
-        vbar = v.sum(axis=2) / cand[None, :, None]
-        dev = (v - vbar[:, :, None, :]) * slot[None, :, :, None]
-        p_obj = c_c[:, None] * np.einsum("bckx,bckx->bc", dev, dev)
-        dm = vt_c[:, None, :] - vbar
-        lc = np.einsum("bcx,bcx->bc", dm, dm) + alpha * np.abs(pt_c[:, None] - p_obj)
+        vt_c, pt_c, c_c = vt[s:e].T.copy(), pt[s:e], c_all[s:e]
+        starts = initial_guess(vt[s:e], pt_c, vol[s:e], agent_mass_kg, cand, n_max, seed, first_cv=s)
+        sols, its, convs = [], [], []
+        lc = np.empty((e - s, n_cand))
+        for ci, v in enumerate(starts):
+            v, it_c, conv_c = _newton(v, vt_c, pt_c, c_c, alpha, tol, max_iter)
+            # final loss, eq. iterative_objective
+            vbar = v.mean(axis=0)
+            dev = v - vbar
+            p_obj = c_c * np.einsum("kxb,kxb->b", dev, dev)
+            dm = vt_c - vbar
+            lc[:, ci] = np.einsum("xb,xb->b", dm, dm) + alpha * np.abs(pt_c - p_obj)
+            sols.append(v)
+            its.append(it_c)
+            convs.append(conv_c)
         pick = select_n_star(lc, cand, tol)
-        rows = np.arange(e - s)
-
-        chosen = v[rows, pick]  # (B, K, 3)
-        chosen[slot[pick] == 0.0] = np.nan
-        velocities[s:e] = chosen
+        for ci, v in enumerate(sols):
+            rows = np.flatnonzero(pick == ci)
+            if rows.size == 0:
+                continue
+            velocities[s + rows, : cand[ci]] = v[:, :, rows].transpose(2, 0, 1)
+            iterations[s + rows] = its[ci][rows]
+            converged[s + rows] = convs[ci][rows]
         n_star[s:e] = cand[pick]
-        loss[s:e] = lc[rows, pick]
-        iterations[s:e] = it_c[rows, pick]
-        converged[s:e] = conv_c[rows, pick]
+        loss[s:e] = lc[np.arange(e - s), pick]
         cand_loss[s:e] = lc
 
     mean_v = np.nanmean(velocities, axis=1) if n else np.zeros((0, 3))

@@ -18,7 +18,7 @@ from fisc_ground.mapwrite import encode_map
 from fisc_ground.partition import ControlVolumes, partition_field
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
-from fisc_ground.scaling import choose_kappa, choose_scale
+from fisc_ground.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +43,8 @@ class FitConfig:
     kappa: float | None = None
     """Pressure mapping P_target = kappa (P_cfd - min P_cfd); None chooses it from ``max_dispersion_m_s``."""
     max_dispersion_m_s: float | None = None
-    """Largest rms per-agent velocity dispersion the fit may ask for, before scaling; None = scaling default."""
+    """Largest rms per-agent velocity dispersion the fit may ask for, before scaling [m/s];
+    None = 0.25 x the peak target speed (``scaling.default_max_dispersion``)."""
     agent_mass_kg: float = 1.0
     """Agent mass m_i [kg] in the fitting equations (paper: 1 kg)."""
     min_nodes: int = 1
@@ -73,11 +74,12 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
     cell_volume = config.cell_size_m ** 3
     p = cvs.target_pressure_gauge_pa
     if config.kappa is None:
-        kw = {} if config.max_dispersion_m_s is None else {"max_dispersion_m_s": config.max_dispersion_m_s}
-        kappa = choose_kappa(p, cell_volume, config.agent_mass_kg, config.n_min, **kw)
+        dispersion = (default_max_dispersion(cvs.target_velocity_m_s) if config.max_dispersion_m_s is None
+                      else config.max_dispersion_m_s)
+        kappa = choose_kappa(p, cell_volume, config.agent_mass_kg, config.n_min, dispersion)
     else:
         kappa = float(config.kappa)
-    swarm_p = kappa * (p - np.min(p))
+    swarm_p = swarm_pressure_target(p, kappa)
     log.info("fitting %d CVs for N in [%d, %d]", p.size, config.n_min, config.n_max)
     fit = fit_velocities(cvs.target_velocity_m_s, swarm_p, cell_volume, config.agent_mass_kg,
                          n_min=config.n_min, n_max=config.n_max, alpha=config.alpha,

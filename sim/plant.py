@@ -510,6 +510,7 @@ def _step_numpy(v, a, cmd, wind, wind_ff, noise, co: PlantCoefficients, h: float
     beta = (h / (co.tau_thrust_s + h))[:, None]
     amax = co.accel_max
     amax2 = amax * amax
+    tan2 = co.tan_tilt * co.tan_tilt
     d = np.empty_like(v)
     x = np.empty_like(v)
     for _ in range(nsub):
@@ -518,11 +519,13 @@ def _step_numpy(v, a, cmd, wind, wind_ff, noise, co: PlantCoefficients, h: float
         d *= itv
         d += bias
         up = np.clip(-d[:, 2], 0.0, amax)
-        hn = np.hypot(d[:, 0], d[:, 1])
-        hmax = np.minimum(up * co.tan_tilt, np.sqrt(np.maximum(amax2 - up * up, 0.0)))
-        over = hn > hmax
+        up2 = up * up
+        hn2 = d[:, 0] * d[:, 0]
+        hn2 += d[:, 1] * d[:, 1]
+        hmax2 = np.minimum(up2 * tan2, np.maximum(amax2 - up2, 0.0))
+        over = hn2 > hmax2
         if over.any():
-            scale = np.divide(hmax, hn, out=np.ones_like(hn), where=over)
+            scale = np.sqrt(np.divide(hmax2, hn2, out=np.ones_like(hn2), where=over))
             d[:, 0] *= scale
             d[:, 1] *= scale
         np.negative(up, out=d[:, 2])
@@ -566,6 +569,7 @@ def _numba_kernel():
             jn = i if noise.shape[0] > 1 else 0
             kd0, kd1, kd2 = kd[c, 0], kd[c, 1], kd[c, 2]
             gi, itvi, am, tt, ffi = g[c], itv[c], amax[c], tant[c], ff[c]
+            am2, tt2 = am * am, tt * tt
             beta = h / (tau_t[c] + h)
             c0, c1, c2 = cmd[ic, 0], cmd[ic, 1], cmd[ic, 2]
             x0, x1, x2 = c0 - wind_ff[jf, 0], c1 - wind_ff[jf, 1], c2 - wind_ff[jf, 2]
@@ -581,10 +585,10 @@ def _numba_kernel():
                 d1 = (r1 - v1) * itvi + b1
                 d2 = (r2 - v2) * itvi + b2
                 up = min(max(-d2, 0.0), am)
-                hn = math.hypot(d0, d1)
-                hmax = min(up * tt, math.sqrt(max(am * am - up * up, 0.0)))
-                if hn > hmax:
-                    s = hmax / hn
+                hn2 = d0 * d0 + d1 * d1
+                hmax2 = min(up * up * tt2, max(am2 - up * up, 0.0))
+                if hn2 > hmax2:
+                    s = math.sqrt(hmax2 / hn2)
                     d0 *= s
                     d1 *= s
                 a0 += (d0 - a0) * beta

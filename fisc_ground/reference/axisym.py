@@ -7,7 +7,8 @@ multiples of the spacing, nodes strictly inside the wall). The wall radius R(x) 
 explicit wall samples when the caller has them (mesh vertices of a VTU), otherwise estimated
 from the data: per axial column of cells, the outermost centre plus the half-height of the wall
 cell extrapolated from the local radial grading, joined by a cubic spline. Values are
-interpolated linearly on a Delaunay triangulation of the (x, r) points mirrored about the axis,
+interpolated linearly on a Delaunay triangulation of the (x, r) points mirrored about the axis
+(the mirror puts the axis inside the triangulation),
 with nearest-point fallback outside it (wall layer, inlet/outlet half-cells); the radial
 velocity is rotated into y and z (``u_y = u_r y / r``, 0 on the axis).
 """
@@ -18,7 +19,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from scipy.interpolate import CubicSpline, LinearNDInterpolator
+from scipy.interpolate import CubicSpline
 from scipy.spatial import cKDTree
 
 from fisc_ground.reference.analytic import LATTICE_SPACING_M, WALL_TOLERANCE_M, body_lattice
@@ -54,20 +55,27 @@ def looks_axisymmetric(keys: tuple[str, ...]) -> bool:
 def _axial_columns(x: np.ndarray) -> np.ndarray | None:
     """Group points into axial columns (cluster id per point), or None if x is not clustered.
 
-    Columns are separated by gaps of the sorted x values larger than half the 99th-percentile
-    gap; a clustering with fewer than 3 points per column on average is rejected.
+    Columns are separated by gaps of the sorted x values larger than 0.3 times the largest
+    gap; the clustering is rejected (scattered data) unless every column has at least 3 points
+    and spans less in x than the narrowest gap between columns.
     """
     order = np.argsort(x, kind="stable")
-    gaps = np.diff(x[order])
+    xs = x[order]
+    gaps = np.diff(xs)
     if gaps.size < 3:
         return None
-    thr = 0.5 * float(np.quantile(gaps, 0.99))
+    thr = 0.3 * float(gaps.max())
     if thr <= 0.0:
         return None
     breaks = gaps > thr
     cid_sorted = np.concatenate([[0], np.cumsum(breaks)])
     n_col = int(cid_sorted[-1]) + 1
-    if n_col < 2 or x.size / n_col < 3.0:
+    if n_col < 2:
+        return None
+    counts = np.bincount(cid_sorted, minlength=n_col)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    spans = xs[starts + counts - 1] - xs[starts]
+    if counts.min() < 3 or spans.max() >= gaps[breaks].min():
         return None
     cid = np.empty_like(cid_sorted)
     cid[order] = cid_sorted
@@ -114,6 +122,32 @@ def _wall_spline(x_w: np.ndarray, r_w: np.ndarray):
     if xu.size < 4:
         return lambda q: np.interp(q, xu, ru)
     return CubicSpline(xu, ru, extrapolate=True)
+
+
+def _linear_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Piecewise-linear interpolation on the Delaunay triangulation of scattered 2-D points.
+
+    Returns (m, k) values at ``query`` (m, 2), NaN outside the triangulation. Uses matplotlib's
+    triangulation and trapezoid-map point location plus vectorised barycentric weights (scipy's
+    LinearNDInterpolator builds per-simplex LAPACK transforms, which crawl when OpenBLAS threads
+    compete on a loaded machine).
+    """
+    from matplotlib.tri import Triangulation  # ground-side dependency; only needed here
+
+    tri = Triangulation(xy[:, 0], xy[:, 1])
+    idx = np.asarray(tri.get_trifinder()(query[:, 0], query[:, 1]))
+    out = np.full((query.shape[0], values.shape[1]), np.nan)
+    ok = idx >= 0
+    v = tri.triangles[idx[ok]]
+    a, b, c = xy[v[:, 0]], xy[v[:, 1]], xy[v[:, 2]]
+    qa, ba, ca = query[ok] - a, b - a, c - a
+    det = ba[:, 0] * ca[:, 1] - ba[:, 1] * ca[:, 0]
+    l1 = (qa[:, 0] * ca[:, 1] - qa[:, 1] * ca[:, 0]) / det
+    l2 = (ba[:, 0] * qa[:, 1] - ba[:, 1] * qa[:, 0]) / det
+    l0 = 1.0 - l1 - l2
+    out[ok] = (l0[:, None] * values[v[:, 0]] + l1[:, None] * values[v[:, 1]]
+               + l2[:, None] * values[v[:, 2]])
+    return out
 
 
 def revolve_axisymmetric(x: np.ndarray, r: np.ndarray, u_x: np.ndarray, u_r: np.ndarray,
@@ -172,7 +206,7 @@ def revolve_axisymmetric(x: np.ndarray, r: np.ndarray, u_x: np.ndarray, u_r: np.
     vv = np.concatenate([vals, mirrored])
     rq = np.hypot(pts[:, 1], pts[:, 2])
     q = np.column_stack([pts[:, 0], rq])
-    out = LinearNDInterpolator(xy, vv)(q)
+    out = _linear_interpolate(xy, vv, q)
     bad = np.isnan(out[:, 0])
     if bad.any():
         _, idx = cKDTree(xy).query(q[bad])

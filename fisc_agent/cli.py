@@ -1,0 +1,139 @@
+"""``fisc-agent``: fly one vehicle through a FISC command map over MAVLink.
+
+Exit codes: 0 mission finished (or stopped by SIGINT/SIGTERM), 1 mission failed (e.g. could
+not arm), 2 invalid map, configuration or endpoint (the message names the failed check).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
+from fisc_agent.endpoints import EndpointError, parse_endpoint
+from fisc_agent.frames import GeodeticAnchor, parse_floats
+from fisc_agent.lookup import COMMAND_MODES
+from fisc_agent.mapfile import MapError, load_map
+from fisc_agent.mission import State
+
+log = logging.getLogger("fisc_agent")
+
+EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="fisc-agent", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--map", dest="map_path", required=True, help="command map file (.fiscmap)")
+    p.add_argument("--mavlink", required=True,
+                   help="autopilot endpoint: udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT, udp://:14540, "
+                        "serial:///dev/ttyUSB0:921600, /dev/ttyACM0:57600")
+    p.add_argument("--id", dest="agent_id", type=int, required=True, help="agent id N (slot and entry point)")
+    p.add_argument("--autopilot", choices=AUTOPILOTS, default="auto")
+    p.add_argument("--backend", choices=BACKENDS, default="pymavlink")
+    p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="command mode")
+    p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
+    p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
+    p.add_argument("--yaw", type=float, default=0.0, help="map x-axis direction, clockwise from North [deg]")
+    p.add_argument("--geodetic-anchor", help="map origin LAT,LON,ALT_AMSL,HEADING (uses GLOBAL_POSITION_INT)")
+    p.add_argument("--trusted-key", help="Ed25519 public key (.pub): the map must be signed by it")
+    p.add_argument("--max-speed", type=float, default=5.0, help="speed clamp [m/s]")
+    p.add_argument("--max-accel", type=float, default=3.0, help="acceleration clamp [m/s^2]")
+    p.add_argument("--join-speed", type=float, default=2.0, help="speed flying to the inlet [m/s]")
+    p.add_argument("--return-speed", type=float, default=1.0, help="speed returning to the map [m/s]")
+    p.add_argument("--climb-speed", type=float, default=1.0, help="PX4 takeoff climb rate [m/s]")
+    p.add_argument("--takeoff-alt", type=float, default=2.5, help="takeoff height above start [m]")
+    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="hold")
+    p.add_argument("--laps", type=int, default=0, help="with --exit-policy loop: passes before holding (0: no limit)")
+    p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default="hold", help="outside the map while flowing")
+    p.add_argument("--stale-timeout", type=float, default=0.5, help="position age that triggers a hold [s]")
+    p.add_argument("--hold-grace", type=float, default=2.0, help="zero-velocity hold before hold mode [s]")
+    p.add_argument("--link-timeout", type=float, default=3.0, help="HEARTBEAT age that means link lost [s]")
+    p.add_argument("--source-system", type=int, default=None, help="our MAVLink system id (default: the vehicle's)")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--max-duration", type=float, default=None, help="stop after this many seconds")
+    return p
+
+
+def config_from_args(a: argparse.Namespace) -> AgentConfig:
+    """Build and validate the config (``ValueError``/``EndpointError`` name the bad option)."""
+    parse_endpoint(a.mavlink)
+    anchor = GeodeticAnchor.parse(a.geodetic_anchor) if a.geodetic_anchor else None
+    return AgentConfig(
+        mavlink_url=a.mavlink, agent_id=a.agent_id, map_path=a.map_path, trusted_key=a.trusted_key,
+        autopilot=a.autopilot, backend=a.backend, mode=a.mode, rate_hz=a.rate,
+        origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
+        max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
+        return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
+        exit_policy=a.exit_policy, laps=a.laps, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
+        hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system)
+
+
+def make_link(cfg: AgentConfig):
+    """Open the configured backend's link to the autopilot."""
+    if cfg.backend == "mavsdk":
+        from fisc_agent.mavsdk_backend import MavsdkLink
+
+        return MavsdkLink(cfg.mavlink_url, anchor=cfg.geodetic_anchor)
+    from fisc_agent.link import MavlinkLink
+
+    return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
+                       anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz))
+
+
+def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: float | None = None) -> int:
+    """Load the map, connect, fly; returns the exit code."""
+    from fisc_agent.runner import Runner
+
+    try:
+        cmap = load_map(cfg.map_path, cfg.trusted_key) if cfg.map_path else None
+    except MapError as exc:
+        log.error("invalid map, refusing to start: %s", exc)
+        return EXIT_INVALID
+    if cmap is not None and not cmap.signed:
+        log.warning("map %s is not signed; its integrity (sha256) is checked, its origin is not", cfg.map_path)
+    link = make_link(cfg)
+    try:
+        runner = Runner(cfg, link, cmap)
+    except MapError as exc:
+        link.close()
+        log.error("invalid map, refusing to start: %s", exc)
+        return EXIT_INVALID
+    log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz", cfg.agent_id, cfg.mavlink_url,
+             cmap.sha256[:12] if cmap else "(none yet)", cfg.mode, cfg.rate_hz)
+    try:
+        final = runner.run(stop, max_duration_s=max_duration_s)
+    finally:
+        runner.shutdown()
+    if final == State.DONE and runner.mission.reason.startswith("failed"):
+        log.error("mission failed: %s", runner.mission.reason)
+        return EXIT_FAILED
+    log.info("fisc-agent stopped in %s (%s)", final.value, runner.mission.reason)
+    return EXIT_OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        cfg = config_from_args(args)
+    except (ValueError, EndpointError) as exc:
+        log.error("%s", exc)
+        return EXIT_INVALID
+    stop = threading.Event()
+
+    def _on_signal(signum, _frame):
+        log.info("signal %s: stopping (hold, then exit)", signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _on_signal)
+    return run(cfg, stop, args.max_duration)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,121 @@
+"""``AgentConfig``: everything the onboard agent needs to fly, validated on construction."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
+from fisc_agent.lookup import COMMAND_MODES
+
+AUTOPILOTS = ("auto", "px4", "ardupilot")
+BACKENDS = ("pymavlink", "mavsdk")
+EXIT_POLICIES = ("hold", "land", "loop")
+GEOFENCE_POLICIES = ("hold", "return")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Configuration of one ``fisc-agent`` (CLI flags map 1:1 to fields)."""
+
+    mavlink_url: str
+    """Autopilot endpoint (``udpin:0.0.0.0:14540``, ``udp://:14540``, ``/dev/ttyACM0:57600`` ...)."""
+    agent_id: int
+    """This agent's id N >= 0: selects its slot (slot mode) and its entry point in the inlet disc."""
+    map_path: str | None = None
+    """Command map file (.fiscmap); None when the map arrives over the network."""
+    trusted_key: str | None = None
+    """Ed25519 public key file (.pub); when set, maps must be signed by it."""
+    autopilot: str = "auto"
+    """``px4``, ``ardupilot`` or ``auto`` (from the autopilot's HEARTBEAT)."""
+    backend: str = "pymavlink"
+    """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
+    mode: str = "mean"
+    """Command mode: ``mean``, ``slot`` or ``interpolated`` (DESIGN.md section 3)."""
+    rate_hz: float = 20.0
+    """Setpoint rate [Hz]; PX4 needs > 2 Hz, ArduPilot's GUID_TIMEOUT needs > 1/3 Hz."""
+    origin_ned_m: tuple[float, float, float] = DEFAULT_ORIGIN_NED_M
+    """Local NED position of the map origin [m] (deployment transform)."""
+    yaw_deg: float = 0.0
+    """Map x-axis direction, clockwise from North [deg] (deployment transform)."""
+    geodetic_anchor: GeodeticAnchor | None = None
+    """Map origin as (lat, lon, alt AMSL, heading); then positions come from GLOBAL_POSITION_INT."""
+    max_speed_m_s: float = 5.0
+    """Speed clamp on every setpoint [m/s]."""
+    max_accel_m_s2: float = 3.0
+    """Acceleration clamp on every setpoint, |dv|/dt [m/s^2]."""
+    join_speed_m_s: float = 2.0
+    """Speed while flying to the inlet (JOIN, loop return) [m/s]."""
+    return_speed_m_s: float = 1.0
+    """Speed when flying back to the nearest CV (geofence ``return``) [m/s]."""
+    climb_speed_m_s: float = 1.0
+    """Climb rate of the PX4 offboard takeoff [m/s]."""
+    takeoff_alt_m: float = 2.5
+    """Takeoff height above the start position [m]."""
+    exit_policy: str = "hold"
+    """After the outlet: ``hold`` (autopilot hold mode), ``land``, or ``loop`` (back to the inlet)."""
+    laps: int = 0
+    """With ``loop``: number of passes before applying ``hold`` (0 = loop until told otherwise)."""
+    geofence: str = "hold"
+    """Leaving the map's CVs (not through the outlet) while flowing: ``hold`` or ``return``."""
+    stale_timeout_s: float = 0.5
+    """Position older than this is stale -> zero-velocity hold setpoints [s]."""
+    hold_grace_s: float = 2.0
+    """Stale this much longer -> request the autopilot's hold/loiter mode [s]."""
+    link_timeout_s: float = 3.0
+    """No autopilot HEARTBEAT for this long -> link lost (reported, mission holds) [s]."""
+    command_retry_s: float = 1.0
+    """Resend an unacknowledged or unsatisfied mode/arm/takeoff command after this [s]."""
+    command_timeout_s: float = 30.0
+    """Give up arming / entering offboard after this long (mission ends, reason logged) [s]."""
+    staging_m: float = 1.5
+    """Staging point distance upstream of the inlet plane [m]."""
+    keepout_margin_m: float = 1.0
+    """Margin around the tunnel's bounding box kept clear while joining [m]."""
+    waypoint_radius_m: float = 0.3
+    """Acceptance radius of join waypoints [m]."""
+    entry_radius_fraction: float = 0.6
+    """Entry points are spread over this fraction of the inlet radius."""
+    exit_clearance_m: float = 2.0
+    """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
+    source_system: int | None = None
+    """MAVLink system id of the agent; None = the vehicle's own id (companion convention)."""
+    source_component: int = 191
+    """MAVLink component id of the agent (191 = MAV_COMP_ID_ONBOARD_COMPUTER)."""
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, msg: str) -> None:
+            if not cond:
+                raise ValueError(f"config: {msg}")
+
+        need(isinstance(self.agent_id, int) and self.agent_id >= 0, f"agent id must be >= 0, is {self.agent_id!r}")
+        need(self.autopilot in AUTOPILOTS, f"autopilot must be one of {AUTOPILOTS}, is {self.autopilot!r}")
+        need(self.backend in BACKENDS, f"backend must be one of {BACKENDS}, is {self.backend!r}")
+        need(self.mode in COMMAND_MODES, f"mode must be one of {COMMAND_MODES}, is {self.mode!r}")
+        need(self.exit_policy in EXIT_POLICIES, f"exit policy must be one of {EXIT_POLICIES}")
+        need(self.geofence in GEOFENCE_POLICIES, f"geofence must be one of {GEOFENCE_POLICIES}")
+        need(2.0 < self.rate_hz <= 500.0, f"rate must be in (2, 500] Hz (PX4 needs > 2 Hz), is {self.rate_hz}")
+        for name in ("max_speed_m_s", "max_accel_m_s2", "join_speed_m_s", "return_speed_m_s", "climb_speed_m_s",
+                     "takeoff_alt_m", "stale_timeout_s", "link_timeout_s", "command_retry_s",
+                     "command_timeout_s", "waypoint_radius_m"):
+            v = getattr(self, name)
+            need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, f"{name} must be > 0, is {v!r}")
+        for name in ("hold_grace_s", "staging_m", "keepout_margin_m", "exit_clearance_m"):
+            v = getattr(self, name)
+            need(math.isfinite(v) and v >= 0, f"{name} must be >= 0, is {v!r}")
+        need(0.0 < self.entry_radius_fraction <= 1.0, "entry_radius_fraction must be in (0, 1]")
+        need(self.laps >= 0, "laps must be >= 0")
+        need(self.source_system is None or 1 <= self.source_system <= 255, "source_system must be 1..255")
+        need(0 <= self.source_component <= 255, "source_component must be 0..255")
+        DeploymentTransform(self.origin_ned_m, self.yaw_deg)  # validates
+
+    @property
+    def transform(self) -> DeploymentTransform:
+        """The deployment transform in use (anchor-NED when a geodetic anchor is set)."""
+        if self.geodetic_anchor is not None:
+            return self.geodetic_anchor.transform()
+        return DeploymentTransform(self.origin_ned_m, self.yaw_deg)
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz

@@ -1,0 +1,268 @@
+"""Onboard control core (pure): position -> CV -> command -> clamped velocity setpoint.
+
+``ScalarField`` is the single-agent fast path of ``lookup.CommandField`` (plain Python floats
+and lists, no numpy calls per step: an onboard computer flies one vehicle, and numpy costs
+about a microsecond per call).  It implements the same rules, and the tests check that both
+agree on every mode.  ``MapGeometry`` derives the inlet disc, outlet plane and bounding box the
+mission needs; ``entry_point`` and ``join_waypoints`` plan the way into the tunnel; the clamp
+functions bound every setpoint's speed and acceleration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fisc_agent.lookup import COMMAND_MODES, CommandField
+from fisc_agent.mapfile import MapError
+
+Vec = tuple[float, float, float]
+ZERO: Vec = (0.0, 0.0, 0.0)
+_MASK32 = 0xFFFFFFFF
+GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
+
+
+def slot_hash_scalar(agent_id: int, cv_id: int) -> int:
+    """Scalar ``lookup.slot_hash`` (same 32-bit mix, Python integers)."""
+    a, j = int(agent_id) & _MASK32, int(cv_id) & _MASK32
+    h = ((a * 0x9E3779B1) ^ (j * 0x85EBCA77 + 0x27D4EB2F)) & _MASK32
+    h ^= h >> 15
+    h = (h * 0x2C1B3C6D) & _MASK32
+    h ^= h >> 12
+    return h
+
+
+class ScalarField:
+    """One-point lookups on a ``CommandField`` (map frame), without numpy in the hot path."""
+
+    def __init__(self, field: CommandField) -> None:
+        self.field = field
+        self._ox, self._oy, self._oz = (float(v) for v in field.origin_m)
+        self._l = float(field.cell_size_m)
+        self._nx, self._ny, self._nz = (int(s) for s in field.grid_cv.shape)
+        self._grid: list[int] = np.asarray(field.grid_cv, dtype=np.int64).ravel().tolist()
+        self._mean: list[Vec] = [tuple(r) for r in np.asarray(field.mean_cmd_m_s, dtype=float).tolist()]
+        self._slot: list[list[Vec]] = [[tuple(v) for v in cv] for cv in np.asarray(field.slot_cmd_m_s, dtype=float).tolist()]
+        self._n_star: list[int] = np.asarray(field.n_star, dtype=np.int64).tolist()
+        self.centers: list[Vec] = [tuple(r) for r in np.asarray(field.centers_m, dtype=float).tolist()]
+
+    def _cell_id(self, i: int, j: int, k: int) -> int:
+        if 0 <= i < self._nx and 0 <= j < self._ny and 0 <= k < self._nz:
+            return self._grid[(i * self._ny + j) * self._nz + k]
+        return -1
+
+    def cv_of(self, x: float, y: float, z: float) -> int:
+        """CV id of a map-frame point, -1 outside the map's CVs (as ``CommandField.cv_of``)."""
+        l = self._l
+        return self._cell_id(math.floor((x - self._ox) / l), math.floor((y - self._oy) / l),
+                             math.floor((z - self._oz) / l))
+
+    def command(self, x: float, y: float, z: float, agent_id: int, mode: str = "mean",
+                cv: int | None = None) -> Vec | None:
+        """Commanded map-frame velocity [m/s] at a point; None outside the map's CVs."""
+        if cv is None:
+            cv = self.cv_of(x, y, z)
+        if cv < 0:
+            return None
+        if mode == "mean":
+            return self._mean[cv]
+        if mode == "slot":
+            return self._slot[cv][slot_hash_scalar(agent_id, cv) % self._n_star[cv]]
+        if mode == "interpolated":
+            return self._interpolate(x, y, z, cv)
+        raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
+
+    def _interpolate(self, x: float, y: float, z: float, cv: int) -> Vec:
+        l = self._l
+        fx, fy, fz = (x - self._ox) / l - 0.5, (y - self._oy) / l - 0.5, (z - self._oz) / l - 0.5
+        ix, iy, iz = math.floor(fx), math.floor(fy), math.floor(fz)
+        tx, ty, tz = fx - ix, fy - iy, fz - iz
+        ax = ay = az = wsum = 0.0
+        for dx in (0, 1):
+            wx = tx if dx else 1.0 - tx
+            for dy in (0, 1):
+                wy = ty if dy else 1.0 - ty
+                for dz in (0, 1):
+                    cid = self._cell_id(ix + dx, iy + dy, iz + dz)
+                    if cid < 0:
+                        continue
+                    w = wx * wy * (tz if dz else 1.0 - tz)
+                    m = self._mean[cid]
+                    ax += w * m[0]
+                    ay += w * m[1]
+                    az += w * m[2]
+                    wsum += w
+        if wsum > 1e-12:
+            return (ax / wsum, ay / wsum, az / wsum)
+        return self._mean[cv]
+
+    def nearest_cv(self, x: float, y: float, z: float, radius_cells: int = 2) -> int:
+        """Nearest CV: within ``radius_cells`` via ``nearest_cv_within``, else the global nearest centre."""
+        j = int(self.field.nearest_cv_within(np.array([[x, y, z]]), radius_cells)[0])
+        if j >= 0:
+            return j
+        d2 = np.sum((np.asarray(self.field.centers_m) - np.array([x, y, z])) ** 2, axis=1)
+        return int(np.argmin(d2))
+
+
+# ---- clamps and simple guidance --------------------------------------------------------
+def clamp_speed(v: Vec, max_speed_m_s: float) -> Vec:
+    """Scale ``v`` down so that |v| <= max_speed; non-finite input -> zero vector."""
+    vx, vy, vz = v
+    n2 = vx * vx + vy * vy + vz * vz
+    if not math.isfinite(n2):
+        return ZERO
+    if n2 > max_speed_m_s * max_speed_m_s:
+        k = max_speed_m_s / math.sqrt(n2)
+        return (vx * k, vy * k, vz * k)
+    return (vx, vy, vz)
+
+
+def clamp_velocity(v: Vec, v_prev: Vec, dt_s: float, max_speed_m_s: float, max_accel_m_s2: float) -> Vec:
+    """Speed clamp |v| <= max_speed, then acceleration clamp |v - v_prev| / dt <= max_accel.
+
+    With ``v_prev`` itself within the speed limit the result is too (the ball is convex).
+    """
+    vx, vy, vz = clamp_speed(v, max_speed_m_s)
+    dx, dy, dz = vx - v_prev[0], vy - v_prev[1], vz - v_prev[2]
+    dv2 = dx * dx + dy * dy + dz * dz
+    dv_max = max_accel_m_s2 * max(dt_s, 0.0)
+    if dv2 > dv_max * dv_max:
+        k = dv_max / math.sqrt(dv2)
+        return (v_prev[0] + dx * k, v_prev[1] + dy * k, v_prev[2] + dz * k)
+    return (vx, vy, vz)
+
+
+def goto_velocity(pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0) -> Vec:
+    """Proportional approach: ``gain * (target - pos)``, capped at ``speed_m_s``."""
+    return clamp_speed(((target[0] - pos[0]) * gain_1_s, (target[1] - pos[1]) * gain_1_s,
+                        (target[2] - pos[2]) * gain_1_s), speed_m_s)
+
+
+def distance(a: Vec, b: Vec) -> float:
+    return math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
+
+
+# ---- map geometry, entry point, join path ----------------------------------------------
+@dataclass(frozen=True)
+class MapGeometry:
+    """Where the tunnel is, derived from a map's CVs (map frame)."""
+
+    x_inlet_m: float
+    """Inlet plane: lower x face of the first CV slice [m]."""
+    x_outlet_m: float
+    """Outlet plane: upper x face of the last CV slice [m]."""
+    lo_m: Vec
+    """Lower corner of the CVs' bounding box [m]."""
+    hi_m: Vec
+    """Upper corner of the CVs' bounding box [m]."""
+    inlet_center_yz_m: tuple[float, float]
+    """(y, z) centre of the inlet disc [m]."""
+    inlet_radius_m: float
+    """Radius of the inlet disc: the first slice's CV centres, plus half a cell [m]."""
+    cell_size_m: float
+    """CV edge length [m]."""
+
+    @classmethod
+    def from_field(cls, field: CommandField) -> "MapGeometry":
+        c = np.asarray(field.centers_m, dtype=float)
+        h = 0.5 * float(field.cell_size_m)
+        first = c[np.asarray(field.centers_m)[:, 0] <= c[:, 0].min() + 1e-9]
+        cy, cz = float(first[:, 1].mean()), float(first[:, 2].mean())
+        r = float(np.max(np.hypot(first[:, 1] - cy, first[:, 2] - cz))) + h
+        lo, hi = c.min(axis=0) - h, c.max(axis=0) + h
+        return cls(x_inlet_m=float(lo[0]), x_outlet_m=float(hi[0]), lo_m=tuple(lo.tolist()),
+                   hi_m=tuple(hi.tolist()), inlet_center_yz_m=(cy, cz), inlet_radius_m=r,
+                   cell_size_m=float(field.cell_size_m))
+
+    def in_box(self, p: Vec, margin_m: float = 0.0) -> bool:
+        return all(self.lo_m[i] - margin_m <= p[i] <= self.hi_m[i] + margin_m for i in range(3))
+
+
+def entry_point(agent_id: int, geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
+                n_points: int = 32) -> Vec:
+    """Deterministic entry point of an agent in the inlet disc (first CV slice, map frame).
+
+    Points of a Vogel (golden-angle) spiral of ``n_points`` over ``radius_fraction`` of the
+    inlet radius; agent ``i`` takes point ``i mod n_points``.  Snapped to the nearest CV of the
+    first slice if the spiral point has no CV.
+    """
+    k = int(agent_id) % n_points
+    r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n_points)
+    th = k * GOLDEN_ANGLE_RAD
+    x = geom.x_inlet_m + 0.5 * geom.cell_size_m
+    y = geom.inlet_center_yz_m[0] + r * math.cos(th)
+    z = geom.inlet_center_yz_m[1] + r * math.sin(th)
+    if sfield.cv_of(x, y, z) >= 0:
+        return (x, y, z)
+    first = [c for c in sfield.centers if c[0] <= geom.x_inlet_m + geom.cell_size_m]
+    best = min(first, key=lambda c: (c[1] - y) ** 2 + (c[2] - z) ** 2)
+    return (x, best[1], best[2])
+
+
+def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1.5,
+                   margin_m: float = 1.0) -> list[Vec]:
+    """Waypoints from ``pos`` to ``entry`` that stay out of the tunnel until the inlet.
+
+    The keep-out region is the CVs' bounding box grown by ``margin_m``.  The staging point S
+    lies ``staging_m`` upstream of the inlet plane at the entry point's (y, z); the last leg
+    S -> entry crosses the inlet plane along +x.  From downstream of S, the vehicle first moves
+    vertically out of the box's z band (below it) if it is inside the band laterally, travels
+    along x at that level to the staging plane, then to S.  Returns ``[..., S, entry]``.
+    """
+    xs = geom.x_inlet_m - staging_m
+    stage = (xs, entry[1], entry[2])
+    wps: list[Vec] = []
+    x, y, z = pos
+    if x > xs:
+        lat_in = geom.lo_m[1] - margin_m <= y <= geom.hi_m[1] + margin_m
+        vert_in = geom.lo_m[2] - margin_m <= z <= geom.hi_m[2] + margin_m
+        if lat_in and vert_in:
+            z = geom.lo_m[2] - margin_m
+            wps.append((x, y, z))
+        wps.append((xs, y, z))
+    wps += [stage, entry]
+    return wps
+
+
+def check_map(field: CommandField, mode: str) -> list[str]:
+    """Agent-side checks of a decoded map's commands; raises ``MapError`` naming the check.
+
+    Returns warnings (strings) that do not prevent flight.
+    """
+    if mode not in COMMAND_MODES:
+        raise MapError(f"mode: unknown command mode {mode!r}")
+    n = field.n_cv
+    if n < 1:
+        raise MapError("n_cv: the map has no control volumes")
+    if not (math.isfinite(field.cell_size_m) and field.cell_size_m > 0):
+        raise MapError(f"grid: cell_size_m must be positive, is {field.cell_size_m}")
+    g = np.asarray(field.grid_cv)
+    if g.size and (g.min() < -1 or g.max() >= n):
+        raise MapError("grid_cv: CV ids out of range")
+    bad = np.flatnonzero(~np.all(np.isfinite(field.mean_cmd_m_s), axis=1))
+    if bad.size:
+        raise MapError(f"commands: non-finite mean command in CV {int(bad[0])}")
+    ns = np.asarray(field.n_star)
+    n_max = field.slot_cmd_m_s.shape[1]
+    if np.any(ns < 1) or np.any(ns > n_max):
+        raise MapError(f"n_star: values must lie in 1..{n_max}")
+    if mode == "slot":
+        k = np.arange(n_max)[None, :] < ns[:, None]
+        if not np.all(np.isfinite(field.slot_cmd_m_s[k])):
+            raise MapError("commands: non-finite fitted slot vector within N*")
+    warnings = []
+    ids = g[g >= 0]
+    if ids.size and np.unique(ids).size != n:
+        warnings.append("grid_cv does not reference every CV")
+    return warnings
+
+
+def max_command_speed(field: CommandField, mode: str) -> float:
+    """Largest commanded speed the map can ask for in ``mode`` [m/s]."""
+    if mode == "slot":
+        v = np.asarray(field.slot_cmd_m_s)
+        return float(np.nanmax(np.linalg.norm(v, axis=2)))
+    return float(np.max(np.linalg.norm(field.mean_cmd_m_s, axis=1)))

@@ -1,0 +1,207 @@
+"""The MAVLink link (pymavlink) and the interfaces the runner depends on.
+
+``PositionSource`` / ``SetpointSink`` / ``VehicleLink`` are the Protocols the runner uses; the
+pymavlink ``MavlinkLink`` implements them (``mavsdk_backend.MavsdkLink`` is the alternative).
+The link is non-blocking: ``poll()`` drains whatever arrived and updates the vehicle state; the
+control loop never waits on the network.
+
+Positions: LOCAL_POSITION_NED (EKF local frame), or, with a ``GeodeticAnchor``,
+GLOBAL_POSITION_INT converted to NED relative to the anchor.  Times are local monotonic
+receive times (age = now - receive time), so a delayed or frozen stream reads as stale.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass
+from typing import Callable, Protocol, runtime_checkable
+
+from fisc_agent.adapters import (MAV_CMD_SET_MESSAGE_INTERVAL, CommandLong, autopilot_from_heartbeat, is_armed)
+from fisc_agent.endpoints import Endpoint, parse_endpoint
+from fisc_agent.frames import GeodeticAnchor
+
+log = logging.getLogger(__name__)
+
+#: SET_POSITION_TARGET_LOCAL_NED type mask: use vx, vy, vz only; ignore position,
+#: acceleration, yaw and yaw rate (POSITION_TARGET_TYPEMASK_* in common.xml).
+TYPEMASK_VELOCITY_ONLY = (1 | 2 | 4) | (64 | 128 | 256) | 1024 | 2048  # = 0b0000110111000111 = 3527
+MAV_FRAME_LOCAL_NED = 1
+MSG_ID_LOCAL_POSITION_NED = 32
+MSG_ID_GLOBAL_POSITION_INT = 33
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+_NON_VEHICLE_TYPES = {6, 18, 26, 27}  # GCS, onboard controller, gimbal, ADSB
+MAX_MESSAGES_PER_POLL = 2000
+
+
+@dataclass(frozen=True)
+class PositionSample:
+    """One position fix in local NED (or anchor NED in geodetic mode)."""
+
+    t_s: float
+    """Local monotonic receive time [s]."""
+    pos_ned_m: tuple[float, float, float]
+    """Position [m]."""
+    vel_ned_m_s: tuple[float, float, float]
+    """Velocity [m/s]."""
+
+
+@runtime_checkable
+class PositionSource(Protocol):
+    def latest_position(self) -> PositionSample | None:
+        """The newest fix, or None if none arrived yet."""
+
+
+@runtime_checkable
+class SetpointSink(Protocol):
+    def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
+        """Send one velocity-only setpoint in MAV_FRAME_LOCAL_NED [m/s]."""
+
+
+class VehicleLink(PositionSource, SetpointSink, Protocol):
+    """Everything the runner needs from a link to one autopilot."""
+
+    autopilot: str | None
+    armed: bool
+    base_mode: int
+    custom_mode: int
+    last_heartbeat_t: float | None
+
+    def poll(self) -> int: ...
+    def send_command(self, cmd: CommandLong) -> None: ...
+    def send_heartbeat(self) -> None: ...
+    def pop_acks(self) -> list[tuple[int, int]]: ...
+    def close(self) -> None: ...
+
+
+def _import_mavutil():
+    # pymavlink picks MAVLink 1 or 2 from this variable at import; PX4 and ArduPilot speak 2.
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    if getattr(mavutil, "mavlink", None) is None or getattr(mavutil.mavlink, "WIRE_PROTOCOL_VERSION", "2.0") != "2.0":
+        mavutil.set_dialect("ardupilotmega")
+    return mavutil
+
+
+class MavlinkLink:
+    """pymavlink connection to one autopilot: vehicle state, positions, setpoints, commands."""
+
+    def __init__(self, endpoint: Endpoint | str, source_system: int | None = None, source_component: int = 191,
+                 anchor: GeodeticAnchor | None = None, position_rate_hz: float = 50.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.endpoint = parse_endpoint(endpoint) if isinstance(endpoint, str) else endpoint
+        self.anchor = anchor
+        self.clock = clock
+        self.position_rate_hz = position_rate_hz
+        self._fixed_source = source_system
+        mavutil = _import_mavutil()
+        kwargs = dict(source_system=source_system or 255, source_component=source_component, autoreconnect=True)
+        if self.endpoint.kind == "serial":
+            kwargs["baud"] = self.endpoint.baud
+        self.conn = mavutil.mavlink_connection(self.endpoint.device, **kwargs)
+        self.mav = self.conn.mav
+        self.autopilot: str | None = None
+        self.target_system: int | None = None
+        self.target_component: int = 1
+        self.armed = False
+        self.base_mode = 0
+        self.custom_mode = 0
+        self.last_heartbeat_t: float | None = None
+        self.heartbeats = 0
+        self._position: PositionSample | None = None
+        self._acks: list[tuple[int, int]] = []
+        self.status_texts: list[str] = []
+        self.setpoints_sent = 0
+
+    # ---- receive -------------------------------------------------------------------------
+    def poll(self) -> int:
+        """Drain received messages (non-blocking); returns how many were handled."""
+        n = 0
+        while n < MAX_MESSAGES_PER_POLL:
+            msg = self.conn.recv_msg()
+            if msg is None:
+                break
+            n += 1
+            self._handle(msg)
+        return n
+
+    def _handle(self, msg) -> None:
+        mtype = msg.get_type()
+        if mtype == "HEARTBEAT":
+            self._on_heartbeat(msg)
+            return
+        if self.target_system is not None and msg.get_srcSystem() != self.target_system:
+            return
+        if mtype == "LOCAL_POSITION_NED":
+            if self.anchor is None:
+                self._position = PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz))
+        elif mtype == "GLOBAL_POSITION_INT":
+            if self.anchor is not None:
+                ned = self.anchor.geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+                self._position = PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01))
+        elif mtype == "COMMAND_ACK":
+            self._acks.append((int(msg.command), int(msg.result)))
+        elif mtype == "STATUSTEXT":
+            text = str(msg.text).rstrip("\x00")
+            self.status_texts.append(text)
+            del self.status_texts[:-50]
+            log.info("autopilot: %s", text)
+
+    def _on_heartbeat(self, msg) -> None:
+        if msg.type in _NON_VEHICLE_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return
+        src = msg.get_srcSystem()
+        if self.target_system is None:
+            self.target_system, self.target_component = src, msg.get_srcComponent()
+            self.autopilot = autopilot_from_heartbeat(msg.autopilot)
+            log.info("autopilot found: system %d component %d (%s)", src, self.target_component,
+                     self.autopilot or f"MAV_AUTOPILOT {msg.autopilot}")
+            if self._fixed_source is None:
+                self.mav.srcSystem = src
+            self._request_position_stream()
+        elif src != self.target_system:
+            return
+        self.base_mode, self.custom_mode = int(msg.base_mode), int(msg.custom_mode)
+        self.armed = is_armed(msg.base_mode)
+        self.last_heartbeat_t = self.clock()
+        self.heartbeats += 1
+
+    def _request_position_stream(self) -> None:
+        msg_id = MSG_ID_GLOBAL_POSITION_INT if self.anchor is not None else MSG_ID_LOCAL_POSITION_NED
+        interval_us = 1e6 / self.position_rate_hz
+        self.send_command(CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), interval_us, 0, 0, 0, 0, 0),
+                                      "position message interval"))
+
+    def latest_position(self) -> PositionSample | None:
+        return self._position
+
+    def pop_acks(self) -> list[tuple[int, int]]:
+        acks, self._acks = self._acks, []
+        return acks
+
+    # ---- send ----------------------------------------------------------------------------
+    def velocity_setpoint_message(self, vn: float, ve: float, vd: float):
+        """The SET_POSITION_TARGET_LOCAL_NED message for a velocity-only setpoint."""
+        boot_ms = int(self.clock() * 1000) & 0xFFFFFFFF
+        return self.mav.set_position_target_local_ned_encode(
+            boot_ms, self.target_system or 1, self.target_component, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY,
+            0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
+        self.mav.send(self.velocity_setpoint_message(vn, ve, vd))
+        self.setpoints_sent += 1
+
+    def send_command(self, cmd: CommandLong) -> None:
+        p = cmd.params
+        self.mav.command_long_send(self.target_system or 1, self.target_component, cmd.command, 0,
+                                   p[0], p[1], p[2], p[3], p[4], p[5], p[6])
+
+    def send_heartbeat(self) -> None:
+        self.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
+
+    def close(self) -> None:
+        self.conn.close()

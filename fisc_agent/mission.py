@@ -1,0 +1,372 @@
+"""The mission state machine (pure: no I/O, time comes in with each status).
+
+::
+
+    WAIT_POSITION -> ARM -> TAKEOFF -> JOIN -> FLOW -> EXIT -> (hold) HOLD
+                                        ^        |  \\        -> (land) LAND -> DONE
+                                        |     RETURN \\-------> (loop) JOIN ...
+                                        +--------------------------------+
+    any flying state -> HOLD (failsafe or fleet "hold") -> previous state (auto or "resume")
+    any armed state  -> LAND (fleet "land");  disarmed in flight -> DONE
+
+Each ``step(status)`` returns a ``MissionOutput``: the map-frame velocity to stream (None: do
+not stream), the autopilot mode and arming state wanted (reconciled by
+``adapters.Commander``), and, for ArduPilot, the takeoff height.  Velocities are *unclamped*;
+the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
+
+Holds: ``zero`` stage (zero-velocity setpoints, the vehicle stays in offboard/guided) for
+``hold_grace_s``, then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
+position resumes by itself if the fix returns before that escalation; every other hold
+(escalated, link lost, geofence, exit, fleet, pilot override) waits for a fleet ``resume``.
+If the pilot switches the vehicle out of offboard/guided, the agent stops requesting modes
+("hands off") until resumed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+from fisc_agent.config import AgentConfig
+from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, goto_velocity,
+                                join_waypoints)
+from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+
+log = logging.getLogger(__name__)
+
+FLEET_COMMANDS = ("hold", "resume", "land")
+
+
+class State(str, Enum):
+    WAIT_POSITION = "WAIT_POSITION"
+    ARM = "ARM"
+    TAKEOFF = "TAKEOFF"
+    JOIN = "JOIN"
+    FLOW = "FLOW"
+    RETURN = "RETURN"
+    EXIT = "EXIT"
+    HOLD = "HOLD"
+    LAND = "LAND"
+    DONE = "DONE"
+
+
+FLYING = frozenset({State.TAKEOFF, State.JOIN, State.FLOW, State.RETURN, State.EXIT})
+"""States in which the agent commands the vehicle in offboard/guided."""
+
+
+@dataclass(frozen=True)
+class VehicleStatus:
+    """What the mission sees each tick (map frame)."""
+
+    t_s: float
+    """Monotonic time [s]."""
+    pos_m: Vec | None
+    """Newest position, map frame [m]; None if never received."""
+    vel_m_s: Vec | None
+    """Newest velocity, map frame [m/s]."""
+    position_age_s: float
+    """Age of the newest position [s]; inf if none."""
+    heartbeat_age_s: float
+    """Age of the newest autopilot HEARTBEAT [s]; inf if none."""
+    autopilot: str | None
+    """``px4``, ``ardupilot`` or None while unknown."""
+    armed: bool
+    """Armed flag from the HEARTBEAT."""
+    mode: str
+    """Autopilot mode class: ``offboard`` (PX4 OFFBOARD / ArduPilot GUIDED), ``hold``, ``land``,
+    ``other`` or ``unknown``."""
+
+
+@dataclass(frozen=True)
+class MissionOutput:
+    """What the mission wants this tick."""
+
+    state: State
+    """State after this step."""
+    velocity_m_s: Vec | None
+    """Map-frame velocity setpoint to stream (unclamped); None = stream nothing."""
+    want_mode: str | None
+    """``offboard``, ``hold``, ``land`` or None (leave the mode alone)."""
+    want_armed: bool | None
+    """True to arm; None = leave alone."""
+    takeoff_alt_m: float | None
+    """ArduPilot: takeoff height above home to command; None otherwise."""
+    cv_id: int
+    """CV of the vehicle, -1 outside the map (or no position/map)."""
+    reason: str
+    """Why the mission is in this state (last transition's reason)."""
+
+
+@dataclass(frozen=True)
+class Transition:
+    t_s: float
+    src: State
+    dst: State
+    reason: str
+
+
+class Mission:
+    """One vehicle's mission.  Feed ``step`` a ``VehicleStatus`` at the control rate."""
+
+    def __init__(self, cfg: AgentConfig, sfield: ScalarField | None = None) -> None:
+        self.cfg = cfg
+        self.state = State.WAIT_POSITION
+        self.reason = "start"
+        self.transitions: list[Transition] = []
+        self.laps = 0
+        self._pending: list[str] = []
+        self._t_state = 0.0
+        self._home: Vec | None = None
+        self._waypoints: list[Vec] = []
+        self._wp_index = 0
+        self._target: Vec | None = None
+        self._offboard_seen = False
+        # hold bookkeeping
+        self._resume_state = State.WAIT_POSITION
+        self._hold_latched = False
+        self._hold_escalated = False
+        self._hands_off = False
+        self._hold_armed = False
+        self.sfield: ScalarField | None = None
+        self.geom: MapGeometry | None = None
+        self.entry: Vec | None = None
+        self._last_pos: Vec | None = None
+        if sfield is not None:
+            self.set_map(sfield)
+
+    # ---- inputs from outside -----------------------------------------------------------
+    def set_map(self, sfield: ScalarField) -> None:
+        """Use a new map from the next step (plans depending on the map are redone)."""
+        self.sfield = sfield
+        self.geom = MapGeometry.from_field(sfield.field)
+        self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
+        if self._last_pos is not None and self.state == State.JOIN:
+            self._plan_join(self._last_pos)
+        if self._last_pos is not None and self.state == State.RETURN:
+            self._plan_return(self._last_pos)
+
+    def command(self, name: str) -> None:
+        """Queue a fleet command (``hold``, ``resume``, ``land``); applied at the next step."""
+        if name not in FLEET_COMMANDS:
+            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
+        self._pending.append(name)
+
+    # ---- transitions ---------------------------------------------------------------------
+    def _go(self, t: float, dst: State, reason: str) -> None:
+        if dst == self.state and reason == self.reason:
+            return
+        self.transitions.append(Transition(t, self.state, dst, reason))
+        log.info("mission %s -> %s (%s)", self.state.value, dst.value, reason)
+        self.state, self.reason, self._t_state = dst, reason, t
+
+    def _hold(self, t: float, reason: str, latched: bool, armed: bool, hands_off: bool = False) -> None:
+        if self.state != State.HOLD:
+            self._resume_state = self.state
+            self._hold_escalated = False
+        if self.state == State.HOLD:
+            self._hold_latched = self._hold_latched or latched
+        else:
+            self._hold_latched = latched
+        self._hands_off = hands_off or (self._hands_off and self.state == State.HOLD)
+        self._hold_armed = armed
+        self._go(t, State.HOLD, reason)
+
+    def _plan_join(self, pos: Vec) -> None:
+        assert self.geom is not None and self.entry is not None
+        self._waypoints = join_waypoints(pos, self.entry, self.geom, self.cfg.staging_m, self.cfg.keepout_margin_m)
+        self._wp_index = 0
+
+    def _plan_return(self, pos: Vec) -> None:
+        assert self.sfield is not None
+        self._target = self.sfield.centers[self.sfield.nearest_cv(*pos)]
+
+    def _enter(self, t: float, dst: State, reason: str, pos: Vec | None) -> None:
+        if dst == State.JOIN and pos is not None:
+            self._plan_join(pos)
+        elif dst == State.RETURN and pos is not None:
+            self._plan_return(pos)
+        elif dst == State.EXIT and pos is not None and self.geom is not None:
+            self._target = (self.geom.x_outlet_m + self.cfg.exit_clearance_m, pos[1], pos[2])
+        self._go(t, dst, reason)
+
+    # ---- the step ------------------------------------------------------------------------
+    def step(self, s: VehicleStatus) -> MissionOutput:
+        t, cfg = s.t_s, self.cfg
+        pos = s.pos_m
+        if pos is not None:
+            self._last_pos = pos
+        cv = self.sfield.cv_of(*pos) if (pos is not None and self.sfield is not None) else -1
+        ph = position_health(s.position_age_s, cfg.stale_timeout_s, cfg.hold_grace_s)
+        lk = link_ok(s.heartbeat_age_s, cfg.link_timeout_s)
+
+        for name in self._pending:
+            self._fleet(t, name, s, pos, ph)
+        self._pending.clear()
+
+        # -- failsafes in the air ------------------------------------------------------------
+        if self.state in FLYING or self.state == State.HOLD:
+            if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
+                self._go(t, State.DONE, "disarmed in flight (landed or killed by the autopilot/pilot)")
+            elif not lk:
+                if self.state != State.HOLD or self.reason != "link lost":
+                    log.warning("link lost: no autopilot HEARTBEAT for %.1f s; the autopilot's offboard-loss "
+                                "failsafe is in charge", s.heartbeat_age_s)
+                    self._hold(t, "link lost", latched=True, armed=s.armed or self._hold_armed)
+                    self._hold_escalated = True
+            elif ph != PositionHealth.OK:
+                if self.state != State.HOLD:
+                    self._hold(t, "position stale", latched=False, armed=s.armed)
+                if ph == PositionHealth.LOST and not self._hold_escalated and not self._hands_off:
+                    self._hold_escalated = True
+                    self._hold_latched = True
+                    log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
+            elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
+                self._auto_resume(t, pos)
+            elif (self.state in FLYING and self._offboard_seen and s.mode not in ("offboard", "unknown")):
+                self._hold(t, f"pilot override (mode {s.mode})", latched=True, armed=s.armed, hands_off=True)
+
+        st = self.state
+        if st in FLYING and s.mode == "offboard":
+            self._offboard_seen = True
+
+        vel: Vec | None = None
+        want_mode: str | None = None
+        want_armed: bool | None = None
+        takeoff: float | None = None
+        by_command = s.autopilot == "ardupilot"
+
+        if st == State.WAIT_POSITION:
+            if lk and s.autopilot and ph == PositionHealth.OK and self.sfield is not None and pos is not None:
+                if s.armed:
+                    self._offboard_seen = s.mode == "offboard"
+                    self._enter(t, State.FLOW if cv >= 0 else State.JOIN, "already flying: taking over", pos)
+                else:
+                    self._home = pos
+                    self._offboard_seen = False
+                    self._go(t, State.ARM, f"position and {s.autopilot} heartbeat received")
+        elif st == State.ARM:
+            vel = None if by_command else ZERO
+            want_mode, want_armed = "offboard", True
+            if s.armed and s.mode == "offboard":
+                self._offboard_seen = True
+                self._go(t, State.TAKEOFF, "armed in offboard/guided")
+            elif t - self._t_state > cfg.command_timeout_s:
+                self._go(t, State.DONE, f"failed: not armed in offboard/guided after {cfg.command_timeout_s:.0f} s")
+        elif st == State.TAKEOFF:
+            want_mode, want_armed = "offboard", True
+            home = self._home if self._home is not None else pos
+            target_z = home[2] + cfg.takeoff_alt_m
+            if by_command:
+                takeoff = cfg.takeoff_alt_m
+                done = pos[2] >= home[2] + 0.9 * cfg.takeoff_alt_m
+            else:
+                vx, vy, _ = goto_velocity(pos, home, cfg.join_speed_m_s)
+                vel = (vx, vy, min(cfg.climb_speed_m_s, max(0.2, 1.5 * (target_z - pos[2]))))
+                done = pos[2] >= target_z - 0.1
+            if done:
+                self._enter(t, State.JOIN, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached", pos)
+        elif st == State.JOIN:
+            want_mode = "offboard"
+            last = len(self._waypoints) - 1
+            while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
+                self._wp_index += 1
+            if self._wp_index == last and cv >= 0:
+                self._go(t, State.FLOW, f"entered the map at CV {cv}")
+                st = State.FLOW
+            else:
+                vel = goto_velocity(pos, self._waypoints[self._wp_index], cfg.join_speed_m_s)
+                if self._wp_index == last:  # final leg: keep at least a crawl across the inlet plane
+                    vel = (max(vel[0], 0.3), vel[1], vel[2])
+        elif st == State.RETURN:
+            want_mode = "offboard"
+            if cv >= 0:
+                self._go(t, State.FLOW, f"back in the map at CV {cv}")
+                st = State.FLOW
+            else:
+                vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
+        elif st == State.EXIT:
+            want_mode = "offboard"
+            vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
+            if distance(pos, self._target) < cfg.waypoint_radius_m:
+                if cfg.exit_policy == "land":
+                    self._go(t, State.LAND, "exit: landing")
+                    st = State.LAND
+                else:
+                    self._hold(t, "exit: holding after the outlet", latched=True, armed=s.armed)
+                    self._hold_escalated = True
+                    st = State.HOLD
+        if st == State.FLOW:
+            want_mode = "offboard"
+            verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
+            if verdict == GeofenceVerdict.INSIDE:
+                vel = self.sfield.command(pos[0], pos[1], pos[2], cfg.agent_id, cfg.mode, cv)
+            elif verdict == GeofenceVerdict.EXIT:
+                self.laps += 1
+                if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
+                    self._enter(t, State.JOIN, f"lap {self.laps} done: back to the inlet", pos)
+                else:
+                    self._enter(t, State.EXIT, f"passed the outlet (lap {self.laps})", pos)
+                vel = goto_velocity(pos, self._waypoints[0] if self.state == State.JOIN else self._target,
+                                    cfg.join_speed_m_s)
+            elif verdict == GeofenceVerdict.RETURN:
+                self._enter(t, State.RETURN, "geofence: outside the map, returning to the nearest CV", pos)
+                vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
+            else:
+                self._hold(t, "geofence: outside the map", latched=True, armed=s.armed)
+                st = State.HOLD
+                vel = None
+        if self.state == State.HOLD:
+            vel, want_mode, want_armed, takeoff = self._hold_output(t)
+        elif self.state == State.LAND:
+            vel, want_mode = None, "land"
+            if not s.armed:
+                self._go(t, State.DONE, "landed and disarmed")
+        if self.state == State.DONE:
+            vel, want_mode, want_armed, takeoff = None, None, None, None
+        return MissionOutput(self.state, vel, want_mode, want_armed, takeoff, cv, self.reason)
+
+    def _hold_output(self, t: float) -> tuple[Vec | None, str | None, bool | None, float | None]:
+        if self._hands_off or not self._hold_armed:
+            return None, None, None, None
+        if not self._hold_escalated and t - self._t_state >= self.cfg.hold_grace_s:
+            self._hold_escalated = True
+            self._hold_latched = True
+            log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
+        if self._hold_escalated:
+            return None, "hold", None, None
+        return ZERO, "offboard", None, None
+
+    def _auto_resume(self, t: float, pos: Vec | None) -> None:
+        self._enter(t, self._resume_state, "position fix back", pos)
+
+    def _fleet(self, t: float, name: str, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        log.info("fleet command %r in state %s", name, self.state.value)
+        if name == "hold":
+            if self.state in FLYING or self.state == State.HOLD:
+                self._hold(t, "fleet hold", latched=True, armed=s.armed or self._hold_armed)
+            elif self.state in (State.WAIT_POSITION, State.ARM):
+                self._hold(t, "fleet hold (on the ground)", latched=True, armed=s.armed)
+                self._resume_state = State.WAIT_POSITION
+        elif name == "land":
+            if s.armed and self.state != State.DONE:
+                self._go(t, State.LAND, "fleet land")
+            elif self.state != State.DONE:
+                self._go(t, State.DONE, "fleet land while disarmed")
+        elif name == "resume":
+            if self.state != State.HOLD:
+                return
+            if ph != PositionHealth.OK:
+                log.warning("fleet resume refused: position is %s", ph.value)
+                return
+            nxt = self._resume_state
+            if self.reason.startswith("geofence"):
+                nxt = State.RETURN
+            elif self.reason.startswith("exit"):
+                nxt = State.JOIN
+            elif nxt == State.FLOW and self.sfield is not None and pos is not None and self.sfield.cv_of(*pos) < 0:
+                nxt = State.RETURN
+            self._hands_off = False
+            self._offboard_seen = False
+            self._enter(t, nxt, "fleet resume", pos)

@@ -1,0 +1,294 @@
+"""The agent loop: link -> mission -> clamp -> transform -> setpoint, at a steady rate.
+
+``Runner.step()`` is one tick (non-blocking); ``Runner.run()`` calls it on a monotonic-deadline
+schedule (no drift: deadlines are ``start + k * period``; an overrun of more than a period
+re-synchronises instead of bursting).  Other threads (the Zenoh side) talk to a running
+``Runner`` only through three thread-safe methods:
+
+- ``offer_map(cmap)``: a new map; checked now, swapped in atomically between two ticks.
+- ``fleet_command(name)``: ``hold`` / ``resume`` / ``land``, applied at the next tick.
+- ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from fisc_agent.adapters import Adapter, Commander, adapter_for
+from fisc_agent.config import AgentConfig
+from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
+from fisc_agent.link import VehicleLink
+from fisc_agent.lookup import CommandField
+from fisc_agent.mapfile import CommandMap, MapError
+from fisc_agent.mission import FLEET_COMMANDS, FLYING, Mission, MissionOutput, State, VehicleStatus
+
+log = logging.getLogger(__name__)
+
+HEARTBEAT_PERIOD_S = 1.0
+
+
+@dataclass(frozen=True)
+class AgentSnapshot:
+    """Telemetry of one agent at one tick."""
+
+    time_s: float
+    """Monotonic time of the tick [s]."""
+    wall_time_s: float
+    """UNIX time of the tick [s]."""
+    agent_id: int
+    """The agent's id."""
+    state: str
+    """Mission state name."""
+    reason: str
+    """Why the mission is in that state."""
+    position_map_m: Vec | None
+    """Position in the map frame [m] (None before the first fix)."""
+    velocity_map_m_s: Vec | None
+    """Measured velocity in the map frame [m/s]."""
+    setpoint_map_m_s: Vec | None
+    """Clamped velocity setpoint sent this tick, map frame [m/s] (None: none sent)."""
+    cv_id: int
+    """CV the vehicle is in, -1 outside the map."""
+    map_sha256: str | None
+    """sha256 of the map in use."""
+    map_version: int | None
+    """map_version of the map in use."""
+    link_ok: bool
+    """Autopilot HEARTBEATs are arriving."""
+    heartbeat_age_s: float
+    """Age of the newest autopilot HEARTBEAT [s] (inf: never)."""
+    position_age_s: float
+    """Age of the newest position fix [s] (inf: never)."""
+    autopilot: str | None
+    """``px4`` / ``ardupilot`` once known."""
+    armed: bool
+    """Armed flag from the HEARTBEAT."""
+    mode: str
+    """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
+    laps: int
+    """Completed passes through the tunnel."""
+
+
+class Runner:
+    """Wires a ``VehicleLink``, a ``Mission`` and the control core together."""
+
+    def __init__(self, cfg: AgentConfig, link: VehicleLink, cmap: CommandMap | None = None,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 wall_clock: Callable[[], float] = time.time) -> None:
+        self.cfg = cfg
+        self.link = link
+        self.clock, self.sleep, self.wall_clock = clock, sleep, wall_clock
+        self.transform = cfg.transform
+        self.mission = Mission(cfg)
+        self.adapter: Adapter | None = None
+        self.commander: Commander | None = None
+        self.cmap: CommandMap | None = None
+        self._lock = threading.Lock()
+        self._pending_map: tuple[CommandMap, ScalarField] | None = None
+        self._pending_cmds: list[str] = []
+        self._snapshot: AgentSnapshot | None = None
+        self._last_sp: Vec = ZERO
+        self._last_sp_t = 0.0
+        self._stream_start: float | None = None
+        self._last_hb_sent = -math.inf
+        self._link_was_ok = False
+        self.ticks = 0
+        self.overruns = 0
+        if cmap is not None:
+            if not self.offer_map(cmap):
+                raise MapError("map was refused")
+            self._apply_pending()
+
+    # ---- thread-safe API ---------------------------------------------------------------
+    def offer_map(self, cmap: CommandMap) -> bool:
+        """Check a map and queue it for an atomic swap at the next tick.
+
+        Refused (False, reason logged) when it fails the agent's checks or is older
+        (``map_version``) than the map in use; the same map again is accepted as a no-op.
+        """
+        current = self._pending_map[0] if self._pending_map is not None else self.cmap
+        if current is not None and cmap.sha256 == current.sha256:
+            return True
+        if current is not None and cmap.map_version < current.map_version:
+            log.warning("map %s refused: version %d is older than %d in use", cmap.sha256[:12], cmap.map_version,
+                        current.map_version)
+            return False
+        try:
+            field = CommandField.from_map(cmap)
+            for w in check_map(field, self.cfg.mode):
+                log.warning("map %s: %s", cmap.sha256[:12], w)
+        except (MapError, ValueError, KeyError) as exc:
+            log.error("map %s refused: %s", cmap.sha256[:12], exc)
+            return False
+        vmax = max_command_speed(field, self.cfg.mode)
+        if vmax > self.cfg.max_speed_m_s:
+            log.warning("map commands up to %.2f m/s, above max speed %.2f m/s: setpoints will be clamped",
+                        vmax, self.cfg.max_speed_m_s)
+        with self._lock:
+            self._pending_map = (cmap, ScalarField(field))
+        return True
+
+    def fleet_command(self, name: str) -> None:
+        """Queue ``hold``, ``resume`` or ``land`` for the next tick."""
+        if name not in FLEET_COMMANDS:
+            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
+        with self._lock:
+            self._pending_cmds.append(name)
+
+    def snapshot(self) -> AgentSnapshot | None:
+        """The latest telemetry snapshot (None before the first tick)."""
+        return self._snapshot
+
+    # ---- the tick ------------------------------------------------------------------------
+    def _apply_pending(self) -> list[str]:
+        with self._lock:
+            pending, self._pending_map = self._pending_map, None
+            cmds, self._pending_cmds = self._pending_cmds, []
+        if pending is not None:
+            old = self.cmap
+            self.cmap = pending[0]
+            self.mission.set_map(pending[1])
+            log.info("map in use: version %d sha256 %s (%d CVs)%s", self.cmap.map_version, self.cmap.sha256[:12],
+                     self.cmap.n_cv, f", replacing {old.sha256[:12]}" if old is not None else "")
+        return cmds
+
+    def _ensure_adapter(self) -> None:
+        if self.adapter is not None:
+            return
+        seen = self.link.autopilot
+        if self.cfg.autopilot != "auto":
+            if seen is not None and seen != self.cfg.autopilot:
+                log.warning("--autopilot %s given but the HEARTBEAT says %s; using %s", self.cfg.autopilot, seen,
+                            self.cfg.autopilot)
+            if self.link.last_heartbeat_t is None:
+                return
+            name = self.cfg.autopilot
+        elif seen is None:
+            if self.link.last_heartbeat_t is not None and self.ticks % 100 == 0:
+                log.warning("autopilot is neither PX4 nor ArduPilot; pass --autopilot")
+            return
+        else:
+            name = seen
+        self.adapter = adapter_for(name)
+        self.commander = Commander(self.adapter, self.link.send_command, self.cfg.command_retry_s)
+        log.info("using the %s adapter", name)
+
+    def step(self) -> MissionOutput:
+        """One control tick."""
+        now = self.clock()
+        cmds = self._apply_pending()
+        for name in cmds:
+            self.mission.command(name)
+        link = self.link
+        link.poll()
+        self._ensure_adapter()
+        for command, result in link.pop_acks():
+            if self.commander is not None:
+                self.commander.on_ack(command, result)
+        hb_age = now - link.last_heartbeat_t if link.last_heartbeat_t is not None else math.inf
+        mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
+                if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
+        sample = link.latest_position()
+        tf = self.transform
+        if sample is not None:
+            pos: Vec | None = tf.ned_to_map_xyz(*sample.pos_ned_m)
+            vel: Vec | None = tf.vel_ned_to_map_xyz(*sample.vel_ned_m_s)
+            pos_age = now - sample.t_s
+        else:
+            pos = vel = None
+            pos_age = math.inf
+        link_ok = hb_age <= self.cfg.link_timeout_s
+        if link_ok != self._link_was_ok:
+            (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
+            self._link_was_ok = link_ok
+        status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
+                               link.armed, mode)
+        out = self.mission.step(status)
+
+        sp: Vec | None = None
+        if out.velocity_m_s is not None:
+            if self._stream_start is None:
+                self._stream_start = now
+                v_prev = vel if (vel is not None and pos_age <= self.cfg.stale_timeout_s) else ZERO
+                dt = self.cfg.period_s
+            else:
+                v_prev = self._last_sp
+                dt = min(now - self._last_sp_t, 2.0 * self.cfg.period_s)
+            sp = clamp_velocity(out.velocity_m_s, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
+            link.send_velocity_ned(*tf.vel_map_to_ned_xyz(*sp))
+            self._last_sp, self._last_sp_t = sp, now
+        else:
+            self._stream_start = None
+        stream_s = now - self._stream_start if self._stream_start is not None else 0.0
+        if self.commander is not None and link_ok:
+            self.commander.reconcile(now, out.want_mode, out.want_armed, out.takeoff_alt_m, link.armed, mode,
+                                     stream_s)
+        if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
+            link.send_heartbeat()
+            self._last_hb_sent = now
+        cmap = self.cmap
+        self._snapshot = AgentSnapshot(
+            time_s=now, wall_time_s=self.wall_clock(), agent_id=self.cfg.agent_id, state=out.state.value,
+            reason=out.reason, position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
+            map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
+            link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
+            autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
+            laps=self.mission.laps)
+        self.ticks += 1
+        return out
+
+    # ---- loop and shutdown ---------------------------------------------------------------
+    def run(self, stop: threading.Event | None = None, until_done: bool = True,
+            max_duration_s: float | None = None) -> State:
+        """Tick at ``cfg.rate_hz`` until ``stop`` is set, the mission is DONE (``until_done``),
+        or ``max_duration_s`` passed.  Returns the final mission state."""
+        stop = stop or threading.Event()
+        period = self.cfg.period_s
+        start = next_t = self.clock()
+        while not stop.is_set():
+            self.step()
+            if until_done and self.mission.state == State.DONE:
+                break
+            now = self.clock()
+            if max_duration_s is not None and now - start >= max_duration_s:
+                break
+            next_t += period
+            if next_t < now - period:
+                self.overruns += 1
+                log.debug("control loop overrun (%.1f ms late); re-synchronising", (now - next_t) * 1e3)
+                next_t = now
+            elif next_t > now:
+                self.sleep(next_t - now)
+        return self.mission.state
+
+    def shutdown(self, settle_s: float = 0.3) -> None:
+        """Leave the vehicle safe: zero-velocity setpoints, then the autopilot's hold mode.
+
+        Called on SIGINT/SIGTERM and at the end of ``run``.  A vehicle that is landing, on the
+        ground (disarmed) or under pilot control is left alone.
+        """
+        link = self.link
+        try:
+            link.poll()
+            state = self.mission.state
+            flying = link.armed and (state in FLYING or (state == State.HOLD and not self.mission._hands_off))
+            if flying and self.adapter is not None:
+                log.info("shutdown: zero-velocity hold, then the autopilot's hold mode")
+                t_end = self.clock() + settle_s
+                cmd = self.adapter.set_mode("hold")
+                while True:
+                    link.send_velocity_ned(0.0, 0.0, 0.0)
+                    link.send_command(cmd)
+                    link.poll()
+                    if self.adapter.classify_mode(link.base_mode, link.custom_mode) == "hold" or self.clock() >= t_end:
+                        break
+                    self.sleep(0.05)
+                if self.adapter.classify_mode(link.base_mode, link.custom_mode) != "hold":
+                    log.warning("shutdown: hold mode not confirmed; the autopilot's offboard-loss failsafe applies")
+        finally:
+            link.close()

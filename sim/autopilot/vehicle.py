@@ -1,0 +1,642 @@
+"""Emulated multicopter: flight-mode state machine, arming, takeoff/land, failsafes, physics.
+
+Pure: no sockets, no wall clock.  Every public method takes the simulated time ``t_s``
+(seconds, non-decreasing) and first advances the physics to it, so a unit test drives the
+vehicle with a fake clock exactly as the MAVLink server drives it with ``time.monotonic``.
+
+Physics: a point mass in local NED.  The realised velocity comes from the paper's
+:class:`sim.plant.VelocityPlant` (velocity command in, velocity out, speed/tilt/thrust limits
+inside the plant); position integrates velocity.  Flat ground at ``D = 0``: the vehicle cannot
+go below it; while on the ground and not commanded to climb it sits still (landed).  A vehicle
+disarmed in the air falls.  Fixed physics step (``VehicleConfig.physics_dt_s``, zero-order hold
+of the command over it).
+
+Rules (see docs/autopilot_emulator.md for the full list):
+
+* arming needs a position estimate and an armable mode; disarming in the air needs force;
+* PX4 OFFBOARD can only be entered while setpoints stream (last one younger than
+  ``offboard_stream_window_s``); in OFFBOARD, no setpoint for ``COM_OF_LOSS_T`` triggers the
+  ``COM_OBL_RC_ACT`` action (default: Hold = AUTO.LOITER, zero velocity);
+* ArduPilot GUIDED: NAV_TAKEOFF climbs to the altitude at ``WPNAV_SPEED_UP``; velocity targets
+  older than ``GUID_TIMEOUT`` are replaced by zero velocity (the vehicle stops);
+* LAND descends and disarms on the ground; auto-disarm after landing / when armed but never
+  taken off; GCS heartbeat-loss failsafe (PX4 ``NAV_DLL_ACT``, ArduPilot ``FS_GCS_ENABLE``).
+
+Many vehicles: each :class:`Vehicle` owns a 1-agent plant; the state is a handful of small
+arrays and scalars, so a future batched stepper can gather them into one (N, 3)
+:class:`~sim.plant.VelocityPlant` without changing the rules.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim.autopilot.personalities import FlightMode, Personality
+from sim.plant import PlantParams, VelocityPlant
+
+__all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
+
+_log = logging.getLogger(__name__)
+
+ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
+TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+DENIED = mavlink.MAV_RESULT_DENIED
+UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
+FAILED = mavlink.MAV_RESULT_FAILED
+
+_NAN3 = (math.nan, math.nan, math.nan)
+
+# modes in which a vehicle may be armed (PX4 and ArduPilot refuse LAND/RTL; BRAKE is not armable)
+_NOT_ARMABLE = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.BRAKE})
+# modes whose velocity command is "hold": zero velocity
+_HOLD_MODES = frozenset(
+    {FlightMode.LOITER, FlightMode.AUTO_READY, FlightMode.MISSION, FlightMode.BRAKE,
+     FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ACRO, FlightMode.ALTCTL, FlightMode.POSCTL}
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Result of a command: a MAV_RESULT code and a short human-readable reason."""
+
+    result: int
+    """MAV_RESULT_* value for COMMAND_ACK."""
+    text: str = ""
+    """Why (empty when accepted)."""
+
+    @property
+    def ok(self) -> bool:
+        """True when the command was accepted."""
+        return self.result == ACCEPTED
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """An external position/velocity target already resolved to local NED (NaN = not given)."""
+
+    position_ned_m: tuple[float, float, float] = _NAN3
+    """Target position [m] local NED; NaN per axis where the type mask ignores it."""
+    velocity_ned_m_s: tuple[float, float, float] = _NAN3
+    """Target (feed-forward) velocity [m/s] NED; NaN per axis where ignored."""
+    yaw_rad: float = math.nan
+    """Target heading [rad] (NaN: keep)."""
+    yaw_rate_rad_s: float = math.nan
+    """Target yaw rate [rad/s] (NaN: none); used only when ``yaw_rad`` is NaN."""
+
+    @property
+    def has_velocity(self) -> bool:
+        """True if any velocity axis is given."""
+        return any(math.isfinite(v) for v in self.velocity_ned_m_s)
+
+
+@dataclass(frozen=True)
+class StatusEvent:
+    """Something a real autopilot would announce with STATUSTEXT."""
+
+    t_s: float
+    """Simulated time [s]."""
+    severity: int
+    """MAV_SEVERITY_*."""
+    text: str
+    """Message (<= 50 characters is what STATUSTEXT carries in one chunk)."""
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Emulator-side settings that are not autopilot parameters."""
+
+    start_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Initial position [m] local NED; D < 0 starts airborne, armed, in the hold mode."""
+    start_yaw_rad: float = 0.0
+    """Initial heading [rad]."""
+    physics_dt_s: float = 0.02
+    """Fixed physics step [s]."""
+    position_gain_1_s: float = 1.0
+    """Proportional gain of position hold / position setpoints [1/s] (PX4 MPC_XY_P ~ 0.95)."""
+    yaw_rate_max_rad_s: float = math.radians(90.0)
+    """Yaw slew limit [rad/s]."""
+    offboard_stream_window_s: float = 0.5
+    """PX4: OFFBOARD may be entered only if the last setpoint is at most this old (>= 2 Hz)."""
+    takeoff_tolerance_m: float = 0.15
+    """Takeoff counts as complete within this distance of the target altitude [m]."""
+    rtl_arrival_radius_m: float = 0.5
+    """RTL starts descending within this horizontal distance of home [m]."""
+    plant_params: PlantParams = field(default_factory=PlantParams)
+    """Parameters of the velocity plant (paper nominal quadrotor)."""
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Immutable snapshot of the vehicle (what telemetry reports)."""
+
+    t_s: float
+    """Simulated time [s]."""
+    armed: bool
+    """Motors armed."""
+    mode: FlightMode
+    """Current flight mode."""
+    custom_mode: int
+    """``custom_mode`` word of the mode in the personality's encoding."""
+    position_ned_m: tuple[float, float, float]
+    """Position [m] local NED."""
+    velocity_ned_m_s: tuple[float, float, float]
+    """Velocity [m/s] NED."""
+    roll_rad: float
+    """Roll [rad] (from the realised thrust direction)."""
+    pitch_rad: float
+    """Pitch [rad]."""
+    yaw_rad: float
+    """Heading [rad]."""
+    yaw_rate_rad_s: float
+    """Yaw rate [rad/s]."""
+    landed_state: int
+    """MAV_LANDED_STATE_*."""
+    home_ned_m: tuple[float, float, float]
+    """Home position [m] local NED (set at start and on arming)."""
+    position_valid: bool
+    """Whether the vehicle has a position estimate."""
+    last_setpoint_t_s: float
+    """Time of the last external setpoint [s] (-inf if none)."""
+    velocity_command_ned_m_s: tuple[float, float, float]
+    """Velocity command given to the plant in the last physics step [m/s]."""
+
+    @property
+    def in_air(self) -> bool:
+        """True unless on the ground."""
+        return self.landed_state not in (mavlink.MAV_LANDED_STATE_ON_GROUND, mavlink.MAV_LANDED_STATE_UNDEFINED)
+
+
+PlantFactory = Callable[[PlantParams], VelocityPlant]
+
+
+class Vehicle:
+    """One emulated multicopter with a PX4 or ArduPilot Copter personality (pure state machine)."""
+
+    def __init__(
+        self,
+        personality: Personality,
+        config: VehicleConfig | None = None,
+        sysid: int = 1,
+        t0_s: float = 0.0,
+        plant_factory: PlantFactory | None = None,
+    ) -> None:
+        self.personality = personality
+        self.config = VehicleConfig() if config is None else config
+        start = np.asarray(self.config.start_ned_m, dtype=float)
+        if start.shape != (3,) or not np.all(np.isfinite(start)):
+            raise ValueError(f"start_ned_m must be 3 finite numbers, got {self.config.start_ned_m!r}")
+        if start[2] > 0.0:
+            raise ValueError(f"start_ned_m down = {start[2]} m is below the ground (D must be <= 0)")
+        if self.config.physics_dt_s <= 0:
+            raise ValueError(f"physics_dt_s must be > 0, got {self.config.physics_dt_s}")
+        self.params: dict[str, float] = personality.default_params(sysid)
+        self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
+        self.t_s = float(t0_s)
+        self.pos = start.copy()
+        self.vel = np.zeros(3)
+        self.cmd = np.zeros(3)
+        self.yaw = float(self.config.start_yaw_rad)
+        self.yaw_rate = 0.0
+        self.home = np.array([start[0], start[1], 0.0])
+        self.position_valid = True
+        self.mode = personality.boot_mode
+        self.armed = False
+        self.landed = start[2] >= 0.0
+        self._ever_airborne = False
+        self._landed_since = self.t_s
+        self._setpoint: Setpoint | None = None
+        self._setpoint_t = -math.inf
+        self._setpoint_times: deque[float] = deque(maxlen=64)
+        self._guided_vel_t = -math.inf
+        self._takeoff_target_d: float | None = None  # PX4 TAKEOFF and ArduPilot GUIDED takeoff
+        self._rtl_phase = "climb"
+        self._rtl_target_d = 0.0
+        self._gcs_last_t: float | None = None
+        self._gcs_failsafe_active = False
+        self._events: list[StatusEvent] = []
+        if not self.landed:  # airborne start: armed, hovering in the hold mode
+            self.armed = True
+            self._ever_airborne = True
+            self.mode = personality.hold_mode
+            self._plant.reset()
+
+    # ------------------------------------------------------------------ parameters / events
+    def set_param(self, name: str, value: float) -> bool:
+        """Set a known parameter (returns False for unknown names; system ids are read-only)."""
+        if name not in self.params:
+            return False
+        if name not in ("MAV_SYS_ID", "SYSID_THISMAV"):
+            self.params[name] = float(value)
+        return True
+
+    def drain_events(self) -> list[StatusEvent]:
+        """Return and clear the pending status events."""
+        ev, self._events = self._events, []
+        return ev
+
+    def _event(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        self._events.append(StatusEvent(self.t_s, severity, text))
+        _log.info("vehicle t=%.2f: %s", self.t_s, text)
+
+    def _p(self, name: str) -> float:
+        return self.params[name]
+
+    @property
+    def _is_px4(self) -> bool:
+        return self.personality.name == "px4"
+
+    def _reject(self) -> int:
+        """Result code the personality uses for "not now" (PX4 TEMPORARILY_REJECTED, ArduPilot FAILED)."""
+        return TEMPORARILY_REJECTED if self._is_px4 else FAILED
+
+    # ------------------------------------------------------------------ derived limits
+    def _limits(self) -> tuple[float, float, float]:
+        """(horizontal max, climb max, descent max) [m/s] of commands."""
+        if self._is_px4:
+            return self._p("MPC_XY_VEL_MAX"), self._p("MPC_Z_VEL_MAX_UP"), self._p("MPC_Z_VEL_MAX_DN")
+        return 0.01 * self._p("WPNAV_SPEED"), 0.01 * self._p("WPNAV_SPEED_UP"), 0.01 * self._p("WPNAV_SPEED_DN")
+
+    def _takeoff_speed(self) -> float:
+        return self._p("MPC_TKO_SPEED") if self._is_px4 else 0.01 * self._p("WPNAV_SPEED_UP")
+
+    def _land_speed(self) -> float:
+        return self._p("MPC_LAND_SPEED") if self._is_px4 else 0.01 * self._p("LAND_SPEED")
+
+    def _cruise_speed(self) -> float:
+        return self._p("MPC_XY_CRUISE") if self._is_px4 else 0.01 * self._p("WPNAV_SPEED")
+
+    def _rtl_alt(self) -> float:
+        return self._p("RTL_RETURN_ALT") if self._is_px4 else 0.01 * self._p("RTL_ALT")
+
+    # ------------------------------------------------------------------ commands
+    def set_position_valid(self, valid: bool, t_s: float) -> None:
+        """Mark the position estimate (un)available (arming needs it)."""
+        self.step(t_s)
+        self.position_valid = bool(valid)
+
+    def arm(self, t_s: float, force: bool = False) -> Outcome:
+        """MAV_CMD_COMPONENT_ARM_DISARM param1 = 1."""
+        self.step(t_s)
+        if self.armed:
+            return Outcome(ACCEPTED)
+        if not force:
+            if not self.position_valid:
+                return Outcome(self._reject(), "Arming denied: no position estimate")
+            if self.mode in _NOT_ARMABLE:
+                return Outcome(self._reject(), f"Arming denied: not armable in {self.mode_name}")
+            if self.mode.needs_pilot:
+                return Outcome(self._reject(), f"Arming denied: {self.mode_name} needs RC")
+            if not self.landed:
+                return Outcome(self._reject(), "Arming denied: not landed")
+        self.armed = True
+        self._ever_airborne = not self.landed
+        self._landed_since = self.t_s
+        self.home = np.array([self.pos[0], self.pos[1], 0.0])
+        self._event("Armed")
+        return Outcome(ACCEPTED)
+
+    def disarm(self, t_s: float, force: bool = False) -> Outcome:
+        """MAV_CMD_COMPONENT_ARM_DISARM param1 = 0 (force: param2 = 21196)."""
+        self.step(t_s)
+        if not self.armed:
+            return Outcome(ACCEPTED)
+        if not self.landed and not force:
+            return Outcome(self._reject(), "Disarming denied: not landed")
+        self._disarm("Disarmed")
+        return Outcome(ACCEPTED)
+
+    def _disarm(self, why: str) -> None:
+        self.armed = False
+        self._takeoff_target_d = None
+        self._event(why)
+
+    @property
+    def mode_name(self) -> str:
+        """Current mode as the autopilot names it."""
+        return self.personality.mode_name(self.mode)
+
+    def set_mode(self, mode: FlightMode, t_s: float) -> Outcome:
+        """Mode change request (SET_MODE / MAV_CMD_DO_SET_MODE), with the personality's rules."""
+        self.step(t_s)
+        if mode not in self.personality.modes:
+            return Outcome(UNSUPPORTED, f"Mode {mode.value} not supported")
+        if mode == self.mode:
+            return Outcome(ACCEPTED)
+        if self._is_px4:
+            if mode.needs_pilot:
+                return Outcome(TEMPORARILY_REJECTED, "Mode change denied: no RC")
+            if mode == FlightMode.OFFBOARD and not self._offboard_stream_ok():
+                return Outcome(TEMPORARILY_REJECTED, "Offboard denied: no setpoint stream")
+        if mode in (FlightMode.OFFBOARD, FlightMode.GUIDED, FlightMode.TAKEOFF, FlightMode.LOITER,
+                    FlightMode.RTL, FlightMode.MISSION, FlightMode.POSCTL) and not self.position_valid:
+            return Outcome(self._reject(), "Mode change denied: no position estimate")
+        self._enter_mode(mode)
+        return Outcome(ACCEPTED)
+
+    def _enter_mode(self, mode: FlightMode, takeoff_alt_m: float | None = None) -> None:
+        self.mode = mode
+        self._takeoff_target_d = None
+        if mode == FlightMode.TAKEOFF:
+            alt = self._p("MIS_TAKEOFF_ALT") if takeoff_alt_m is None else takeoff_alt_m
+            self._takeoff_target_d = self.home[2] - alt
+        elif mode == FlightMode.GUIDED:
+            self._setpoint = None
+            self._guided_vel_t = -math.inf
+        elif mode == FlightMode.RTL:
+            self._rtl_phase = "climb"
+            self._rtl_target_d = min(float(self.pos[2]), self.home[2] - self._rtl_alt())
+        self._event(f"Mode {self.mode_name}")
+
+    def takeoff(self, t_s: float, altitude_m: float | None = None) -> Outcome:
+        """MAV_CMD_NAV_TAKEOFF; ``altitude_m`` above home (None: PX4 MIS_TAKEOFF_ALT)."""
+        self.step(t_s)
+        if altitude_m is not None and not (math.isfinite(altitude_m) and altitude_m > 0):
+            altitude_m = None
+        if not self.armed:
+            return Outcome(self._reject(), "Takeoff denied: disarmed")
+        if self._is_px4:
+            if not self.position_valid:
+                return Outcome(TEMPORARILY_REJECTED, "Takeoff denied: no position estimate")
+            self._enter_mode(FlightMode.TAKEOFF, altitude_m)
+            return Outcome(ACCEPTED)
+        if self.mode != FlightMode.GUIDED:
+            return Outcome(FAILED, "Takeoff denied: not in GUIDED")
+        if not self.landed:
+            return Outcome(FAILED, "Takeoff denied: already flying")
+        if altitude_m is None:
+            return Outcome(FAILED, "Takeoff denied: no altitude")
+        self._takeoff_target_d = self.home[2] - altitude_m
+        self._setpoint = None
+        self._event(f"Takeoff to {altitude_m:.1f} m")
+        return Outcome(ACCEPTED)
+
+    def land(self, t_s: float) -> Outcome:
+        """MAV_CMD_NAV_LAND: switch to LAND."""
+        self.step(t_s)
+        if self.mode != FlightMode.LAND:
+            self._enter_mode(FlightMode.LAND)
+        return Outcome(ACCEPTED)
+
+    def return_to_launch(self, t_s: float) -> Outcome:
+        """MAV_CMD_NAV_RETURN_TO_LAUNCH: switch to RTL."""
+        return self.set_mode(FlightMode.RTL, t_s)
+
+    def set_setpoint(self, setpoint: Setpoint, t_s: float) -> None:
+        """An external SET_POSITION_TARGET_* (resolved to local NED); flown in OFFBOARD/GUIDED."""
+        self.step(t_s)
+        self._setpoint = setpoint
+        self._setpoint_t = self.t_s
+        self._setpoint_times.append(self.t_s)
+        if setpoint.has_velocity:
+            self._guided_vel_t = self.t_s
+        if self.mode == FlightMode.GUIDED and self._takeoff_target_d is not None and not self.landed:
+            # ArduPilot: a new target during the takeoff climb ends the takeoff
+            self._takeoff_target_d = None
+
+    def gcs_heartbeat(self, t_s: float) -> None:
+        """A HEARTBEAT from a ground station arrived (data-link-loss failsafe bookkeeping)."""
+        self.step(t_s)
+        self._gcs_last_t = self.t_s
+        if self._gcs_failsafe_active:
+            self._gcs_failsafe_active = False
+            self._event("GCS link regained")
+
+    def _offboard_stream_ok(self) -> bool:
+        return self.t_s - self._setpoint_t <= self.config.offboard_stream_window_s
+
+    def setpoint_rate_hz(self, window_s: float = 1.0) -> float:
+        """Received setpoint rate over the last ``window_s`` seconds [Hz]."""
+        n = sum(1 for t in self._setpoint_times if self.t_s - t <= window_s)
+        return n / window_s
+
+    # ------------------------------------------------------------------ failsafes
+    def _check_failsafes(self) -> None:
+        t = self.t_s
+        if self.mode == FlightMode.OFFBOARD and t - self._setpoint_t > self._p("COM_OF_LOSS_T"):
+            self._offboard_loss_action()
+        if self._gcs_last_t is not None and not self._gcs_failsafe_active and self.armed and not self.landed:
+            if self._is_px4:
+                action, timeout = int(self._p("NAV_DLL_ACT")), self._p("COM_DL_LOSS_T")
+            else:
+                action, timeout = int(self._p("FS_GCS_ENABLE")), self._p("FS_GCS_TIMEOUT")
+            if action != 0 and t - self._gcs_last_t > timeout:
+                self._gcs_failsafe_active = True
+                self._gcs_loss_action(action)
+
+    def _offboard_loss_action(self) -> None:
+        act = int(self._p("COM_OBL_RC_ACT"))
+        self._event("Failsafe: offboard setpoints lost", mavlink.MAV_SEVERITY_WARNING)
+        if act == 3:
+            self._enter_mode(FlightMode.RTL)
+        elif act == 4:
+            self._enter_mode(FlightMode.LAND)
+        elif act in (6, 7):
+            self._enter_mode(FlightMode.LOITER)
+            self._disarm("Failsafe: disarmed")
+        else:  # 0 Position, 1 Altitude, 2 Manual: no RC here -> Hold; 5 Hold
+            self._enter_mode(FlightMode.LOITER)
+
+    def _gcs_loss_action(self, action: int) -> None:
+        self._event("Failsafe: GCS link lost", mavlink.MAV_SEVERITY_WARNING)
+        if self._is_px4:
+            table = {1: FlightMode.LOITER, 2: FlightMode.RTL, 3: FlightMode.LAND}
+            if action in (5, 6):
+                self._disarm("Failsafe: disarmed")
+                return
+            self._enter_mode(table.get(action, FlightMode.LOITER))
+        else:
+            self._enter_mode(FlightMode.LAND if action == 5 else FlightMode.RTL)
+
+    # ------------------------------------------------------------------ physics
+    def step(self, t_s: float) -> None:
+        """Advance the simulation to time ``t_s`` in fixed physics steps."""
+        dt = self.config.physics_dt_s
+        if t_s < self.t_s - 1e-9:
+            raise ValueError(f"time went backwards: {t_s} < {self.t_s}")
+        while self.t_s + dt <= t_s + 1e-9:
+            self._substep(dt)
+
+    def _velocity_command(self) -> np.ndarray:
+        """Velocity command [m/s] NED of the current mode (motors assumed on)."""
+        mode, pos = self.mode, self.pos
+        k = self.config.position_gain_1_s
+        cmd = np.zeros(3)
+        if self._takeoff_target_d is not None and mode in (FlightMode.TAKEOFF, FlightMode.GUIDED):
+            err = pos[2] - self._takeoff_target_d  # > 0 below the target
+            cmd[2] = -float(np.clip(k * err, -self._land_speed(), self._takeoff_speed()))
+            if abs(err) <= self.config.takeoff_tolerance_m:
+                self._takeoff_target_d = None
+                if mode == FlightMode.TAKEOFF:
+                    self._event("Takeoff complete")
+                    self._enter_mode(FlightMode.LOITER)
+                else:
+                    self._event("Takeoff complete")
+            return cmd
+        if mode in (FlightMode.OFFBOARD, FlightMode.GUIDED):
+            sp = self._setpoint
+            if sp is None:
+                return cmd
+            p = np.asarray(sp.position_ned_m, dtype=float)
+            v = np.asarray(sp.velocity_ned_m_s, dtype=float)
+            if mode == FlightMode.GUIDED and self.t_s - self._guided_vel_t > self._p("GUID_TIMEOUT"):
+                v = np.full(3, math.nan)  # ArduPilot: stale velocity target -> stop
+            cmd = np.where(np.isfinite(v), v, 0.0) + np.where(np.isfinite(p), k * (p - pos), 0.0)
+            return cmd
+        if mode == FlightMode.LAND:
+            cmd[2] = self._land_speed()
+            return cmd
+        if mode == FlightMode.RTL:
+            return self._rtl_command()
+        return cmd  # hold modes (and TAKEOFF after completion): zero velocity
+
+    def _rtl_command(self) -> np.ndarray:
+        k = self.config.position_gain_1_s
+        cmd = np.zeros(3)
+        d_err = self.pos[2] - self._rtl_target_d
+        if self._rtl_phase == "climb":
+            cmd[2] = -min(self._takeoff_speed(), k * d_err)
+            if d_err <= self.config.takeoff_tolerance_m:
+                self._rtl_phase = "return"
+        elif self._rtl_phase == "return":
+            delta = self.home[:2] - self.pos[:2]
+            dist = float(np.hypot(*delta))
+            speed = min(self._cruise_speed(), k * dist)
+            if dist > 1e-9:
+                cmd[:2] = delta / dist * speed
+            cmd[2] = -k * d_err
+            if dist <= self.config.rtl_arrival_radius_m:
+                self._rtl_phase = "land"
+        else:
+            cmd[:2] = k * (self.home[:2] - self.pos[:2])
+            cmd[2] = self._land_speed()
+        return cmd
+
+    def _limit(self, cmd: np.ndarray) -> np.ndarray:
+        xy_max, up_max, dn_max = self._limits()
+        h = float(np.hypot(cmd[0], cmd[1]))
+        if h > xy_max:
+            cmd[:2] *= xy_max / h
+        cmd[2] = min(max(cmd[2], -up_max), dn_max)
+        return cmd
+
+    def _substep(self, dt: float) -> None:
+        self.t_s += dt
+        self._check_failsafes()
+        g = self.config.plant_params.g
+        if not self.armed:
+            self.cmd = np.zeros(3)
+            if self.landed:
+                self.vel[:] = 0.0
+            else:  # motors off in the air: ballistic fall
+                self.vel[2] += float(np.mean(g)) * dt
+                self.pos += self.vel * dt
+                self._ground_contact(falling=True)
+            self._update_yaw(dt)
+            return
+        cmd = self._limit(self._velocity_command())
+        self.cmd = cmd
+        if self.landed:
+            if cmd[2] < -1e-6:  # commanded to climb: lift off from rest
+                self.landed = False
+                self._ever_airborne = True
+                self._plant.reset()
+                self._event("Takeoff detected")
+            else:
+                self.vel[:] = 0.0
+                self._auto_disarm_check()
+                self._update_yaw(dt)
+                return
+        self.vel = np.array(self._plant.step(cmd[None, :], dt)[0], dtype=float)
+        self.pos += self.vel * dt
+        self._ground_contact(falling=False)
+        self._update_yaw(dt)
+
+    def _ground_contact(self, falling: bool) -> None:
+        if self.pos[2] < 0.0:
+            return
+        self.pos[2] = 0.0
+        if falling or self.cmd[2] >= 0.0:
+            self.vel[:] = 0.0
+            self.landed = True
+            self._landed_since = self.t_s
+            self._plant.reset()
+            self._event("Landing detected")
+            if self.armed and self.mode == FlightMode.LAND and not self._is_px4:
+                self._disarm("Disarmed: landed")  # ArduPilot LAND disarms on touchdown
+            elif self.armed and self.mode == FlightMode.RTL and not self._is_px4:
+                self._disarm("Disarmed: landed")
+        else:  # commanded to climb but the plant still sinks: rest on the ground
+            self.vel[2] = min(self.vel[2], 0.0)
+            self._plant.velocity[0, 2] = self.vel[2]
+
+    def _auto_disarm_check(self) -> None:
+        """Disarm a vehicle sitting on the ground (PX4 COM_DISARM_LAND / COM_DISARM_PRFLT,
+        ArduPilot DISARM_DELAY; a negative / zero delay disables it)."""
+        if self._is_px4:
+            delay = self._p("COM_DISARM_LAND") if self._ever_airborne else self._p("COM_DISARM_PRFLT")
+        else:
+            delay = self._p("DISARM_DELAY") if self._p("DISARM_DELAY") > 0 else -1.0
+        if delay >= 0 and self.t_s - self._landed_since >= delay - 1e-9:
+            self._disarm("Auto-disarmed: landed")
+
+    def _update_yaw(self, dt: float) -> None:
+        sp = self._setpoint
+        rate = 0.0
+        if self.armed and not self.landed and sp is not None and self.mode in (FlightMode.OFFBOARD, FlightMode.GUIDED):
+            max_r = self.config.yaw_rate_max_rad_s
+            if math.isfinite(sp.yaw_rad):
+                err = (sp.yaw_rad - self.yaw + math.pi) % (2 * math.pi) - math.pi
+                rate = float(np.clip(err / dt, -max_r, max_r))
+            elif math.isfinite(sp.yaw_rate_rad_s):
+                rate = float(np.clip(sp.yaw_rate_rad_s, -max_r, max_r))
+        self.yaw = (self.yaw + rate * dt + math.pi) % (2 * math.pi) - math.pi
+        self.yaw_rate = rate
+
+    # ------------------------------------------------------------------ telemetry
+    def _attitude(self) -> tuple[float, float]:
+        """(roll, pitch) [rad] from the direction of the realised thrust."""
+        if not self.armed or self.landed:
+            return 0.0, 0.0
+        a = np.asarray(self._plant.thrust_accel[0], dtype=float)
+        cy, sy = math.cos(self.yaw), math.sin(self.yaw)
+        fwd = cy * a[0] + sy * a[1]
+        right = -sy * a[0] + cy * a[1]
+        up = max(-a[2], 1e-6)
+        return math.atan2(right, up), math.atan2(-fwd, up)
+
+    def _landed_state(self) -> int:
+        if self.landed or (not self.armed and self.pos[2] >= 0.0):
+            return mavlink.MAV_LANDED_STATE_ON_GROUND
+        if self._takeoff_target_d is not None:
+            return mavlink.MAV_LANDED_STATE_TAKEOFF
+        if self.mode == FlightMode.LAND or (self.mode == FlightMode.RTL and self._rtl_phase == "land"):
+            return mavlink.MAV_LANDED_STATE_LANDING
+        return mavlink.MAV_LANDED_STATE_IN_AIR
+
+    def snapshot(self) -> VehicleState:
+        """Immutable copy of the current state."""
+        roll, pitch = self._attitude()
+        return VehicleState(
+            t_s=self.t_s,
+            armed=self.armed,
+            mode=self.mode,
+            custom_mode=self.personality.custom_mode(self.mode),
+            position_ned_m=tuple(float(x) for x in self.pos),
+            velocity_ned_m_s=tuple(float(x) for x in self.vel),
+            roll_rad=roll,
+            pitch_rad=pitch,
+            yaw_rad=self.yaw,
+            yaw_rate_rad_s=self.yaw_rate,
+            landed_state=self._landed_state(),
+            home_ned_m=tuple(float(x) for x in self.home),
+            position_valid=self.position_valid,
+            last_setpoint_t_s=self._setpoint_t,
+            velocity_command_ned_m_s=tuple(float(x) for x in self.cmd),
+        )

@@ -1,0 +1,140 @@
+"""The paper's test scenarios (section "Test Scenarios"), seeded and reproducible.
+
+* Case 1, tunnel seeding (:func:`seed_positions`): N*_j agents in every CV whose centre lies at
+  ``x <= x_axial``, uniformly at random inside the CV; they start flying their command.
+* Case 2, reservoir (:class:`Reservoir`): agents enter through the inlet (the CVs of the first
+  slice) at the paper's source rate (eq. source_rate)
+
+      N_batch / dt_source  ~=  N*_entry |v_s,entry| / l
+
+  applied *per inlet CV* j with that CV's N*_j and entry command ``v_s,entry = S v_{s,d,j}``
+  (the velocity the agents fly there); the inlet's total rate is the sum over the slice.
+  This is the number flux that keeps N*_j agents in a cube of edge l moving at |v|:
+  n |v| l^2 = (N*/l^3) |v| l^2.  Fractional agents carry over from batch to batch (a
+  deterministic accumulator), so over a time T the inlet injects sum_j rate_j T agents to
+  within one agent per inlet CV.  Each batch is spread uniformly over the inlet CV's upstream
+  face in (y, z) and over the distance ``|v_x| dt_source`` (capped at l) in x, i.e. where a
+  continuous inflow would have put those agents during the interval.
+
+Population scale (``--agents N``): both scenarios take a ``population_scale`` that multiplies
+N* (seeding, with largest-remainder rounding so the total is exactly N) or the source rate
+(reservoir).  ``scale_for_agents`` gives the scale that makes the seeded total, or the
+reservoir's nominal population sum_j N*_j, equal to N.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fisc_agent.lookup import CommandField
+
+
+def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
+    """CV ids seeded in Case 1: centre x <= ``x_axial_m`` and N*_j > 0."""
+    return np.flatnonzero((field.centers_m[:, 0] <= x_axial_m) & (np.asarray(field.n_star) > 0))
+
+
+def apportion(weights: np.ndarray, total: int) -> np.ndarray:
+    """Integer counts proportional to ``weights`` that sum exactly to ``total`` (largest remainder)."""
+    w = np.asarray(weights, dtype=float)
+    if total < 0:
+        raise ValueError(f"total must be >= 0, got {total}")
+    if w.size == 0 or w.sum() <= 0:
+        if total:
+            raise ValueError("cannot apportion agents over zero weights")
+        return np.zeros(w.size, dtype=np.int64)
+    exact = w * (total / w.sum())
+    base = np.floor(exact).astype(np.int64)
+    rest = total - int(base.sum())
+    if rest:
+        order = np.argsort(-(exact - base), kind="stable")
+        base[order[:rest]] += 1
+    return base
+
+
+def seed_counts(field: CommandField, x_axial_m: float = np.inf, n_agents: int | None = None) -> np.ndarray:
+    """(n_cv,) agents per CV for Case 1: N*_j in the seeded CVs (0 elsewhere), or N*
+    proportionally rescaled to a total of ``n_agents``."""
+    counts = np.zeros(field.n_cv, dtype=np.int64)
+    cvs = seeded_cvs(field, x_axial_m)
+    n_star = np.asarray(field.n_star, dtype=np.int64)[cvs]
+    counts[cvs] = n_star if n_agents is None else apportion(n_star, int(n_agents))
+    return counts
+
+
+def seed_positions(field: CommandField, rng: np.random.Generator, x_axial_m: float = np.inf,
+                   n_agents: int | None = None) -> np.ndarray:
+    """Case 1 (tunnel seeding): (N, 3) positions, ``seed_counts`` agents uniform in each CV."""
+    counts = seed_counts(field, x_axial_m, n_agents)
+    cv = np.repeat(np.arange(field.n_cv), counts)
+    lo = field.centers_m[cv] - 0.5 * field.cell_size_m
+    return lo + rng.random((cv.size, 3)) * field.cell_size_m
+
+
+def inlet_cvs(field: CommandField) -> np.ndarray:
+    """CV ids of the first slice (smallest grid x index present): the inlet."""
+    ix = np.floor((field.centers_m[:, 0] - field.origin_m[0]) / field.cell_size_m + 1e-9).astype(np.int64)
+    return np.flatnonzero(ix == ix.min())
+
+
+def source_rate(n_star_entry: np.ndarray, v_entry_m_s: np.ndarray, cell_size_m: float) -> np.ndarray:
+    """Eq. source_rate: N_batch / dt_source = N*_entry |v_s,entry| / l  [agents/s], per inlet CV.
+
+    ``n_star_entry`` (m,), ``v_entry_m_s`` (m, 3) the (scaled) entry commands, ``cell_size_m`` l.
+    """
+    return np.asarray(n_star_entry, dtype=float) * np.linalg.norm(v_entry_m_s, axis=1) / float(cell_size_m)
+
+
+def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float = np.inf) -> float:
+    """Population scale that makes sum_j N*_j (over the seeded CVs) equal ``n_agents`` (1 if None)."""
+    if n_agents is None:
+        return 1.0
+    total = float(np.asarray(field.n_star)[seeded_cvs(field, x_axial_m)].sum())
+    if total <= 0:
+        raise ValueError("the map has no CV with N* > 0")
+    return float(n_agents) / total
+
+
+class Reservoir:
+    """Case 2: batches of agents through the inlet at eq. source_rate (see module docstring)."""
+
+    def __init__(self, field: CommandField, interval_s: float = 0.05, population_scale: float = 1.0) -> None:
+        if not interval_s > 0:
+            raise ValueError(f"reservoir interval_s must be > 0, got {interval_s!r}")
+        if not population_scale >= 0:
+            raise ValueError(f"population_scale must be >= 0, got {population_scale!r}")
+        self.field = field
+        self.interval_s = float(interval_s)
+        self.cvs = inlet_cvs(field)
+        self.entry_cmd_m_s = np.asarray(field.mean_cmd_m_s)[self.cvs]
+        self.rate_per_cv = population_scale * source_rate(np.asarray(field.n_star)[self.cvs],
+                                                          self.entry_cmd_m_s, field.cell_size_m)
+        self._carry = np.zeros(self.cvs.size)
+        self._next_t = 0.0
+
+    @property
+    def rate_per_s(self) -> float:
+        """Total nominal inflow (sum over the inlet slice) [agents/s]."""
+        return float(self.rate_per_cv.sum())
+
+    def batch(self, rng: np.random.Generator) -> np.ndarray:
+        """Positions (k, 3) of one batch (one interval's worth of inflow)."""
+        self._carry += self.rate_per_cv * self.interval_s
+        counts = np.floor(self._carry).astype(np.int64)
+        self._carry -= counts
+        cv = np.repeat(self.cvs, counts)
+        l = self.field.cell_size_m
+        lo = self.field.centers_m[cv] - 0.5 * l
+        u = rng.random((cv.size, 3))
+        depth = np.minimum(np.abs(np.repeat(self.entry_cmd_m_s[:, 0], counts)) * self.interval_s, l)
+        pos = lo + u * l
+        pos[:, 0] = lo[:, 0] + u[:, 0] * depth
+        return pos
+
+    def due(self, t_s: float) -> int:
+        """Number of batches due by time ``t_s`` (advances the internal clock)."""
+        k = 0
+        while self._next_t <= t_s + 1e-9:
+            self._next_t += self.interval_s
+            k += 1
+        return k

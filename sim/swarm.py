@@ -1,0 +1,384 @@
+"""Algorithm 1 of the paper ("Velocity command execution for each agent"), vectorised.
+
+Every step of ``dt`` (paper: 0.05 s), for all agents at once (arrays ``(N, 3)``, no per-agent
+Python):
+
+1. *Assign control volume* (eq. cv_assignment, nearest CV centre): the CVs are the occupied
+   cells of a regular grid, so the nearest centre of a point inside an occupied cell is that
+   cell's CV; the lookup is O(1) per agent through a padded copy of the map's ``grid_cv``
+   table (the same rule as ``fisc_agent.lookup.CommandField.cv_of``), never a search over CVs.
+2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already
+   applies S) in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
+3. *Update the velocity* with the quadrotor plant (``sim.plant.step_plant``, NED).
+4. *Update the position* ``x += u dt`` (semi-implicit: with the new velocity).
+
+Frames.  Positions and commands live in the map (reference) frame: x along the tunnel, z up.
+The plant works in NED with the default deployment axis mapping map x -> North, y -> East,
+z -> Up, i.e. ``v_NED = (v_x, v_y, -v_z)``.  The command tables are flipped once at start-up,
+so the per-step conversion is a single multiply in the position update.
+
+Agents leaving the map.
+* Past the outlet (x beyond the last slice): removed and counted as ``exited`` (outflow).
+* Sideways or upstream, into a grid cell without a CV (near the wall, or behind the inlet):
+  the *return* policy.  The agent flies the command of the nearest CV within
+  ``return_radius_cells`` cells plus an inward correction ``k (x_c - x)`` towards that CV's
+  centre (magnitude capped at ``return_speed_max_m_s``), for at most ``escape_grace_s``
+  seconds in a row.  If it has not re-entered a CV by then, or no CV lies within the
+  radius, it is removed and counted as ``escaped``.  This mirrors the onboard geofence option
+  "fly back to the nearest CV" (DESIGN.md section 5).
+
+Bookkeeping: ``injected == alive + exited + escaped`` at all times.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fisc_agent.lookup import COMMAND_MODES, CommandField, slot_hash
+from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
+
+#: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
+MAP_TO_NED = np.array([1.0, 1.0, -1.0])
+
+
+@dataclass(frozen=True)
+class SwarmConfig:
+    """Numerical and policy settings of the swarm stepping core."""
+
+    dt_s: float = 0.05
+    """Time step of Algorithm 1 [s] (paper: 0.05 s)."""
+    mode: str = "mean"
+    """Command mode: ``mean`` (paper's Algorithm 1), ``slot`` or ``interpolated``."""
+    escape_grace_s: float = 2.0
+    """Longest continuous time an agent may spend outside every CV before it is removed as escaped [s]."""
+    return_gain_1_s: float = 1.0
+    """Gain k of the inward correction k (x_c - x) for agents outside the CVs [1/s]."""
+    return_speed_max_m_s: float = 1.0
+    """Cap on the magnitude of the inward correction [m/s]."""
+    return_radius_cells: int = 2
+    """How far (in cells) an outside agent looks for the nearest CV; none within -> escaped."""
+    plant_backend: str = "auto"
+    """Plant kernel: ``auto`` (numba when importable), ``numpy`` or ``numba``."""
+
+    def __post_init__(self) -> None:
+        if not (self.dt_s > 0 and np.isfinite(self.dt_s)):
+            raise ValueError(f"SwarmConfig.dt_s must be > 0, got {self.dt_s!r}")
+        if self.mode not in COMMAND_MODES:
+            raise ValueError(f"SwarmConfig.mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        if self.escape_grace_s < 0:
+            raise ValueError(f"SwarmConfig.escape_grace_s must be >= 0, got {self.escape_grace_s!r}")
+        if self.return_radius_cells < 0:
+            raise ValueError(f"SwarmConfig.return_radius_cells must be >= 0, got {self.return_radius_cells!r}")
+
+
+class CVLookup:
+    """O(1) CV assignment on a padded grid (eq. cv_assignment for points inside occupied cells).
+
+    Identical to ``CommandField.cv_of`` (floor of (x - origin) / l, half-open cells, -1 outside
+    the map's CVs) but on a copy of ``grid_cv`` with a border of ``margin`` (>= 1) cells, so that
+    one clip replaces the bounds test, with reusable scratch buffers (no big temporaries per
+    step).  The same padded grid holds, for every cell without a CV, the nearest CV (centre to
+    cell centre) within ``margin`` cells (``nearest``, -1 if none): the O(1) table of the return
+    policy, computed once with ``CommandField.nearest_cv_within``.
+    """
+
+    def __init__(self, field: CommandField, margin: int = 2) -> None:
+        g = np.asarray(field.grid_cv)
+        m = max(int(margin), 1)
+        nx, ny, nz = g.shape
+        shape = (nx + 2 * m, ny + 2 * m, nz + 2 * m)
+        pad = np.full(shape, -1, dtype=np.int64)
+        pad[m:-m, m:-m, m:-m] = g
+        self._flat = pad.ravel()
+        l = float(field.cell_size_m)
+        idx = np.stack(np.unravel_index(np.arange(pad.size), shape), axis=1)
+        near = pad.ravel().copy()
+        empty = np.flatnonzero(near < 0)
+        if empty.size and margin > 0:
+            centres = np.asarray(field.origin_m) + (idx[empty] - m + 0.5) * l
+            near[empty] = field.nearest_cv_within(centres, int(margin))
+        near[empty[near[empty] < 0]] = -1
+        # the outermost ring stands for "everything further out": never steered back
+        border = np.any((idx == 0) | (idx == np.asarray(shape) - 1), axis=1)
+        near[border & (pad.ravel() < 0)] = -1
+        self._near = near
+        self._origin = np.asarray(field.origin_m, dtype=float) - m * l
+        self._inv_l = 1.0 / l
+        self._hi = np.asarray(shape, dtype=np.float64) - 1.0
+        self._strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+        self._buf = np.empty((0, 3))
+        self._ibuf = np.empty((0, 3), dtype=np.int64)
+        self._last = np.empty(0, dtype=np.int64)
+
+    def __call__(self, points_m: np.ndarray) -> np.ndarray:
+        """(n,) int64 CV id of each (n, 3) point, -1 where the cell has no CV."""
+        n = points_m.shape[0]
+        if self._buf.shape[0] < n:
+            self._buf = np.empty((max(n, 2 * self._buf.shape[0]), 3))
+            self._ibuf = np.empty_like(self._buf, dtype=np.int64)
+        f, i = self._buf[:n], self._ibuf[:n]
+        np.subtract(points_m, self._origin, out=f)
+        f *= self._inv_l
+        np.floor(f, out=f)
+        np.clip(f, 0.0, self._hi, out=f)
+        i[...] = f
+        self._last = i @ self._strides
+        return self._flat[self._last]
+
+    def nearest_of_last(self, index: np.ndarray) -> np.ndarray:
+        """Return-table CV of the points ``index`` of the last call (their own CV if they have
+        one, else the nearest within the margin, else -1)."""
+        return self._near[self._last[index]]
+
+    def nearest(self, points_m: np.ndarray) -> np.ndarray:
+        """Return-table CV of each (m, 3) point (see ``nearest_of_last``)."""
+        f = np.floor((np.asarray(points_m, dtype=float) - self._origin) * self._inv_l)
+        i = np.clip(f, 0.0, self._hi).astype(np.int64)
+        return self._near[i @ self._strides]
+
+
+@dataclass
+class SwarmCounters:
+    """Agent bookkeeping of a run (``injected == alive + exited + escaped``)."""
+
+    injected: int = 0
+    """Agents added (seeded or injected from the reservoir)."""
+    exited: int = 0
+    """Agents removed past the outlet (normal outflow)."""
+    escaped: int = 0
+    """Agents removed after leaving the CVs sideways/upstream for longer than the grace period."""
+    returned: int = 0
+    """Agent-steps spent under the return policy (outside every CV, flying back)."""
+    steps: int = 0
+    """Steps taken."""
+    agent_steps: int = 0
+    """Sum over steps of the agents alive during the step."""
+
+    @property
+    def removed(self) -> int:
+        """exited + escaped."""
+        return self.exited + self.escaped
+
+
+class Swarm:
+    """N agents flown by a command map (state held here; see the module docstring).
+
+    State (first ``n`` rows of capacity buffers, map frame unless stated):
+    ``pos_m`` (n, 3), ``vel_ned_m_s`` (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,),
+    ``outside_s`` (n,) time spent outside the CVs.
+    """
+
+    def __init__(self, field: CommandField, plant: PlantParams | None = None,
+                 config: SwarmConfig | None = None, target_command_m_s: np.ndarray | None = None,
+                 collider=None) -> None:
+        self.field = field
+        self.config = SwarmConfig() if config is None else config
+        self.plant = PlantParams() if plant is None else plant
+        if not self.plant.is_homogeneous:
+            raise ValueError("Swarm needs fleet-wide (homogeneous) PlantParams")
+        self._co: PlantCoefficients = self.plant.coefficients()
+        self.collider = collider
+        self.lookup = CVLookup(field, self.config.return_radius_cells)
+        n_cv = field.n_cv
+        # command tables with one extra zero row, so cv = -1 indexes a harmless row
+        self._mean_ned = np.zeros((n_cv + 1, 3))
+        self._mean_ned[:n_cv] = field.mean_cmd_m_s * MAP_TO_NED
+        n_max = field.slot_cmd_m_s.shape[1]
+        self._slot_ned = np.zeros((n_cv + 1, n_max, 3))
+        self._slot_ned[:n_cv] = np.nan_to_num(field.slot_cmd_m_s) * MAP_TO_NED
+        self._n_star = np.ones(n_cv + 1, dtype=np.uint64)
+        self._n_star[:n_cv] = np.maximum(np.asarray(field.n_star), 1).astype(np.uint64)
+        self.target_command_m_s = (np.asarray(field.mean_cmd_m_s, dtype=float) if target_command_m_s is None
+                                   else np.asarray(target_command_m_s, dtype=float))
+        self.x_outlet_m = float(field.origin_m[0] + field.grid_cv.shape[0] * field.cell_size_m)
+        self._fdt = MAP_TO_NED * self.config.dt_s
+        self.t_s = 0.0
+        self.counters = SwarmCounters()
+        self._next_id = 0
+        self.n = 0
+        self._alloc(1024)
+        self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
+
+    # ---------------------------------------------------------------- state buffers
+    def _alloc(self, cap: int) -> None:
+        n = getattr(self, "n", 0)
+        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "scratch")}
+        self._pos = np.zeros((cap, 3))
+        self._vel = np.zeros((cap, 3))
+        self._thr = np.zeros((cap, 3))
+        self._scratch = np.zeros((cap, 3))
+        self._cmd = np.zeros((cap, 3))
+        self._ids = np.zeros(cap, dtype=np.int64)
+        self._out = np.zeros(cap)
+        if old["pos"] is not None and n:
+            for k in ("pos", "vel", "thr", "ids", "out"):
+                getattr(self, "_" + k)[:n] = old[k][:n]
+
+    @property
+    def pos_m(self) -> np.ndarray:
+        """(n, 3) positions in the map frame [m] (live view)."""
+        return self._pos[:self.n]
+
+    @property
+    def vel_ned_m_s(self) -> np.ndarray:
+        """(n, 3) realised velocities in NED [m/s] (live view)."""
+        return self._vel[:self.n]
+
+    @property
+    def thrust_ned_m_s2(self) -> np.ndarray:
+        """(n, 3) realised thrust accelerations in NED [m/s^2] (live view)."""
+        return self._thr[:self.n]
+
+    @property
+    def ids(self) -> np.ndarray:
+        """(n,) agent ids (unique, increasing with injection order)."""
+        return self._ids[:self.n]
+
+    @property
+    def outside_s(self) -> np.ndarray:
+        """(n,) continuous time each agent has spent outside every CV [s]."""
+        return self._out[:self.n]
+
+    def velocity_map(self) -> np.ndarray:
+        """(n, 3) realised velocities in the map frame [m/s] (a new array)."""
+        return self.vel_ned_m_s * MAP_TO_NED
+
+    @property
+    def alive(self) -> int:
+        return self.n
+
+    # ---------------------------------------------------------------- commands
+    def commands_map(self, points_m: np.ndarray, agent_ids: np.ndarray) -> np.ndarray:
+        """(m, 3) command of the configured mode at points (map frame; NaN outside the CVs)."""
+        return self.field.command(points_m, agent_ids, self.config.mode)
+
+    def _command_ned(self, cv: np.ndarray, out: np.ndarray) -> None:
+        """Fill ``out`` (n, 3) with the NED command of every agent from its CV (rows of cv=-1: 0)."""
+        mode = self.config.mode
+        if mode == "mean":
+            np.take(self._mean_ned, cv, axis=0, out=out)
+        elif mode == "slot":
+            k = (slot_hash(self.ids, cv) % self._n_star[cv]).astype(np.int64)
+            out[...] = self._slot_ned[cv, k]
+        else:
+            inside = cv >= 0
+            out[...] = 0.0
+            if inside.any():
+                out[inside] = self.field.command(self.pos_m[inside], self.ids[inside], "interpolated",
+                                                 cv_ids=cv[inside]) * MAP_TO_NED
+
+    # ---------------------------------------------------------------- population
+    def add_agents(self, pos_m: np.ndarray, vel_map_m_s: np.ndarray | None = None) -> np.ndarray:
+        """Add agents at ``pos_m`` (k, 3) flying ``vel_map_m_s`` (k, 3; default: their command).
+
+        The thrust state starts at the trim of that velocity (steady flight).  Returns their ids.
+        """
+        pos = np.asarray(pos_m, dtype=float).reshape(-1, 3)
+        k = pos.shape[0]
+        ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
+        if k == 0:
+            return ids
+        if vel_map_m_s is None:
+            vel = np.nan_to_num(self.commands_map(pos, ids))
+        else:
+            vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
+        if self.n + k > self._pos.shape[0]:
+            self._alloc(max(2 * self._pos.shape[0], self.n + k))
+        s = slice(self.n, self.n + k)
+        self._pos[s] = pos
+        self._vel[s] = vel * MAP_TO_NED
+        self._thr[s] = trim_thrust_accel(self._vel[s], self._co)
+        self._ids[s] = ids
+        self._out[s] = 0.0
+        self.n += k
+        self._next_id += k
+        self.counters.injected += k
+        self._cv = None
+        return ids
+
+    def _keep(self, keep: np.ndarray, cv: np.ndarray) -> np.ndarray:
+        """Remove the agents where ``keep`` is False by moving survivors from the tail into their
+        slots (O(removed) copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
+        n = self.n
+        m = int(np.count_nonzero(keep))
+        holes = np.flatnonzero(~keep[:m])
+        src = np.flatnonzero(keep[m:]) + m
+        for buf in (self._pos, self._vel, self._thr, self._ids, self._out):
+            buf[holes] = buf[src]
+        cv = cv.copy()
+        cv[holes] = cv[src]
+        self.n = m
+        return cv[:m]
+
+    # ---------------------------------------------------------------- stepping
+    def assign(self) -> np.ndarray:
+        """Eq. cv_assignment for the current positions, after the outlet/escape removals.
+
+        Returns (n,) CV ids (-1: outside the CVs, under the return policy).  Cached until the
+        agents move or the population changes.
+        """
+        if self._cv is not None:
+            return self._cv
+        cv = self.lookup(self.pos_m)
+        exited = self.pos_m[:, 0] >= self.x_outlet_m
+        outside = (cv < 0) & ~exited
+        escaped = outside & (self.outside_s > self.config.escape_grace_s)
+        if outside.any():
+            # agents with no CV within the return radius cannot be steered back: escaped now
+            idx = np.flatnonzero(outside)
+            near = self.lookup.nearest_of_last(idx)
+            escaped[idx[near < 0]] = True
+        n_exit, n_esc = int(np.count_nonzero(exited)), int(np.count_nonzero(escaped))
+        if n_exit or n_esc:
+            keep = ~(exited | escaped)
+            self.counters.exited += n_exit
+            self.counters.escaped += n_esc
+            cv = self._keep(keep, cv)
+        self._cv = cv
+        return cv
+
+    def step(self) -> None:
+        """One step of Algorithm 1 for every agent."""
+        cv = self.assign()
+        n = self.n
+        self.counters.steps += 1
+        self.counters.agent_steps += n
+        self.t_s += self.config.dt_s
+        if n == 0:
+            return
+        cmd = self._cmd[:n]
+        self._command_ned(cv, cmd)
+        outside = cv < 0
+        out_s = self.outside_s
+        if outside.any():
+            self._return_commands(np.flatnonzero(outside), cmd)
+            out_s[outside] += self.config.dt_s
+            out_s[~outside] = 0.0
+            self.counters.returned += int(np.count_nonzero(outside))
+        elif self.counters.returned:
+            out_s[...] = 0.0
+        vel, thr = self.vel_ned_m_s, self.thrust_ned_m_s2
+        step_plant(vel, thr, cmd, self.config.dt_s, self._co, out=(vel, thr), backend=self.config.plant_backend)
+        if self.collider is not None:
+            self.collider.apply(self.pos_m, vel)
+        dx = self._scratch[:n]
+        np.multiply(vel, self._fdt, out=dx)
+        self.pos_m[...] += dx
+        self._cv = None
+
+    def _return_commands(self, idx: np.ndarray, cmd_ned: np.ndarray) -> None:
+        """Return policy for agents ``idx`` outside the CVs: nearest CV's command + inward pull."""
+        pos = self.pos_m[idx]
+        near = self.lookup.nearest(pos)
+        near = np.where(near < 0, 0, near)  # cannot happen after assign(); keeps indexing safe
+        corr = self.config.return_gain_1_s * (self.field.centers_m[near] - pos)
+        mag = np.linalg.norm(corr, axis=1)
+        cap = self.config.return_speed_max_m_s
+        corr *= np.minimum(1.0, cap / np.maximum(mag, 1e-12))[:, None]
+        if self.config.mode == "slot":
+            base = self._slot_ned[near, (slot_hash(self.ids[idx], near) % self._n_star[near]).astype(np.int64)]
+        else:
+            base = self._mean_ned[near]
+        cmd_ned[idx] = base + corr * MAP_TO_NED

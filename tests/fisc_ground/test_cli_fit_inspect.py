@@ -1,0 +1,121 @@
+"""`fisc-ground fit / keygen / inspect / plot` as a user runs them (real files, real processes)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fisc_agent.mapfile import load_map
+from fisc_ground.cli import main
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "reference"
+
+
+def fisc_ground(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "fisc_ground.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def default_map(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("maps") / "tunnel.fiscmap"
+    assert main(["fit", "cd_nozzle_inviscid", "-o", str(out)]) == 0
+    return out
+
+
+def test_fit_builtin_writes_a_verified_map(default_map):
+    cmap = load_map(default_map)
+    assert 700 <= cmap.n_cv <= 800  # DESIGN.md: about 740 CVs on the shipped export (paper: 772)
+    assert cmap.body["provenance"]["reference"]["name"] == "cd_nozzle_inviscid"
+    assert cmap.body["n_range"] == [2, 10]
+    speeds = np.linalg.norm(cmap.scale * cmap["fit_velocity_m_s"], axis=-1)
+    assert np.nanmax(speeds) <= cmap.body["max_speed_m_s"] + 1e-9
+
+
+def test_inspect_json_has_the_contract_keys(default_map):
+    res = fisc_ground("inspect", str(default_map), "--json")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    for key in ("n_cv", "cell_size", "scale", "kappa", "n_range", "schema_version", "sha256", "signed",
+                "fit_seconds", "fit_velocity_rmse", "fit_pressure_rmse"):
+        assert key in summary, key
+    assert summary["cell_size"] == 0.5 and summary["signed"] is False and summary["schema_version"] == 1
+    assert summary["fit_velocity_rmse"] < 1e-6
+
+
+def test_signed_map_round_trip_and_refusals(tmp_path, default_map):
+    assert main(["keygen", "-o", str(tmp_path / "ground")]) == 0
+    assert main(["keygen", "-o", str(tmp_path / "stranger")]) == 0
+    signed = tmp_path / "signed.fiscmap"
+    assert main(["fit", "cd_nozzle_inviscid", "-o", str(signed), "--sign", str(tmp_path / "ground.key")]) == 0
+    ok = fisc_ground("inspect", str(signed), "--json", "--trusted-key", str(tmp_path / "ground.pub"))
+    assert ok.returncode == 0 and json.loads(ok.stdout)["signed"] is True
+
+    stranger = fisc_ground("inspect", str(signed), "--trusted-key", str(tmp_path / "stranger.pub"))
+    assert stranger.returncode == 1 and "not trusted" in stranger.stderr
+    unsigned = fisc_ground("inspect", str(default_map), "--trusted-key", str(tmp_path / "ground.pub"))
+    assert unsigned.returncode == 1 and "unsigned" in unsigned.stderr
+
+    data = bytearray(signed.read_bytes())
+    flipped = tmp_path / "flipped.fiscmap"
+    data[len(data) // 2] ^= 1
+    flipped.write_bytes(bytes(data))
+    res = fisc_ground("inspect", str(flipped))
+    assert res.returncode == 1 and "sha256" in res.stderr
+
+    truncated = tmp_path / "truncated.fiscmap"
+    truncated.write_bytes(signed.read_bytes()[:-100])
+    res = fisc_ground("inspect", str(truncated))
+    assert res.returncode == 1 and "truncated" in res.stderr
+
+
+def test_bad_reference_exits_nonzero_and_writes_nothing(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("nodenumber, x-coordinate, y-coordinate, z-coordinate, pressure, x-velocity, y-velocity, z-velocity\n"
+                   "1, 0.0, 0.0, 0.0, 1.0, 3.0, 0.0, 0.0\n"
+                   "2, 0.1, 0.0, 0.0, abc, 3.0, 0.0, 0.0\n")
+    out = tmp_path / "m.fiscmap"
+    res = fisc_ground("fit", str(bad), "-o", str(out))
+    assert res.returncode == 1
+    assert "bad.csv" in res.stderr and "line 3" in res.stderr
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bad.csv"]
+
+
+def test_unknown_builtin_lists_the_known_names(tmp_path):
+    res = fisc_ground("fit", "no_such_case", "-o", str(tmp_path / "m.fiscmap"))
+    assert res.returncode == 1 and "cd_nozzle_inviscid" in res.stderr
+
+
+def test_rans_builtin_keeps_reversed_flow_cvs(tmp_path):
+    out = tmp_path / "rans.fiscmap"
+    assert main(["fit", "cd_nozzle", "-o", str(out)]) == 0
+    cmap = load_map(out)
+    reversed_cvs = cmap["target_velocity_m_s"][:, 0] < 0
+    assert reversed_cvs.any()  # separation on the diverging wall (x = 10.5-14.8 m)
+    xs = cmap["cv_center_m"][reversed_cvs, 0]
+    assert xs.min() > 9.0
+    np.testing.assert_allclose(cmap["fit_mean_velocity_m_s"][reversed_cvs], cmap["target_velocity_m_s"][reversed_cvs],
+                               atol=1e-6)
+
+
+@pytest.mark.skipif(not SHARED.exists(), reason="../shared/reference not beside the checkout")
+@pytest.mark.parametrize("case", ["cd_nozzle_inviscid", "cd_nozzle"])
+def test_three_exports_of_one_solution_give_the_same_cv_count(tmp_path, case):
+    counts = {}
+    for name in ("fluent_export_3d.csv", "openfoam_internal.vtu", "axisym_cells.csv"):
+        out = tmp_path / f"{name}.fiscmap"
+        assert main(["fit", str(SHARED / case / name), "-o", str(out)]) == 0, name
+        counts[name] = load_map(out).n_cv
+    assert len(set(counts.values())) == 1, counts
+
+
+def test_plot_writes_the_paper_figures(tmp_path, default_map):
+    assert main(["plot", str(default_map), "-o", str(tmp_path / "figs")]) == 0
+    pngs = sorted(p.name for p in (tmp_path / "figs").glob("*.png"))
+    assert len(pngs) >= 3
+    for p in (tmp_path / "figs").glob("*.png"):
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 10_000

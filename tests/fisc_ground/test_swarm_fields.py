@@ -1,0 +1,206 @@
+"""Specification of the swarm-field estimators Q (paper section "Swarm-Domain Primitive Variables").
+
+The hand cases use cubic CVs of edge l = 0.5 m (dV = 0.125 m^3) and these agents:
+  A: CV 0, v = (2, 0, 0)    B: CV 0, v = (4, 0, 2)    C: CV 1, v = (1, 1, 0)
+  D: outside the map (cv -1), v = (100, 0, 0) -- must be ignored.
+"""
+
+import numpy as np
+import pytest
+
+from fisc_ground.swarm_fields import (
+    FieldAccumulator,
+    SwarmGasParams,
+    cv_moments,
+    instantaneous_fields,
+    interagent_spacing,
+    sound_speed,
+)
+
+DV = 0.125
+IDS = np.array([0, 0, 1, -1])
+VEL = np.array([[2.0, 0, 0], [4.0, 0, 2.0], [1.0, 1.0, 0], [100.0, 0, 0]])
+REF = np.array([[3.0, 0, 0], [1.0, 0, 0]])
+
+
+def test_hand_case_velocity_density_pressures():
+    f = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, reference_velocity_m_s=REF)
+    # counts and mass: D is ignored
+    np.testing.assert_array_equal(f.count, [2, 1])
+    np.testing.assert_array_equal(f.samples, [2, 1])
+    np.testing.assert_allclose(f.mass_kg, [2, 1])
+    # eq. swarm_velocity: CV0 momentum (6,0,2)/M=2 -> U=(3,0,1), projected on +x -> 3
+    np.testing.assert_allclose(f.mean_velocity_m_s, [[3, 0, 1], [1, 1, 0]])
+    np.testing.assert_allclose(f.u_axial_m_s, [3, 1])
+    np.testing.assert_allclose(f.u_s_m_s, [[3, 0, 0], [1, 0, 0]])
+    # eq. swarm_density: m N / dV = 2/0.125 = 16, 1/0.125 = 8
+    np.testing.assert_allclose(f.rho_s_kg_m3, [16, 8])
+    np.testing.assert_allclose(f.number_density_per_m3, [16, 8])
+    # eq. swarm_pressure: 2/(3 dV) sum m|v|^2: CV0 sum = 4 + 20 = 24 -> 48/0.375 = 128; CV1 sum 2 -> 10.667
+    np.testing.assert_allclose(f.p_s_pa, [128, 4 / 0.375])
+    # eq. internal_pressure: |v - u_s|^2: A (-1,0,0)->1, B (1,0,2)->5, mean 3 -> 2/3*16*3 = 32;
+    # CV1 (0,1,0) -> 1 -> 2/3*8 = 16/3
+    np.testing.assert_allclose(f.p_internal_pa, [32, 16 / 3])
+    # eq. pressure_constraint: CV0 |v - (3,0,0)|^2 = 1 + 5 = 6 -> 12/0.375 = 32; CV1 |(0,1,0)|^2 -> 2/0.375
+    np.testing.assert_allclose(f.p_dispersion_pa, [32, 2 / 0.375])
+
+
+def test_hand_case_temperature_and_sound_speed():
+    p = SwarmGasParams(k_b_s=1.0, c_v_s=1.0, gamma_s=1.4, lambda_ctrl=0.5, a_max_m_s2=8.0)
+    f = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, params=p)
+    # eq. temperature_random: U=(3,0,1); |A-U|^2 = 2, |B-U|^2 = 2 -> 4 / (2*2) = 1; single agent -> 0
+    np.testing.assert_allclose(f.t_rand_m2_s2, [1.0, 0.0], atol=1e-12)
+    # L_c = n^(-1/3) with n = 16 and 8 per m^3 -> 16^(-1/3), 0.5
+    np.testing.assert_allclose(f.spacing_m, [16 ** (-1 / 3), 0.5])
+    # T_ctrl = lambda a_max L_c / c_v = 0.5 * 8 * L_c
+    np.testing.assert_allclose(f.t_ctrl_m2_s2, [4 * 16 ** (-1 / 3), 2.0])
+    np.testing.assert_allclose(f.t_s_m2_s2, f.t_rand_m2_s2 + f.t_ctrl_m2_s2)
+    # c^2 = gamma R T, R = c_p - c_v = 0.4
+    np.testing.assert_allclose(f.sound_speed_m_s ** 2, 1.4 * 0.4 * f.t_s_m2_s2)
+    assert np.isnan(f.p_dispersion_pa).all()  # no reference velocity given
+
+
+def test_sound_speed_dispersion_term_and_constitutive_params():
+    p = SwarmGasParams(gamma_s=1.4, c_v_s=2.0, omega_rad_s=10.0, tau_s=0.1)
+    assert p.c_p_s == pytest.approx(2.8)
+    assert p.r_s == pytest.approx(0.8)
+    # 1 + (omega tau)^2 = 2
+    np.testing.assert_allclose(sound_speed(np.array([5.0]), p) ** 2, 1.4 * 0.8 * 5.0 / 2.0)
+
+
+def test_default_params_documented_values():
+    p = SwarmGasParams()
+    assert (p.k_b_s, p.c_v_s, p.gamma_s, p.lambda_ctrl) == (1.0, 1.0, 1.4, 0.5)
+    assert p.a_max_m_s2 == pytest.approx(1.2 * 9.81)
+    with pytest.raises(ValueError, match="lambda_ctrl"):
+        SwarmGasParams(lambda_ctrl=1.5)
+
+
+def test_heterogeneous_masses_are_mass_weighted():
+    # A (m=1) and B (m=3) in CV0: momentum (2+12, 0, 6) / M=4 -> U = (3.5, 0, 1.5)
+    f = instantaneous_fields(IDS, VEL, np.array([1.0, 3.0, 1.0, 1.0]), n_cv=2, cell_volume_m3=DV)
+    np.testing.assert_allclose(f.u_axial_m_s, [3.5, 1.0])
+    np.testing.assert_allclose(f.rho_s_kg_m3, [32.0, 8.0])
+    np.testing.assert_allclose(f.count, [2, 1])
+    # P_s with masses: (1*4 + 3*20) * 2/(3 dV) = 64/0.1875
+    np.testing.assert_allclose(f.p_s_pa[0], 64 * 2 / (3 * DV))
+    # L_c uses the number density (2 agents / dV), not the mass density
+    np.testing.assert_allclose(f.spacing_m[0], 16 ** (-1 / 3))
+
+
+def test_per_cv_drift_direction_is_normalised():
+    dirs = np.array([[1.0, 0, 0], [0, 2.0, 0]])
+    f = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, drift_dir=dirs)
+    np.testing.assert_allclose(f.u_axial_m_s, [3.0, 1.0])
+    np.testing.assert_allclose(f.u_s_m_s[1], [0, 1, 0])
+    with pytest.raises(ValueError, match="drift_dir"):
+        instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, drift_dir=np.zeros(3))
+
+
+def test_empty_cv_conventions():
+    f = instantaneous_fields(np.array([0]), np.array([[1.0, 0, 0]]), 1.0, n_cv=2, cell_volume_m3=DV)
+    assert f.count[1] == 0 and f.rho_s_kg_m3[1] == 0 and f.p_s_pa[1] == 0 and f.p_internal_pa[1] == 0
+    assert np.isnan(f.u_axial_m_s[1]) and np.isnan(f.t_s_m2_s2[1]) and np.isnan(f.spacing_m[1])
+
+
+def test_invalid_inputs_are_named():
+    with pytest.raises(ValueError, match="cv_ids contains 5"):
+        cv_moments(np.array([5]), np.zeros((1, 3)), 1.0, n_cv=2)
+    with pytest.raises(ValueError, match="velocities"):
+        cv_moments(np.array([0, 1]), np.zeros((3, 3)), 1.0, n_cv=2)
+    with pytest.raises(ValueError, match="reference_velocity"):
+        cv_moments(np.array([0]), np.zeros((1, 3)), 1.0, n_cv=2, reference_velocity_m_s=np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="masses"):
+        cv_moments(np.array([0]), np.zeros((1, 3)), 0.0, n_cv=2)
+
+
+def test_time_average_hand_case():
+    # sample 1: A in CV0 at (2,0,0); sample 2: A (4,0,0) and B (0,0,0) in CV0; CV1 always empty
+    acc = FieldAccumulator(2, DV)
+    acc.add(np.array([0]), np.array([[2.0, 0, 0]]), 1.0)
+    acc.add(np.array([0, 0]), np.array([[4.0, 0, 0], [0.0, 0, 0]]), 1.0)
+    f = acc.result()
+    assert f.n_time_samples == 2
+    np.testing.assert_array_equal(f.samples, [3, 0])
+    np.testing.assert_allclose(f.count, [1.5, 0])
+    # density = mean of instantaneous (8, 16) = total mass 3 / (2 dV) = 12
+    np.testing.assert_allclose(f.rho_s_kg_m3, [12, 0])
+    # velocity mass-weighted over all samples: (2 + 4 + 0)/3 = 2
+    np.testing.assert_allclose(f.u_axial_m_s[0], 2.0)
+    assert np.isnan(f.u_axial_m_s[1])
+    # P_s = mean of instantaneous (4, 16) * 2/(3 dV) = 10 * 2/0.375
+    np.testing.assert_allclose(f.p_s_pa[0], 10 * 2 / (3 * DV))
+    # pooled T_rand about U = 2: (0 + 4 + 4) / (2 * 3) = 4/3
+    np.testing.assert_allclose(f.t_rand_m2_s2[0], 4 / 3)
+
+
+def test_dispersion_pressure_averaged_over_referenced_samples():
+    acc = FieldAccumulator(2, DV)
+    acc.add(np.array([0]), np.array([[2.0, 0, 0]]), 1.0, reference_velocity_m_s=REF)  # |(-1,0,0)|^2 = 1
+    acc.add(np.array([0]), np.array([[5.0, 0, 0]]), 1.0, reference_velocity_m_s=REF)  # |(2,0,0)|^2 = 4
+    np.testing.assert_allclose(acc.result().p_dispersion_pa, [2.5 * 2 / (3 * DV), 0.0])
+
+
+def _naive_fields(ids, vel, m, n_cv, dv):
+    """Loop reference implementation (the paper's sums written out literally)."""
+    out = {k: np.full(n_cv, np.nan) for k in ("u", "rho", "ps", "pint", "trand")}
+    for j in range(n_cv):
+        sel = ids == j
+        if not sel.any():
+            continue
+        mj, vj = m[sel], vel[sel]
+        M = mj.sum()
+        u = (mj * vj[:, 0]).sum() / M
+        U = (mj[:, None] * vj).sum(0) / M
+        rho = M / dv
+        out["u"][j] = u
+        out["rho"][j] = rho
+        out["ps"][j] = 2 / (3 * dv) * (mj * (vj ** 2).sum(1)).sum()
+        us = np.array([u, 0, 0])
+        out["pint"][j] = 2 / 3 * rho * (mj * ((vj - us) ** 2).sum(1)).sum() / M
+        out["trand"][j] = (mj * ((vj - U) ** 2).sum(1)).sum() / (2 * M)
+    return out
+
+
+def test_vectorised_matches_literal_sums_on_random_swarm():
+    rng = np.random.default_rng(3)
+    n, n_cv = 300, 17
+    ids = rng.integers(-1, n_cv, n)
+    vel = rng.normal(size=(n, 3)) * 2 + [3, 0, 0]
+    m = rng.uniform(0.5, 2.0, n)
+    f = instantaneous_fields(ids, vel, m, n_cv, DV)
+    ref = _naive_fields(ids, vel, m, n_cv, DV)
+    occupied = np.isfinite(ref["u"])
+    np.testing.assert_allclose(f.u_axial_m_s[occupied], ref["u"][occupied])
+    np.testing.assert_allclose(f.rho_s_kg_m3[occupied], ref["rho"][occupied])
+    np.testing.assert_allclose(f.p_s_pa[occupied], ref["ps"][occupied])
+    np.testing.assert_allclose(f.p_internal_pa[occupied], ref["pint"][occupied])
+    np.testing.assert_allclose(f.t_rand_m2_s2[occupied], ref["trand"][occupied])
+
+
+def test_single_sample_accumulator_equals_instantaneous_and_state_roundtrip_and_merge():
+    rng = np.random.default_rng(7)
+    n_cv = 5
+    batches = [(rng.integers(-1, n_cv, 40), rng.normal(size=(40, 3)), rng.uniform(0.8, 1.2, 40)) for _ in range(4)]
+    ref = rng.normal(size=(n_cv, 3))
+
+    one = FieldAccumulator(n_cv, DV)
+    one.add(*batches[0], reference_velocity_m_s=ref)
+    inst = instantaneous_fields(*batches[0], n_cv, DV, reference_velocity_m_s=ref)
+    for name, arr in inst.as_arrays().items():
+        np.testing.assert_allclose(getattr(one.result(), name), arr, err_msg=name)
+
+    full = FieldAccumulator(n_cv, DV)
+    first, second = FieldAccumulator(n_cv, DV), FieldAccumulator(n_cv, DV)
+    for i, b in enumerate(batches):
+        full.add(*b, reference_velocity_m_s=ref)
+        (first if i < 2 else second).add(*b, reference_velocity_m_s=ref)
+    first.merge(second)
+    replay = FieldAccumulator.from_state({k: v.copy() for k, v in full.state().items()})
+    for other in (first, replay):
+        for name, arr in full.result().as_arrays().items():
+            np.testing.assert_allclose(getattr(other.result(), name), arr, err_msg=name)
+
+
+def test_interagent_spacing():
+    np.testing.assert_allclose(interagent_spacing(np.array([8.0, 1.0, 0.0])), [0.5, 1.0, np.nan])
