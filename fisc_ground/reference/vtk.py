@@ -75,6 +75,8 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
              name: str | None = None) -> ReferenceField:
     """Read a .vtu/.vtk flow solution into a :class:`ReferenceField` (wedges are revolved)."""
     import meshio  # local import: only this importer needs it
+    import meshio.vtk
+    import meshio.vtu
 
     p = Path(path)
     if not p.is_file():
@@ -82,9 +84,14 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
     src = str(p)
     raw = p.read_bytes()
     sha = hashlib.sha256(raw).hexdigest()
+    # the format readers directly: meshio.read() prints and calls sys.exit() on a bad file
+    readers = {".vtu": meshio.vtu.read, ".vtk": meshio.vtk.read}
+    reader = readers.get(p.suffix.lower())
+    if reader is None:
+        raise ReferenceError(f"{src}: unsupported extension {p.suffix!r}; expected .vtu or .vtk")
     try:
-        mesh = meshio.read(p)
-    except Exception as exc:  # meshio raises many types (ReadError, ValueError, KeyError, ...)
+        mesh = reader(str(p))
+    except Exception as exc:  # meshio raises many types (ReadError, ParseError, KeyError, ...)
         raise ReferenceError(f"{src}: cannot read as VTK: {type(exc).__name__}: {exc}") from exc
 
     # prefer cell data (OpenFOAM's native values) over interpolated point data

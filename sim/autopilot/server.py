@@ -378,6 +378,11 @@ _SENSORS = (
 _POSITION_SENSORS = mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
 
 
+def _int(x: float, default: int = 0) -> int:
+    """Command parameter as int (MAVSDK and others send NaN for "unused")."""
+    return int(round(x)) if math.isfinite(x) else default
+
+
 def _i16(x: float) -> int:
     return int(max(-32768, min(32767, round(x))))
 
@@ -484,7 +489,7 @@ class AutopilotEmulator:
             "MISSION_CLEAR_ALL": self._on_mission_clear_all,
             "TIMESYNC": self._on_timesync,
         }
-        self.stats = {"rx": 0, "tx": 0, "rx_dropped": 0, "tx_dropped": 0, "position_suppressed": 0}
+        self.stats = {"rx": 0, "tx": 0, "rx_dropped": 0, "tx_dropped": 0, "position_suppressed": 0, "errors": 0}
         """Message counters (read-only for callers)."""
         self._state = self.vehicle.snapshot()
 
@@ -734,7 +739,11 @@ class AutopilotEmulator:
                 continue
             handler = self._handlers.get(kind)
             if handler is not None:
-                handler(msg, now)
+                try:
+                    handler(msg, now)
+                except Exception:  # a malformed request must not take the vehicle down; logged, counted
+                    self.stats["errors"] += 1
+                    _log.exception("autopilot sysid %d: error handling %s", self.sysid, msg)
 
     def _on_heartbeat(self, msg: object, now: float) -> None:
         if msg.type == mavlink.MAV_TYPE_GCS or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:  # type: ignore[attr-defined]
@@ -759,10 +768,10 @@ class AutopilotEmulator:
         veh = self.vehicle
         follow_up: list[int] = []
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
-            force = int(round(p[1])) == _FORCE_DISARM_MAGIC
-            out = veh.arm(now, force) if p[0] >= 0.5 else veh.disarm(now, force)
+            force = _int(p[1]) == _FORCE_DISARM_MAGIC
+            out = veh.arm(now, force) if _int(p[0]) == 1 else veh.disarm(now, force)
         elif command == mavlink.MAV_CMD_DO_SET_MODE:
-            if not int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            if not _int(p[0]) & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
                 out = Outcome(UNSUPPORTED, "Only custom modes are supported")
             else:
                 mode = self.personality.mode_from_command(p[1], p[2])
@@ -774,9 +783,9 @@ class AutopilotEmulator:
         elif command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             out = veh.return_to_launch(now)
         elif command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-            out = self._set_interval(int(p[0]), p[1], now)
+            out = self._set_interval(_int(p[0], -1), p[1], now)
         elif command == mavlink.MAV_CMD_REQUEST_MESSAGE:
-            msg_id = int(p[0])
+            msg_id = _int(p[0], -1)
             out = Outcome(ACCEPTED) if msg_id in self._builders else Outcome(UNSUPPORTED)
             follow_up.append(msg_id)
         elif command == mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
@@ -811,7 +820,7 @@ class AutopilotEmulator:
             return Outcome(UNSUPPORTED)
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return Outcome(DENIED, "HEARTBEAT rate is fixed")
-        if interval_us == 0:
+        if not math.isfinite(interval_us) or interval_us == 0:
             interval = self._default_intervals.get(msg_id, 0.0)
         elif interval_us < 0:
             interval = 0.0

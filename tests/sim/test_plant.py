@@ -440,3 +440,50 @@ def test_heterogeneous_fleet_behaves_per_agent():
     ts = [pc.settling_time_s(run.t_s, run.vel_ned_m_s[:, i, 0], 1.0, 1.0) for i in range(3)]
     assert ts[0] < ts[1] < ts[2]
     assert ts[1] == pytest.approx(pc.second_order_settling_time_s(PlantParams()), abs=0.03)
+
+
+def test_docs_table_is_what_the_checks_measure():
+    """docs/plant.md carries the table ``python -m sim.plant_checks`` prints (regenerate it when
+    the plant changes)."""
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "plant.md").read_text(encoding="utf-8")
+    for row in pc.report_markdown().splitlines():
+        assert row in doc, f"docs/plant.md is stale; row not found: {row}"
+
+
+# --- wind ------------------------------------------------------------------------------------------
+
+
+def test_gusts_have_the_requested_rms_and_correlation():
+    from sim.wind import GustWind, WindParams
+
+    wp = WindParams(mean_wind_ned_m_s=(-3.0, 1.0, 0.0), turbulence_rms_m_s=(1.0, 0.5, 0.2), correlation_time_s=1.0)
+    wind = GustWind(wp, 4000, np.random.default_rng(0))
+    w0 = wind.wind_ned_m_s.copy()
+    w1 = wind.step(0.5)
+    np.testing.assert_allclose(w1.mean(axis=0), [-3.0, 1.0, 0.0], atol=0.05)
+    np.testing.assert_allclose(w1.std(axis=0), [1.0, 0.5, 0.2], rtol=0.05)
+    g0, g1 = w0 - wp.mean_wind_ned_m_s, w1 - wp.mean_wind_ned_m_s
+    corr = (g0 * g1).mean(axis=0) / (g0.std(axis=0) * g1.std(axis=0))
+    np.testing.assert_allclose(corr, math.exp(-0.5), atol=0.04)
+    wind.append(10)
+    wind.keep(np.arange(4010) % 2 == 0)
+    assert wind.wind_ned_m_s.shape == (2005, 3)
+    a = GustWind(wp, 5, np.random.default_rng(7)).step(0.1)
+    np.testing.assert_array_equal(a, GustWind(wp, 5, np.random.default_rng(7)).step(0.1))
+    with pytest.raises(ValueError, match="correlation_time_s"):
+        WindParams(correlation_time_s=0.0)
+
+
+def test_plant_flies_through_gusts_within_its_limits():
+    from sim.wind import GustWind, WindParams
+
+    wind = GustWind(WindParams((-4.0, 0.0, 0.0), (2.0, 2.0, 1.0), 0.5), 200, np.random.default_rng(1))
+    plant = VelocityPlant(PlantParams(), 200)
+    errs = []
+    for _ in range(1000):
+        plant.step([5.0, 0.0, 0.0], 0.01, wind.step(0.01))
+        assert plant.tilt_deg().max() <= 55.0 + 1e-9
+        errs.append(np.abs(plant.velocity - [5.0, 0.0, 0.0]).mean())
+    assert np.mean(errs[500:]) < 0.3

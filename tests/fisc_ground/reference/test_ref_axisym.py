@@ -52,8 +52,9 @@ def test_revolve_reproduces_linear_fields_and_rotates_radial_velocity():
     np.testing.assert_allclose(pres[inside], (10.0 - 4.0 * X)[inside], atol=1e-12)
     np.testing.assert_allclose(dens[inside], (1.2 + 0.01 * X)[inside], atol=1e-12)
     # u_r = 0.2 r rotated into y, z: u_y = 0.2 y, u_z = 0.2 z (also across the axis)
-    np.testing.assert_allclose(vel[:, 1], 0.2 * Y, atol=1e-12)
-    np.testing.assert_allclose(vel[:, 2], 0.2 * Z, atol=1e-12)
+    np.testing.assert_allclose(vel[inside, 1], 0.2 * Y[inside], atol=1e-12)
+    np.testing.assert_allclose(vel[inside, 2], 0.2 * Z[inside], atol=1e-12)
+    assert np.all(vel[R == 0.0, 1:] == 0.0)
     # nearest fallback outside the hull: finite everywhere
     assert np.all(np.isfinite(vel)) and np.all(np.isfinite(pres))
 

@@ -1,0 +1,228 @@
+"""The ``fisc-sim run`` job: a scenario on a command map, time-averaged swarm fields, outputs.
+
+``simulate(config, cmap)`` is the computation (no file I/O); ``run(config)`` loads the map,
+simulates and writes ``fields.csv``, ``metrics.json``, ``report.md`` and the figures into
+``config.out_dir`` (see docs/simulation.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fisc_agent.lookup import CommandField
+from fisc_agent.mapfile import CommandMap, load_map
+from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
+from sim.collisions import CollisionModel, CollisionParams
+from sim.plant import PlantParams
+from sim.scenarios import Reservoir, scale_for_agents, seed_positions
+from sim.swarm import Swarm, SwarmConfig, SwarmCounters
+
+log = logging.getLogger(__name__)
+
+SCENARIOS = ("reservoir", "seed")
+#: Paper fig. 4 snapshot times [s].
+PAPER_SNAPSHOT_TIMES_S = (0.5, 6.0, 10.0, 15.0)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything one ``fisc-sim run`` needs (recorded in metrics.json)."""
+
+    map: str | None = None
+    """Command map: a ``.fiscmap`` path, a reference spec (built-in name such as ``cd_nozzle``, or
+    a CFD file) to fit on the fly, or None for the embedded default map."""
+    scenario: str = "reservoir"
+    """``reservoir`` (paper Case 2) or ``seed`` (paper Case 1)."""
+    agents: int | None = None
+    """Population target N: N* is scaled by N / sum N* (seed: exactly N agents seeded;
+    reservoir: the source rate is scaled so a swarm keeping the seeded density holds ~N).  None: N* as fitted."""
+    duration_s: float = 300.0
+    """Simulated time [s] (paper: 300 s)."""
+    average_window_s: float = 100.0
+    """The swarm fields are time-averaged over the last this many seconds [s]."""
+    sample_interval_s: float = 0.1
+    """Interval between the time samples of the average [s] (a multiple of dt is used)."""
+    mode: str = "mean"
+    """Command mode: mean (paper Algorithm 1), slot or interpolated."""
+    collisions: bool = False
+    """Enable the paper's collision layer (sim.collisions)."""
+    collision_radius_m: float = 0.1
+    """Agent radius r of the collision layer [m] (collision when closer than 2 r)."""
+    seed: int = 0
+    """Random seed (positions of seeded and injected agents)."""
+    scale: float | None = None
+    """Override of the map's speed scale S (the paper flew S = 0.1); None: the map's S."""
+    x_axial_m: float = math.inf
+    """Case 1: seed the CVs with centre x <= this [m] (inf: the full tunnel)."""
+    source_interval_s: float = 0.05
+    """Case 2: interval between reservoir batches, dt_source [s]."""
+    dt_s: float = 0.05
+    """Time step of Algorithm 1 [s]."""
+    escape_grace_s: float = 2.0
+    """Return policy: longest time outside every CV before an agent counts as escaped [s]."""
+    min_samples: int = 10
+    """CVs with fewer agent samples in the window are left out of the metrics."""
+    snapshot_times_s: tuple[float, ...] = PAPER_SNAPSHOT_TIMES_S
+    """Times of the XZ swarm snapshots (paper fig. 4) [s]; times beyond the run are skipped."""
+    figures: bool = True
+    """Write the PNG figures."""
+    out_dir: str = "out/run"
+    """Output directory."""
+
+    def __post_init__(self) -> None:
+        if self.scenario not in SCENARIOS:
+            raise ValueError(f"scenario {self.scenario!r}: choose one of {', '.join(SCENARIOS)}")
+        if not self.duration_s > 0:
+            raise ValueError(f"duration_s must be > 0, got {self.duration_s!r}")
+        if not self.average_window_s > 0:
+            raise ValueError(f"average_window_s must be > 0, got {self.average_window_s!r}")
+        if self.agents is not None and self.agents < 0:
+            raise ValueError(f"agents must be >= 0, got {self.agents!r}")
+        if self.scale is not None and not self.scale > 0:
+            raise ValueError(f"scale must be > 0, got {self.scale!r}")
+        if not self.sample_interval_s > 0:
+            raise ValueError(f"sample_interval_s must be > 0, got {self.sample_interval_s!r}")
+
+
+@dataclass
+class RunResult:
+    """Outcome of a simulation (``simulate``) and, after ``run``, where its outputs are."""
+
+    config: RunConfig
+    """The configuration."""
+    cmap: CommandMap
+    """The command map flown."""
+    scale: float
+    """The speed scale S actually used."""
+    fields: SwarmFields
+    """Time-averaged swarm fields per CV over the averaging window."""
+    target_command_m_s: np.ndarray
+    """(n_cv, 3) S * CFD target velocity: the reference of the dispersion pressure [m/s]."""
+    counters: SwarmCounters
+    """Agent bookkeeping (injected / exited / escaped ...)."""
+    alive: int
+    """Agents alive at the end."""
+    wall_time_s: float
+    """Wall time of the stepping loop (excludes map loading and output) [s]."""
+    window_s: tuple[float, float]
+    """Start and end of the averaging window [s]."""
+    inflow_rate_per_s: float | None
+    """Case 2: nominal source rate of eq. source_rate summed over the inlet [agents/s]."""
+    collisions: dict | None
+    """Collision statistics (counts by type) when the collision layer was on."""
+    snapshots: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    """(t, positions (n, 3)) at the snapshot times."""
+    metrics: dict = field(default_factory=dict)
+    """metrics.json content (filled by ``sim.report.compute_metrics``)."""
+    paths: dict[str, Path] = field(default_factory=dict)
+    """Written outputs by name."""
+
+
+def load_command_map(spec: str | None) -> CommandMap:
+    """The map of ``RunConfig.map``: default, a .fiscmap file, or a reference to fit now."""
+    if spec is None:
+        from fisc_ground.mapbuild import build_default_map
+
+        return build_default_map()
+    p = Path(spec)
+    if p.suffix == ".fiscmap" or (p.is_file() and p.read_bytes()[:8] == b"FISCMAP\x00"):
+        return load_map(p)
+    from fisc_ground.mapbuild import build_map_from_reference
+
+    return build_map_from_reference(spec)
+
+
+def simulate(config: RunConfig, cmap: CommandMap,
+             progress: Callable[[float], None] | None = None) -> RunResult:
+    """Run the scenario on ``cmap`` and time-average the swarm fields (no file output).
+
+    ``progress(fraction_done)`` is called now and then (for a progress bar).
+    """
+    scale = cmap.scale if config.scale is None else float(config.scale)
+    cf = CommandField.from_map(cmap, scale=scale)
+    target_cmd = scale * np.asarray(cmap["target_velocity_m_s"], dtype=float)
+    collider = None
+    if config.collisions:
+        collider = CollisionModel(CollisionParams(radius_m=config.collision_radius_m,
+                                                  v_max_m_s=float(cmap.body.get("max_speed_m_s", 5.0)) * 1.5),
+                                  cf.cell_size_m)
+    swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=config.mode,
+                                                 escape_grace_s=config.escape_grace_s),
+                  target_command_m_s=target_cmd, collider=collider)
+    rng = np.random.default_rng(config.seed)
+    reservoir = None
+    if config.scenario == "seed":
+        swarm.add_agents(seed_positions(cf, rng, config.x_axial_m, config.agents))
+    else:
+        reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents))
+    acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
+    mass = float(cmap.body.get("agent_mass_kg", 1.0))
+    n_steps = max(1, int(round(config.duration_s / config.dt_s)))
+    window = min(config.average_window_s, n_steps * config.dt_s)
+    first_sample = n_steps - int(round(window / config.dt_s))
+    every = max(1, int(round(config.sample_interval_s / config.dt_s)))
+    snap_steps = {int(round(t / config.dt_s)): t for t in config.snapshot_times_s if t <= n_steps * config.dt_s}
+    snapshots: list[tuple[float, np.ndarray]] = []
+    report_every = max(1, n_steps // 200)
+    t0 = time.perf_counter()
+    for k in range(n_steps + 1):
+        if reservoir is not None and k < n_steps:
+            for _ in range(reservoir.due(swarm.t_s)):
+                swarm.add_agents(reservoir.batch(rng))
+        if k in snap_steps:
+            swarm.assign()
+            snapshots.append((snap_steps[k], swarm.pos_m.copy()))
+        if k >= first_sample and (k - first_sample) % every == 0 and k > first_sample or k == n_steps:
+            cv = swarm.assign()
+            acc.add(cv, swarm.velocity_map(), mass, target_cmd)
+        if k == n_steps:
+            break
+        swarm.step()
+        if progress is not None and k % report_every == 0:
+            progress(k / n_steps)
+    wall = time.perf_counter() - t0
+    if progress is not None:
+        progress(1.0)
+    return RunResult(
+        config=config, cmap=cmap, scale=scale, fields=acc.result(), target_command_m_s=target_cmd,
+        counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
+        window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
+        inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
+        collisions=None if collider is None else collider.stats.as_dict(), snapshots=snapshots)
+
+
+def config_dict(config: RunConfig) -> dict:
+    """JSON-safe dict of a RunConfig (inf -> "inf")."""
+    out = {}
+    for k, v in asdict(config).items():
+        if isinstance(v, float) and not math.isfinite(v):
+            v = str(v)
+        out[k] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> RunResult:
+    """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
+    from sim import report
+
+    cmap = load_command_map(config.map)
+    result = simulate(config, cmap, progress)
+    out = Path(config.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    result.metrics = report.compute_metrics(result)
+    result.paths["fields"] = report.write_fields_csv(result, out / "fields.csv")
+    result.paths["metrics"] = report.write_metrics_json(result, out / "metrics.json")
+    if config.figures:
+        from sim import figures
+
+        result.paths.update(figures.write_run_figures(result, out))
+    result.paths["report"] = report.write_report_md(result, out / "report.md")
+    log.info("run written to %s", out)
+    return result
