@@ -14,7 +14,6 @@ them with this priority: link lost > position lost > position stale > geofence.
 
 from __future__ import annotations
 
-import math
 from enum import Enum
 
 
@@ -37,7 +36,7 @@ class GeofenceVerdict(str, Enum):
 def position_health(age_s: float, stale_timeout_s: float, hold_grace_s: float) -> PositionHealth:
     """Classify the age of the newest position fix (``inf`` when there never was one)."""
     if not (age_s <= stale_timeout_s):  # also catches NaN
-        if math.isinf(age_s) or age_s > stale_timeout_s + hold_grace_s:
+        if not (age_s <= stale_timeout_s + hold_grace_s):  # inf (never) and NaN count as lost
             return PositionHealth.LOST
         return PositionHealth.STALE
     return PositionHealth.OK

@@ -246,7 +246,8 @@ class Mission:
                     self._home = pos
                     self._offboard_seen = False
                     self._go(t, State.ARM, f"position and {s.autopilot} heartbeat received")
-        elif st == State.ARM:
+        st = self.state
+        if st == State.ARM:
             vel = None if by_command else ZERO
             want_mode, want_armed = "offboard", True
             if s.armed and s.mode == "offboard":

@@ -179,7 +179,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
         if k in snap_steps:
             swarm.assign()
             snapshots.append((snap_steps[k], swarm.pos_m.copy()))
-        if k >= first_sample and (k - first_sample) % every == 0 and k > first_sample or k == n_steps:
+        if k > first_sample and (n_steps - k) % every == 0:
             cv = swarm.assign()
             acc.add(cv, swarm.velocity_map(), mass, target_cmd)
         if k == n_steps:

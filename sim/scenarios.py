@@ -138,3 +138,52 @@ class Reservoir:
             self._next_t += self.interval_s
             k += 1
         return k
+
+
+def synthetic_tunnel_map(nx: int = 12, radius_cells: float = 2.0, cell_size_m: float = 0.5,
+                         speed_m_s: float = 1.0, n_star: int = 3, spread_m_s: float = 0.2,
+                         scale: float = 1.0):
+    """A small analytic command map for tests and demos (no CFD, no fitting).
+
+    A straight tunnel along x of ``nx`` slices; a CV wherever the cell centre lies within
+    ``radius_cells`` cells of the axis (y = z = 0 on cell faces).  Target velocity
+    (``speed_m_s``, 0, 0) with a mild linear acceleration (x 1 -> 1.5 along the tunnel), N* =
+    ``n_star`` everywhere, fitted vectors = target +/- ``spread_m_s`` along y (mean = target),
+    gauge pressure from Bernoulli, density constant with a tiny Bernoulli dip.
+    """
+    from fisc_agent.mapfile import decode_map
+    from fisc_ground.mapwrite import encode_map
+
+    l = float(cell_size_m)
+    r = int(np.ceil(radius_cells))
+    shape = (nx, 2 * r, 2 * r)
+    origin = np.array([0.0, -r * l, -r * l])
+    idx = np.stack(np.meshgrid(*(np.arange(s) for s in shape), indexing="ij"), axis=-1).reshape(-1, 3)
+    centres = origin + (idx + 0.5) * l
+    keep = np.hypot(centres[:, 1], centres[:, 2]) <= radius_cells * l
+    idx, centres = idx[keep], centres[keep]
+    n = idx.shape[0]
+    grid = np.full(shape, -1, dtype=np.int32)
+    grid[idx[:, 0], idx[:, 1], idx[:, 2]] = np.arange(n)
+    u = speed_m_s * (1.0 + 0.5 * centres[:, 0] / (nx * l))
+    tv = np.zeros((n, 3))
+    tv[:, 0] = u
+    nmax = max(n_star, 2)
+    fv = np.full((n, nmax, 3), np.nan)
+    for k in range(n_star):
+        fv[:, k] = tv
+        fv[:, k, 1] += spread_m_s * (1 if k % 2 == 0 else -1) * (0 if (n_star % 2 and k == n_star - 1) else 1)
+    p = 0.5 * 1.2 * (speed_m_s ** 2 - u ** 2)
+    rho = 1.2 * (1.0 + p / 1e5)
+    arrays = {
+        "cv_center_m": centres, "cv_index": idx.astype(np.int32), "grid_cv": grid,
+        "n_star": np.full(n, n_star, dtype=np.int32), "fit_velocity_m_s": fv,
+        "fit_mean_velocity_m_s": np.nanmean(fv[:, :n_star], axis=1), "fit_pressure": p - p.min(),
+        "fit_loss": np.zeros(n), "target_velocity_m_s": tv, "target_pressure_gauge_pa": p,
+        "target_density_kg_m3": rho, "swarm_pressure_target": p - p.min(), "node_count": np.ones(n, dtype=np.int32),
+    }
+    meta = {"map_version": 1, "n_cv": int(n),
+            "grid": {"origin_m": [float(v) for v in origin], "cell_size_m": l, "shape": list(shape)},
+            "n_range": [2, nmax], "scale": float(scale), "kappa": 1.0, "agent_mass_kg": 1.0,
+            "max_speed_m_s": 5.0, "provenance": {"reference": {"name": "synthetic_tunnel"}}}
+    return decode_map(encode_map(meta, arrays), source="synthetic_tunnel_map")

@@ -52,7 +52,7 @@ def looks_axisymmetric(keys: tuple[str, ...]) -> bool:
     return (has_r or has_ur) and not has_z
 
 
-def _axial_columns(x: np.ndarray) -> np.ndarray | None:
+def axial_columns(x: np.ndarray) -> np.ndarray | None:
     """Group points into axial columns (cluster id per point), or None if x is not clustered.
 
     Columns are separated by gaps of the sorted x values larger than 0.3 times the largest
@@ -90,7 +90,7 @@ def estimate_wall_from_cells(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, 
     grading q = d1/d2: ``R = r_N + d1 q / (1 + q)`` (exactly d1/2 for a uniform mesh). Without a
     column structure, falls back to the maximum r per x bin (an underestimate by half a cell).
     """
-    cid = _axial_columns(x)
+    cid = axial_columns(x)
     if cid is None:
         nb = max(2, int(np.sqrt(x.size) / 2))
         edges = np.linspace(x.min(), x.max(), nb + 1)
@@ -151,7 +151,8 @@ def _linear_interpolate(xy: np.ndarray, values: np.ndarray, query: np.ndarray) -
 
 
 def revolve_axisymmetric(x: np.ndarray, r: np.ndarray, u_x: np.ndarray, u_r: np.ndarray,
-                         p: np.ndarray, rho: np.ndarray | None, spacing_m: float = LATTICE_SPACING_M,
+                         p: np.ndarray, rho: np.ndarray | None,
+                         spacing_m: float = LATTICE_SPACING_M,
                          *, wall_x_m: np.ndarray | None = None,
                          wall_radius_m: np.ndarray | None = None,
                          x_range_m: tuple[float, float] | None = None,
@@ -181,10 +182,11 @@ def revolve_axisymmetric(x: np.ndarray, r: np.ndarray, u_x: np.ndarray, u_r: np.
         wall_x, wall_r = np.asarray(wall_x_m, float), np.asarray(wall_radius_m, float)
     radius = _wall_spline(wall_x, wall_r)
     if x_range_m is None:
-        cid = _axial_columns(x)
+        cid = axial_columns(x)
         if cid is not None:
             n_col = int(cid.max()) + 1
-            centres = np.bincount(cid, weights=x, minlength=n_col) / np.bincount(cid, minlength=n_col)
+            counts = np.bincount(cid, minlength=n_col)
+            centres = np.bincount(cid, weights=x, minlength=n_col) / counts
             centres.sort()
             half_lo = 0.5 * (centres[1] - centres[0])
             half_hi = 0.5 * (centres[-1] - centres[-2])
@@ -222,7 +224,8 @@ def revolve_axisymmetric(x: np.ndarray, r: np.ndarray, u_x: np.ndarray, u_r: np.
 
 
 def read_axisym_csv(path: str | Path, pressure_kind: str = "gauge",
-                    spacing_m: float = LATTICE_SPACING_M, name: str | None = None) -> ReferenceField:
+                    spacing_m: float = LATTICE_SPACING_M,
+                    name: str | None = None) -> ReferenceField:
     """Read an axisymmetric ``x,r,u_x,u_r,p[,rho][,T]`` CSV and revolve it into a 3-D field.
 
     Columns are matched case-insensitively in any order (aliases: ``radius``, ``axial-velocity``,

@@ -77,7 +77,8 @@ def field_from_npz_bytes(blob: bytes, name: str, where: str) -> ReferenceField:
         points_m=arrays["points_m"], velocity_m_s=arrays["velocity_m_s"],
         pressure_gauge_pa=arrays["pressure_gauge_pa"],
         density_kg_m3=None if dens.size == 0 else dens, name=name, source=f"builtin:{name}",
-        source_sha256=str(prov.get("source_sha256", "")), pressure_kind=prov.get("pressure_kind", "gauge"),
+        source_sha256=str(prov.get("source_sha256", "")),
+        pressure_kind=prov.get("pressure_kind", "gauge"),
         extras={"origin": prov.get("origin"), "summary": prov.get("summary"),
                 "solver": prov.get("solver"), "field_map": where,
                 "field_map_sha256": hashlib.sha256(blob).hexdigest()})

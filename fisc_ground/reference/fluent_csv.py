@@ -2,7 +2,7 @@
 
 Also home of the small, fast numeric-CSV reader shared with the axisymmetric importer:
 a vectorised fast path (``np.fromstring`` over the whole body) and, only when that fails,
-a slow per-line pass whose only job is to name the offending line, column and text.
+a slow per-line pass that names the offending line, column and text.
 """
 
 from __future__ import annotations
@@ -109,18 +109,20 @@ def read_numeric_table(path: str | Path) -> NumericTable:
     except ValueError:
         values = None
     if values is None or not aligned or values.size != len(rows) * ncol:
-        _diagnose_rows(p, lines, rows, columns, delim)
-        # _diagnose_rows always raises; this line is a safety net for an undiagnosed mismatch.
-        raise ReferenceError(f"{p}: could not parse {len(rows)} rows of {ncol} numbers")
-    data = values.reshape(len(rows), ncol)
+        data = _parse_rows_slowly(p, lines, rows, columns, delim)
+    else:
+        data = values.reshape(len(rows), ncol)
     return NumericTable(str(p), columns, keys, data, line_numbers, h + 1, sha)
 
 
-def _diagnose_rows(p: Path, lines: list[str], rows: list[int], columns: tuple[str, ...],
-                   delim: str | None) -> None:
-    """Slow path: find and report the first malformed row (cell count or non-numeric cell)."""
+def _parse_rows_slowly(p: Path, lines: list[str], rows: list[int], columns: tuple[str, ...],
+                       delim: str | None) -> np.ndarray:
+    """Slow path, taken only when the fast parse fails: report the first malformed row (cell
+    count or non-numeric cell); if every row is well formed (e.g. trailing delimiters on only
+    some rows), return the parsed (n_rows, n_columns) table."""
     ncol = len(columns)
-    for i in rows:
+    out = np.empty((len(rows), ncol))
+    for n, i in enumerate(rows):
         cells = [c.strip() for c in (lines[i].split(delim) if delim else lines[i].split())]
         if delim and len(cells) == ncol + 1 and cells[-1] == "":
             cells = cells[:-1]
@@ -129,12 +131,12 @@ def _diagnose_rows(p: Path, lines: list[str], rows: list[int], columns: tuple[st
                 f"{p}: line {i + 1}: {len(cells)} cells but the header has {ncol} columns")
         for j, c in enumerate(cells):
             try:
-                float(c)
+                out[n, j] = float(c)
             except ValueError:
                 what = "empty cell" if c == "" else f"non-numeric value {c!r}"
                 raise ReferenceError(
                     f"{p}: line {i + 1}, column {j + 1} ({columns[j]!r}): {what}") from None
-    raise ReferenceError(f"{p}: could not parse the numeric rows (mixed separators?)")
+    return out
 
 
 # --- Fluent column vocabulary --------------------------------------------------------------
@@ -195,7 +197,8 @@ def to_gauge(pressure_pa: np.ndarray, kind: str, where: str) -> tuple[np.ndarray
     median exceeds ``AUTO_ABSOLUTE_THRESHOLD_PA``.
     """
     if kind not in PRESSURE_KINDS:
-        raise ReferenceError(f"{where}: pressure_kind must be one of {PRESSURE_KINDS}, got {kind!r}")
+        raise ReferenceError(
+            f"{where}: pressure_kind must be one of {PRESSURE_KINDS}, got {kind!r}")
     if kind == "auto":
         kind = "absolute" if float(np.median(pressure_pa)) > AUTO_ABSOLUTE_THRESHOLD_PA else "gauge"
     if kind == "absolute":

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from fisc_ground.reference.analytic import LATTICE_SPACING_M
-from fisc_ground.reference.axisym import _axial_columns, revolve_axisymmetric
+from fisc_ground.reference.axisym import axial_columns, revolve_axisymmetric
 from fisc_ground.reference.field import ReferenceError, ReferenceField
 from fisc_ground.reference.fluent_csv import to_gauge
 
@@ -112,7 +112,8 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
         pname_p = _pick(mesh.point_data, _PRESSURE)
         if not (pname_u and pname_p):
             raise ReferenceError(
-                f"{src}: no velocity {_VELOCITY} and pressure {_PRESSURE} arrays found in cell data "
+                f"{src}: no velocity {_VELOCITY} and pressure {_PRESSURE} arrays found in "
+                f"cell data "
                 f"{sorted(mesh.cell_data)} or point data {sorted(mesh.point_data)}")
         location = "point"
         points = np.asarray(mesh.points, dtype=np.float64)
@@ -192,7 +193,8 @@ def _sector_geometry(mesh_points: np.ndarray) -> tuple[np.ndarray, float | None]
     norm = np.hypot(c, s)
     if norm > 1e-6:
         c, s = c / norm, s / norm
-        rel = np.arctan2(np.sin(theta) * c - np.cos(theta) * s, np.cos(theta) * c + np.sin(theta) * s)
+        sin_t, cos_t = np.sin(theta), np.cos(theta)
+        rel = np.arctan2(sin_t * c - cos_t * s, cos_t * c + sin_t * s)
         span = float(np.degrees(rel.max() - rel.min()))
         if span < WEDGE_MAX_SPAN_DEG:
             return np.array([c, s]), span
@@ -210,7 +212,7 @@ def _wall_from_vertices(mesh_points: np.ndarray, axis_dir: np.ndarray
     """
     x = mesh_points[:, 0]
     rp = np.abs(mesh_points[:, 1] * axis_dir[0] + mesh_points[:, 2] * axis_dir[1])
-    cid = _axial_columns(x)
+    cid = axial_columns(x)
     if cid is None:  # scattered vertices: bin in x
         nb = max(2, int(np.sqrt(x.size) / 2))
         edges = np.linspace(x.min(), x.max(), nb + 1)

@@ -90,7 +90,8 @@ def test_read_small_axisym_csv(tmp_path):
     x, r = cell_grid(nx=20, nr=6)
     f = read_axisym_csv(write(tmp_path, small_csv(x, r)))
     assert f.extras["revolved"] and f.pressure_kind == "gauge"
-    np.testing.assert_array_equal(f.points_m, body_lattice(0.0, 2.0, lambda q: np.ones(np.shape(q))))
+    lattice = body_lattice(0.0, 2.0, lambda q: np.ones(np.shape(q)))
+    np.testing.assert_array_equal(f.points_m, lattice)
     X = f.points_m[:, 0]
     inside = (X >= 0.05) & (X <= 1.95) & (np.hypot(f.points_m[:, 1], f.points_m[:, 2]) <= r.max())
     np.testing.assert_allclose(f.velocity_m_s[inside, 0], 3.0 + X[inside], atol=1e-12)

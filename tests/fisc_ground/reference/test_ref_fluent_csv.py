@@ -51,7 +51,8 @@ def test_reads_canonical_layout(tmp_path):
 
 def test_shuffled_columns_whitespace_extra_columns_no_nodenumber(tmp_path):
     ref = read_fluent_csv(canonical(tmp_path))
-    header = "  Z-Velocity ,Static-Pressure,  X-COORDINATE , temperature, Y-Velocity,z-coordinate,x-velocity , y-coordinate  "
+    header = ("  Z-Velocity ,Static-Pressure,  X-COORDINATE , temperature, Y-Velocity,"
+              "z-coordinate,x-velocity , y-coordinate  ")
     lines = [header]
     for r in ROWS:
         lines.append(f"  {r[8]} ,  {r[4]},{r[1]}   ,  300.0 , {r[7]},{r[3]} ,{r[6]},   {r[2]}")
@@ -189,3 +190,12 @@ def test_real_export(case):
     # inlet velocity 3.38 m/s
     inlet = f.points_m[:, 0] == 0.0
     np.testing.assert_allclose(f.velocity_m_s[inlet, 0].mean(), 3.38, rtol=1e-3)
+
+
+def test_trailing_comma_on_some_rows_only(tmp_path):
+    ref = read_fluent_csv(canonical(tmp_path))
+    rows = [", ".join(str(v) for v in r) for r in ROWS]
+    rows[1] += ","
+    f = read_fluent_csv(write(tmp_path, HEADER + "\n" + "\n".join(rows) + "\n"))
+    np.testing.assert_array_equal(f.velocity_m_s, ref.velocity_m_s)
+    np.testing.assert_array_equal(f.points_m, ref.points_m)

@@ -78,7 +78,8 @@ def test_bad_vtk_inputs(tmp_path):
     U[5, 1] = np.nan
     path = tmp_path / "nan.vtu"
     meshio.Mesh(pts, [("hexahedron", hexes)], cell_data={"U": [U], "p": [np.zeros(8)]}).write(path)
-    with pytest.raises(ReferenceError, match=r"nan\.vtu: cell data 'U': non-finite value at cell 5"):
+    with pytest.raises(ReferenceError,
+                       match=r"nan\.vtu: cell data 'U': non-finite value at cell 5"):
         read_vtk(path)
     garbage = tmp_path / "garbage.vtu"
     garbage.write_text("this is not xml")
@@ -117,7 +118,8 @@ def test_synthetic_wedge_is_revolved(tmp_path):
     f = read_vtk(path)
     assert f.extras["revolved"] and f.extras["sector_span_deg"] == pytest.approx(5.0)
     assert f.pressure_kind == "absolute"
-    np.testing.assert_array_equal(f.points_m, body_lattice(0.0, 1.0, lambda q: np.full(np.shape(q), 0.5)))
+    lattice = body_lattice(0.0, 1.0, lambda q: np.full(np.shape(q), 0.5))
+    np.testing.assert_array_equal(f.points_m, lattice)
     X, Y, Z = f.points_m.T
     R = np.hypot(Y, Z)
     inside = (X >= 0.025) & (X <= 0.975) & (R >= 0.05) & (R <= 0.45)

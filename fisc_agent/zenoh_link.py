@@ -1,0 +1,594 @@
+"""Agent side of the Zenoh link: signed map reception, fleet commands, telemetry.
+
+Key expressions (``prefix`` default ``fisc``)::
+
+    <prefix>/<swarm>/map                      map chunks and announcements (queryable for late joiners)
+    <prefix>/<swarm>/cmd                      signed fleet commands
+    <prefix>/<swarm>/agents/<id>/telemetry    telemetry (``fisc_agent.telemetry_codec``)
+
+Map transport.  A map (the ``.fiscmap`` bytes) travels as chunks, each a ``CHUNK_HEADER``
+(72 bytes) followed by a slice of the map::
+
+    b"FMCH", u8 version (1), u8 kind (1 chunk, 2 announce), u16 reserved,
+    u64 map_version, 32s sha256 of the whole map bytes, u64 total bytes,
+    u32 chunk index, u32 chunk count, u64 byte offset of this chunk
+
+The ground pushes every chunk once when it starts serving a map, answers queries on the map
+key with every chunk (late joiners), and announces (kind 2, no data) the current map
+periodically.  An agent queries on start and whenever an announcement names a map newer than
+its own that is not arriving.  Reassembled bytes must match the header's sha256, then pass
+``decode_map`` (schema, content hash, Ed25519 signature from a trusted key) and carry a
+``map_version`` above the current one; otherwise the map is refused, counted, logged and
+reported in telemetry, and the agent keeps the last good map.  The chunk header is not
+authenticated (the map's own seal is): forged chunks can waste bandwidth, not install a map.
+
+This module is onboard code: numpy, the standard library, PyNaCl and zenoh only.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+import queue
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+from fisc_agent import telemetry_codec as tc
+from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, decode_command
+from fisc_agent.mapfile import CommandMap, MapError, decode_map
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PREFIX = "fisc"
+DEFAULT_PORT = 7447
+DEFAULT_CHUNK_BYTES = 1 << 20
+DEFAULT_MAX_MAP_BYTES = 2 << 30
+
+CHUNK_MAGIC = b"FMCH"
+CHUNK_VERSION = 1
+KIND_CHUNK = 1
+KIND_ANNOUNCE = 2
+CHUNK_HEADER = struct.Struct("<4sBBHQ32sQIIQ")
+
+
+# --------------------------------------------------------------------------------------------
+# Key expressions and session configuration
+
+@dataclass(frozen=True)
+class Keys:
+    """The key expressions of one swarm."""
+
+    prefix: str
+    """Configurable root (default ``fisc``)."""
+    swarm: str
+    """Swarm name (one key segment)."""
+
+    def __post_init__(self) -> None:
+        for what, value in (("prefix", self.prefix), ("swarm", self.swarm)):
+            if not value or any(c in value for c in "*$?#") or (what == "swarm" and "/" in value):
+                raise ValueError(f"invalid {what} {value!r} for a Zenoh key expression")
+
+    @property
+    def map(self) -> str:
+        return f"{self.prefix}/{self.swarm}/map"
+
+    @property
+    def cmd(self) -> str:
+        return f"{self.prefix}/{self.swarm}/cmd"
+
+    def telemetry(self, agent_id: int | str) -> str:
+        return f"{self.prefix}/{self.swarm}/agents/{agent_id}/telemetry"
+
+    @property
+    def all_telemetry(self) -> str:
+        return f"{self.prefix}/{self.swarm}/agents/*/telemetry"
+
+    def agent_of(self, key: str) -> int | None:
+        """Agent id from a telemetry key (None if the key is not one)."""
+        parts = str(key).split("/")
+        try:
+            return int(parts[-2]) if parts[-1] == "telemetry" and parts[-3] == "agents" else None
+        except (ValueError, IndexError):
+            return None
+
+
+def default_config_json(listen: list[str] | None = None, connect: list[str] | None = None) -> dict:
+    """The lab default: peer mode, multicast scouting off, loopback endpoints only.
+
+    Without arguments: listen on an ephemeral loopback port and connect to
+    ``tcp/127.0.0.1:7447`` (where ``fisc-ground publish`` listens by default).  Gossip
+    scouting stays on, so peers that meet at the hub also connect directly.
+    """
+    return {
+        "mode": "peer",
+        "listen": {"endpoints": list(listen) if listen is not None else ["tcp/127.0.0.1:0"]},
+        "connect": {"endpoints": list(connect) if connect is not None else [f"tcp/127.0.0.1:{DEFAULT_PORT}"]},
+        "scouting": {"multicast": {"enabled": False}},
+    }
+
+
+def load_config(path: str | Path | None = None, *, listen: list[str] | None = None,
+                connect: list[str] | None = None):
+    """A ``zenoh.Config`` from a standard Zenoh JSON5 file, or the lab default if ``path`` is None."""
+    import zenoh
+
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: Zenoh config file not found")
+        try:
+            return zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises ZError with the JSON5 position
+            raise ValueError(f"{path}: invalid Zenoh config ({exc})") from exc
+    cfg = zenoh.Config()
+    for key, value in default_config_json(listen, connect).items():
+        cfg.insert_json5(key, json.dumps(value))
+    return cfg
+
+
+def open_session(config: Any = None):
+    """Open a Zenoh session from a ``zenoh.Config``, a config file path, or None (lab default)."""
+    import zenoh
+
+    if config is None or isinstance(config, (str, Path)):
+        config = load_config(config)
+    return zenoh.open(config)
+
+
+# --------------------------------------------------------------------------------------------
+# Map chunks (pure)
+
+@dataclass(frozen=True)
+class ChunkHeader:
+    """Header of one map-transport message."""
+
+    kind: int
+    """``KIND_CHUNK`` or ``KIND_ANNOUNCE``."""
+    map_version: int
+    """map_version claimed for the map (checked against the decoded map)."""
+    sha256: bytes
+    """sha256 of the complete map bytes (32 raw bytes)."""
+    total_bytes: int
+    """Size of the complete map [bytes]."""
+    index: int
+    """Chunk index (0 for an announcement)."""
+    count: int
+    """Number of chunks of the map."""
+    offset: int
+    """Byte offset of this chunk in the map."""
+
+
+def split_map(blob: bytes, map_version: int, chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> list[bytes]:
+    """Map bytes -> transport messages (header + slice), in order."""
+    if chunk_bytes <= 0:
+        raise ValueError("chunk_bytes must be > 0")
+    sha = hashlib.sha256(blob).digest()
+    count = max(1, -(-len(blob) // chunk_bytes))
+    view = memoryview(blob)
+    return [CHUNK_HEADER.pack(CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK, 0, map_version, sha, len(blob), i, count,
+                              i * chunk_bytes) + view[i * chunk_bytes:(i + 1) * chunk_bytes]
+            for i in range(count)]
+
+
+def announce_message(blob_sha256: bytes, map_version: int, total_bytes: int, count: int) -> bytes:
+    """The periodic 'current map is ...' message (no data)."""
+    return CHUNK_HEADER.pack(CHUNK_MAGIC, CHUNK_VERSION, KIND_ANNOUNCE, 0, map_version, blob_sha256, total_bytes,
+                             0, count, 0)
+
+
+def parse_chunk(msg: bytes | memoryview) -> tuple[ChunkHeader, memoryview]:
+    """Split a transport message into header and data; ``MapError`` if malformed."""
+    view = memoryview(msg)
+    if len(view) < CHUNK_HEADER.size:
+        raise MapError(f"chunks: message of {len(view)} bytes is shorter than the chunk header")
+    magic, version, kind, _, map_version, sha, total, index, count, offset = CHUNK_HEADER.unpack_from(view)
+    if magic != CHUNK_MAGIC:
+        raise MapError("chunks: bad magic (not a FISC map chunk)")
+    if version != CHUNK_VERSION:
+        raise MapError(f"chunks: chunk format {version} is not supported")
+    if kind not in (KIND_CHUNK, KIND_ANNOUNCE):
+        raise MapError(f"chunks: unknown message kind {kind}")
+    data = view[CHUNK_HEADER.size:]
+    if kind == KIND_CHUNK and (index >= count or offset + len(data) > total or (count > 1 and len(data) == 0)):
+        raise MapError(f"chunks: chunk {index}/{count} at offset {offset} does not fit a {total}-byte map")
+    return ChunkHeader(kind, map_version, sha, total, index, count, offset), data
+
+
+class _Assembly:
+    def __init__(self, head: ChunkHeader) -> None:
+        self.head = head
+        self.buf = bytearray(head.total_bytes)
+        self.have: set[int] = set()
+        self.received = 0
+        self.last_chunk_s = 0.0
+
+
+class MapAssembler:
+    """Reassembles maps from chunks (any order, duplicates ignored), pure apart from the clock.
+
+    ``feed(msg, now_s)`` returns ``(header, blob)`` when a map completes (blob is a bytearray
+    whose sha256 matched the header's) and ``(header, None)`` otherwise.  Only maps announced
+    newer than ``floor_version`` are assembled; at most ``max_pending`` maps at once (the
+    newest win) and none over ``max_bytes``.  ``MapError`` for malformed chunks or a map whose
+    bytes do not hash to its header (both are refusals to count).
+    """
+
+    def __init__(self, max_bytes: int = DEFAULT_MAX_MAP_BYTES, max_pending: int = 2) -> None:
+        self.max_bytes = int(max_bytes)
+        self.max_pending = int(max_pending)
+        self.floor_version = 0
+        self.pending: dict[bytes, _Assembly] = {}
+        self.done: set[bytes] = set()
+
+    def feed(self, msg: bytes | memoryview, now_s: float = 0.0) -> tuple[ChunkHeader, bytearray | None]:
+        head, data = parse_chunk(msg)
+        if head.kind != KIND_CHUNK or head.map_version <= self.floor_version or head.sha256 in self.done:
+            return head, None
+        if head.total_bytes > self.max_bytes:
+            raise MapError(f"chunks: map of {head.total_bytes} bytes exceeds the {self.max_bytes}-byte limit")
+        asm = self.pending.get(head.sha256)
+        if asm is None:
+            if len(self.pending) >= self.max_pending:
+                oldest = min(self.pending.values(), key=lambda a: a.head.map_version)
+                if oldest.head.map_version >= head.map_version:
+                    return head, None
+                del self.pending[oldest.head.sha256]
+            asm = self.pending[head.sha256] = _Assembly(head)
+        elif (asm.head.total_bytes, asm.head.count, asm.head.map_version) != (head.total_bytes, head.count,
+                                                                              head.map_version):
+            raise MapError("chunks: chunk disagrees with earlier chunks of the same map")
+        asm.last_chunk_s = now_s
+        if head.index in asm.have:
+            return head, None
+        asm.buf[head.offset:head.offset + len(data)] = data
+        asm.have.add(head.index)
+        asm.received += len(data)
+        if len(asm.have) < head.count:
+            return head, None
+        del self.pending[head.sha256]
+        if asm.received != head.total_bytes or hashlib.sha256(asm.buf).digest() != head.sha256:
+            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
+        self.done.add(head.sha256)
+        return head, asm.buf
+
+    def progressing(self, sha256: bytes, now_s: float, within_s: float) -> bool:
+        """True when chunks of this map arrived within the last ``within_s`` seconds."""
+        asm = self.pending.get(sha256)
+        return asm is not None and now_s - asm.last_chunk_s < within_s
+
+    def accept(self, map_version: int) -> None:
+        """A map of this version was installed: drop everything not newer."""
+        self.floor_version = max(self.floor_version, int(map_version))
+        for sha in [s for s, a in self.pending.items() if a.head.map_version <= self.floor_version]:
+            del self.pending[sha]
+
+
+def reject_code(exc: Exception) -> str:
+    """The ``REJECT_REASONS`` name of a map refusal: the check named in the ``MapError`` text
+    (``"<source>: <check>: <detail>"``), ``other`` if none is recognised."""
+    for part in str(exc).split(": "):
+        if part.strip() in tc.REJECT_REASONS[1:]:
+            return part.strip()
+    return "other"
+
+
+def verify_map_bytes(blob: bytes | bytearray, trusted_keys: list[bytes] | None, allow_unsigned: bool,
+                     claimed_version: int | None = None, source: str = "<zenoh>") -> CommandMap:
+    """decode_map plus the transport checks; arrays are made read-only."""
+    if allow_unsigned:
+        cmap = decode_map(memoryview(blob), None, source=source)
+        if cmap.signed and trusted_keys and bytes.fromhex(cmap.public_key or "") not in trusted_keys:
+            raise MapError(f"{source}: signature: signed by a key that is not trusted")
+    else:
+        if not trusted_keys:
+            raise MapError(f"{source}: signature: no trusted key configured")
+        cmap = decode_map(memoryview(blob), trusted_keys, source=source)
+    if claimed_version is not None and cmap.map_version != claimed_version:
+        raise MapError(f"{source}: version_mismatch: chunks claim map_version {claimed_version}, "
+                       f"the map says {cmap.map_version}")
+    for arr in cmap.arrays.values():
+        arr.flags.writeable = False
+    return cmap
+
+
+# --------------------------------------------------------------------------------------------
+# Telemetry from a runner snapshot
+
+_SNAPSHOT_NAMES = {
+    "time_s": ("time_s", "t_unix_s", "time"),
+    "position_m": ("position_m", "pos_m", "position"),
+    "velocity_m_s": ("velocity_m_s", "vel_m_s", "velocity"),
+    "cv_index": ("cv_index", "cv_id", "cv"),
+    "state": ("state",),
+    "map_sha256": ("map_sha256",),
+    "map_version": ("map_version",),
+    "position_age_s": ("position_age_s",),
+    "heartbeat_age_s": ("heartbeat_age_s",),
+    "armed": ("armed",),
+    "mavlink_ok": ("mavlink_ok", "link_ok"),
+    "outside_map": ("outside_map",),
+    "failsafe": ("failsafe",),
+}
+
+
+def _get(snap: Any, field_name: str, default: Any) -> Any:
+    for name in _SNAPSHOT_NAMES[field_name]:
+        value = snap.get(name) if isinstance(snap, Mapping) else getattr(snap, name, None)
+        if value is not None:
+            return value
+    return default
+
+
+def _vec3(value: Any) -> tuple[float, float, float]:
+    if value is None:
+        return (math.nan, math.nan, math.nan)
+    x, y, z = (float(v) for v in value)
+    return (x, y, z)
+
+
+# --------------------------------------------------------------------------------------------
+# The link
+
+@dataclass
+class LinkStats:
+    """Counters of one agent link (read them for logs and telemetry)."""
+
+    maps_accepted: int = 0
+    maps_rejected: int = 0
+    maps_ignored_old: int = 0
+    last_reject_reason: str = "none"
+    last_reject_message: str = ""
+    commands_accepted: int = 0
+    commands_rejected: int = 0
+    last_command: str = "none"
+    last_command_seq: int = 0
+    telemetry_sent: int = 0
+    queries_sent: int = 0
+
+
+class AgentZenohLink:
+    """One agent's Zenoh link: map subscription + late-joiner query, commands, telemetry.
+
+    ``on_map(cmap)`` is called from the link's worker thread with each verified map newer than
+    the last (the runner installs it at its next safe point); ``on_command(cmd)`` with each
+    fleet command that passed signature, swarm, target, replay and staleness checks.  Neither
+    is called for anything refused: refusals are logged, counted in ``stats`` and reported in
+    telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
+    default); or pass an open ``session`` to share one (it is then not closed by ``close``).
+    """
+
+    def __init__(self, session_config: Any, swarm: str, agent_id: int, trusted_keys: list[bytes] | None,
+                 allow_unsigned: bool, on_map: Callable[[CommandMap], None],
+                 on_command: Callable[[FleetCommand], None], *, prefix: str = DEFAULT_PREFIX,
+                 session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int = DEFAULT_MAX_MAP_BYTES,
+                 command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time) -> None:
+        if not trusted_keys and not allow_unsigned:
+            raise ValueError("no trusted key given: pass --trusted-key (or --allow-unsigned in a lab)")
+        self.keys = Keys(prefix, swarm)
+        self.agent_id = int(agent_id)
+        self.trusted_keys = list(trusted_keys) if trusted_keys else None
+        self.allow_unsigned = bool(allow_unsigned)
+        self.on_map = on_map
+        self.on_command = on_command
+        self.query_timeout_s = float(query_timeout_s)
+        self.clock = clock
+        self.stats = LinkStats()
+        self.current: CommandMap | None = None
+        self._session_config = session_config
+        self._session = session
+        self._own_session = session is None
+        self._assembler = MapAssembler(max_bytes=max_map_bytes)
+        self._gate = CommandGate(swarm, self.agent_id, max_age_s=command_max_age_s)
+        self._lock = threading.Lock()
+        self._work: queue.Queue = queue.Queue()
+        self._entities: list[Any] = []
+        self._pub = None
+        self._seq = 0
+        self._last_query_s = -math.inf
+        self._worker: threading.Thread | None = None
+        self._telemetry_thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        if self.allow_unsigned:
+            log.warning("*** --allow-unsigned: this agent accepts UNSIGNED maps and commands. Lab use only. ***")
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> "AgentZenohLink":
+        """Open the session, subscribe to map and commands, query the current map."""
+        import zenoh
+
+        if self._session is None:
+            self._session = open_session(self._session_config)
+        s = self._session
+        self._worker = threading.Thread(target=self._work_loop, name=f"fisc-zenoh-map-{self.agent_id}", daemon=True)
+        self._worker.start()
+        self._entities.append(s.declare_subscriber(self.keys.map, self._on_map_sample))
+        self._entities.append(s.declare_subscriber(self.keys.cmd, self._on_cmd_sample))
+        self._pub = s.declare_publisher(self.keys.telemetry(self.agent_id),
+                                        congestion_control=zenoh.CongestionControl.DROP)
+        self._entities.append(self._pub)
+        self.query_map()
+        return self
+
+    def close(self) -> None:
+        """Undeclare everything, stop the threads, close the session if this link opened it."""
+        self._stop.set()
+        self._work.put(None)
+        for t in (self._telemetry_thread, self._worker):
+            if t is not None and t is not threading.current_thread():
+                t.join(timeout=5.0)
+        for ent in reversed(self._entities):
+            try:
+                ent.undeclare()
+            except Exception as exc:  # session may already be closed
+                log.debug("undeclare failed: %s", exc)
+        self._entities.clear()
+        if self._own_session and self._session is not None:
+            self._session.close()
+        self._session = None
+
+    def __enter__(self) -> "AgentZenohLink":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    # -- maps --------------------------------------------------------------------------------
+    def query_map(self) -> None:
+        """Ask the ground for the current map (replies arrive as chunks)."""
+        import zenoh
+
+        if self._session is None:
+            return
+        self._last_query_s = self.clock()
+        self.stats.queries_sent += 1
+        self._session.get(self.keys.map, self._on_reply,
+                          consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                          timeout=self.query_timeout_s)
+
+    def _on_reply(self, reply: Any) -> None:
+        sample = reply.ok
+        if sample is not None:
+            self._on_map_payload(sample.payload.to_bytes())
+
+    def _on_map_sample(self, sample: Any) -> None:
+        self._on_map_payload(sample.payload.to_bytes())
+
+    def _on_map_payload(self, payload: bytes) -> None:
+        now = self.clock()
+        with self._lock:
+            try:
+                head, blob = self._assembler.feed(payload, now)
+            except MapError as exc:
+                self._reject(exc)
+                return
+            if head.kind == KIND_ANNOUNCE:
+                newer = head.map_version > self._assembler.floor_version and head.sha256 not in self._assembler.done
+                if newer and not self._assembler.progressing(head.sha256, now, 1.0) \
+                        and now - self._last_query_s > 1.0:
+                    self._work.put(("query", None, None))
+                return
+        if blob is not None:
+            self._work.put(("map", head, blob))
+
+    def _work_loop(self) -> None:
+        while True:
+            item = self._work.get()
+            if item is None or self._stop.is_set():
+                return
+            kind, head, blob = item
+            if kind == "query":
+                try:
+                    self.query_map()
+                except Exception as exc:  # session closing under us
+                    log.warning("map query failed: %s", exc)
+                continue
+            self._install(head, blob)
+
+    def _install(self, head: ChunkHeader, blob: bytearray) -> None:
+        try:
+            cmap = verify_map_bytes(blob, self.trusted_keys, self.allow_unsigned, head.map_version,
+                                    source=self.keys.map)
+        except MapError as exc:
+            with self._lock:
+                self._reject(exc)
+            return
+        with self._lock:
+            if self.current is not None and cmap.map_version <= self.current.map_version:
+                self.stats.maps_ignored_old += 1
+                log.info("ignoring map %s: map_version %d is not newer than the current %d",
+                         cmap.sha256[:12], cmap.map_version, self.current.map_version)
+                return
+            self.current = cmap
+            self._assembler.accept(cmap.map_version)
+            self.stats.maps_accepted += 1
+        if not cmap.signed:
+            log.warning("*** installing UNSIGNED map %s (map_version %d) ***", cmap.sha256[:12], cmap.map_version)
+        log.info("map %s accepted (map_version %d, %d CVs)", cmap.sha256[:12], cmap.map_version, cmap.n_cv)
+        self.on_map(cmap)
+
+    def _reject(self, exc: Exception) -> None:
+        self.stats.maps_rejected += 1
+        self.stats.last_reject_reason = reject_code(exc)
+        self.stats.last_reject_message = str(exc)
+        log.error("map refused (%s): %s; keeping the %s", self.stats.last_reject_reason, exc,
+                  "current map" if self.current is not None else "ground hold (no map yet)")
+
+    # -- commands ----------------------------------------------------------------------------
+    def _on_cmd_sample(self, sample: Any) -> None:
+        try:
+            cmd = decode_command(sample.payload.to_bytes(), self.trusted_keys, self.allow_unsigned)
+            with self._lock:
+                self._gate.check(cmd, self.clock())
+        except CommandError as exc:
+            if "target:" not in str(exc):
+                self.stats.commands_rejected += 1
+                log.warning("fleet command refused: %s", exc)
+            return
+        with self._lock:
+            self.stats.commands_accepted += 1
+            self.stats.last_command = cmd.name
+            self.stats.last_command_seq = cmd.seq
+        log.info("fleet command %s (seq %d) accepted", cmd.name, cmd.seq)
+        self.on_command(cmd)
+
+    # -- telemetry ---------------------------------------------------------------------------
+    def telemetry_from(self, snap: Any) -> tc.Telemetry:
+        """Build the telemetry message for a runner snapshot (mapping or object; see
+        ``_SNAPSHOT_NAMES`` for the field names read) plus this link's counters."""
+        with self._lock:
+            stats, current = self.stats, self.current
+            self._seq = (self._seq + 1) & 0xFFFFFFFF
+            seq = self._seq
+        flags = {name for name in ("armed", "mavlink_ok", "outside_map", "failsafe") if _get(snap, name, False)}
+        pos_age = float(_get(snap, "position_age_s", math.inf))
+        if pos_age < 1.0:
+            flags.add("position_fresh")
+        if self._session is not None:
+            flags.add("zenoh_ok")
+        sha = _get(snap, "map_sha256", current.sha256 if current is not None else "") or ""
+        version = _get(snap, "map_version", None)
+        if version is None:
+            version = current.map_version if current is not None and current.sha256 == sha else 0
+        if current is not None and current.sha256 == sha and not current.signed:
+            flags.add("map_unsigned")
+        state = _get(snap, "state", "WAIT_MAP" if current is None else "UNKNOWN")
+        return tc.Telemetry(
+            agent_id=self.agent_id, seq=seq, time_s=float(_get(snap, "time_s", self.clock())),
+            position_m=_vec3(_get(snap, "position_m", None)), velocity_m_s=_vec3(_get(snap, "velocity_m_s", None)),
+            cv_index=int(_get(snap, "cv_index", -1)), state=getattr(state, "value", str(state)),
+            map_version=int(version), map_sha256=str(sha), flags=frozenset(flags),
+            maps_rejected=stats.maps_rejected, reject_reason=stats.last_reject_reason, position_age_s=pos_age,
+            heartbeat_age_s=float(_get(snap, "heartbeat_age_s", math.inf)), ack_command=stats.last_command,
+            ack_seq=stats.last_command_seq)
+
+    def publish_telemetry(self, snap: Any) -> None:
+        """Encode and publish one telemetry message (never blocks: dropped under congestion)."""
+        if self._pub is None:
+            return
+        self._pub.put(tc.encode(self.telemetry_from(snap)))
+        self.stats.telemetry_sent += 1
+
+    def start_telemetry(self, snapshot: Callable[[], Any], rate_hz: float = 5.0) -> None:
+        """Publish ``snapshot()`` at ``rate_hz`` from a background thread until ``close``."""
+        if not rate_hz > 0:
+            raise ValueError(f"telemetry rate must be > 0 Hz, got {rate_hz}")
+        period = 1.0 / rate_hz
+
+        def loop() -> None:
+            next_t = time.monotonic()
+            while not self._stop.is_set():
+                try:
+                    self.publish_telemetry(snapshot())
+                except Exception as exc:  # keep flying; telemetry is best effort
+                    log.warning("telemetry publish failed: %s", exc)
+                next_t += period
+                self._stop.wait(max(0.0, next_t - time.monotonic()))
+
+        self._telemetry_thread = threading.Thread(target=loop, name=f"fisc-telemetry-{self.agent_id}", daemon=True)
+        self._telemetry_thread.start()

@@ -1,0 +1,109 @@
+"""``fisc-sim bench``: speed of the swarm core (agent-steps/s, peak memory), the wall time of the
+paper's run, and the same agent-steps/s figure for RotorPy's batched multirotor simulator.
+
+Figures are printed, never asserted (speed is machine-dependent).
+"""
+
+from __future__ import annotations
+
+import time
+import tracemalloc
+from collections.abc import Iterator
+
+import numpy as np
+
+from fisc_agent.lookup import CommandField
+from sim.plant import PlantParams
+from sim.scenarios import seed_positions
+from sim.swarm import Swarm, SwarmConfig
+
+
+def bench_core(cf: CommandField, n_agents: int, steps: int = 20, mode: str = "mean",
+               seed: int = 0) -> dict:
+    """Seed ``n_agents`` uniformly over the CVs (Case 1 proportions) and time ``steps`` steps.
+
+    Returns agent_steps_per_s, per-step time, and the peak traced memory of the stepping
+    (numpy allocations, tracemalloc) beside the state size.
+    """
+    rng = np.random.default_rng(seed)
+    swarm = Swarm(cf, PlantParams(), SwarmConfig(mode=mode))
+    swarm.add_agents(seed_positions(cf, rng, n_agents=n_agents))
+    swarm.step()  # warm-up (numba compile, buffers)
+    tracemalloc.start()
+    a0 = swarm.counters.agent_steps
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        swarm.step()
+    wall = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    agent_steps = swarm.counters.agent_steps - a0
+    state_bytes = sum(b.nbytes for b in (swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out,
+                                          swarm._cmd, swarm._scratch))
+    return {"agents": n_agents, "steps": steps, "wall_s": wall, "agent_steps_per_s": agent_steps / wall,
+            "step_ms": 1e3 * wall / steps, "peak_step_mib": peak / 2**20, "state_mib": state_bytes / 2**20}
+
+
+def bench_paper_run(cmap, agents: int = 1000, duration_s: float = 300.0) -> dict:
+    """Wall time of the paper's run: Case 2 on ``cmap``, ~``agents`` agents, ``duration_s`` simulated."""
+    from sim.run import RunConfig, simulate
+
+    res = simulate(RunConfig(agents=agents, duration_s=duration_s, figures=False), cmap)
+    return {"wall_s": res.wall_time_s, "steps": res.counters.steps, "agent_steps": res.counters.agent_steps,
+            "mean_alive": res.counters.agent_steps / max(res.counters.steps, 1), "alive_end": res.alive}
+
+
+def bench_rotorpy(n_agents: int, steps: int = 5, dt_s: float = 0.05) -> dict:
+    """agent-steps/s of RotorPy's BatchedMultirotor (hummingbird, cmd_vel abstraction if
+    available) for ``n_agents`` vehicles.  Raises ImportError/RuntimeError when unavailable."""
+    import torch  # rotorpy's batched simulator needs PyTorch
+    from rotorpy.vehicles.hummingbird_params import quad_params
+    from rotorpy.vehicles.multirotor import BatchedMultirotor, BatchedMultirotorParams
+
+    dev = torch.device("cpu")
+    params = BatchedMultirotorParams([quad_params] * n_agents, n_agents, dev)
+    x0 = {"x": torch.zeros(n_agents, 3, dtype=torch.double), "v": torch.zeros(n_agents, 3, dtype=torch.double),
+          "q": torch.tensor([0, 0, 0, 1], dtype=torch.double).repeat(n_agents, 1),
+          "w": torch.zeros(n_agents, 3, dtype=torch.double), "wind": torch.zeros(n_agents, 3, dtype=torch.double),
+          "rotor_speeds": torch.full((n_agents, 4), 1788.53, dtype=torch.double)}
+    vehicle = BatchedMultirotor(params, n_agents, x0, dev, control_abstraction="cmd_motor_speeds")
+    state = {k: v.clone() for k, v in x0.items()}
+    control = {"cmd_motor_speeds": torch.full((n_agents, 4), 1788.53, dtype=torch.double)}
+    state = vehicle.step(state, control, dt_s)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        state = vehicle.step(state, control, dt_s)
+    wall = time.perf_counter() - t0
+    return {"agents": n_agents, "agent_steps_per_s": n_agents * steps / wall}
+
+
+def run_bench(sizes: list[int], steps: int = 20, rotorpy: bool = True, paper_run: bool = True,
+              map_spec: str | None = None) -> Iterator[str]:
+    """The bench as printable lines (generator, so results appear as they come)."""
+    from sim.run import load_command_map
+
+    cmap = load_command_map(map_spec)
+    cf = CommandField.from_map(cmap)
+    yield f"map: {cmap.body.get('provenance', {}).get('reference', {}).get('name')} ({cmap.n_cv} CVs), mode mean, dt 0.05 s"
+    ours = {}
+    for n in sizes:
+        k = max(2, min(steps, int(2e6 // max(n, 1)) or 2))
+        r = bench_core(cf, n, k)
+        ours[n] = r["agent_steps_per_s"]
+        yield (f"swarm core {n:>8d} agents: {r['agent_steps_per_s']:.3g} agent-steps/s "
+               f"({r['step_ms']:.2f} ms/step over {k} steps), peak step memory {r['peak_step_mib']:.1f} MiB, "
+               f"state {r['state_mib']:.1f} MiB")
+    if paper_run:
+        r = bench_paper_run(cmap)
+        yield (f"paper run (Case 2, --agents 1000, 300 s = {r['steps']} steps, mean {r['mean_alive']:.0f} agents alive): "
+               f"{r['wall_s']:.2f} s wall")
+    if rotorpy:
+        n = min(sizes, key=lambda s: abs(s - 1000)) if sizes else 1000
+        try:
+            r = bench_rotorpy(n)
+        except Exception as exc:  # noqa: BLE001 - report why the comparison is skipped
+            yield f"RotorPy BatchedMultirotor: skipped ({type(exc).__name__}: {exc})"
+        else:
+            ratio = ours.get(n, float("nan")) / r["agent_steps_per_s"]
+            yield (f"RotorPy BatchedMultirotor {n} vehicles: {r['agent_steps_per_s']:.3g} agent-steps/s; "
+                   f"FISC core / RotorPy = {ratio:.1f}x")

@@ -1,0 +1,121 @@
+"""``fisc-sim``: the simulator's command line (thin: argument parsing and progress only).
+
+Subcommands: ``run`` (sim.run), ``bench`` (sim.bench) and ``autopilot`` (sim.autopilot.cli,
+the MAVLink autopilot emulator), when present.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+from contextlib import contextmanager
+
+
+def _add_run(sub) -> None:
+    p = sub.add_parser("run", help="simulate a swarm on a command map and write fields, metrics, report, figures",
+                       description="Paper Case 2 (reservoir) or Case 1 (seed) on a command map; with no options the "
+                                   "paper's Case 2 on the embedded default map for 300 s, written to out/run.")
+    p.add_argument("--map", default=None, help="a .fiscmap file, or a reference (built-in name such as cd_nozzle, "
+                                               "or a CFD file) fitted now; default: the embedded default map")
+    p.add_argument("--scenario", choices=("reservoir", "seed"), default="reservoir",
+                   help="reservoir = paper Case 2 (default), seed = paper Case 1")
+    p.add_argument("--agents", type=int, default=None,
+                   help="population target N: N* scaled by N / sum N* (seed: exactly N seeded; reservoir: source "
+                        "rate scaled alike). Default: N* as fitted")
+    p.add_argument("--duration", type=float, default=300.0, help="simulated seconds (default 300)")
+    p.add_argument("--average-window", type=float, default=100.0,
+                   help="time-average the fields over the last S seconds (default 100)")
+    p.add_argument("--mode", choices=("mean", "slot", "interpolated"), default="mean",
+                   help="command mode (default mean = paper Algorithm 1)")
+    p.add_argument("--collisions", action="store_true", help="enable the collision layer")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--scale", type=float, default=None, help="override the map's speed scale S (paper: 0.1)")
+    p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("-o", "--out", default="out/run", help="output directory (default out/run)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _add_bench(sub) -> None:
+    p = sub.add_parser("bench", help="agent-steps/s of the swarm core at 1e3..1e6 agents, the paper run, RotorPy")
+    p.add_argument("--sizes", default="1e3,1e4,1e5,1e6", help="comma-separated agent counts")
+    p.add_argument("--steps", type=int, default=20, help="steps per size (default 20)")
+    p.add_argument("--no-rotorpy", action="store_true", help="skip the RotorPy comparison")
+    p.add_argument("--no-paper-run", action="store_true", help="skip the timing of the paper's run")
+
+
+@contextmanager
+def _progress(enabled: bool, label: str):
+    if not enabled:
+        yield None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(TextColumn(label), BarColumn(), TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(),
+                  TimeRemainingColumn(), transient=False) as prog:
+        task = prog.add_task(label, total=1.0)
+        yield lambda frac: prog.update(task, completed=frac)
+
+
+def _cmd_run(args) -> int:
+    from sim.run import RunConfig, run
+
+    cfg = RunConfig(map=args.map, scenario=args.scenario, agents=args.agents, duration_s=args.duration,
+                    average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
+                    seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
+                    out_dir=args.out)
+    show = not args.quiet and sys.stderr.isatty()
+    with _progress(show, f"{cfg.scenario}/{cfg.mode}") as cb:
+        res = run(cfg, progress=cb)
+    m = res.metrics
+    a = m["agents"]
+    print(f"wrote {args.out}: nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "
+          f"density {m['nrmse_density']}; agents injected {a['injected']} exited {a['exited']} "
+          f"escaped {a['escaped']} alive {a['alive']}; {m['wall_time_s']:.2f} s wall")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from sim.bench import run_bench
+
+    sizes = [int(float(s)) for s in args.sizes.split(",") if s.strip()]
+    for line in run_bench(sizes, steps=args.steps, rotorpy=not args.no_rotorpy, paper_run=not args.no_paper_run):
+        print(line, flush=True)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fisc-sim", description="FISC headless swarm simulator")
+    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    sub = parser.add_subparsers(dest="command", required=True)
+    _add_run(sub)
+    _add_bench(sub)
+    # `fisc-sim autopilot`: the MAVLink autopilot emulator (sim/autopilot/cli.py)
+    from sim.autopilot import cli as autopilot_cli
+
+    autopilot_cli.add_parser(sub)
+    # `fisc-sim emulate`: reserved for the lead (swarm of emulated autopilots + agents)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if args.command == "run":
+        return _cmd_run(args)
+    if args.command == "bench":
+        return _cmd_bench(args)
+    if args.command == "autopilot":
+        from sim.autopilot import cli as autopilot_cli
+
+        return int(autopilot_cli.run(args) or 0)
+    parser.error(f"unknown command {args.command}")
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,79 @@
+"""The simulation figures of the paper (figs. 4, 5, 7, 8, 9, 10) for a ``fisc-sim run``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fisc_ground import plots
+from fisc_ground.metrics import centreline_profiles
+
+if TYPE_CHECKING:
+    from sim.run import RunResult
+
+
+def _minmax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    out = np.full(v.shape, np.nan)
+    if ok.any():
+        lo, hi = np.nanmin(v[ok]), np.nanmax(v[ok])
+        out[ok] = (v[ok] - lo) / (hi - lo) if hi > lo else 0.0
+    return out
+
+
+def _bymax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    out = np.full(v.shape, np.nan)
+    if ok.any():
+        top = np.nanmax(v[ok])
+        out[ok] = v[ok] / top if top > 0 else np.nan
+    return out
+
+
+def write_run_figures(result: "RunResult", out_dir: Path) -> dict[str, Path]:
+    """Write the PNGs into ``out_dir``; returns name -> path."""
+    cmap, f, cfg = result.cmap, result.fields, result.config
+    c = np.asarray(cmap["cv_center_m"], dtype=float)
+    l = cmap.cell_size_m
+    wall = plots.design_tunnel_wall(cmap)
+    ok = f.samples >= cfg.min_samples
+    everywhere = np.ones(c.shape[0], dtype=bool)
+    tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
+    fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
+    paths: dict[str, Path] = {}
+    tag = f"{cfg.scenario}, {cfg.mode}{', collisions' if cfg.collisions else ''}"
+    for t, pos in result.snapshots:  # fig. 4
+        name = f"snapshot_{cfg.scenario}_{t:05.1f}s".replace(".", "_")
+        paths[name] = plots.plot_swarm_snapshot(pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
+    swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
+    paths["velocity_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 5
+        c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
+            "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
+            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok)},
+        l, "Axial velocity normalised by the field maximum, XZ plane", out_dir / "velocity_cfd_fit_swarm.png",
+        label="u / max u", wall_radius=wall)
+    paths["pressure_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 7
+        c, {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
+            "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
+            f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok)},
+        l, "Pressure, min-max normalised, XZ plane", out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm",
+        label="(P - min) / (max - min)", wall_radius=wall)
+    rho_fit = np.asarray(cmap["n_star"], dtype=float) * float(cmap.body.get("agent_mass_kg", 1.0)) / l ** 3
+    paths["density_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 8
+        c, {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
+            "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
+            f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok)},
+        l, "Density, min-max normalised, XZ plane", out_dir / "density_cfd_fit_swarm.png",
+        label="(rho - min) / (max - min)", wall_radius=wall)
+    paths["density_velocity_swarm"] = plots.plot_density_with_vectors(  # fig. 9
+        c, np.where(ok, f.rho_s_kg_m3, np.nan), np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l,
+        out_dir / "density_velocity_swarm.png", title=f"Time-averaged swarm density and velocity ({tag})",
+        wall_radius=wall)
+    prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
+                               np.asarray(cmap["target_density_kg_m3"], dtype=float), f.u_axial_m_s,
+                               f.p_dispersion_pa, f.rho_s_kg_m3, f.samples, cfg.min_samples)
+    paths["centreline"] = plots.plot_centreline_profiles(  # fig. 10
+        prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})")
+    return paths

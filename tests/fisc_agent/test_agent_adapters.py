@@ -1,0 +1,78 @@
+"""PX4 / ArduPilot encodings and the command reconciler."""
+
+import pytest
+
+from fisc_agent.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
+                                 ArduPilotAdapter, Commander, Px4Adapter, adapter_for, autopilot_from_heartbeat,
+                                 is_armed)
+
+
+def test_autopilot_identification_from_heartbeat():
+    assert autopilot_from_heartbeat(12) == "px4"
+    assert autopilot_from_heartbeat(3) == "ardupilot"
+    assert autopilot_from_heartbeat(8) is None
+    assert is_armed(128 | 1) and not is_armed(1)
+
+
+def test_px4_mode_encoding_round_trip():
+    px4 = Px4Adapter()
+    assert px4.px4_custom_mode(6) == 6 << 16 == 393216
+    assert px4.classify_mode(1, px4.px4_custom_mode(6)) == "offboard"
+    assert px4.classify_mode(1, px4.px4_custom_mode(4, 3)) == "hold"
+    assert px4.classify_mode(1, px4.px4_custom_mode(4, 6)) == "land"
+    assert px4.classify_mode(1, px4.px4_custom_mode(3)) == "other"       # POSCTL
+    assert px4.classify_mode(0, px4.px4_custom_mode(6)) == "other"       # custom mode flag not set
+    cmd = px4.set_mode("offboard")
+    assert cmd.command == MAV_CMD_DO_SET_MODE and cmd.params[:3] == (1.0, 6.0, 0.0)
+    assert px4.set_mode("hold").params[:3] == (1.0, 4.0, 3.0)
+    assert px4.set_mode("land").params[:3] == (1.0, 4.0, 6.0)
+    assert px4.takeoff(3.0) is None and not px4.takeoff_by_command
+
+
+def test_ardupilot_mode_encoding():
+    ap = ArduPilotAdapter()
+    assert ap.classify_mode(1, 4) == "offboard"
+    assert ap.classify_mode(1, 5) == "hold" and ap.classify_mode(1, 17) == "hold"
+    assert ap.classify_mode(1, 9) == "land"
+    assert ap.classify_mode(1, 0) == "other"
+    assert ap.set_mode("offboard").params[:2] == (1.0, 4.0)
+    assert ap.set_mode("hold").params[1] == 5.0
+    assert ArduPilotAdapter(hold_mode=17).set_mode("hold").params[1] == 17.0
+    t = ap.takeoff(2.5)
+    assert t.command == MAV_CMD_NAV_TAKEOFF and t.params[6] == 2.5
+    assert isinstance(adapter_for("px4"), Px4Adapter) and isinstance(adapter_for("ardupilot"), ArduPilotAdapter)
+    with pytest.raises(ValueError):
+        adapter_for("inav")
+
+
+def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():
+    sent = []
+    c = Commander(Px4Adapter(), sent.append, retry_s=1.0)
+    c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2)
+    assert sent == []                               # stream not running long enough yet
+    c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2)
+    assert [s.command for s in sent] == [MAV_CMD_DO_SET_MODE]
+    c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7)
+    assert len(sent) == 1                           # not before retry_s
+    c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3)
+    assert len(sent) == 2                           # retried
+    c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4)
+    assert sent[-1].command == MAV_CMD_COMPONENT_ARM_DISARM and sent[-1].params[0] == 1.0
+    c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5)
+    assert len(sent) == 3                           # satisfied: nothing more
+
+
+def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
+    sent = []
+    c = Commander(ArduPilotAdapter(), sent.append, retry_s=1.0)
+    c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0)
+    c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0)
+    c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    assert [s.command for s in sent] == [MAV_CMD_DO_SET_MODE, MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_NAV_TAKEOFF]
+    c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    assert len(sent) == 4                           # no ack yet: takeoff resent
+    c.on_ack(MAV_CMD_NAV_TAKEOFF, 0)
+    c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    assert len(sent) == 4                           # accepted: not resent
+    c.on_ack(MAV_CMD_COMPONENT_ARM_DISARM, 2)
+    assert c.refusals == [("arming", "DENIED")]

@@ -1,0 +1,150 @@
+"""Control core: the scalar fast path agrees with lookup.CommandField; clamps; entry and join plans."""
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import tunnel_arrays
+from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
+                                goto_velocity, join_waypoints, max_command_speed, slot_hash_scalar)
+from fisc_agent.lookup import CommandField, slot_hash
+from fisc_agent.mapfile import MapError
+
+
+@pytest.fixture(scope="module")
+def field(tunnel_map):
+    return CommandField.from_map(tunnel_map)
+
+
+@pytest.fixture(scope="module")
+def sfield(field):
+    return ScalarField(field)
+
+
+def test_slot_hash_scalar_equals_vectorised():
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 2**32, size=500)
+    j = rng.integers(0, 5000, size=500)
+    expect = slot_hash(a, j)
+    assert [slot_hash_scalar(int(x), int(y)) for x, y in zip(a, j)] == expect.tolist()
+
+
+@pytest.mark.parametrize("mode", ["mean", "slot", "interpolated"])
+def test_scalar_fast_path_agrees_with_lookup(field, sfield, mode):
+    rng = np.random.default_rng(42)
+    lo = field.origin_m - 0.7
+    hi = field.origin_m + np.array(field.grid_cv.shape) * field.cell_size_m + 0.7
+    pts = rng.uniform(lo, hi, size=(1500, 3))
+    # include points exactly on cell faces (half-open cells)
+    pts[:40] = field.origin_m + rng.integers(0, 6, size=(40, 3)) * field.cell_size_m
+    ids = rng.integers(0, 1000, size=len(pts))
+    cv = field.cv_of(pts)
+    expect = field.command(pts, ids, mode)
+    for p, i, c, e in zip(pts, ids, cv, expect):
+        assert sfield.cv_of(*p) == c
+        got = sfield.command(*p, int(i), mode)
+        if c < 0:
+            assert got is None
+        else:
+            np.testing.assert_allclose(got, e, rtol=1e-12, atol=1e-12)
+    assert (cv >= 0).sum() > 200 and (cv < 0).sum() > 200
+
+
+def test_unknown_mode_rejected(sfield):
+    with pytest.raises(ValueError, match="unknown command mode"):
+        sfield.command(0.25, 0.25, 0.25, 0, "bogus")
+
+
+def test_nearest_cv_uses_neighbourhood_then_global(field, sfield):
+    j = sfield.nearest_cv(-0.3, 0.1, 0.1)
+    assert j == int(field.nearest_cv_within(np.array([[-0.3, 0.1, 0.1]]))[0]) and j >= 0
+    far = sfield.nearest_cv(-20.0, 0.2, 0.2)  # nothing within 2 cells: global nearest centre
+    d = np.linalg.norm(field.centers_m - [-20.0, 0.2, 0.2], axis=1)
+    assert far == int(np.argmin(d))
+
+
+def test_clamp_speed_bounds_and_rejects_nonfinite():
+    assert clamp_speed((3.0, 4.0, 0.0), 2.5) == pytest.approx((1.5, 2.0, 0.0))
+    assert clamp_speed((1.0, 0.0, 0.0), 2.5) == (1.0, 0.0, 0.0)
+    assert clamp_speed((float("nan"), 0.0, 0.0), 2.5) == (0.0, 0.0, 0.0)
+    assert clamp_speed((float("inf"), 0.0, 0.0), 2.5) == (0.0, 0.0, 0.0)
+
+
+def test_clamp_velocity_speed_and_acceleration():
+    dt, vmax, amax = 0.05, 3.0, 2.0
+    v = clamp_velocity((10.0, 0.0, 0.0), (0.0, 0.0, 0.0), dt, vmax, amax)
+    assert v == pytest.approx((amax * dt, 0.0, 0.0))
+    rng = np.random.default_rng(3)
+    prev = (0.0, 0.0, 0.0)
+    for _ in range(500):
+        want = tuple(rng.normal(size=3) * 6)
+        v = clamp_velocity(want, prev, dt, vmax, amax)
+        assert math.hypot(*v) <= vmax + 1e-9
+        assert math.dist(v, prev) / dt <= amax + 1e-9
+        prev = v
+
+
+def test_goto_velocity_caps_and_points_at_target():
+    v = goto_velocity((0.0, 0.0, 0.0), (10.0, 0.0, 0.0), 2.0)
+    assert v == pytest.approx((2.0, 0.0, 0.0))
+    v = goto_velocity((0.0, 0.0, 0.0), (0.1, 0.0, 0.0), 2.0)
+    assert v == pytest.approx((0.1, 0.0, 0.0))
+
+
+def test_map_geometry(field):
+    g = MapGeometry.from_field(field)
+    assert g.x_inlet_m == pytest.approx(0.0) and g.x_outlet_m == pytest.approx(3.0)
+    assert g.inlet_center_yz_m == pytest.approx((0.0, 0.0), abs=1e-12)
+    assert 0.8 < g.inlet_radius_m <= 1.1
+
+
+def test_entry_points_deterministic_distinct_and_inside_first_slice(field, sfield):
+    g = MapGeometry.from_field(field)
+    pts = [entry_point(i, g, sfield) for i in range(16)]
+    assert pts == [entry_point(i, g, sfield) for i in range(16)]
+    assert len({(round(p[1], 6), round(p[2], 6)) for p in pts}) >= 12
+    for p in pts:
+        c = sfield.cv_of(*p)
+        assert c >= 0 and field.centers_m[c][0] == pytest.approx(0.25)
+
+
+def _segment_enters_box(a, b, g, margin):
+    for s in np.linspace(0.0, 1.0, 200):
+        p = tuple(np.asarray(a) + s * (np.asarray(b) - np.asarray(a)))
+        if g.in_box(p, margin - 1e-6) and p[0] > g.x_inlet_m:
+            return True
+    return False
+
+
+@pytest.mark.parametrize("start", [(0.0, 0.0, -2.0), (1.5, 0.0, -2.0), (4.0, 0.0, 0.0), (2.0, 0.0, 0.2),
+                                   (1.0, 3.0, 0.0), (-5.0, 1.0, 4.0)])
+def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, start):
+    g = MapGeometry.from_field(field)
+    entry = entry_point(5, g, sfield)
+    wps = join_waypoints(start, entry, g, staging_m=1.5, margin_m=0.5)
+    assert wps[-1] == entry and wps[-2] == (g.x_inlet_m - 1.5, entry[1], entry[2])
+    path = [start] + wps[:-1]
+    starts_inside = g.in_box(start, 0.5)
+    for a, b in zip(path[:-1], path[1:]):
+        if starts_inside and a == start:
+            continue  # leaving the box is the first move
+        assert not _segment_enters_box(a, b, g, 0.5), (a, b)
+
+
+def test_check_map_accepts_good_and_names_bad(field):
+    assert check_map(field, "slot") == []
+    bad = CommandField(**{**field.__dict__, "mean_cmd_m_s": np.where(np.arange(field.n_cv)[:, None] == 3, np.nan,
+                                                                      field.mean_cmd_m_s)})
+    with pytest.raises(MapError, match="commands: non-finite mean command in CV 3"):
+        check_map(bad, "mean")
+    bad = CommandField(**{**field.__dict__, "n_star": np.zeros(field.n_cv, dtype=np.int32)})
+    with pytest.raises(MapError, match="n_star"):
+        check_map(bad, "slot")
+    with pytest.raises(MapError, match="mode"):
+        check_map(field, "warp")
+
+
+def test_max_command_speed(field):
+    assert max_command_speed(field, "mean") == pytest.approx(np.linalg.norm(field.mean_cmd_m_s, axis=1).max())
+    assert max_command_speed(field, "slot") >= max_command_speed(field, "mean") - 1e-9

@@ -1,0 +1,34 @@
+"""Failsafe decisions, each with its fault injected."""
+
+import math
+
+import pytest
+
+from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+
+
+def test_position_health_stages():
+    assert position_health(0.1, 0.5, 2.0) == PositionHealth.OK
+    assert position_health(0.5, 0.5, 2.0) == PositionHealth.OK
+    assert position_health(0.6, 0.5, 2.0) == PositionHealth.STALE    # -> zero-velocity hold
+    assert position_health(2.5, 0.5, 2.0) == PositionHealth.STALE
+    assert position_health(2.6, 0.5, 2.0) == PositionHealth.LOST     # -> autopilot hold mode
+    assert position_health(math.inf, 0.5, 2.0) == PositionHealth.LOST  # never had a fix
+    assert position_health(math.nan, 0.5, 2.0) == PositionHealth.LOST
+
+
+def test_link_health():
+    assert link_ok(1.0, 3.0)
+    assert not link_ok(3.5, 3.0)
+    assert not link_ok(math.inf, 3.0)
+
+
+def test_geofence_inside_exit_and_policies():
+    assert geofence(7, 1.0, 15.0, "hold") == GeofenceVerdict.INSIDE
+    assert geofence(-1, 15.0, 15.0, "hold") == GeofenceVerdict.EXIT     # through the outlet plane
+    assert geofence(-1, 16.0, 15.0, "return") == GeofenceVerdict.EXIT
+    assert geofence(-1, 5.0, 15.0, "hold") == GeofenceVerdict.HOLD      # out through a side
+    assert geofence(-1, 5.0, 15.0, "return") == GeofenceVerdict.RETURN
+    assert geofence(-1, -0.5, 15.0, "return") == GeofenceVerdict.RETURN  # back out of the inlet
+    with pytest.raises(ValueError, match="policy"):
+        geofence(-1, 5.0, 15.0, "ignore")

@@ -1,0 +1,277 @@
+"""Mission state machine on a simulated clock with a kinematic vehicle that obeys instantly."""
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from fisc_agent.config import AgentConfig
+from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity
+from fisc_agent.lookup import CommandField
+from fisc_agent.mission import Mission, State, VehicleStatus
+
+DT = 0.05
+
+
+class SimVehicle:
+    """Map-frame point vehicle: takes the mission's wants at face value (no network)."""
+
+    def __init__(self, autopilot="px4", pos=(0.0, 0.0, -3.0)):
+        self.autopilot = autopilot
+        self.pos = list(pos)
+        self.ground_z = pos[2]
+        self.vel = [0.0, 0.0, 0.0]
+        self.armed = False
+        self.mode = "other"
+        self.t = 0.0
+        self.last_fix = 0.0
+        self.last_hb = 0.0
+        self.drop_position = False
+        self.mute = False
+        self.takeoff_to = None
+        self.modes = []
+
+    def status(self):
+        if not self.drop_position and not self.mute:
+            self.last_fix = self.t
+        if not self.mute:
+            self.last_hb = self.t
+        return VehicleStatus(self.t, tuple(self.pos), tuple(self.vel), self.t - self.last_fix, self.t - self.last_hb,
+                             self.autopilot, self.armed, self.mode)
+
+    def apply(self, out, cfg):
+        if not self.mute:
+            if out.want_mode is not None and out.want_mode != self.mode:
+                self.mode = out.want_mode
+                self.modes.append(self.mode)
+            if out.want_armed and not self.armed and self.mode == "offboard":
+                self.armed = True
+            if out.takeoff_alt_m is not None and self.armed and self.takeoff_to is None:
+                self.takeoff_to = self.ground_z + out.takeoff_alt_m
+        v = (0.0, 0.0, 0.0)
+        if self.mode == "land":
+            v = (0.0, 0.0, -1.0)
+        elif self.takeoff_to is not None and self.pos[2] < self.takeoff_to:
+            v = (0.0, 0.0, 1.0)
+        elif self.mode == "offboard" and out.velocity_m_s is not None and not self.mute:
+            v = clamp_velocity(out.velocity_m_s, tuple(self.vel), DT, cfg.max_speed_m_s, cfg.max_accel_m_s2)
+        if not self.armed:
+            v = (0.0, 0.0, 0.0)
+        self.vel = list(v)
+        for i in range(3):
+            self.pos[i] += v[i] * DT
+        if self.pos[2] <= self.ground_z:
+            self.pos[2] = self.ground_z
+            if self.mode == "land":
+                self.armed = False
+        self.t += DT
+
+
+def make(sfield, autopilot="px4", **kw):
+    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=2, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
+                max_speed_m_s=4.0, max_accel_m_s2=6.0, join_speed_m_s=3.0, climb_speed_m_s=2.0)
+    base.update(kw)
+    cfg = AgentConfig(**base)
+    return cfg, Mission(cfg, sfield), SimVehicle(autopilot)
+
+
+def run(m, v, cfg, until, max_s=60.0, hook=None):
+    outs = []
+    while v.t < max_s:
+        out = m.step(v.status())
+        outs.append(out)
+        if hook:
+            hook(m, v, out)
+        v.apply(out, cfg)
+        if until(m, v, out):
+            return outs
+    raise AssertionError(f"timed out in {m.state} ({m.reason}); transitions: {m.transitions}")
+
+
+def run_for(m, v, cfg, seconds):
+    outs, end = [], v.t + seconds
+    while v.t < end:
+        out = m.step(v.status())
+        outs.append(out)
+        v.apply(out, cfg)
+    return outs
+
+
+@pytest.fixture(scope="module")
+def sfield(tunnel_map):
+    return ScalarField(CommandField.from_map(tunnel_map))
+
+
+def states(m):
+    return [m.transitions[0].src] + [t.dst for t in m.transitions]
+
+
+def test_px4_full_pass_then_exit_hold(sfield):
+    cfg, m, v = make(sfield)
+    geom = MapGeometry.from_field(sfield.field)
+    inside_before_flow = []
+
+    def hook(m, v, out):
+        if m.state in (State.TAKEOFF, State.JOIN) and geom.in_box(tuple(v.pos)) and v.pos[0] > 0.05:
+            inside_before_flow.append(tuple(v.pos))
+
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD and o.want_mode == "hold", hook=hook)
+    assert states(m) == [State.WAIT_POSITION, State.ARM, State.TAKEOFF, State.JOIN, State.FLOW, State.EXIT,
+                         State.HOLD]
+    assert m.laps == 1 and "exit" in m.reason
+    assert inside_before_flow == []             # joined from outside, through the inlet
+    flow = [o for o in outs if o.state == State.FLOW and o.velocity_m_s is not None]
+    assert len(flow) > 10 and all(o.cv_id >= 0 for o in flow)
+    # in FLOW the unclamped setpoint is exactly the map's command at the vehicle's CV
+    assert all(o.velocity_m_s == sfield.command(0, 0, 0, 2, "mean", o.cv_id) for o in flow)
+    arm = [o for o in outs if o.state == State.ARM]
+    assert all(o.velocity_m_s == (0.0, 0.0, 0.0) for o in arm)   # PX4: stream before OFFBOARD
+    assert v.pos[0] > geom.x_outlet_m
+
+
+def test_ardupilot_takes_off_by_command_without_setpoints(sfield):
+    cfg, m, v = make(sfield, autopilot="ardupilot", exit_policy="land")
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.DONE)
+    take = [o for o in outs if o.state == State.TAKEOFF]
+    assert take and all(o.velocity_m_s is None for o in take)
+    assert all(o.takeoff_alt_m == 1.0 for o in take[1:])
+    assert states(m)[-3:] == [State.EXIT, State.LAND, State.DONE]
+    assert m.reason == "landed and disarmed" and not v.armed
+
+
+def test_loop_policy_flies_the_requested_laps(sfield):
+    cfg, m, v = make(sfield, exit_policy="loop", laps=2)
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD, max_s=120)
+    assert m.laps == 2
+    assert states(m).count(State.FLOW) == 2 and states(m).count(State.JOIN) == 2
+
+
+def _fly_to_flow(m, v, cfg):
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    run(m, v, cfg, lambda m, v, o: v.pos[0] > 0.8)
+
+
+def test_stale_position_zero_hold_then_auto_resume(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    v.drop_position = True
+    outs = run(m, v, cfg, lambda m, v, o: v.t - v.last_fix > 1.0)
+    assert m.state == State.HOLD and m.reason == "position stale"
+    assert outs[-1].velocity_m_s == (0.0, 0.0, 0.0) and outs[-1].want_mode == "offboard"
+    v.drop_position = False
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
+    assert m.transitions[-1].reason == "position fix back"
+
+
+def test_position_lost_escalates_to_autopilot_hold_and_waits_for_resume(sfield):
+    cfg, m, v = make(sfield, hold_grace_s=1.0)
+    _fly_to_flow(m, v, cfg)
+    v.drop_position = True
+    outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
+    assert v.t - v.last_fix > cfg.stale_timeout_s + cfg.hold_grace_s - 2 * DT
+    assert outs[-1].velocity_m_s is None
+    v.drop_position = False
+    outs = run_for(m, v, cfg, 2.0)
+    assert outs[-1].want_mode == "hold"
+    assert m.state == State.HOLD                    # latched: no automatic resume
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 10)
+
+
+def test_geofence_hold(sfield):
+    cfg, m, v = make(sfield, geofence="hold")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1] = 2.5                                   # pushed out through the side
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    assert m.reason.startswith("geofence") and outs[-1].velocity_m_s == (0.0, 0.0, 0.0)
+    outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
+    m.command("resume")                              # resume from a geofence hold flies back
+    run(m, v, cfg, lambda m, v, o: m.state == State.RETURN, max_s=v.t + 1)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 15)
+
+
+def test_geofence_return_flies_to_the_nearest_cv(sfield):
+    cfg, m, v = make(sfield, geofence="return")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1] = 2.5
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.RETURN)
+    vy = outs[-1].velocity_m_s[1]
+    assert vy < 0 and math.hypot(*outs[-1].velocity_m_s) <= cfg.return_speed_m_s + 1e-9
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 15)
+
+
+def test_link_loss_holds_latched_and_requests_hold_mode_when_back(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    v.mute = True
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    assert m.reason == "position stale"             # positions stop first
+    run(m, v, cfg, lambda m, v, o: m.reason == "link lost")
+    assert v.t - v.last_hb > cfg.link_timeout_s
+    v.mute = False
+    outs = run(m, v, cfg, lambda m, v, o: True)
+    assert outs[-1].want_mode == "hold" and m.state == State.HOLD
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 5)
+
+
+def test_fleet_hold_resume_and_land(sfield):
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
+    m.command("hold")
+    outs = run(m, v, cfg, lambda m, v, o: True)
+    assert m.state == State.HOLD and m.reason == "fleet hold" and outs[-1].velocity_m_s == (0.0, 0.0, 0.0)
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: True)
+    assert m.state == State.JOIN
+    m.command("land")
+    run(m, v, cfg, lambda m, v, o: m.state == State.DONE)
+    assert states(m)[-2:] == [State.LAND, State.DONE]
+    with pytest.raises(ValueError, match="fleet command"):
+        m.command("dance")
+
+
+def test_pilot_override_is_hands_off(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    v.mode = "other"                                 # pilot flips to POSCTL / LOITER on the RC
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    assert m.reason.startswith("pilot override")
+    outs = run_for(m, v, cfg, 4.0)
+    assert outs[-1].want_mode is None and outs[-1].velocity_m_s is None and v.mode == "other"
+
+
+def test_arming_timeout_fails_the_mission(sfield):
+    cfg, m, v = make(sfield, command_timeout_s=2.0)
+    v.apply = lambda out, cfg: setattr(v, "t", v.t + DT)   # autopilot ignores everything
+    run(m, v, cfg, lambda m, v, o: m.state == State.DONE)
+    assert m.reason.startswith("failed")
+
+
+def test_disarm_in_flight_ends_the_mission(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    v.armed = False
+    run(m, v, cfg, lambda m, v, o: m.state == State.DONE, max_s=v.t + 1)
+    assert "disarmed" in m.reason
+
+
+def test_map_swap_during_join_replans(sfield, tunnel_map):
+    from conftest import tunnel_map_bytes
+    from fisc_agent.mapfile import decode_map
+
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
+    longer = ScalarField(CommandField.from_map(decode_map(tunnel_map_bytes(length_m=4.0, map_version=2))))
+    m.set_map(longer)
+    assert m.geom.x_outlet_m == pytest.approx(4.0)
+    run(m, v, cfg, lambda m, v, o: m.state == State.EXIT)
+    assert v.pos[0] >= 4.0
+
+
+def test_restart_in_the_air_takes_over(sfield):
+    cfg, m, v = make(sfield)
+    v.armed, v.mode, v.pos = True, "offboard", [1.0, 0.1, 0.1]
+    run(m, v, cfg, lambda m, v, o: True)
+    assert m.state == State.FLOW and "taking over" in m.reason
