@@ -18,6 +18,7 @@ from fisc_agent.frames import GeodeticAnchor
 from fisc_agent.link import _import_mavutil
 
 PX4_MODES = {"posctl": (3, 0), "offboard": (6, 0), "hold": (4, 3), "land": (4, 6)}
+HOLD_MODES = {"hold", "loiter", "brake"}
 AP_MODES = {"stabilize": 0, "guided": 4, "loiter": 5, "land": 9, "brake": 17}
 
 
@@ -29,6 +30,8 @@ class FakeAutopilot:
         self.vel = [0.0, 0.0, 0.0]
         self.armed = False
         self.mode = "posctl" if personality == "px4" else "stabilize"
+        if start_ned[2] < 0:  # starts in the air: armed and holding
+            self.armed, self.mode = True, "hold" if personality == "px4" else "loiter"
         self.sysid = sysid
         self.tau_s = tau_s
         self.geo = GeodeticAnchor(geo_origin[0], geo_origin[1], geo_origin[2], 0.0)

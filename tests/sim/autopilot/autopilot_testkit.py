@@ -35,6 +35,7 @@ class Client:
         self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
         self.mav = self.conn.mav
         self.target = target_system
+        self.log: list[object] = []
         self.heartbeat()
 
     def close(self) -> None:
@@ -44,14 +45,28 @@ class Client:
         self.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
 
     def wait(self, kind: str | list[str], cond: Callable[[object], bool] = lambda m: True,
-             timeout: float = 5.0, tick: Callable[[], None] | None = None) -> object:
-        """First message of ``kind`` satisfying ``cond`` (AssertionError on timeout)."""
+             timeout: float = 5.0, tick: Callable[[], None] | None = None, past: bool = False) -> object:
+        """First message of ``kind`` from the target satisfying ``cond`` (AssertionError on timeout).
+
+        ``past=True`` also accepts a message received earlier (every message is logged)."""
+        kinds = {kind} if isinstance(kind, str) else set(kind)
+
+        def ok(m: object) -> bool:
+            return m.get_type() in kinds and m.get_srcSystem() == self.target and cond(m)
+
+        if past:
+            for m in self.log:
+                if ok(m):
+                    return m
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             if tick is not None:
                 tick()
-            m = self.conn.recv_match(type=kind, blocking=True, timeout=0.05)
-            if m is not None and m.get_srcSystem() == self.target and cond(m):
+            m = self.conn.recv_match(blocking=True, timeout=0.05)
+            if m is None:
+                continue
+            self.log.append(m)
+            if ok(m):
                 return m
         raise AssertionError(f"no {kind} matching the condition within {timeout} s")
 
@@ -97,6 +112,8 @@ class Client:
         while time.monotonic() < end:
             if tick is not None:
                 tick()
-            self.conn.recv_match(blocking=True, timeout=0.02)
+            m = self.conn.recv_match(blocking=True, timeout=0.02)
+            if m is not None:
+                self.log.append(m)
 
 

@@ -97,12 +97,12 @@ def test_px4_arm_stream_offboard_and_fly_north(make_emulator, connect):
     c.run_for(0.5, climb)
     assert c.set_mode_px4(6, tick=climb).result == ML.MAV_RESULT_ACCEPTED
     c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4_OFFBOARD, tick=climb)
-    c.run_for(1.0, climb)
+    c.run_for(0.7, climb)
     north = c.streamer(2.0, 0.0, 0.0)
-    c.run_for(2.0, north)
+    c.run_for(1.5, north)
     lp = c.wait("LOCAL_POSITION_NED", tick=north)
-    assert lp.x > 1.5 and lp.vx > 1.5 and abs(lp.y) < 0.1 and lp.z < -1.0
-    assert em.state.position_ned_m[0] > 1.5
+    assert lp.x > 1.0 and lp.vx > 1.5 and abs(lp.y) < 0.1 and lp.z < -0.5
+    assert em.state.position_ned_m[0] > 1.0
 
 
 def test_px4_offboard_refused_without_setpoint_stream(make_emulator, connect):
@@ -112,7 +112,7 @@ def test_px4_offboard_refused_without_setpoint_stream(make_emulator, connect):
     ack = c.set_mode_px4(6)
     assert ack.result == ML.MAV_RESULT_TEMPORARILY_REJECTED
     assert c.wait("HEARTBEAT").custom_mode == PX4_LOITER
-    assert "setpoint" in c.wait("STATUSTEXT", lambda m: "Offboard" in m.text).text
+    assert "setpoint" in c.wait("STATUSTEXT", lambda m: "Offboard" in m.text, past=True).text
 
 
 def test_px4_offboard_loss_failsafe_holds_after_com_of_loss_t(make_emulator, connect):
@@ -121,15 +121,15 @@ def test_px4_offboard_loss_failsafe_holds_after_com_of_loss_t(make_emulator, con
     fly = c.streamer(1.5, 0.0, 0.0)
     c.run_for(0.3, fly)
     assert c.set_mode_px4(6, tick=fly).result == ML.MAV_RESULT_ACCEPTED
-    c.run_for(1.0, fly)
+    c.run_for(0.5, fly)
     t_stop = time.monotonic()
     hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4_LOITER, timeout=4.0)
     assert time.monotonic() - t_stop > 0.9  # not before COM_OF_LOSS_T = 1 s
     assert hb.base_mode & ML.MAV_MODE_FLAG_SAFETY_ARMED
-    c.wait("STATUSTEXT", lambda m: "offboard" in m.text.lower())
-    c.run_for(2.0)
+    c.wait("STATUSTEXT", lambda m: "offboard" in m.text.lower(), past=True)
+    c.run_for(1.5)
     lp = c.wait("LOCAL_POSITION_NED")
-    assert math.hypot(lp.vx, lp.vy) < 0.3  # decelerating to a hover
+    assert math.hypot(lp.vx, lp.vy) < 0.5  # decelerating to a hover
 
 
 def test_land_lands_and_disarms(make_emulator, connect):
@@ -151,12 +151,13 @@ def test_ardupilot_guided_takeoff_and_velocity(make_emulator, connect):
     assert c.wait("COMMAND_ACK", lambda m: m.command == ML.MAVLINK_MSG_ID_SET_MODE).result == ML.MAV_RESULT_ACCEPTED
     c.wait("HEARTBEAT", lambda m: m.custom_mode == 4)
     assert c.arm().result == ML.MAV_RESULT_ACCEPTED
-    assert c.command(ML.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0).result == ML.MAV_RESULT_ACCEPTED
-    c.wait("GLOBAL_POSITION_INT", lambda m: m.relative_alt > 1800, timeout=4.0)
+    assert c.command(ML.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 1.5).result == ML.MAV_RESULT_ACCEPTED
+    c.wait("EXTENDED_SYS_STATE", lambda m: m.landed_state == ML.MAV_LANDED_STATE_TAKEOFF)
+    c.wait("GLOBAL_POSITION_INT", lambda m: m.relative_alt > 1300, timeout=4.0)
     east = c.streamer(0.0, 1.5, 0.0)
-    c.run_for(1.5, east)
+    c.run_for(1.2, east)
     lp = c.wait("LOCAL_POSITION_NED", tick=east)
-    assert lp.y > 0.7 and lp.vy > 1.0 and lp.z == pytest.approx(-2.0, abs=0.3)
+    assert lp.y > 0.5 and lp.vy > 1.0 and lp.z == pytest.approx(-1.5, abs=0.3)
 
 
 def test_ardupilot_land_mode_disarms_on_the_ground(make_emulator, connect):
@@ -221,13 +222,13 @@ def test_requests_version_intervals_missions_timesync(make_emulator, connect):
 def test_packet_loss_is_observable(make_emulator, connect):
     em = make_emulator(personality="px4", loss=0.5, seed=1)
     c = connect(em)
-    for _ in range(40):
+    for _ in range(20):
         c.wait("LOCAL_POSITION_NED", timeout=10)
     assert em.stats["tx_dropped"] > 0 and em.stats["tx"] > 0
     assert c.conn.mav_loss > 0  # sequence gaps seen by the client
     clean = make_emulator(personality="px4")
     c2 = connect(clean)
-    for _ in range(20):
+    for _ in range(10):
         c2.wait("LOCAL_POSITION_NED")
     assert c2.conn.mav_loss == 0
 

@@ -1,0 +1,232 @@
+"""Runner on a simulated clock with an in-memory link: clamps on every setpoint, map swap,
+fleet commands, snapshots, shutdown."""
+
+import math
+
+import pytest
+
+from conftest import tunnel_map_bytes
+from fisc_agent.adapters import MAV_CMD_DO_SET_MODE, Px4Adapter
+from fisc_agent.config import AgentConfig
+from fisc_agent.link import PositionSample, PositionSource, SetpointSink
+from fisc_agent.mapfile import MapError, decode_map
+from fisc_agent.mission import State
+from fisc_agent.runner import AgentSnapshot, Runner
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+    def sleep(self, dt):
+        self.t += dt
+
+
+class MemoryLink:
+    """A PX4 that obeys commands at once; kinematic vehicle in local NED on the shared clock."""
+
+    def __init__(self, clock, pos_ned=(0.0, 0.0, 0.0)):
+        self.clock = clock
+        self.autopilot = "px4"
+        self.armed = False
+        self.base_mode, self.custom_mode = 1, Px4Adapter.px4_custom_mode(3)
+        self.last_heartbeat_t = None
+        self.pos = list(pos_ned)
+        self.vel = [0.0, 0.0, 0.0]
+        self.setpoints = []          # (t, vn, ve, vd)
+        self.commands = []
+        self.heartbeats_sent = 0
+        self.closed = False
+        self.freeze_position = False
+        self._t = clock()
+        self._fix = None
+
+    def poll(self):
+        now = self.clock()
+        dt, self._t = now - self._t, now
+        mode = Px4Adapter().classify_mode(self.base_mode, self.custom_mode)
+        if mode == "offboard" and self.armed and self.setpoints:
+            self.vel = list(self.setpoints[-1][1:])
+        elif mode == "land" and self.armed:
+            self.vel = [0.0, 0.0, 1.0]
+            if self.pos[2] >= 0.0:
+                self.armed = False
+        else:
+            self.vel = [0.0, 0.0, 0.0]
+        for i in range(3):
+            self.pos[i] += self.vel[i] * dt
+        self.pos[2] = min(self.pos[2], 0.0)
+        self.last_heartbeat_t = now
+        if not self.freeze_position:
+            self._fix = PositionSample(now, tuple(self.pos), tuple(self.vel))
+        return 1
+
+    def latest_position(self):
+        return self._fix
+
+    def send_velocity_ned(self, vn, ve, vd):
+        self.setpoints.append((self.clock(), vn, ve, vd))
+
+    def send_command(self, cmd):
+        self.commands.append(cmd)
+        if cmd.command == MAV_CMD_DO_SET_MODE:
+            self.custom_mode = Px4Adapter.px4_custom_mode(int(cmd.params[1]), int(cmd.params[2]))
+        elif cmd.command == 400:
+            self.armed = True
+
+    def send_heartbeat(self):
+        self.heartbeats_sent += 1
+
+    def pop_acks(self):
+        return []
+
+    def close(self):
+        self.closed = True
+
+
+def make(**kw):
+    clock = Clock()
+    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
+                max_speed_m_s=3.0, max_accel_m_s2=2.0, join_speed_m_s=2.5, climb_speed_m_s=1.0)
+    base.update(kw)
+    cfg = AgentConfig(**base)
+    link = MemoryLink(clock)
+    r = Runner(cfg, link, decode_map(tunnel_map_bytes()), clock=clock, sleep=clock.sleep, wall_clock=lambda: 1.7e9)
+    return cfg, clock, link, r
+
+
+def tick_until(r, clock, pred, max_s=60.0):
+    end = clock.t + max_s
+    while clock.t < end:
+        r.step()
+        clock.sleep(r.cfg.period_s)
+        if pred():
+            return
+    raise AssertionError(f"timeout in {r.mission.state} ({r.mission.reason})")
+
+
+def test_memory_link_satisfies_the_protocols():
+    _, _, link, _ = make()
+    assert isinstance(link, PositionSource) and isinstance(link, SetpointSink)
+
+
+def test_full_pass_every_setpoint_is_clamped_and_velocity_only_transformed():
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.HOLD)
+    assert r.mission.laps == 1
+    sps = link.setpoints
+    assert len(sps) > 100
+    prev = None
+    for t, vn, ve, vd in sps:
+        assert math.hypot(vn, ve, vd) <= cfg.max_speed_m_s + 1e-9
+        if prev is not None and t - prev[0] < 1.5 * cfg.period_s:
+            dv = math.dist((vn, ve, vd), prev[1:])
+            assert dv <= cfg.max_accel_m_s2 * (t - prev[0]) + 1e-9
+        prev = (t, vn, ve, vd)
+    # PX4: the stream ran for >= 1 s before OFFBOARD was requested
+    first_offboard = next(c for c in link.commands if c.command == MAV_CMD_DO_SET_MODE)
+    assert first_offboard.params[1] == 6.0
+    assert link.setpoints[0][0] <= 100.0 + 0.1
+    assert link.heartbeats_sent >= 10
+
+
+def test_snapshot_reports_state_position_map_and_link():
+    cfg, clock, link, r = make()
+    assert r.snapshot() is None
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    snap = r.snapshot()
+    assert isinstance(snap, AgentSnapshot)
+    assert snap.state == "FLOW" and snap.cv_id >= 0 and snap.link_ok and snap.armed and snap.mode == "offboard"
+    assert snap.map_sha256 == r.cmap.sha256 and snap.map_version == 1 and snap.autopilot == "px4"
+    # map frame = local NED through the deployment transform (origin 0,0,-3)
+    assert snap.position_map_m == pytest.approx((link.pos[0], link.pos[1], -3.0 - link.pos[2]))
+    assert snap.wall_time_s == 1.7e9 and snap.agent_id == 1
+    with pytest.raises(AttributeError):
+        snap.state = "X"
+
+
+def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.JOIN)
+    old = r.cmap
+    newer = decode_map(tunnel_map_bytes(length_m=4.0, map_version=5))
+    assert r.offer_map(newer)
+    assert r.cmap is old                       # not before the tick
+    r.step()
+    assert r.cmap is newer and r.snapshot().map_version == 5
+    assert r.offer_map(newer)                  # same map again: no-op
+    assert not r.offer_map(decode_map(tunnel_map_bytes(map_version=2)))   # older
+    assert r.cmap is newer
+    tick_until(r, clock, lambda: r.mission.state == State.EXIT)
+    assert r.snapshot().position_map_m[0] >= 4.0
+
+
+def test_offer_map_refuses_a_map_that_fails_agent_checks():
+    import numpy as np
+    from conftest import tunnel_arrays
+    from fisc_ground.mapwrite import encode_map
+
+    cfg, clock, link, r = make(mode="slot")
+    meta, arrays = tunnel_arrays()
+    arrays["n_star"] = np.zeros_like(arrays["n_star"])
+    meta["map_version"] = 9
+    assert not r.offer_map(decode_map(encode_map(meta, arrays)))
+    with pytest.raises(MapError):
+        Runner(cfg, MemoryLink(clock), decode_map(encode_map(meta, arrays)), clock=clock)
+
+
+def test_fleet_commands_reach_the_mission():
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.JOIN)
+    r.fleet_command("hold")
+    r.step()
+    assert r.mission.state == State.HOLD and r.snapshot().setpoint_map_m_s is not None
+    r.fleet_command("resume")
+    r.step()
+    assert r.mission.state == State.JOIN
+    r.fleet_command("land")
+    r.step()
+    assert r.mission.state == State.LAND
+    assert link.commands[-1].params[1:3] == (4.0, 6.0)    # AUTO.LAND requested
+    with pytest.raises(ValueError):
+        r.fleet_command("selfdestruct")
+
+
+def test_stale_position_streams_zero_then_requests_hold_mode():
+    cfg, clock, link, r = make(hold_grace_s=1.0)
+    tick_until(r, clock, lambda: r.mission.state == State.JOIN)
+    link.freeze_position = True
+    tick_until(r, clock, lambda: r.mission.state == State.HOLD, max_s=2)
+    tick_until(r, clock, lambda: link.setpoints[-1][1:] == (0.0, 0.0, 0.0), max_s=2)  # ramps down (accel clamp)
+    tick_until(r, clock, lambda: Px4Adapter().classify_mode(link.base_mode, link.custom_mode) == "hold", max_s=3)
+    assert r.snapshot().position_age_s > cfg.stale_timeout_s + cfg.hold_grace_s
+
+
+def test_run_keeps_the_rate_and_stops_when_done():
+    cfg, clock, link, r = make(exit_policy="land")
+    final = r.run(max_duration_s=120)
+    assert final == State.DONE and r.mission.reason == "landed and disarmed"
+    assert r.overruns == 0
+    ts = [s[0] for s in link.setpoints]
+    gaps = [b - a for a, b in zip(ts, ts[1:]) if b - a < 0.5]
+    assert max(gaps) == pytest.approx(cfg.period_s) and min(gaps) == pytest.approx(cfg.period_s)
+
+
+def test_shutdown_holds_a_flying_vehicle_and_closes():
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    r.shutdown()
+    assert link.setpoints[-1][1:] == (0.0, 0.0, 0.0)
+    assert Px4Adapter().classify_mode(link.base_mode, link.custom_mode) == "hold"
+    assert link.closed
+
+
+def test_shutdown_on_the_ground_sends_nothing():
+    cfg, clock, link, r = make()
+    r.step()
+    n = len(link.commands)
+    r.shutdown()
+    assert len(link.commands) == n and link.closed
