@@ -72,8 +72,8 @@ def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="no position messages (and no position estimate) from START for DURATION seconds "
                         "after start; repeatable")
     p.add_argument("--seed", type=int, default=0, help="seed of the packet-loss random stream (default 0)")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                   help="logging level (default INFO)")
+    p.add_argument("--log-level", default=None, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="logging level (default: INFO stand-alone, else the fisc-sim setting)")
     p.set_defaults(func=run)
     return p
 
@@ -91,9 +91,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGINT/SIGTERM; returns the exit code (0 clean, 2 bad endpoint/options)."""
+    level = getattr(logging, args.log_level) if args.log_level else None
     if not logging.getLogger().handlers:
-        logging.basicConfig(level=getattr(logging, args.log_level, logging.INFO),
-                            format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+        logging.basicConfig(level=level or logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+                            stream=sys.stderr)
+    elif level is not None:
+        logging.getLogger().setLevel(level)
     try:
         emulator = AutopilotEmulator(
             args.mavlink, args.personality, tuple(args.start), sysid=args.sysid, home_lla=tuple(args.home),

@@ -232,10 +232,10 @@ class Personality:
 
     def mode_from_command(self, param2: float, param3: float) -> FlightMode | None:
         """FlightMode for MAV_CMD_DO_SET_MODE params (custom mode, custom sub mode)."""
-        if not (math.isfinite(param2) and math.isfinite(param3)):
+        if not math.isfinite(param2):
             return None
         if self.name == "px4":
-            main, sub = int(param2), int(param3)
+            main, sub = int(param2), int(param3) if math.isfinite(param3) else 0
             if main != PX4_MAIN_AUTO:
                 sub = 0
             elif sub == 0:

@@ -25,6 +25,7 @@ loop iteration (usable by a caller that multiplexes many emulators in one thread
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import select
@@ -192,6 +193,11 @@ class _Transport:
     def send(self, data: bytes) -> None:
         raise NotImplementedError
 
+    @property
+    def has_peers(self) -> bool:
+        """True if anything would receive what is sent now."""
+        raise NotImplementedError
+
     def close(self) -> None:
         for s in self.sockets():
             s.close()
@@ -216,6 +222,10 @@ class _Udp(_Transport):
 
     def sockets(self) -> list[socket.socket]:
         return [self._sock]
+
+    @property
+    def has_peers(self) -> bool:
+        return bool(self._peers)
 
     def receive(self) -> list[tuple[object, bytes]]:
         out: list[tuple[object, bytes]] = []
@@ -249,9 +259,14 @@ class _TcpServer(_Transport):
         self._listen.listen(8)
         self._listen.setblocking(False)
         self._clients: list[socket.socket] = []
+        self._out: dict[socket.socket, bytearray] = {}
 
     def sockets(self) -> list[socket.socket]:
         return [self._listen, *self._clients]
+
+    @property
+    def has_peers(self) -> bool:
+        return bool(self._clients)
 
     def receive(self) -> list[tuple[object, bytes]]:
         while True:
@@ -262,6 +277,7 @@ class _TcpServer(_Transport):
             conn.setblocking(False)
             conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             self._clients.append(conn)
+            self._out[conn] = bytearray()
             _log.info("tcp client %s:%d", *addr)
         out: list[tuple[object, bytes]] = []
         for c in list(self._clients):
@@ -271,11 +287,12 @@ class _TcpServer(_Transport):
     def _drop(self, c: socket.socket) -> None:
         if c in self._clients:
             self._clients.remove(c)
+        self._out.pop(c, None)
         c.close()
 
     def send(self, data: bytes) -> None:
         for c in list(self._clients):
-            _write_stream(c, data, self._drop)
+            _write_stream(c, self._out[c], data, self._drop)
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -287,6 +304,7 @@ class _TcpClient(_Transport):
         self._ep = ep
         self._clock = clock
         self._sock: socket.socket | None = None
+        self._out = bytearray()
         self._next_try = -math.inf
         self._connect()
 
@@ -305,6 +323,7 @@ class _TcpClient(_Transport):
         s.setblocking(False)
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._sock = s
+        self._out = bytearray()
 
     def _drop(self, c: socket.socket) -> None:
         c.close()
@@ -313,13 +332,17 @@ class _TcpClient(_Transport):
     def sockets(self) -> list[socket.socket]:
         return [] if self._sock is None else [self._sock]
 
+    @property
+    def has_peers(self) -> bool:
+        return self._sock is not None
+
     def receive(self) -> list[tuple[object, bytes]]:
         self._connect()
         return [] if self._sock is None else _read_stream(self._sock, self._drop)
 
     def send(self, data: bytes) -> None:
         if self._sock is not None:
-            _write_stream(self._sock, data, self._drop)
+            _write_stream(self._sock, self._out, data, self._drop)
 
     def close(self) -> None:
         if self._sock is not None:
@@ -347,13 +370,25 @@ def _read_stream(c: socket.socket, drop: Callable[[socket.socket], None]) -> lis
         out.append((id(c), data))
 
 
-def _write_stream(c: socket.socket, data: bytes, drop: Callable[[socket.socket], None]) -> None:
+_STREAM_BACKLOG_BYTES = 1 << 20
+
+
+def _write_stream(c: socket.socket, out: bytearray, data: bytes, drop: Callable[[socket.socket], None]) -> None:
+    """Queue ``data`` behind what the socket has not taken yet and send what it takes now
+    (never blocks; messages stay whole). A peer that stops reading is dropped after 1 MiB."""
+    out += data
+    if len(out) > _STREAM_BACKLOG_BYTES:
+        _log.warning("tcp peer not reading (%d bytes queued); closing it", len(out))
+        drop(c)
+        return
     try:
-        c.sendall(data)
+        n = c.send(out)
     except (BlockingIOError, InterruptedError):
-        pass  # peer not reading: lose the message rather than block the vehicle
+        return
     except OSError:
         drop(c)
+        return
+    del out[:n]
 
 
 def _open_transport(ep: Endpoint, clock: Callable[[], float]) -> _Transport:
@@ -365,7 +400,6 @@ def _open_transport(ep: Endpoint, clock: Callable[[], float]) -> _Transport:
 
 
 # ------------------------------------------------------------------------------------ emulator
-_ID = mavlink  # message id constants live in the dialect module
 _POSITION_MSGS = frozenset({mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT})
 _SENSORS = (
     mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG
@@ -433,8 +467,7 @@ class AutopilotEmulator:
         self.personality = personality if isinstance(personality, Personality) else get_personality(personality)
         self.sysid, self.compid = int(sysid), int(compid)
         self.home_lla = tuple(float(x) for x in home_lla)
-        cfg = vehicle_config or VehicleConfig()
-        cfg = VehicleConfig(**{**cfg.__dict__, "start_ned_m": tuple(float(x) for x in start_ned)})
+        cfg = dataclasses.replace(vehicle_config or VehicleConfig(), start_ned_m=tuple(float(x) for x in start_ned))
         self._clock, self._wall = clock, wall_clock
         self._t0 = clock()
         self.vehicle = Vehicle(self.personality, cfg, sysid=self.sysid, t0_s=0.0)
@@ -449,30 +482,30 @@ class AutopilotEmulator:
         self._intervals: dict[int, float] = {}
         self._next_due: dict[int, float] = {}
         self._default_intervals = {
-            _ID.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
-            _ID.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-            _ID.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
-            _ID.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
-            _ID.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
-            _ID.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
-            _ID.MAVLINK_MSG_ID_VFR_HUD: 0.5,
-            _ID.MAVLINK_MSG_ID_ATTITUDE: 1.0 / rate_attitude_hz if rate_attitude_hz > 0 else 0.0,
-            _ID.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0 / rate_position_hz if rate_position_hz > 0 else 0.0,
-            _ID.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1.0 / rate_position_hz if rate_position_hz > 0 else 0.0,
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 1.0,
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: 2.0,
+            mavlink.MAVLINK_MSG_ID_VFR_HUD: 0.5,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: 1.0 / rate_attitude_hz if rate_attitude_hz > 0 else 0.0,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 1.0 / rate_position_hz if rate_position_hz > 0 else 0.0,
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 1.0 / rate_position_hz if rate_position_hz > 0 else 0.0,
         }
         self._intervals = dict(self._default_intervals)
         self._builders: dict[int, Callable[[VehicleState], object]] = {
-            _ID.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
-            _ID.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
-            _ID.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
-            _ID.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
-            _ID.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw_int,
-            _ID.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
-            _ID.MAVLINK_MSG_ID_VFR_HUD: self._vfr_hud,
-            _ID.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
-            _ID.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
-            _ID.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position_int,
-            _ID.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: self._heartbeat,
+            mavlink.MAVLINK_MSG_ID_SYS_STATUS: self._sys_status,
+            mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: self._extended_sys_state,
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME: self._system_time,
+            mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw_int,
+            mavlink.MAVLINK_MSG_ID_HOME_POSITION: self._home_position,
+            mavlink.MAVLINK_MSG_ID_VFR_HUD: self._vfr_hud,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE: self._attitude,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
+            mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position_int,
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self._autopilot_version,
         }
         self._handlers: dict[str, Callable[[object, float], None]] = {
             "HEARTBEAT": self._on_heartbeat,
@@ -489,9 +522,11 @@ class AutopilotEmulator:
             "MISSION_CLEAR_ALL": self._on_mission_clear_all,
             "TIMESYNC": self._on_timesync,
         }
-        self.stats = {"rx": 0, "tx": 0, "rx_dropped": 0, "tx_dropped": 0, "position_suppressed": 0, "errors": 0}
+        self.stats = {"rx": 0, "tx": 0, "rx_dropped": 0, "tx_dropped": 0, "position_suppressed": 0, "errors": 0,
+                      "setpoints": 0}
         """Message counters (read-only for callers)."""
         self._state = self.vehicle.snapshot()
+        self._announced = (self._state.armed, self._state.custom_mode)
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -584,6 +619,11 @@ class AutopilotEmulator:
             for ev in veh.drain_events():
                 self._statustext(ev.severity, ev.text)
             self._state = veh.snapshot()
+            if (self._state.armed, self._state.custom_mode) != self._announced:
+                # arming / mode changes are announced at once (then the 1 Hz rhythm resumes)
+                self._announced = (self._state.armed, self._state.custom_mode)
+                self._next_due[mavlink.MAVLINK_MSG_ID_HEARTBEAT] = now
+                self._next_due[mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE] = now
             next_due = self._send_streams(now)
             for buf in self._delay.pop_due(now):
                 self._transport.send(buf)
@@ -610,6 +650,8 @@ class AutopilotEmulator:
         if msg_id in _POSITION_MSGS and self.faults.position_dropout(now):
             self.stats["position_suppressed"] += 1
             return True
+        if self._transport is not None and not self._transport.has_peers:
+            return True  # nobody listening yet (udpin before the first packet): skip the encoding
         self._send(build(self._state))
         return True
 
@@ -718,6 +760,7 @@ class AutopilotEmulator:
             parser = mavlink.MAVLink(None)
             parser.robust_parsing = True
             self._parsers[key] = parser
+            self._next_due[mavlink.MAVLINK_MSG_ID_HEARTBEAT] = now  # greet a new peer at once
         try:
             msgs = parser.parse_buffer(data) or []
         except mavlink.MAVError as exc:  # robust parsing should prevent this; count it
@@ -734,8 +777,7 @@ class AutopilotEmulator:
             target = getattr(msg, "target_system", 0)
             if target not in (0, self.sysid):
                 continue
-            comp = getattr(msg, "target_component", 0)
-            if comp not in (0, self.compid) and kind not in ("PARAM_REQUEST_LIST", "MISSION_REQUEST_LIST"):
+            if getattr(msg, "target_component", 0) not in (0, self.compid):
                 continue
             handler = self._handlers.get(kind)
             if handler is not None:
@@ -850,6 +892,7 @@ class AutopilotEmulator:
         if sp is None:
             _log.warning("SET_POSITION_TARGET_LOCAL_NED frame %d not supported; ignored", m.coordinate_frame)  # type: ignore[attr-defined]
             return
+        self.stats["setpoints"] += 1
         veh.set_setpoint(sp, now)
 
     def _on_set_position_target_global_int(self, msg: object, now: float) -> None:
@@ -870,6 +913,7 @@ class AutopilotEmulator:
             tuple(veh.pos), veh.yaw,
         )  # fmt: skip
         if sp is not None:
+            self.stats["setpoints"] += 1
             veh.set_setpoint(sp, now)
 
     def _on_param_request_list(self, msg: object, now: float) -> None:

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -213,7 +212,6 @@ class Vehicle:
         self._landed_since = self.t_s
         self._setpoint: Setpoint | None = None
         self._setpoint_t = -math.inf
-        self._setpoint_times: deque[float] = deque(maxlen=64)
         self._guided_vel_t = -math.inf
         self._takeoff_target_d: float | None = None  # PX4 TAKEOFF and ArduPilot GUIDED takeoff
         self._rtl_phase = "climb"
@@ -291,13 +289,17 @@ class Vehicle:
                 return Outcome(self._reject(), "Arming denied: no position estimate")
             if self.mode in _NOT_ARMABLE:
                 return Outcome(self._reject(), f"Arming denied: not armable in {self.mode_name}")
-            if self.mode.needs_pilot:
+            if self.mode.needs_pilot and self._is_px4:
+                # (ArduPilot arms in pilot modes as SITL does with its idle simulated RC: the
+                # vehicle then just sits / holds; PX4 never reaches them without RC)
                 return Outcome(self._reject(), f"Arming denied: {self.mode_name} needs RC")
             if not self.landed:
                 return Outcome(self._reject(), "Arming denied: not landed")
         self.armed = True
         self._ever_airborne = not self.landed
         self._landed_since = self.t_s
+        if not self.landed:  # forced arming in the air: the plant picks up the current velocity
+            self._plant.reset(self.vel)
         self.home = np.array([self.pos[0], self.pos[1], 0.0])
         self._event("Armed")
         return Outcome(ACCEPTED)
@@ -393,7 +395,6 @@ class Vehicle:
         self.step(t_s)
         self._setpoint = setpoint
         self._setpoint_t = self.t_s
-        self._setpoint_times.append(self.t_s)
         if setpoint.has_velocity:
             self._guided_vel_t = self.t_s
         if self.mode == FlightMode.GUIDED and self._takeoff_target_d is not None and not self.landed:
@@ -410,11 +411,6 @@ class Vehicle:
 
     def _offboard_stream_ok(self) -> bool:
         return self.t_s - self._setpoint_t <= self.config.offboard_stream_window_s
-
-    def setpoint_rate_hz(self, window_s: float = 1.0) -> float:
-        """Received setpoint rate over the last ``window_s`` seconds [Hz]."""
-        n = sum(1 for t in self._setpoint_times if self.t_s - t <= window_s)
-        return n / window_s
 
     # ------------------------------------------------------------------ failsafes
     def _check_failsafes(self) -> None:

@@ -41,6 +41,8 @@ def test_px4_known_words():
     assert PX4.mode_from_command(4.0, 0.0) == FlightMode.LOITER  # AUTO without sub mode: Hold
     assert PX4.mode_from_command(9.0, 0.0) is None
     assert PX4.mode_from_command(float("nan"), 0.0) is None
+    assert PX4.mode_from_command(6.0, float("nan")) == FlightMode.OFFBOARD  # NaN = unused sub mode
+    assert ARDUPILOT.mode_from_command(4.0, float("nan")) == FlightMode.GUIDED
 
 
 @pytest.mark.parametrize(

@@ -192,7 +192,6 @@ def test_ardupilot_guided_takeoff_climbs_at_1_5_m_s_then_flies_velocity():
     v = Vehicle(ARDUPILOT)
     c = Clock(v)
     assert v.snapshot().mode == FlightMode.STABILIZED
-    assert v.arm(c.t).result == mavlink.MAV_RESULT_FAILED  # STABILIZE needs RC
     assert v.set_mode(FlightMode.GUIDED, c.t).ok
     assert v.takeoff(c.t, 5.0).result == mavlink.MAV_RESULT_FAILED  # disarmed
     assert v.arm(c.t).ok
@@ -206,6 +205,39 @@ def test_ardupilot_guided_takeoff_climbs_at_1_5_m_s_then_flies_velocity():
     c.run(3.0, vel(0.0, 1.0, 0.0))
     s = v.snapshot()
     assert s.mode == FlightMode.GUIDED and s.position_ned_m[1] > 1.5
+
+
+def test_ardupilot_arms_in_stabilize_like_sitl_and_sits_still():
+    v = Vehicle(ARDUPILOT)
+    c = Clock(v)
+    assert v.arm(c.t).ok
+    assert v.takeoff(c.t, 2.0).result == mavlink.MAV_RESULT_FAILED  # takeoff needs GUIDED
+    c.run(5.0)
+    s = v.snapshot()
+    assert s.armed and s.position_ned_m == (0.0, 0.0, 0.0)
+    c.run(5.5)  # DISARM_DELAY = 10 s
+    assert not v.snapshot().armed
+
+
+def test_ardupilot_refuses_arming_in_land_and_rtl():
+    v = Vehicle(ARDUPILOT)
+    assert v.set_mode(FlightMode.LAND, 0.0).ok
+    assert v.arm(0.1).result == mavlink.MAV_RESULT_FAILED
+    assert v.set_mode(FlightMode.RTL, 0.2).ok
+    assert v.arm(0.3).result == mavlink.MAV_RESULT_FAILED
+
+
+def test_ardupilot_target_during_takeoff_climb_ends_the_takeoff():
+    v = Vehicle(ARDUPILOT)
+    c = Clock(v)
+    v.set_mode(FlightMode.GUIDED, c.t)
+    v.arm(c.t)
+    assert v.takeoff(c.t, 10.0).ok
+    c.run(1.0)
+    c.run(2.0, vel(0.0, 0.0, 0.0))
+    s = v.snapshot()
+    assert -2.5 < s.position_ned_m[2] < -0.5 and abs(s.velocity_ned_m_s[2]) < 0.1
+    assert s.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
 
 
 def test_ardupilot_guid_timeout_stops_the_vehicle_but_stays_guided():
