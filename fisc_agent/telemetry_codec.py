@@ -17,7 +17,7 @@ ground station can refuse (and name) a format it does not know.  Version 1 layou
      48  u64  map_version of the map being flown (0 = none)
      56  32s  sha256 of that map (raw digest; zeros = none)
      88  u16  maps refused so far (saturating)
-     90  u16  position age [ms] (saturating 65535 = never/too old)
+     90  u16  position age [ms] (saturates at 65534; 65535 = none)
      92  u16  autopilot heartbeat age [ms] (saturating)
      94  u8   code of the last fleet command accepted (index into ``ACK_COMMANDS``)
      95  u8   reserved (0)
@@ -106,7 +106,7 @@ class Telemetry:
     reject_reason: str = "none"
     """Check that refused the last refused map (one of ``REJECT_REASONS``)."""
     position_age_s: float = math.inf
-    """Age of the newest position [s] (inf: none); ms resolution, saturates at 65.535 s."""
+    """Age of the newest position [s] (inf: none); ms resolution, saturates at 65.534 s."""
     heartbeat_age_s: float = math.inf
     """Age of the newest autopilot heartbeat [s]; same encoding."""
     ack_command: str = "none"
@@ -125,7 +125,7 @@ def _code(table: tuple[str, ...], name: str) -> int:
 def _age_ms(age_s: float) -> int:
     if not math.isfinite(age_s) or age_s < 0:
         return 0xFFFF
-    return min(int(round(age_s * 1000.0)), 0xFFFF)
+    return min(int(round(age_s * 1000.0)), 0xFFFE)
 
 
 def encode(t: Telemetry) -> bytes:

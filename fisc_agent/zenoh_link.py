@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 DEFAULT_PREFIX = "fisc"
 DEFAULT_PORT = 7447
 DEFAULT_CHUNK_BYTES = 1 << 20
-DEFAULT_MAX_MAP_BYTES = 2 << 30
+DEFAULT_MAX_MAP_BYTES = 1 << 30
 
 CHUNK_MAGIC = b"FMCH"
 CHUNK_VERSION = 1
@@ -132,13 +132,21 @@ def load_config(path: str | Path | None = None, *, listen: list[str] | None = No
     return cfg
 
 
+class ZenohSessionError(ValueError):
+    """A Zenoh session could not be opened (endpoint busy or unreachable, bad TLS files...)."""
+
+
 def open_session(config: Any = None):
     """Open a Zenoh session from a ``zenoh.Config``, a config file path, or None (lab default)."""
     import zenoh
 
+    where = str(config) if isinstance(config, (str, Path)) else "the default lab config"
     if config is None or isinstance(config, (str, Path)):
         config = load_config(config)
-    return zenoh.open(config)
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise ZenohSessionError(f"cannot open a Zenoh session with {where}: {exc}") from exc
 
 
 # --------------------------------------------------------------------------------------------
@@ -213,7 +221,8 @@ class MapAssembler:
     """Reassembles maps from chunks (any order, duplicates ignored), pure apart from the clock.
 
     ``feed(msg, now_s)`` returns ``(header, blob)`` when a map completes (blob is a bytearray
-    whose sha256 matched the header's) and ``(header, None)`` otherwise.  Only maps announced
+    whose sha256 matched the header's; with ``verify=False`` the caller must call
+    ``verify(header, blob)`` itself, e.g. off the network thread) and ``(header, None)`` otherwise.  Only maps announced
     newer than ``floor_version`` are assembled; at most ``max_pending`` maps at once (the
     newest win) and none over ``max_bytes``.  ``MapError`` for malformed chunks or a map whose
     bytes do not hash to its header (both are refusals to count).
@@ -226,7 +235,8 @@ class MapAssembler:
         self.pending: dict[bytes, _Assembly] = {}
         self.done: set[bytes] = set()
 
-    def feed(self, msg: bytes | memoryview, now_s: float = 0.0) -> tuple[ChunkHeader, bytearray | None]:
+    def feed(self, msg: bytes | memoryview, now_s: float = 0.0,
+             verify: bool = True) -> tuple[ChunkHeader, bytearray | None]:
         head, data = parse_chunk(msg)
         if head.kind != KIND_CHUNK or head.map_version <= self.floor_version or head.sha256 in self.done:
             return head, None
@@ -252,10 +262,20 @@ class MapAssembler:
         if len(asm.have) < head.count:
             return head, None
         del self.pending[head.sha256]
-        if asm.received != head.total_bytes or hashlib.sha256(asm.buf).digest() != head.sha256:
-            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
         self.done.add(head.sha256)
+        if asm.received != head.total_bytes:
+            self.done.discard(head.sha256)
+            raise MapError("chunks: chunk sizes do not add up to the map size (corrupted or forged chunks)")
+        if verify:
+            self.verify(head, asm.buf)
         return head, asm.buf
+
+    def verify(self, head: ChunkHeader, blob: bytearray) -> None:
+        """Check a completed map against its header's sha256; on mismatch forget it (so that a
+        later query can fetch good chunks) and raise ``MapError``."""
+        if hashlib.sha256(blob).digest() != head.sha256:
+            self.done.discard(head.sha256)
+            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
 
     def progressing(self, sha256: bytes, now_s: float, within_s: float) -> bool:
         """True when chunks of this map arrived within the last ``within_s`` seconds."""
@@ -301,9 +321,9 @@ def verify_map_bytes(blob: bytes | bytearray, trusted_keys: list[bytes] | None, 
 # Telemetry from a runner snapshot
 
 _SNAPSHOT_NAMES = {
-    "time_s": ("time_s", "t_unix_s", "time"),
-    "position_m": ("position_m", "pos_m", "position"),
-    "velocity_m_s": ("velocity_m_s", "vel_m_s", "velocity"),
+    "time_s": ("wall_time_s", "unix_time_s", "time_unix_s"),
+    "position_m": ("position_map_m", "position_m", "pos_m"),
+    "velocity_m_s": ("velocity_map_m_s", "velocity_m_s", "vel_m_s"),
     "cv_index": ("cv_index", "cv_id", "cv"),
     "state": ("state",),
     "map_sha256": ("map_sha256",),
@@ -337,34 +357,46 @@ def _vec3(value: Any) -> tuple[float, float, float]:
 
 @dataclass
 class LinkStats:
-    """Counters of one agent link (read them for logs and telemetry)."""
+    """Counters of one agent link (mutable; read them for logs and telemetry)."""
 
     maps_accepted: int = 0
+    """Maps handed to ``on_map`` and adopted."""
     maps_rejected: int = 0
+    """Maps refused (any failed check, including the runner's own)."""
     maps_ignored_old: int = 0
+    """Valid maps not newer than the current one."""
     last_reject_reason: str = "none"
+    """Check that refused the last refused map (``REJECT_REASONS``)."""
     last_reject_message: str = ""
+    """Full message of that refusal."""
     commands_accepted: int = 0
+    """Fleet commands passed to ``on_command``."""
     commands_rejected: int = 0
+    """Fleet commands refused (signature, replay, stale, other swarm...)."""
     last_command: str = "none"
+    """Name of the last accepted command (acknowledged in telemetry)."""
     last_command_seq: int = 0
+    """Its sequence number."""
     telemetry_sent: int = 0
+    """Telemetry messages published."""
     queries_sent: int = 0
+    """Map queries issued (start, announcements of maps not arriving)."""
 
 
 class AgentZenohLink:
     """One agent's Zenoh link: map subscription + late-joiner query, commands, telemetry.
 
     ``on_map(cmap)`` is called from the link's worker thread with each verified map newer than
-    the last (the runner installs it at its next safe point); ``on_command(cmd)`` with each
-    fleet command that passed signature, swarm, target, replay and staleness checks.  Neither
+    the last; the runner installs it at its next safe point.  Returning ``False`` refuses it
+    (``Runner.offer_map``'s own checks) and it is then counted as refused.  ``on_command(cmd)``
+    gets each fleet command that passed signature, swarm, target, replay and staleness checks.  Neither
     is called for anything refused: refusals are logged, counted in ``stats`` and reported in
     telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
     default); or pass an open ``session`` to share one (it is then not closed by ``close``).
     """
 
     def __init__(self, session_config: Any, swarm: str, agent_id: int, trusted_keys: list[bytes] | None,
-                 allow_unsigned: bool, on_map: Callable[[CommandMap], None],
+                 allow_unsigned: bool, on_map: Callable[[CommandMap], object],
                  on_command: Callable[[FleetCommand], None], *, prefix: str = DEFAULT_PREFIX,
                  session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int = DEFAULT_MAX_MAP_BYTES,
                  command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time) -> None:
@@ -378,6 +410,7 @@ class AgentZenohLink:
         self.on_command = on_command
         self.query_timeout_s = float(query_timeout_s)
         self.clock = clock
+        self.reconnect_period_s = 1.0
         self.stats = LinkStats()
         self.current: CommandMap | None = None
         self._session_config = session_config
@@ -386,6 +419,7 @@ class AgentZenohLink:
         self._assembler = MapAssembler(max_bytes=max_map_bytes)
         self._gate = CommandGate(swarm, self.agent_id, max_age_s=command_max_age_s)
         self._lock = threading.Lock()
+        self._asm_lock = threading.Lock()
         self._work: queue.Queue = queue.Queue()
         self._entities: list[Any] = []
         self._pub = None
@@ -394,34 +428,65 @@ class AgentZenohLink:
         self._worker: threading.Thread | None = None
         self._telemetry_thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.close_hooks: list[Callable[[], None]] = []
         if self.allow_unsigned:
             log.warning("*** --allow-unsigned: this agent accepts UNSIGNED maps and commands. Lab use only. ***")
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "AgentZenohLink":
-        """Open the session, subscribe to map and commands, query the current map."""
+        """Start the link: open the session (retried in the background while no router/peer
+        answers, e.g. in client mode before the ground is up), subscribe to map and commands,
+        query the current map.  Never blocks for long."""
+        self._worker = threading.Thread(target=self._work_loop, name=f"fisc-zenoh-map-{self.agent_id}", daemon=True)
+        self._worker.start()
+        if not self._try_connect():
+            threading.Thread(target=self._connect_loop, name=f"fisc-zenoh-open-{self.agent_id}", daemon=True).start()
+        return self
+
+    def _try_connect(self) -> bool:
         import zenoh
 
         if self._session is None:
-            self._session = open_session(self._session_config)
+            try:
+                session = open_session(self._session_config)
+            except ZenohSessionError as exc:
+                log.warning("Zenoh session not open yet (%s); retrying", exc)
+                return False
+            with self._lock:
+                if self._stop.is_set():
+                    session.close()
+                    return True
+                self._session = session
         s = self._session
-        self._worker = threading.Thread(target=self._work_loop, name=f"fisc-zenoh-map-{self.agent_id}", daemon=True)
-        self._worker.start()
         self._entities.append(s.declare_subscriber(self.keys.map, self._on_map_sample))
         self._entities.append(s.declare_subscriber(self.keys.cmd, self._on_cmd_sample))
-        self._pub = s.declare_publisher(self.keys.telemetry(self.agent_id),
-                                        congestion_control=zenoh.CongestionControl.DROP)
-        self._entities.append(self._pub)
+        pub = s.declare_publisher(self.keys.telemetry(self.agent_id), congestion_control=zenoh.CongestionControl.DROP)
+        self._entities.append(pub)
+        self._pub = pub
         self.query_map()
-        return self
+        return True
+
+    def _connect_loop(self) -> None:
+        while not self._stop.wait(self.reconnect_period_s):
+            if self._try_connect():
+                return
+
+    @property
+    def connected(self) -> bool:
+        """True once the session is open and the link declared."""
+        return self._pub is not None
 
     def close(self) -> None:
         """Undeclare everything, stop the threads, close the session if this link opened it."""
-        self._stop.set()
+        with self._lock:
+            self._stop.set()
+        for hook in self.close_hooks:
+            hook()
         self._work.put(None)
         for t in (self._telemetry_thread, self._worker):
             if t is not None and t is not threading.current_thread():
                 t.join(timeout=5.0)
+        self._pub = None
         for ent in reversed(self._entities):
             try:
                 ent.undeclare()
@@ -461,11 +526,12 @@ class AgentZenohLink:
 
     def _on_map_payload(self, payload: bytes) -> None:
         now = self.clock()
-        with self._lock:
+        with self._asm_lock:
             try:
-                head, blob = self._assembler.feed(payload, now)
+                head, blob = self._assembler.feed(payload, now, verify=False)
             except MapError as exc:
-                self._reject(exc)
+                with self._lock:
+                    self._reject(exc)
                 return
             if head.kind == KIND_ANNOUNCE:
                 newer = head.map_version > self._assembler.floor_version and head.sha256 not in self._assembler.done
@@ -491,7 +557,11 @@ class AgentZenohLink:
             self._install(head, blob)
 
     def _install(self, head: ChunkHeader, blob: bytearray) -> None:
+        """Worker thread: hash, decode and verify a completed map, hand it to ``on_map``."""
         try:
+            if hashlib.sha256(blob).digest() != head.sha256:  # large maps: hashed here, not on the network thread
+                with self._asm_lock:
+                    self._assembler.verify(head, blob)  # forgets the map and raises
             cmap = verify_map_bytes(blob, self.trusted_keys, self.allow_unsigned, head.map_version,
                                     source=self.keys.map)
         except MapError as exc:
@@ -499,18 +569,26 @@ class AgentZenohLink:
                 self._reject(exc)
             return
         with self._lock:
-            if self.current is not None and cmap.map_version <= self.current.map_version:
-                self.stats.maps_ignored_old += 1
-                log.info("ignoring map %s: map_version %d is not newer than the current %d",
-                         cmap.sha256[:12], cmap.map_version, self.current.map_version)
-                return
-            self.current = cmap
-            self._assembler.accept(cmap.map_version)
-            self.stats.maps_accepted += 1
+            current = self.current
+        if current is not None and cmap.map_version <= current.map_version:
+            self.stats.maps_ignored_old += 1
+            log.info("ignoring map %s: map_version %d is not newer than the current %d",
+                     cmap.sha256[:12], cmap.map_version, current.map_version)
+            return
         if not cmap.signed:
-            log.warning("*** installing UNSIGNED map %s (map_version %d) ***", cmap.sha256[:12], cmap.map_version)
+            log.warning("*** UNSIGNED map %s (map_version %d) offered to the agent ***", cmap.sha256[:12],
+                        cmap.map_version)
+        if self.on_map(cmap) is False:  # the runner's own checks refused it
+            with self._lock:
+                self._reject(MapError(f"{self.keys.map}: other: map {cmap.sha256[:12]} refused by the agent's "
+                                      "checks (see its log)"))
+            return
+        with self._lock:
+            self.current = cmap
+            self.stats.maps_accepted += 1
+        with self._asm_lock:
+            self._assembler.accept(cmap.map_version)
         log.info("map %s accepted (map_version %d, %d CVs)", cmap.sha256[:12], cmap.map_version, cmap.n_cv)
-        self.on_map(cmap)
 
     def _reject(self, exc: Exception) -> None:
         self.stats.maps_rejected += 1
@@ -549,7 +627,7 @@ class AgentZenohLink:
         pos_age = float(_get(snap, "position_age_s", math.inf))
         if pos_age < 1.0:
             flags.add("position_fresh")
-        if self._session is not None:
+        if self._pub is not None:
             flags.add("zenoh_ok")
         sha = _get(snap, "map_sha256", current.sha256 if current is not None else "") or ""
         version = _get(snap, "map_version", None)
@@ -557,11 +635,13 @@ class AgentZenohLink:
             version = current.map_version if current is not None and current.sha256 == sha else 0
         if current is not None and current.sha256 == sha and not current.signed:
             flags.add("map_unsigned")
-        state = _get(snap, "state", "WAIT_MAP" if current is None else "UNKNOWN")
+        state = getattr(_get(snap, "state", "UNKNOWN"), "value", None) or str(_get(snap, "state", "UNKNOWN"))
+        if not sha and state in ("UNKNOWN", "WAIT_POSITION"):
+            state = "WAIT_MAP"  # on the ground, unarmed, until a valid map arrives
         return tc.Telemetry(
             agent_id=self.agent_id, seq=seq, time_s=float(_get(snap, "time_s", self.clock())),
             position_m=_vec3(_get(snap, "position_m", None)), velocity_m_s=_vec3(_get(snap, "velocity_m_s", None)),
-            cv_index=int(_get(snap, "cv_index", -1)), state=getattr(state, "value", str(state)),
+            cv_index=int(_get(snap, "cv_index", -1)), state=state,
             map_version=int(version), map_sha256=str(sha), flags=frozenset(flags),
             maps_rejected=stats.maps_rejected, reject_reason=stats.last_reject_reason, position_age_s=pos_age,
             heartbeat_age_s=float(_get(snap, "heartbeat_age_s", math.inf)), ack_command=stats.last_command,
@@ -592,3 +672,54 @@ class AgentZenohLink:
 
         self._telemetry_thread = threading.Thread(target=loop, name=f"fisc-telemetry-{self.agent_id}", daemon=True)
         self._telemetry_thread.start()
+
+
+# --------------------------------------------------------------------------------------------
+# Wiring to the agent runner
+
+class _CommandDispatcher:
+    """Fleet commands -> ``Runner.fleet_command``; ``start-at T`` = hold (on the ground) now,
+    resume at T.  A later command cancels a pending start."""
+
+    def __init__(self, runner: Any, clock: Callable[[], float]) -> None:
+        self.runner = runner
+        self.clock = clock
+        self._timer: threading.Timer | None = None
+        self._lock = threading.Lock()
+
+    def __call__(self, cmd: FleetCommand) -> None:
+        with self._lock:
+            self.cancel()
+            if cmd.name != "start-at":
+                self.runner.fleet_command(cmd.name)
+                return
+            self.runner.fleet_command("hold")
+            delay = float(cmd.start_at_unix_s) - self.clock()
+            log.info("start-at: holding until %.3f (in %.1f s)", cmd.start_at_unix_s, delay)
+            if delay <= 0:
+                self.runner.fleet_command("resume")
+            else:
+                self._timer = threading.Timer(delay, self.runner.fleet_command, ("resume",))
+                self._timer.daemon = True
+                self._timer.start()
+
+    def cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+
+def connect_runner(runner: Any, session_config: Any, swarm: str, trusted_keys: list[bytes] | None,
+                   allow_unsigned: bool = False, telemetry_rate_hz: float = 5.0, prefix: str = DEFAULT_PREFIX,
+                   session: Any = None, clock: Callable[[], float] = time.time) -> AgentZenohLink:
+    """Start an ``AgentZenohLink`` for a ``fisc_agent.runner.Runner``: verified maps go to
+    ``runner.offer_map`` (swapped at its next tick), fleet commands to ``runner.fleet_command``
+    (``start-at``: hold until the time, then resume), and ``runner.snapshot()`` is published as
+    telemetry at ``telemetry_rate_hz``.  Close the returned link when the runner stops."""
+    dispatcher = _CommandDispatcher(runner, clock)
+    link = AgentZenohLink(session_config, swarm, runner.cfg.agent_id, trusted_keys, allow_unsigned,
+                          runner.offer_map, dispatcher, prefix=prefix, session=session, clock=clock)
+    link.close_hooks.append(dispatcher.cancel)
+    link.start()
+    link.start_telemetry(runner.snapshot, telemetry_rate_hz)
+    return link

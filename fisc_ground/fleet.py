@@ -12,7 +12,7 @@ from typing import Any
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
-from fisc_agent.zenoh_link import DEFAULT_PREFIX, Keys
+from fisc_agent.zenoh_link import Keys
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +109,12 @@ class CommandResult:
     """Agents whose telemetry acknowledged the command's sequence number."""
 
 
+def matching(publisher: Any) -> bool:
+    """True when subscribers match ``publisher`` (zenoh returns a ``MatchingStatus``)."""
+    status = publisher.matching_status
+    return bool(getattr(status, "matching", status))
+
+
 def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes | None,
                  match_timeout_s: float = 3.0, ack_timeout_s: float = 0.0,
                  listener: TelemetryListener | None = None) -> CommandResult:
@@ -116,9 +122,9 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
     pub = session.declare_publisher(keys.cmd)
     try:
         end = time.monotonic() + match_timeout_s
-        while not pub.matching_status and time.monotonic() < end:
+        while not matching(pub) and time.monotonic() < end:
             time.sleep(0.05)
-        matched = pub.matching_status
+        matched = matching(pub)
         pub.put(encode_command(cmd, signing_key))
         acked: set[int] = set()
         if listener is not None and ack_timeout_s > 0:
@@ -143,12 +149,12 @@ def run_cmd(args: Any) -> int:
     from fisc_ground.zenoh_config import open_ground_session
 
     start_at = None
-    if args.command == "start-at":
+    if args.fleet_command == "start-at":
         if not args.time:
-            raise SystemExit("cmd start-at needs a UTC time, e.g. 2026-05-01T12:00:00Z")
+            raise ValueError("cmd start-at needs a UTC time, e.g. 2026-05-01T12:00:00Z")
         start_at = parse_utc(args.time)
     elif args.time:
-        raise SystemExit(f"cmd {args.command} takes no time argument")
+        raise ValueError(f"cmd {args.fleet_command} takes no time argument")
     key = read_signing_key(args.key) if args.key else None
     if key is None:
         log.warning("sending an UNSIGNED command: agents refuse it unless started with --allow-unsigned")
@@ -157,7 +163,7 @@ def run_cmd(args: Any) -> int:
     try:
         _wait_connected(session, args.wait)
         listener = TelemetryListener(session, keys)
-        cmd = make_command(args.command, args.swarm, args.id, start_at)
+        cmd = make_command(args.fleet_command, args.swarm, args.id, start_at)
         res = send_command(session, keys, cmd, key, match_timeout_s=args.wait, ack_timeout_s=args.ack_wait,
                            listener=listener)
         listener.close()

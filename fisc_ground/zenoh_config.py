@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from fisc_agent.zenoh_link import DEFAULT_PORT, load_config
+from fisc_agent.zenoh_link import DEFAULT_PORT, load_config, open_session
 
 HUB_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
@@ -27,7 +27,5 @@ def ground_config(path: str | Path | None = None, hub: bool = False) -> Any:
 
 
 def open_ground_session(path: str | Path | None = None, hub: bool = False) -> Any:
-    """Open a Zenoh session for a ground tool (see ``ground_config``)."""
-    import zenoh
-
-    return zenoh.open(ground_config(path, hub))
+    """Open a Zenoh session for a ground tool (see ``ground_config``); ``ZenohSessionError`` names the problem."""
+    return open_session(ground_config(path, hub) if path is None else Path(path))

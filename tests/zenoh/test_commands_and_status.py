@@ -10,7 +10,7 @@ from nacl.signing import SigningKey
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import encode_command
 from fisc_agent.zenoh_link import AgentZenohLink, Keys
-from fisc_ground.fleet import TelemetryListener, make_command, send_command, status_report
+from fisc_ground.fleet import TelemetryListener, matching, make_command, send_command, status_report
 
 from .conftest import wait_for
 
@@ -54,7 +54,7 @@ def test_targeted_command_only_reaches_its_agent(fleet, ground_key):
 def test_replayed_stale_forged_and_foreign_commands_are_ignored(fleet, ground_key):
     ground, links, got = fleet
     pub = ground.declare_publisher("fisc/alpha/cmd")
-    assert wait_for(lambda: pub.matching_status)
+    assert wait_for(lambda: matching(pub))
     now = time.time()
     fresh = encode_command(make_command("hold", "alpha", now_unix_s=now), ground_key[0])
     pub.put(fresh)
@@ -87,9 +87,33 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
     forged = tc.encode(tc.Telemetry(agent_id=1, seq=1, time_s=0, position_m=(0, 0, 0), velocity_m_s=(0, 0, 0)))
     bad = listener.bad
     pub = links[1]._session.declare_publisher("fisc/alpha/agents/9/telemetry")  # noqa: SLF001
-    assert wait_for(lambda: pub.matching_status)
+    assert wait_for(lambda: matching(pub))
     pub.put(forged)
     assert wait_for(lambda: listener.bad > bad)
     assert 9 not in listener.snapshot()
     pub.undeclare()
     listener.close()
+
+
+def test_start_at_holds_now_and_resumes_at_the_time_and_a_later_command_cancels_it():
+    from fisc_agent.fleet_commands import FleetCommand
+    from fisc_agent.zenoh_link import _CommandDispatcher
+
+    class FakeRunner:
+        def __init__(self):
+            self.calls = []
+
+        def fleet_command(self, name):
+            self.calls.append(name)
+
+    runner = FakeRunner()
+    d = _CommandDispatcher(runner, clock=time.time)
+    d(FleetCommand("start-at", "alpha", 1, time.time(), start_at_unix_s=time.time() + 0.3))
+    assert runner.calls == ["hold"]
+    assert wait_for(lambda: runner.calls == ["hold", "resume"], timeout_s=3)
+    d(FleetCommand("start-at", "alpha", 2, time.time(), start_at_unix_s=time.time() + 0.3))
+    d(FleetCommand("land", "alpha", 3, time.time()))
+    time.sleep(0.6)
+    assert runner.calls == ["hold", "resume", "hold", "land"]
+    d(FleetCommand("start-at", "alpha", 4, time.time(), start_at_unix_s=time.time() - 5))  # already due
+    assert runner.calls[-2:] == ["hold", "resume"]

@@ -147,3 +147,52 @@ def test_large_map_is_chunked_and_reassembled(net, sessions, agents, ground_key)
     assert len(server._chunks) > 20  # noqa: SLF001
     assert ag.link.current.n_cv == 6000 and not ag.link.current["fit_velocity_m_s"].flags.writeable
     server.close()
+
+
+def test_client_mode_agent_started_before_the_router_connects_later(tmp_path, sessions, make_map, ground_key):
+    from .conftest import free_port, write_config
+
+    port = free_port()
+    router_cfg = write_config(tmp_path / "router.json5", [f"tcp/127.0.0.1:{port}"], [])
+    router_cfg.write_text(router_cfg.read_text().replace('"peer"', '"router"'))
+    client_cfg = write_config(tmp_path / "client.json5", [], [f"tcp/127.0.0.1:{port}"])
+    client_cfg.write_text(client_cfg.read_text().replace('"peer"', '"client"'))
+    maps = []
+    link = AgentZenohLink(client_cfg, "alpha", 1, [ground_key[1]], False, maps.append, lambda c: None)
+    link.reconnect_period_s = 0.2
+    try:
+        link.start()  # no router yet: returns, keeps trying
+        assert not link.connected
+        link.publish_telemetry({})  # a no-op while disconnected
+        router = sessions(router_cfg)
+        server = MapServer(router, "alpha", announce_period_s=0.2)
+        server.serve(make_map(100))
+        assert wait_for(lambda: [m.map_version for m in maps] == [100], timeout_s=15)
+        server.close()
+    finally:
+        link.close()
+
+
+def test_a_map_the_runner_refuses_is_counted_and_not_adopted(net, sessions, make_map, ground_key):
+    hub, member = net
+    offered = []
+
+    def runner_offer_map(cmap):  # stands in for Runner.offer_map: refuses version 200
+        offered.append(cmap.map_version)
+        return cmap.map_version != 200
+
+    server = MapServer(sessions(hub), "alpha", announce_period_s=0.2)
+    server.serve(make_map(100))
+    link = AgentZenohLink(member, "alpha", 1, [ground_key[1]], False, runner_offer_map, lambda c: None).start()
+    try:
+        assert wait_for(lambda: link.current is not None and link.current.map_version == 100)
+        server.serve(make_map(200, seed=1))
+        assert wait_for(lambda: link.stats.maps_rejected == 1)
+        threading.Event().wait(0.5)  # announcements of the refused map do not make it retry
+        assert offered == [100, 200] and link.current.map_version == 100
+        assert link.telemetry_from({}).reject_reason == "other"
+        server.serve(make_map(300, seed=2))
+        assert wait_for(lambda: link.current.map_version == 300)
+    finally:
+        link.close()
+        server.close()
