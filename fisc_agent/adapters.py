@@ -192,10 +192,12 @@ class Commander:
         """
         if takeoff_alt_m is None:
             self._takeoff_accepted = False
-            self._clear("takeoff")
-        for intent in MODE_CLASSES:
-            if intent != want_mode or mode == intent:
-                self._clear(f"mode:{intent}")
+        if self._last_sent:
+            if takeoff_alt_m is None:
+                self._clear("takeoff")
+            for intent in MODE_CLASSES:
+                if intent != want_mode or mode == intent:
+                    self._clear(f"mode:{intent}")
         if want_mode is not None and mode != want_mode:
             if want_mode == "offboard" and stream_s < self.adapter.stream_before_offboard_s:
                 return
@@ -204,7 +206,8 @@ class Commander:
         if want_armed and not armed:
             self._try(t, "arm", arm_command())
             return
-        self._clear("arm")
+        if self._last_sent:
+            self._clear("arm")
         if takeoff_alt_m is not None and armed and not self._takeoff_accepted:
             cmd = self.adapter.takeoff(takeoff_alt_m)
             if cmd is not None:

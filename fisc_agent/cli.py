@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fisc-agent", description=__doc__.split("\n\n")[0],
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--map", dest="map_path", required=True, help="command map file (.fiscmap)")
+    p.add_argument("--map", dest="map_path", help="command map file (.fiscmap); omit with --swarm to receive it over Zenoh")
     p.add_argument("--mavlink", required=True,
                    help="autopilot endpoint: udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT, udp://:14540, "
                         "serial:///dev/ttyUSB0:921600, /dev/ttyACM0:57600")
@@ -40,7 +40,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
     p.add_argument("--yaw", type=float, default=0.0, help="map x-axis direction, clockwise from North [deg]")
     p.add_argument("--geodetic-anchor", help="map origin LAT,LON,ALT_AMSL,HEADING (uses GLOBAL_POSITION_INT)")
-    p.add_argument("--trusted-key", help="Ed25519 public key (.pub): the map must be signed by it")
+    p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
+    z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
+    z.add_argument("--swarm", help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
+    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (default: peer on loopback, hub 127.0.0.1:7447)")
+    z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
+    z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
+    z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")
     p.add_argument("--max-speed", type=float, default=5.0, help="speed clamp [m/s]")
     p.add_argument("--max-accel", type=float, default=3.0, help="acceleration clamp [m/s^2]")
     p.add_argument("--join-speed", type=float, default=2.0, help="speed flying to the inlet [m/s]")
@@ -85,8 +91,9 @@ def make_link(cfg: AgentConfig):
                        anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz))
 
 
-def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: float | None = None) -> int:
-    """Load the map, connect, fly; returns the exit code."""
+def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: float | None = None,
+        zenoh_args: argparse.Namespace | None = None) -> int:
+    """Load the map (or receive it over Zenoh when ``zenoh_args.swarm`` is set), connect, fly."""
     from fisc_agent.runner import Runner
 
     try:
@@ -94,7 +101,9 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
     except MapError as exc:
         log.error("invalid map, refusing to start: %s", exc)
         return EXIT_INVALID
-    if cmap is not None and not cmap.signed:
+    if cmap is not None and cmap.signed:
+        log.info("map %s signed by %s", cfg.map_path, cmap.public_key)
+    elif cmap is not None:
         log.warning("map %s is not signed; its integrity (sha256) is checked, its origin is not", cfg.map_path)
     link = make_link(cfg)
     try:
@@ -105,9 +114,23 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         return EXIT_INVALID
     log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz", cfg.agent_id, cfg.mavlink_url,
              cmap.sha256[:12] if cmap else "(none yet)", cfg.mode, cfg.rate_hz)
+    zlink = None
     try:
+        if zenoh_args is not None and zenoh_args.swarm:
+            from fisc_agent.mapfile import read_public_key
+            from fisc_agent.zenoh_link import connect_runner
+
+            try:
+                keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None
+                zlink = connect_runner(runner, zenoh_args.zenoh_config, zenoh_args.swarm, keys,
+                                       zenoh_args.allow_unsigned, zenoh_args.telemetry_rate, zenoh_args.zenoh_prefix)
+            except (MapError, ValueError, FileNotFoundError) as exc:
+                log.error("cannot start the Zenoh link: %s", exc)
+                return EXIT_INVALID
         final = runner.run(stop, max_duration_s=max_duration_s)
     finally:
+        if zlink is not None:
+            zlink.close()
         runner.shutdown()
     if final == State.DONE and runner.mission.reason.startswith("failed"):
         log.error("mission failed: %s", runner.mission.reason)
@@ -120,8 +143,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        if not args.map_path and not args.swarm:
+            raise ValueError("give --map FILE, or --swarm NAME to receive the map over Zenoh")
+        if args.swarm and not args.trusted_key and not args.allow_unsigned:
+            raise ValueError("--swarm needs --trusted-key PUB (or --allow-unsigned in a lab)")
         cfg = config_from_args(args)
-    except (ValueError, EndpointError) as exc:
+    except (ValueError, EndpointError, MapError) as exc:
         log.error("%s", exc)
         return EXIT_INVALID
     stop = threading.Event()
@@ -132,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _on_signal)
-    return run(cfg, stop, args.max_duration)
+    return run(cfg, stop, args.max_duration, args)
 
 
 if __name__ == "__main__":

@@ -108,6 +108,8 @@ class AgentConfig:
         need(self.source_system is None or 1 <= self.source_system <= 255, "source_system must be 1..255")
         need(0 <= self.source_component <= 255, "source_component must be 0..255")
         DeploymentTransform(self.origin_ned_m, self.yaw_deg)  # validates
+        need(self.geodetic_anchor is None or (tuple(self.origin_ned_m) == DEFAULT_ORIGIN_NED_M and self.yaw_deg == 0.0),
+             "give either --origin/--yaw (shared EKF origin) or --geodetic-anchor (its heading is the yaw), not both")
 
     @property
     def transform(self) -> DeploymentTransform:

@@ -68,9 +68,10 @@ class Endpoint:
         return f"{self.device}@{self.baud}" if self.kind == "serial" else self.device
 
 
-def _port(url: str, text: str) -> int:
-    if not text.isdigit() or not 0 < int(text) < 65536:
-        raise EndpointError(f"endpoint {url!r}: port {text!r} is not a number in 1..65535")
+def _port(url: str, text: str, listening: bool) -> int:
+    low = 0 if listening else 1  # a listener may bind port 0 (any free port)
+    if not text.isdigit() or not low <= int(text) < 65536:
+        raise EndpointError(f"endpoint {url!r}: port {text!r} is not a number in {low}..65535")
     return int(text)
 
 
@@ -83,7 +84,7 @@ def _host_port(url: str, kind: str, rest: str) -> Endpoint:
         if kind not in _LISTENING:
             raise EndpointError(f"endpoint {url!r}: a host is required to connect/send ({kind})")
         host = "0.0.0.0"
-    return Endpoint(kind=kind, host=host, port=_port(url, port), baud=None)
+    return Endpoint(kind=kind, host=host, port=_port(url, port, kind in _LISTENING), baud=None)
 
 
 def _serial(url: str, rest: str) -> Endpoint:

@@ -31,6 +31,7 @@ CONTAINER_VERSION = 1
 SCHEMA = "fisc.command_map"
 SCHEMA_VERSION = 1
 ALIGN = 64
+SEAL_KEYS = frozenset({"sha256", "signature", "public_key"})
 
 #: Array name -> (dtype, rank) that schema version 1 requires.
 REQUIRED_ARRAYS: dict[str, tuple[str, int]] = {
@@ -216,8 +217,10 @@ def _decode(data: memoryview, trusted_keys: list[bytes] | None) -> CommandMap:
         seal = json.loads(bytes(seal_raw))
     except ValueError as exc:
         raise MapError(f"seal: not valid JSON ({exc})") from exc
+    if not isinstance(seal, dict) or set(seal) != SEAL_KEYS:
+        raise MapError(f"seal: expected exactly the keys {sorted(SEAL_KEYS)}")
     digest = hashlib.sha256(data[:sealed_end]).digest()
-    if not isinstance(seal, dict) or seal.get("sha256") != digest.hex():
+    if seal["sha256"] != digest.hex():
         raise MapError("sha256: content hash does not match (map corrupted or modified)")
     signed = _verify_signature(digest, seal, trusted_keys)
     try:

@@ -18,16 +18,17 @@ Holds: ``zero`` stage (zero-velocity setpoints, the vehicle stays in offboard/gu
 ``hold_grace_s``, then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
 position resumes by itself if the fix returns before that escalation; every other hold
 (escalated, link lost, geofence, exit, fleet, pilot override) waits for a fleet ``resume``.
-If the pilot switches the vehicle out of offboard/guided, the agent stops requesting modes
-("hands off") until resumed.
+If a mode the agent asked for and got is changed by someone else (the pilot's mode switch, an
+autopilot failsafe such as PX4's offboard loss or a battery RTL), the agent stops requesting
+modes and streaming ("hands off") until a fleet ``resume``: it never fights the pilot.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from enum import Enum
+from typing import NamedTuple
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, goto_velocity,
@@ -56,9 +57,8 @@ FLYING = frozenset({State.TAKEOFF, State.JOIN, State.FLOW, State.RETURN, State.E
 """States in which the agent commands the vehicle in offboard/guided."""
 
 
-@dataclass(frozen=True)
-class VehicleStatus:
-    """What the mission sees each tick (map frame)."""
+class VehicleStatus(NamedTuple):
+    """What the mission sees each tick (map frame).  Immutable (a NamedTuple: built every tick)."""
 
     t_s: float
     """Monotonic time [s]."""
@@ -79,9 +79,8 @@ class VehicleStatus:
     ``other`` or ``unknown``."""
 
 
-@dataclass(frozen=True)
-class MissionOutput:
-    """What the mission wants this tick."""
+class MissionOutput(NamedTuple):
+    """What the mission wants this tick.  Immutable (a NamedTuple: built every tick)."""
 
     state: State
     """State after this step."""
@@ -122,7 +121,8 @@ class Mission:
         self._waypoints: list[Vec] = []
         self._wp_index = 0
         self._target: Vec | None = None
-        self._offboard_seen = False
+        self._last_want: str | None = None
+        self._want_seen = False
         # hold bookkeeping
         self._resume_state = State.WAIT_POSITION
         self._hold_latched = False
@@ -224,12 +224,14 @@ class Mission:
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
             elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
                 self._auto_resume(t, pos)
-            elif (self.state in FLYING and self._offboard_seen and s.mode not in ("offboard", "unknown")):
-                self._hold(t, f"pilot override (mode {s.mode})", latched=True, armed=s.armed, hands_off=True)
+            elif self._mode_taken(s):
+                self._hold(t, f"pilot override: mode changed to {s.mode} outside the agent, hands off",
+                           latched=True, armed=s.armed, hands_off=True)
+        elif self.state == State.LAND and lk and s.armed and self._mode_taken(s):
+            self._hold(t, f"pilot override: mode changed to {s.mode} while landing, hands off",
+                       latched=True, armed=True, hands_off=True)
 
         st = self.state
-        if st in FLYING and s.mode == "offboard":
-            self._offboard_seen = True
 
         vel: Vec | None = None
         want_mode: str | None = None
@@ -240,18 +242,15 @@ class Mission:
         if st == State.WAIT_POSITION:
             if lk and s.autopilot and ph == PositionHealth.OK and self.sfield is not None and pos is not None:
                 if s.armed:
-                    self._offboard_seen = s.mode == "offboard"
                     self._enter(t, State.FLOW if cv >= 0 else State.JOIN, "already flying: taking over", pos)
                 else:
                     self._home = pos
-                    self._offboard_seen = False
                     self._go(t, State.ARM, f"position and {s.autopilot} heartbeat received")
         st = self.state
         if st == State.ARM:
             vel = None if by_command else ZERO
             want_mode, want_armed = "offboard", True
             if s.armed and s.mode == "offboard":
-                self._offboard_seen = True
                 self._go(t, State.TAKEOFF, "armed in offboard/guided")
             elif t - self._t_state > cfg.command_timeout_s:
                 self._go(t, State.DONE, f"failed: not armed in offboard/guided after {cfg.command_timeout_s:.0f} s")
@@ -326,7 +325,17 @@ class Mission:
                 self._go(t, State.DONE, "landed and disarmed")
         if self.state == State.DONE:
             vel, want_mode, want_armed, takeoff = None, None, None, None
+        if want_mode != self._last_want:
+            self._last_want, self._want_seen = want_mode, want_mode is not None and s.mode == want_mode
+        elif want_mode is not None and s.mode == want_mode:
+            self._want_seen = True
         return MissionOutput(self.state, vel, want_mode, want_armed, takeoff, cv, self.reason)
+
+    def _mode_taken(self, s: VehicleStatus) -> bool:
+        """The mode we asked for was reached and has since been changed by someone else
+        (the pilot's switch or an autopilot failsafe): do not fight it."""
+        return (self._want_seen and self._last_want is not None and not self._hands_off
+                and s.mode not in (self._last_want, "unknown"))
 
     def _hold_output(self, t: float) -> tuple[Vec | None, str | None, bool | None, float | None]:
         if self._hands_off or not self._hold_armed:
@@ -369,5 +378,4 @@ class Mission:
             elif nxt == State.FLOW and self.sfield is not None and pos is not None and self.sfield.cv_of(*pos) < 0:
                 nxt = State.RETURN
             self._hands_off = False
-            self._offboard_seen = False
             self._enter(t, nxt, "fleet resume", pos)

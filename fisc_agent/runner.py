@@ -91,7 +91,7 @@ class Runner:
         self._lock = threading.Lock()
         self._pending_map: tuple[CommandMap, ScalarField] | None = None
         self._pending_cmds: list[str] = []
-        self._snapshot: AgentSnapshot | None = None
+        self._snap_raw: tuple | None = None
         self._last_sp: Vec = ZERO
         self._last_sp_t = 0.0
         self._stream_start: float | None = None
@@ -111,13 +111,8 @@ class Runner:
         Refused (False, reason logged) when it fails the agent's checks or is older
         (``map_version``) than the map in use; the same map again is accepted as a no-op.
         """
-        current = self._pending_map[0] if self._pending_map is not None else self.cmap
-        if current is not None and cmap.sha256 == current.sha256:
-            return True
-        if current is not None and cmap.map_version < current.map_version:
-            log.warning("map %s refused: version %d is older than %d in use", cmap.sha256[:12], cmap.map_version,
-                        current.map_version)
-            return False
+        if not self._newer_than_current(cmap):
+            return cmap.sha256 == self._current_map_sha()
         try:
             field = CommandField.from_map(cmap)
             for w in check_map(field, self.cfg.mode):
@@ -129,8 +124,32 @@ class Runner:
         if vmax > self.cfg.max_speed_m_s:
             log.warning("map commands up to %.2f m/s, above max speed %.2f m/s: setpoints will be clamped",
                         vmax, self.cfg.max_speed_m_s)
-        with self._lock:
-            self._pending_map = (cmap, ScalarField(field))
+        sfield = ScalarField(field)
+        with self._lock:  # re-check: another thread may have offered a newer map meanwhile
+            if not self._newer_than_current(cmap):
+                return cmap.sha256 == self._current_map_sha()
+            self._pending_map = (cmap, sfield)
+        return True
+
+    def _current_map(self) -> CommandMap | None:
+        pending = self._pending_map
+        return pending[0] if pending is not None else self.cmap
+
+    def _current_map_sha(self) -> str | None:
+        current = self._current_map()
+        return current.sha256 if current is not None else None
+
+    def _newer_than_current(self, cmap: CommandMap) -> bool:
+        """False for the map in use (same sha256) and for older ones (logged)."""
+        current = self._current_map()
+        if current is None:
+            return True
+        if cmap.sha256 == current.sha256:
+            return False
+        if cmap.map_version < current.map_version:
+            log.warning("map %s refused: version %d is older than %d in use", cmap.sha256[:12], cmap.map_version,
+                        current.map_version)
+            return False
         return True
 
     def fleet_command(self, name: str) -> None:
@@ -142,7 +161,16 @@ class Runner:
 
     def snapshot(self) -> AgentSnapshot | None:
         """The latest telemetry snapshot (None before the first tick)."""
-        return self._snapshot
+        raw = self._snap_raw
+        if raw is None:
+            return None
+        now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps = raw
+        return AgentSnapshot(
+            time_s=now, wall_time_s=wall, agent_id=self.cfg.agent_id, state=out.state.value, reason=out.reason,
+            position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
+            map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
+            link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age, autopilot=autopilot, armed=armed,
+            mode=mode, laps=laps)
 
     # ---- the tick ------------------------------------------------------------------------
     def _apply_pending(self) -> list[str]:
@@ -231,14 +259,9 @@ class Runner:
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
             link.send_heartbeat()
             self._last_hb_sent = now
-        cmap = self.cmap
-        self._snapshot = AgentSnapshot(
-            time_s=now, wall_time_s=self.wall_clock(), agent_id=self.cfg.agent_id, state=out.state.value,
-            reason=out.reason, position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
-            map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
-            link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
-            autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
-            laps=self.mission.laps)
+        # the snapshot is assembled on demand from this immutable tuple (replaced whole: atomic)
+        self._snap_raw = (now, self.wall_clock(), out, pos, vel, sp, self.cmap, link_ok, hb_age, pos_age,
+                          self.adapter.name if self.adapter else None, link.armed, mode, self.mission.laps)
         self.ticks += 1
         return out
 

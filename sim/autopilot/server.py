@@ -37,8 +37,11 @@ from typing import Callable, Iterable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+import numpy as np
+
 from sim.autopilot.faults import DelayLine, FaultConfig, FaultInjector
 from sim.autopilot.personalities import FlightMode, Personality, get_personality
+from sim.plant import PlantParams, VelocityPlant
 from sim.autopilot.vehicle import (
     ACCEPTED,
     DENIED,
@@ -421,6 +424,15 @@ def _i16(x: float) -> int:
     return int(max(-32768, min(32767, round(x))))
 
 
+def _warm_up_plant() -> None:
+    """Compile (or load from cache) the plant kernel now, not on the first airborne step.
+
+    The first numba call costs about 0.5 s; inside the loop it would stall position output
+    and trip the agent's stale-position failsafe.
+    """
+    VelocityPlant(PlantParams(), 1).step(np.zeros((1, 3)), 0.01)
+
+
 class AutopilotEmulator:
     """A PX4- or ArduPilot-Copter-like autopilot on a MAVLink endpoint, flying a simulated vehicle.
 
@@ -557,6 +569,7 @@ class AutopilotEmulator:
         if self._thread is not None:
             raise RuntimeError("emulator already started")
         self.open()
+        _warm_up_plant()
         self._stop.clear()
         self._thread = threading.Thread(target=self.run, name=f"autopilot-{self.sysid}", daemon=True)
         self._thread.start()

@@ -5,7 +5,6 @@ import math
 import numpy as np
 import pytest
 
-from conftest import tunnel_arrays
 from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
                                 goto_velocity, join_waypoints, max_command_speed, slot_hash_scalar)
 from fisc_agent.lookup import CommandField, slot_hash

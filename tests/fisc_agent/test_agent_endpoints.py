@@ -55,3 +55,16 @@ def test_bad_endpoints_name_the_problem(url, words):
         parse_endpoint(url)
     assert words in str(exc.value)
     assert repr(url) in str(exc.value)
+
+
+@pytest.mark.parametrize("url, mavsdk", [
+    ("udpin:0.0.0.0:14540", "udpin://0.0.0.0:14540"),
+    ("udp://:14540", "udpin://0.0.0.0:14540"),
+    ("udpout:10.0.0.2:14550", "udpout://10.0.0.2:14550"),
+    ("tcp:127.0.0.1:5760", "tcpout://127.0.0.1:5760"),
+    ("/dev/ttyACM0:57600", "serial:///dev/ttyACM0:57600"),
+])
+def test_mavsdk_connection_urls(url, mavsdk):
+    from fisc_agent.mavsdk_backend import mavsdk_url
+
+    assert mavsdk_url(parse_endpoint(url)) == mavsdk

@@ -1,7 +1,6 @@
 """Mission state machine on a simulated clock with a kinematic vehicle that obeys instantly."""
 
 import math
-from dataclasses import replace
 
 import pytest
 
@@ -237,9 +236,32 @@ def test_pilot_override_is_hands_off(sfield):
     _fly_to_flow(m, v, cfg)
     v.mode = "other"                                 # pilot flips to POSCTL / LOITER on the RC
     outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
-    assert m.reason.startswith("pilot override")
+    assert m.reason.startswith("pilot override") and "hands off" in m.reason
     outs = run_for(m, v, cfg, 4.0)
-    assert outs[-1].want_mode is None and outs[-1].velocity_m_s is None and v.mode == "other"
+    assert all(o.want_mode is None and o.velocity_m_s is None for o in outs) and v.mode == "other"
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 10)
+
+
+def test_mode_taken_during_a_hold_is_respected(sfield):
+    cfg, m, v = make(sfield, hold_grace_s=5.0)
+    _fly_to_flow(m, v, cfg)
+    m.command("hold")
+    run_for(m, v, cfg, 1.0)                          # zero-velocity stage, still in offboard
+    v.mode = "other"
+    outs = run_for(m, v, cfg, 6.0)
+    assert m.reason.startswith("pilot override") and v.mode == "other"
+    assert all(o.want_mode is None for o in outs[2:])
+
+
+def test_autopilot_failsafe_mode_while_landing_is_respected(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    m.command("land")
+    run_for(m, v, cfg, 0.5)
+    v.mode = "other"                                 # e.g. the pilot takes over during the descent
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.state == State.HOLD and "while landing" in m.reason and outs[-1].want_mode is None
 
 
 def test_arming_timeout_fails_the_mission(sfield):

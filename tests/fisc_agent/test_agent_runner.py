@@ -230,3 +230,36 @@ def test_shutdown_on_the_ground_sends_nothing():
     n = len(link.commands)
     r.shutdown()
     assert len(link.commands) == n and link.closed
+
+
+def test_map_offers_and_fleet_commands_from_another_thread_while_running():
+    import threading
+    import time
+
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(0.0, 0.0, -3.0), rate_hz=50.0)
+    link = MemoryLink(time.monotonic)
+    r = Runner(cfg, link, decode_map(tunnel_map_bytes()))
+    stop = threading.Event()
+    th = threading.Thread(target=r.run, args=(stop,), daemon=True)
+    th.start()
+    try:
+        newer = decode_map(tunnel_map_bytes(length_m=4.0, map_version=7))
+        results = []
+        offers = [threading.Thread(target=lambda: results.append(r.offer_map(newer))) for _ in range(4)]
+        for t in offers:
+            t.start()
+        for t in offers:
+            t.join()
+        assert all(results)
+        r.fleet_command("hold")
+        end = time.monotonic() + 3
+        while time.monotonic() < end:
+            snap = r.snapshot()
+            if snap is not None and snap.map_version == 7 and snap.state == "HOLD":
+                break
+            time.sleep(0.02)
+        assert snap.map_version == 7 and snap.state == "HOLD" and snap.reason.startswith("fleet hold")
+    finally:
+        stop.set()
+        th.join(timeout=2)
+    assert not th.is_alive()

@@ -1,0 +1,134 @@
+"""fisc-agent CLI: refusing invalid maps/options with exit code 2, clean SIGTERM, lean imports."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import tunnel_map_bytes
+from fake_autopilot import FakeAutopilot
+from fisc_agent.cli import build_parser, config_from_args, main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_help_lists_the_contract_options(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for opt in ("--map", "--mavlink", "--id", "--autopilot", "--mode", "--rate", "--origin", "--yaw",
+                "--trusted-key", "--backend", "--geodetic-anchor", "--exit-policy", "--geofence", "--max-speed"):
+        assert opt in out
+
+
+def test_args_become_a_config():
+    a = build_parser().parse_args(["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7", "--origin",
+                                   "1,2,-15", "--yaw", "30", "--mode", "slot", "--rate", "50", "--exit-policy", "loop"])
+    cfg = config_from_args(a)
+    assert cfg.agent_id == 7 and cfg.origin_ned_m == (1.0, 2.0, -15.0) and cfg.yaw_deg == 30.0
+    assert cfg.mode == "slot" and cfg.rate_hz == 50.0 and cfg.exit_policy == "loop"
+    assert cfg.transform.yaw_deg == 30.0
+    a = build_parser().parse_args(["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7",
+                                   "--geodetic-anchor", "47.1,8.2,500,90"])
+    cfg = config_from_args(a)
+    assert cfg.geodetic_anchor.heading_deg == 90.0 and cfg.transform.origin_ned_m == (0.0, 0.0, 0.0)
+    assert cfg.transform.yaw_deg == 90.0
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--mavlink", "bogus://x:1"], "unknown scheme"),
+    (["--origin", "1,2"], "--origin"),
+    (["--rate", "1"], "rate"),
+    (["--max-speed", "-1"], "max_speed"),
+])
+def test_invalid_options_exit_2_naming_the_problem(tmp_path, caplog, args, words):
+    base = {"--map": str(tmp_path / "m.fiscmap"), "--mavlink": "udpin:127.0.0.1:0", "--id": "1"}
+    for k, v in zip(args[::2], args[1::2]):
+        base[k] = v
+    argv = [x for kv in base.items() for x in kv]
+    assert main(argv) == 2
+    assert words in caplog.text
+
+
+def _corrupt(data: bytes) -> bytes:
+    b = bytearray(data)
+    b[200] ^= 0xFF
+    return bytes(b)
+
+
+@pytest.mark.parametrize("mutate, check", [
+    (_corrupt, "sha256"),
+    (lambda d: d[:100], "truncated"),
+    (lambda d: b"NOTAMAP!" + d[8:], "magic"),
+])
+def test_invalid_map_refused_with_exit_2_and_the_failed_check(tmp_path, caplog, mutate, check):
+    p = tmp_path / "bad.fiscmap"
+    p.write_bytes(mutate(tunnel_map_bytes()))
+    assert main(["--map", str(p), "--mavlink", "udpin:127.0.0.1:0", "--id", "1"]) == 2
+    assert "invalid map" in caplog.text and check in caplog.text
+
+
+def test_trusted_key_requires_a_signature_by_that_key(tmp_path, caplog):
+    from nacl.signing import SigningKey
+
+    key = SigningKey.generate()
+    pub = tmp_path / "ground.pub"
+    pub.write_text(key.verify_key.encode().hex())
+    unsigned = tmp_path / "unsigned.fiscmap"
+    unsigned.write_bytes(tunnel_map_bytes())
+    assert main(["--map", str(unsigned), "--mavlink", "udpin:127.0.0.1:0", "--id", "1", "--trusted-key", str(pub)]) == 2
+    assert "signature" in caplog.text
+    other = tmp_path / "other.fiscmap"
+    other.write_bytes(tunnel_map_bytes(signing_key=bytes(SigningKey.generate())))
+    assert main(["--map", str(other), "--mavlink", "udpin:127.0.0.1:0", "--id", "1", "--trusted-key", str(pub)]) == 2
+    assert "not trusted" in caplog.text
+
+
+def test_agent_package_is_lean():
+    code = ("import sys, fisc_agent.cli, fisc_agent.runner, fisc_agent.link, fisc_agent.mission, "
+            "fisc_agent.failsafe, fisc_agent.control, fisc_agent.frames, fisc_agent.endpoints, fisc_agent.adapters, "
+            "fisc_agent.config, fisc_agent.mavsdk_backend\n"
+            "bad = [m for m in ('scipy', 'matplotlib', 'fisc_ground', 'sim', 'mavsdk') if m in sys.modules]\n"
+            "print(bad); sys.exit(1 if bad else 0)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_sigterm_holds_the_vehicle_and_exits_cleanly(tmp_path, udp_port):
+    mp = tmp_path / "tunnel.fiscmap"
+    mp.write_bytes(tunnel_map_bytes())
+    fake = FakeAutopilot(f"udpout:127.0.0.1:{udp_port}", "px4", start_ned=(-3.0, 0.0, -2.0)).start()
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--map", str(mp), "--mavlink",
+                             f"udpin:127.0.0.1:{udp_port}", "--id", "2", "--origin", "0,0,-4", "--takeoff-alt", "1"],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        end = time.monotonic() + 15
+        while time.monotonic() < end and not (fake.mode == "offboard" and len(fake.setpoints) > 30):
+            time.sleep(0.05)
+        assert fake.mode == "offboard", "agent never took the vehicle into OFFBOARD"
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=10)
+        assert proc.returncode == 0, out
+        assert fake.setpoints[-1][1:4] == (0.0, 0.0, 0.0)
+        time.sleep(0.1)
+        assert fake.mode == "hold" and fake.armed
+        assert "SIGTERM" in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        fake.stop()
+
+
+def test_origin_and_geodetic_anchor_are_exclusive(caplog):
+    assert main(["--map", "m.fiscmap", "--mavlink", "udpin:127.0.0.1:0", "--id", "1", "--origin", "1,2,-5",
+                 "--geodetic-anchor", "47,8,500,0"]) == 2
+    assert "not both" in caplog.text
