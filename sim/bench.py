@@ -54,21 +54,26 @@ def bench_paper_run(cmap, agents: int = 1000, duration_s: float = 300.0) -> dict
 
 
 def bench_rotorpy(n_agents: int, steps: int = 5, dt_s: float = 0.05) -> dict:
-    """agent-steps/s of RotorPy's BatchedMultirotor (hummingbird, cmd_vel abstraction if
-    available) for ``n_agents`` vehicles.  Raises ImportError/RuntimeError when unavailable."""
+    """agent-steps/s of RotorPy's BatchedMultirotor (hummingbird parameters, the ``cmd_vel``
+    abstraction — the same level as our velocity plant — and its fixed-step ``rk4``
+    integrator, CPU) for ``n_agents`` hovering vehicles commanded 1 m/s forward, stepping at
+    ``dt_s``.  Raises ImportError (no torch/roma/rotorpy) or RuntimeError when unavailable."""
     import torch  # rotorpy's batched simulator needs PyTorch
     from rotorpy.vehicles.hummingbird_params import quad_params
     from rotorpy.vehicles.multirotor import BatchedMultirotor, BatchedMultirotorParams
 
+    torch.set_num_threads(1)  # one core, like the FISC core
     dev = torch.device("cpu")
     params = BatchedMultirotorParams([quad_params] * n_agents, n_agents, dev)
     x0 = {"x": torch.zeros(n_agents, 3, dtype=torch.double), "v": torch.zeros(n_agents, 3, dtype=torch.double),
           "q": torch.tensor([0, 0, 0, 1], dtype=torch.double).repeat(n_agents, 1),
           "w": torch.zeros(n_agents, 3, dtype=torch.double), "wind": torch.zeros(n_agents, 3, dtype=torch.double),
           "rotor_speeds": torch.full((n_agents, 4), 1788.53, dtype=torch.double)}
-    vehicle = BatchedMultirotor(params, n_agents, x0, dev, control_abstraction="cmd_motor_speeds")
+    vehicle = BatchedMultirotor(params, n_agents, x0, dev, control_abstraction="cmd_vel", integrator="rk4")
     state = {k: v.clone() for k, v in x0.items()}
-    control = {"cmd_motor_speeds": torch.full((n_agents, 4), 1788.53, dtype=torch.double)}
+    cmd_v = torch.zeros(n_agents, 3, dtype=torch.double)
+    cmd_v[:, 0] = 1.0
+    control = {"cmd_v": cmd_v}
     state = vehicle.step(state, control, dt_s)
     t0 = time.perf_counter()
     for _ in range(steps):

@@ -1,7 +1,7 @@
 """``fisc-sim``: the simulator's command line (thin: argument parsing and progress only).
 
-Subcommands: ``run`` (sim.run), ``bench`` (sim.bench) and ``autopilot`` (sim.autopilot.cli,
-the MAVLink autopilot emulator), when present.
+Subcommands: ``run`` (sim.run), ``bench`` (sim.bench), ``autopilot`` (sim.autopilot.cli, the
+MAVLink autopilot emulator) and ``emulate`` (sim.emulate_cli, a swarm of emulated autopilots).
 """
 
 from __future__ import annotations
@@ -24,9 +24,11 @@ def _add_run(sub) -> None:
     p.add_argument("--agents", type=int, default=None,
                    help="population target N: N* scaled by N / sum N* (seed: exactly N seeded; reservoir: source "
                         "rate scaled alike). Default: N* as fitted")
-    p.add_argument("--duration", type=float, default=300.0, help="simulated seconds (default 300)")
-    p.add_argument("--average-window", type=float, default=100.0,
-                   help="time-average the fields over the last S seconds (default 100)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="simulated seconds (default: 300 for reservoir, 20 for seed)")
+    p.add_argument("--average-window", type=float, default=None,
+                   help="time-average the fields over the last S seconds (default: 100 for reservoir, "
+                        "the whole run for seed)")
     p.add_argument("--mode", choices=("mean", "slot", "interpolated"), default="mean",
                    help="command mode (default mean = paper Algorithm 1)")
     p.add_argument("--collisions", action="store_true", help="enable the collision layer")
@@ -96,7 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
     from sim.autopilot import cli as autopilot_cli
 
     autopilot_cli.add_parser(sub)
-    # `fisc-sim emulate`: reserved for the lead (swarm of emulated autopilots + agents)
+    # `fisc-sim emulate`: a swarm of emulated autopilots flown by real agents (sim/emulate_cli.py)
+    from sim import emulate_cli
+
+    emulate_cli.add_parser(sub)
     return parser
 
 
@@ -113,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
         from sim.autopilot import cli as autopilot_cli
 
         return int(autopilot_cli.run(args) or 0)
+    if args.command == "emulate":
+        from sim import emulate_cli
+
+        return int(emulate_cli.run(args) or 0)
     parser.error(f"unknown command {args.command}")
     return 2
 

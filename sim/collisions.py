@@ -3,8 +3,8 @@
 Detection: two agents collide when they are closer than ``2 r``.  Candidate pairs come from a
 spatial hash of cubic cells of edge ``2 r``: agents are sorted by cell key and each agent is
 compared only with the agents of its own cell and of the 13 "forward" neighbour cells (the
-other 13 are covered by symmetry), located with ``searchsorted`` on the sorted keys — no
-per-agent Python and no O(N^2) comparison.  Only *approaching* pairs (relative velocity
+other 13 are covered by symmetry), located through a counting sort of dense cell numbers —
+no per-agent Python and no O(N^2) comparison.  Only *approaching* pairs (relative velocity
 along the separation < 0) get a response, so one encounter is not answered every step.
 
 Classification by the velocity directions e_i, e_j (cosine c = e_i . e_j):
@@ -17,11 +17,14 @@ Response: a speed-only momentum exchange; directions are kept.
   ``exchange = 1`` is the perfectly inelastic exchange, both leave at the mean speed);
 * mutual: both lose the same fraction of speed, ``head_on_loss`` or the larger
   ``perpendicular_loss``.
-Speed changes of several pairs of one agent add up; speeds are clipped to ``[0, v_max]``.
+An agent in several pairs at once gets the *mean* of its pairs' speed changes (a multi-body
+contact resolved once per step; summing would let a dense cluster drive every speed to 0 in
+one step and lock it into a permanent jam).  Speeds are clipped to ``[0, v_max]``.
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,8 +32,6 @@ import numpy as np
 #: Forward half of the 26 neighbour offsets (lexicographically positive).
 _FORWARD = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
                      if (dx, dy, dz) > (0, 0, 0)], dtype=np.int64)
-_KEY_BITS = 20
-_KEY_OFF = 1 << (_KEY_BITS - 1)
 
 ONE_WAY, HEAD_ON, PERPENDICULAR = 0, 1, 2
 CLASS_NAMES = ("one_way", "head_on", "perpendicular")
@@ -83,25 +84,92 @@ class CollisionStats:
                 "perpendicular": self.perpendicular}
 
 
-def close_pairs(pos_m: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs (i < j as index arrays) of points closer than ``2 radius_m`` (spatial hash)."""
+@functools.lru_cache(maxsize=1)
+def _numba_pairs():
+    """numba kernel: close pairs from the dense cell table (same pairs as the numpy path); None without numba."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True, nogil=True)
+    def scan(pos, order, skey, starts, counts, deltas, h2, out_i, out_j):
+        n = order.shape[0]
+        m = 0
+        for r in range(n):
+            a = order[r]
+            for q in range(deltas.shape[0]):
+                c = skey[r] + deltas[q]
+                lo = starts[c]
+                hi = lo + counts[c]
+                if deltas[q] == 0 and lo < r + 1:
+                    lo = r + 1
+                for t in range(lo, hi):
+                    b = order[t]
+                    d0 = pos[b, 0] - pos[a, 0]
+                    d1 = pos[b, 1] - pos[a, 1]
+                    d2 = pos[b, 2] - pos[a, 2]
+                    if d0 * d0 + d1 * d1 + d2 * d2 < h2:
+                        if m < out_i.shape[0]:
+                            out_i[m] = min(a, b)
+                            out_j[m] = max(a, b)
+                        m += 1
+        return m
+
+    return scan
+
+
+def close_pairs(pos_m: np.ndarray, radius_m: float, max_cells_per_agent: int = 64,
+                backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """All pairs (i < j as index arrays) of points closer than ``2 radius_m`` (spatial hash).
+
+    Cells of edge 2r over the points' bounding box (plus a one-cell border) are numbered
+    densely; a counting sort gives each cell's start and count, so the own cell and the 13
+    forward neighbour cells of every agent are found with plain gathers (no search).  When the
+    box would need more than ``max_cells_per_agent`` cells per agent (widely scattered points)
+    the cell keys are looked up with ``searchsorted`` on the sorted keys instead.
+    ``backend``: "auto" uses a numba scan of the dense table when numba is importable,
+    "numpy" the vectorised expansion (same pairs, possibly in another order).
+    """
     pos = np.asarray(pos_m, dtype=float)
     n = pos.shape[0]
+    e = np.empty(0, dtype=np.int64)
     if n < 2:
-        e = np.empty(0, dtype=np.int64)
         return e, e
     h = 2.0 * radius_m
-    cells = np.floor(pos / h).astype(np.int64) + _KEY_OFF
-    m = np.int64(1 << _KEY_BITS)
-    key = (cells[:, 0] * m + cells[:, 1]) * m + cells[:, 2]
+    cells = np.floor((pos - pos.min(axis=0)) / h).astype(np.int64) + 1
+    dims = cells.max(axis=0) + 2
+    n_cells = int(np.prod(dims))
+    key = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
     order = np.argsort(key, kind="stable")
     skey = key[order]
+    dense = n_cells <= max_cells_per_agent * n + 4096
+    if dense:
+        counts = np.bincount(key, minlength=n_cells)
+        starts = np.cumsum(counts) - counts
+        scan = _numba_pairs() if backend == "auto" else None
+        if scan is not None:
+            deltas = np.array([(o[0] * dims[1] + o[1]) * dims[2] + o[2]
+                               for o in [np.zeros(3, dtype=np.int64), *_FORWARD]], dtype=np.int64)
+            pos_c = np.ascontiguousarray(pos)
+            cap = 4 * n + 1024
+            i, j = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
+            m = scan(pos_c, order, skey, starts, counts, deltas, h * h, i, j)
+            if m > cap:  # denser than expected: rerun with room for every pair
+                i, j = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+                scan(pos_c, order, skey, starts, counts, deltas, h * h, i, j)
+            return i[:m], j[:m]
     rank = np.arange(n)
     pi, pj = [], []
     for off in [np.zeros(3, dtype=np.int64), *_FORWARD]:
-        delta = (off[0] * m + off[1]) * m + off[2]
-        lo = np.searchsorted(skey, skey + delta, "left")
-        hi = np.searchsorted(skey, skey + delta, "right")
+        delta = (off[0] * dims[1] + off[1]) * dims[2] + off[2]
+        nb = skey + delta
+        if dense:
+            lo = starts[nb]
+            hi = lo + counts[nb]
+        else:
+            lo = np.searchsorted(skey, nb, "left")
+            hi = np.searchsorted(skey, nb, "right")
         if delta == 0:
             lo = np.maximum(lo, rank + 1)  # same cell: each pair once
         cnt = np.maximum(hi - lo, 0)
@@ -114,7 +182,6 @@ def close_pairs(pos_m: np.ndarray, radius_m: float) -> tuple[np.ndarray, np.ndar
         pi.append(order[a])
         pj.append(order[b])
     if not pi:
-        e = np.empty(0, dtype=np.int64)
         return e, e
     i, j = np.concatenate(pi), np.concatenate(pj)
     d = pos[j] - pos[i]
@@ -180,7 +247,9 @@ class CollisionModel:
         d_i, d_j = speed_response(si, sj, kind, self.params)
         n = vel.shape[0]
         delta = np.bincount(i, weights=d_i, minlength=n) + np.bincount(j, weights=d_j, minlength=n)
-        hit = np.flatnonzero(delta)
+        pairs = np.bincount(i, minlength=n) + np.bincount(j, minlength=n)
+        hit = np.flatnonzero(pairs)
+        delta = delta[hit] / pairs[hit]
         speed = np.linalg.norm(vel[hit], axis=1)
-        new = np.clip(speed + delta[hit], 0.0, self.params.v_max_m_s)
+        new = np.clip(speed + delta, 0.0, self.params.v_max_m_s)
         vel[hit] *= (new / np.maximum(speed, 1e-12))[:, None]

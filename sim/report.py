@@ -36,9 +36,19 @@ PAPER_FIGURES = {
 FIELD_COLUMNS = (
     "cv_id", "cv_x", "cv_y", "cv_z", "target_u_axial", "target_pressure", "target_density",
     "target_command_u_axial", "fit_pressure", "swarm_u_axial", "swarm_pressure", "swarm_density",
-    "swarm_temperature", "swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_count",
+    "swarm_temperature", "swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random",
+    "swarm_count",
     "swarm_u_x", "swarm_u_y", "swarm_u_z", "samples",
 )
+
+
+def random_pressure(fields) -> np.ndarray:
+    """2/3 rho_s <||v - U||^2> = 4/3 rho_s T_s,rand / K_b,s: the internal pressure about the full
+    local mean velocity U (eq. internal_pressure with U for u_s), i.e. the velocity variance only."""
+    from fisc_ground.swarm_fields import SwarmGasParams
+
+    t = np.nan_to_num(np.asarray(fields.t_rand_m2_s2, dtype=float))
+    return 4.0 / 3.0 * np.asarray(fields.rho_s_kg_m3, dtype=float) * t / SwarmGasParams().k_b_s
 
 
 def swarm_columns(result: "RunResult") -> dict[str, np.ndarray]:
@@ -60,6 +70,7 @@ def swarm_columns(result: "RunResult") -> dict[str, np.ndarray]:
         "swarm_temperature": f.t_s_m2_s2,
         "swarm_pressure_kinetic": f.p_s_pa,
         "swarm_pressure_internal": f.p_internal_pa,
+        "swarm_pressure_random": random_pressure(f),
         "swarm_count": f.count,
         "swarm_u_x": f.mean_velocity_m_s[:, 0],
         "swarm_u_y": f.mean_velocity_m_s[:, 1],
@@ -83,7 +94,7 @@ def compute_metrics(result: "RunResult") -> dict:
     cfg = result.config
     fid = _metrics_for(cols, cols["swarm_pressure"], cfg.min_samples)
     alt = {}
-    for name in ("swarm_pressure_kinetic", "swarm_pressure_internal"):
+    for name in ("swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random"):
         m = _metrics_for(cols, cols[name], cfg.min_samples)
         alt[name] = {"nrmse_pressure": m["nrmse_pressure"], "pearson_pressure": m["pearson_pressure"],
                      "centreline_max_dev_pressure": m["centreline_max_dev_pressure"]}
@@ -140,7 +151,11 @@ def write_metrics_json(result: "RunResult", path: Path) -> Path:
 
 
 def _fmt(v) -> str:
-    return "n/a" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v))
+    if v is None:
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) >= 1e3 else f"{v:.3f}"
+    return str(v)
 
 
 def write_report_md(result: "RunResult", path: Path) -> Path:

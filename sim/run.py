@@ -43,10 +43,12 @@ class RunConfig:
     agents: int | None = None
     """Population target N: N* is scaled by N / sum N* (seed: exactly N agents seeded;
     reservoir: the source rate is scaled so a swarm keeping the seeded density holds ~N).  None: N* as fitted."""
-    duration_s: float = 300.0
-    """Simulated time [s] (paper: 300 s)."""
-    average_window_s: float = 100.0
-    """The swarm fields are time-averaged over the last this many seconds [s]."""
+    duration_s: float | None = None
+    """Simulated time [s]; None: 300 s for the reservoir (the paper's run), 20 s for seeding
+    (a seeded swarm has flown through the 15 m tunnel by then)."""
+    average_window_s: float | None = None
+    """The swarm fields are time-averaged over the last this many seconds [s]; None: 100 s for
+    the reservoir (steady state), the whole run for seeding (a transient)."""
     sample_interval_s: float = 0.1
     """Interval between the time samples of the average [s] (a multiple of dt is used)."""
     mode: str = "mean"
@@ -61,11 +63,12 @@ class RunConfig:
     """Override of the map's speed scale S (the paper flew S = 0.1); None: the map's S."""
     x_axial_m: float = math.inf
     """Case 1: seed the CVs with centre x <= this [m] (inf: the full tunnel)."""
-    source_interval_s: float = 0.05
-    """Case 2: interval between reservoir batches, dt_source [s]."""
+    source_interval_s: float = 0.2
+    """Case 2: interval between reservoir batches, dt_source [s] (each batch is spread over the
+    distance its agents would have flown in the interval, so the inflow is effectively continuous)."""
     dt_s: float = 0.05
     """Time step of Algorithm 1 [s]."""
-    escape_grace_s: float = 2.0
+    escape_grace_s: float = 5.0
     """Return policy: longest time outside every CV before an agent counts as escaped [s]."""
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
@@ -79,9 +82,9 @@ class RunConfig:
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario {self.scenario!r}: choose one of {', '.join(SCENARIOS)}")
-        if not self.duration_s > 0:
+        if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0, got {self.duration_s!r}")
-        if not self.average_window_s > 0:
+        if self.average_window_s is not None and not self.average_window_s > 0:
             raise ValueError(f"average_window_s must be > 0, got {self.average_window_s!r}")
         if self.agents is not None and self.agents < 0:
             raise ValueError(f"agents must be >= 0, got {self.agents!r}")
@@ -89,6 +92,20 @@ class RunConfig:
             raise ValueError(f"scale must be > 0, got {self.scale!r}")
         if not self.sample_interval_s > 0:
             raise ValueError(f"sample_interval_s must be > 0, got {self.sample_interval_s!r}")
+
+    @property
+    def duration(self) -> float:
+        """Simulated time with the scenario default applied [s]."""
+        if self.duration_s is not None:
+            return float(self.duration_s)
+        return 300.0 if self.scenario == "reservoir" else 20.0
+
+    @property
+    def window(self) -> float:
+        """Averaging window with the scenario default applied [s] (at most the run)."""
+        if self.average_window_s is not None:
+            return min(float(self.average_window_s), self.duration)
+        return min(100.0, self.duration) if self.scenario == "reservoir" else self.duration
 
 
 @dataclass
@@ -155,7 +172,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
                                   cf.cell_size_m)
     swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=config.mode,
                                                  escape_grace_s=config.escape_grace_s),
-                  target_command_m_s=target_cmd, collider=collider)
+                  collider=collider)
     rng = np.random.default_rng(config.seed)
     reservoir = None
     if config.scenario == "seed":
@@ -164,8 +181,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
         reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents))
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
     mass = float(cmap.body.get("agent_mass_kg", 1.0))
-    n_steps = max(1, int(round(config.duration_s / config.dt_s)))
-    window = min(config.average_window_s, n_steps * config.dt_s)
+    n_steps = max(1, int(round(config.duration / config.dt_s)))
+    window = min(config.window, n_steps * config.dt_s)
     first_sample = n_steps - int(round(window / config.dt_s))
     every = max(1, int(round(config.sample_interval_s / config.dt_s)))
     snap_steps = {int(round(t / config.dt_s)): t for t in config.snapshot_times_s if t <= n_steps * config.dt_s}
@@ -205,6 +222,7 @@ def config_dict(config: RunConfig) -> dict:
         if isinstance(v, float) and not math.isfinite(v):
             v = str(v)
         out[k] = list(v) if isinstance(v, tuple) else v
+    out["duration_s"], out["average_window_s"] = config.duration, config.window
     return out
 
 

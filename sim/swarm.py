@@ -22,7 +22,7 @@ Agents leaving the map.
 * Sideways or upstream, into a grid cell without a CV (near the wall, or behind the inlet):
   the *return* policy.  The agent flies the command of the nearest CV within
   ``return_radius_cells`` cells plus an inward correction ``k (x_c - x)`` towards that CV's
-  centre (magnitude capped at ``return_speed_max_m_s``), for at most ``escape_grace_s``
+  centre (magnitude capped at ``return_speed_fraction`` of that CV's mean command speed), for at most ``escape_grace_s``
   seconds in a row.  If it has not re-entered a CV by then, or no CV lies within the
   radius, it is removed and counted as ``escaped``.  This mirrors the onboard geofence option
   "fly back to the nearest CV" (DESIGN.md section 5).
@@ -32,6 +32,8 @@ Bookkeeping: ``injected == alive + exited + escaped`` at all times.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +45,52 @@ from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_ac
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
 
 
+@functools.lru_cache(maxsize=1)
+def _numba_lookup():
+    """Fused numba kernel: padded-grid CV lookup + command gather (mean or slot); None without numba.
+
+    Same arithmetic as the numpy path (``CVLookup.__call__`` then the table gathers, and
+    ``fisc_agent.lookup.slot_hash`` for the slot index); tested equal to it.
+    """
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True, nogil=True)
+    def kernel(pos, ids, origin, inv_l, hi, strides, flat, mean_ned, slot_ned, n_star, slot_mode,
+               cv_out, cmd_out, cell_out):
+        m32 = np.uint64(0xFFFFFFFF)
+        for i in range(pos.shape[0]):
+            c = 0
+            for k in range(3):
+                f = math.floor((pos[i, k] - origin[k]) * inv_l)
+                if f < 0.0:
+                    f = 0.0
+                elif f > hi[k]:
+                    f = hi[k]
+                c += np.int64(f) * strides[k]
+            cell_out[i] = c
+            j = flat[c]
+            cv_out[i] = j
+            if slot_mode and j >= 0:
+                a = np.uint64(ids[i]) & m32
+                b = np.uint64(j) & m32
+                h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & m32
+                h ^= h >> np.uint64(15)
+                h = (h * np.uint64(0x2C1B3C6D)) & m32
+                h ^= h >> np.uint64(12)
+                kk = np.int64(h % n_star[j])
+                for k in range(3):
+                    cmd_out[i, k] = slot_ned[j, kk, k]
+            else:
+                r = j if j >= 0 else mean_ned.shape[0] - 1  # j = -1: the zero row
+                for k in range(3):
+                    cmd_out[i, k] = mean_ned[r, k]
+
+    return kernel
+
+
 @dataclass(frozen=True)
 class SwarmConfig:
     """Numerical and policy settings of the swarm stepping core."""
@@ -51,16 +99,20 @@ class SwarmConfig:
     """Time step of Algorithm 1 [s] (paper: 0.05 s)."""
     mode: str = "mean"
     """Command mode: ``mean`` (paper's Algorithm 1), ``slot`` or ``interpolated``."""
-    escape_grace_s: float = 2.0
+    escape_grace_s: float = 5.0
     """Longest continuous time an agent may spend outside every CV before it is removed as escaped [s]."""
     return_gain_1_s: float = 1.0
     """Gain k of the inward correction k (x_c - x) for agents outside the CVs [1/s]."""
-    return_speed_max_m_s: float = 1.0
-    """Cap on the magnitude of the inward correction [m/s]."""
+    return_speed_fraction: float = 0.25
+    """Cap on the magnitude of the inward correction, as a fraction of the nearest CV's mean
+    command speed (so the correction never dominates the flow, whatever the scale S) [-]."""
     return_radius_cells: int = 2
     """How far (in cells) an outside agent looks for the nearest CV; none within -> escaped."""
     plant_backend: str = "auto"
     """Plant kernel: ``auto`` (numba when importable), ``numpy`` or ``numba``."""
+    lookup_backend: str = "auto"
+    """CV lookup + command gather (modes mean/slot): ``auto`` (fused numba kernel when
+    importable), ``numpy`` or ``numba``."""
 
     def __post_init__(self) -> None:
         if not (self.dt_s > 0 and np.isfinite(self.dt_s)):
@@ -69,6 +121,8 @@ class SwarmConfig:
             raise ValueError(f"SwarmConfig.mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
         if self.escape_grace_s < 0:
             raise ValueError(f"SwarmConfig.escape_grace_s must be >= 0, got {self.escape_grace_s!r}")
+        if self.lookup_backend not in ("auto", "numpy", "numba"):
+            raise ValueError(f"SwarmConfig.lookup_backend {self.lookup_backend!r}: choose auto, numpy or numba")
         if self.return_radius_cells < 0:
             raise ValueError(f"SwarmConfig.return_radius_cells must be >= 0, got {self.return_radius_cells!r}")
 
@@ -168,11 +222,13 @@ class Swarm:
     State (first ``n`` rows of capacity buffers, map frame unless stated):
     ``pos_m`` (n, 3), ``vel_ned_m_s`` (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,),
     ``outside_s`` (n,) time spent outside the CVs.
+
+    ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the
+    realised velocities in place after the plant step (``sim.collisions.CollisionModel``).
     """
 
     def __init__(self, field: CommandField, plant: PlantParams | None = None,
-                 config: SwarmConfig | None = None, target_command_m_s: np.ndarray | None = None,
-                 collider=None) -> None:
+                 config: SwarmConfig | None = None, collider=None) -> None:
         self.field = field
         self.config = SwarmConfig() if config is None else config
         self.plant = PlantParams() if plant is None else plant
@@ -188,23 +244,28 @@ class Swarm:
         n_max = field.slot_cmd_m_s.shape[1]
         self._slot_ned = np.zeros((n_cv + 1, n_max, 3))
         self._slot_ned[:n_cv] = np.nan_to_num(field.slot_cmd_m_s) * MAP_TO_NED
+        self._mean_speed = np.linalg.norm(self._mean_ned, axis=1)
         self._n_star = np.ones(n_cv + 1, dtype=np.uint64)
         self._n_star[:n_cv] = np.maximum(np.asarray(field.n_star), 1).astype(np.uint64)
-        self.target_command_m_s = (np.asarray(field.mean_cmd_m_s, dtype=float) if target_command_m_s is None
-                                   else np.asarray(target_command_m_s, dtype=float))
         self.x_outlet_m = float(field.origin_m[0] + field.grid_cv.shape[0] * field.cell_size_m)
         self._fdt = MAP_TO_NED * self.config.dt_s
         self.t_s = 0.0
         self.counters = SwarmCounters()
         self._next_id = 0
         self.n = 0
+        self._kernel = None
+        if self.config.mode in ("mean", "slot") and self.config.lookup_backend != "numpy":
+            self._kernel = _numba_lookup()
+            if self._kernel is None and self.config.lookup_backend == "numba":
+                raise RuntimeError("lookup_backend='numba' requested but numba is not installed (pip install fisc[jit])")
         self._alloc(1024)
         self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
+        self._cmd_ready = False  # the fused kernel filled the commands of the current assignment
 
     # ---------------------------------------------------------------- state buffers
     def _alloc(self, cap: int) -> None:
         n = getattr(self, "n", 0)
-        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "scratch")}
+        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out")}
         self._pos = np.zeros((cap, 3))
         self._vel = np.zeros((cap, 3))
         self._thr = np.zeros((cap, 3))
@@ -212,6 +273,8 @@ class Swarm:
         self._cmd = np.zeros((cap, 3))
         self._ids = np.zeros(cap, dtype=np.int64)
         self._out = np.zeros(cap)
+        self._cvbuf = np.zeros(cap, dtype=np.int64)
+        self._cellbuf = np.zeros(cap, dtype=np.int64)
         if old["pos"] is not None and n:
             for k in ("pos", "vel", "thr", "ids", "out"):
                 getattr(self, "_" + k)[:n] = old[k][:n]
@@ -247,6 +310,7 @@ class Swarm:
 
     @property
     def alive(self) -> int:
+        """Number of agents alive (= ``n``)."""
         return self.n
 
     # ---------------------------------------------------------------- commands
@@ -296,6 +360,7 @@ class Swarm:
         self._next_id += k
         self.counters.injected += k
         self._cv = None
+        self._cmd_ready = False
         return ids
 
     def _keep(self, keep: np.ndarray, cv: np.ndarray) -> np.ndarray:
@@ -305,7 +370,8 @@ class Swarm:
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        for buf in (self._pos, self._vel, self._thr, self._ids, self._out):
+        bufs = (self._pos, self._vel, self._thr, self._ids, self._out) + ((self._cmd,) if self._cmd_ready else ())
+        for buf in bufs:
             buf[holes] = buf[src]
         cv = cv.copy()
         cv[holes] = cv[src]
@@ -321,7 +387,17 @@ class Swarm:
         """
         if self._cv is not None:
             return self._cv
-        cv = self.lookup(self.pos_m)
+        n = self.n
+        if self._kernel is not None:
+            lk = self.lookup
+            cv, cells = self._cvbuf[:n], self._cellbuf[:n]
+            self._kernel(self.pos_m, self.ids, lk._origin, lk._inv_l, lk._hi, lk._strides, lk._flat,
+                         self._mean_ned, self._slot_ned, self._n_star, self.config.mode == "slot",
+                         cv, self._cmd[:n], cells)
+            lk._last = cells
+            self._cmd_ready = True
+        else:
+            cv = self.lookup(self.pos_m)
         exited = self.pos_m[:, 0] >= self.x_outlet_m
         outside = (cv < 0) & ~exited
         escaped = outside & (self.outside_s > self.config.escape_grace_s)
@@ -349,7 +425,8 @@ class Swarm:
         if n == 0:
             return
         cmd = self._cmd[:n]
-        self._command_ned(cv, cmd)
+        if not self._cmd_ready:
+            self._command_ned(cv, cmd)
         outside = cv < 0
         out_s = self.outside_s
         if outside.any():
@@ -367,6 +444,7 @@ class Swarm:
         np.multiply(vel, self._fdt, out=dx)
         self.pos_m[...] += dx
         self._cv = None
+        self._cmd_ready = False
 
     def _return_commands(self, idx: np.ndarray, cmd_ned: np.ndarray) -> None:
         """Return policy for agents ``idx`` outside the CVs: nearest CV's command + inward pull."""
@@ -374,8 +452,8 @@ class Swarm:
         near = self.lookup.nearest(pos)
         near = np.where(near < 0, 0, near)  # cannot happen after assign(); keeps indexing safe
         corr = self.config.return_gain_1_s * (self.field.centers_m[near] - pos)
-        mag = np.linalg.norm(corr, axis=1)
-        cap = self.config.return_speed_max_m_s
+        mag = np.sqrt(np.einsum("ij,ij->i", corr, corr))
+        cap = self.config.return_speed_fraction * self._mean_speed[near]
         corr *= np.minimum(1.0, cap / np.maximum(mag, 1e-12))[:, None]
         if self.config.mode == "slot":
             base = self._slot_ned[near, (slot_hash(self.ids[idx], near) % self._n_star[near]).astype(np.int64)]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import tunnel_map_bytes
+from agent_testkit import tunnel_map_bytes
 from fake_autopilot import FakeAutopilot
 from fisc_agent.cli import build_parser, config_from_args, main
 

@@ -280,7 +280,7 @@ def test_disarm_in_flight_ends_the_mission(sfield):
 
 
 def test_map_swap_during_join_replans(sfield, tunnel_map):
-    from conftest import tunnel_map_bytes
+    from agent_testkit import tunnel_map_bytes
     from fisc_agent.mapfile import decode_map
 
     cfg, m, v = make(sfield)

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from conftest import tunnel_map_bytes
+from agent_testkit import tunnel_map_bytes
 from fisc_agent.adapters import MAV_CMD_DO_SET_MODE, Px4Adapter
 from fisc_agent.config import AgentConfig
 from fisc_agent.link import PositionSample, PositionSource, SetpointSink
@@ -166,7 +166,7 @@ def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
 
 def test_offer_map_refuses_a_map_that_fails_agent_checks():
     import numpy as np
-    from conftest import tunnel_arrays
+    from agent_testkit import tunnel_arrays
     from fisc_ground.mapwrite import encode_map
 
     cfg, clock, link, r = make(mode="slot")

@@ -76,3 +76,38 @@ def test_speeds_are_clipped_to_v_max():
     vel, _ = _collide([0, 0, 0], [0.1, 0, 0], [0.5, 0, 0], [3.0, 0, 0])  # j ahead is faster -> not approaching
     vel, _ = _collide([0.1, 0, 0], [0, 0, 0], [0.5, 0, 0], [3.0, 0, 0], params)  # j behind, faster
     assert np.all(np.linalg.norm(vel, axis=1) <= 1.1 + 1e-12)
+
+
+def test_agent_in_several_pairs_gets_the_mean_change_not_the_sum():
+    # agent 0 meets two head-on agents at once: it loses 10 %, not 20 %
+    pos = np.array([[0.0, 0, 0], [0.1, 0.05, 0], [0.1, -0.05, 0]])
+    vel = np.array([[1.0, 0, 0], [-1.0, 0, 0], [-1.0, 0, 0]])
+    m = CollisionModel(P)
+    m.apply(pos, vel)
+    assert m.stats.head_on == 2
+    assert np.linalg.norm(vel[0]) == pytest.approx(0.9)
+
+
+def test_close_pairs_sparse_fallback_equals_dense():
+    rng = np.random.default_rng(4)
+    p = np.concatenate([rng.random((300, 3)), [[4.0, 4.0, 4.0], [4.05, 4.0, 4.0]]])
+    dense = close_pairs(p, 0.1, max_cells_per_agent=10**4)
+    sparse = close_pairs(p, 0.1, max_cells_per_agent=0)
+    assert set(zip(*map(list, dense))) == set(zip(*map(list, sparse)))
+    assert (300, 301) in set(zip(*map(list, dense)))
+
+
+def test_close_pairs_numba_and_numpy_paths_agree():
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(9)
+    p = rng.random((2000, 3)) * 2.0
+    a = close_pairs(p, 0.1, backend="auto")
+    b = close_pairs(p, 0.1, backend="numpy")
+    assert len(a[0]) == len(b[0]) > 0
+    assert set(zip(*map(list, a))) == set(zip(*map(list, b)))
+
+
+def test_close_pairs_dense_cluster_beyond_the_first_buffer():
+    p = np.random.default_rng(2).random((200, 3)) * 0.05  # every pair is close: 19900 > 4 n + 1024
+    i, j = close_pairs(p, 0.1)
+    assert len(i) == 200 * 199 // 2

@@ -88,7 +88,7 @@ def test_sideways_agent_is_steered_back_within_grace(field):
 
 
 def test_agent_outside_too_long_escapes(field):
-    sw = Swarm(field, config=SwarmConfig(escape_grace_s=0.2, return_speed_max_m_s=0.0))
+    sw = Swarm(field, config=SwarmConfig(escape_grace_s=0.2, return_speed_fraction=0.0))
     sw.add_agents(np.array([[1.0, 0.8, 0.8]]), vel_map_m_s=np.zeros((1, 3)))
     for _ in range(40):
         sw.step()
@@ -127,3 +127,22 @@ def test_interpolated_mode_runs_and_commands_are_finite(field):
 def test_bad_mode_is_refused():
     with pytest.raises(ValueError, match="mode"):
         SwarmConfig(mode="fastest")
+
+
+@pytest.mark.parametrize("mode", ["mean", "slot"])
+def test_fused_numba_lookup_matches_the_numpy_path(field, mode):
+    pytest.importorskip("numba")
+    runs = []
+    for backend in ("numpy", "numba"):
+        sw = Swarm(field, config=SwarmConfig(mode=mode, lookup_backend=backend))
+        r = np.random.default_rng(7)
+        for k in range(60):
+            if k % 5 == 0:
+                sw.add_agents(seed_positions(field, r, x_axial_m=0.5) + [0.0, 0.0, 0.3 * (k % 2)])
+            sw.step()
+        runs.append((sw.pos_m.copy(), sw.ids.copy(), sw.assign().copy(), sw.counters))
+    (pa, ia, ca, na), (pb, ib, cb, nb) = runs
+    np.testing.assert_array_equal(ia, ib)
+    np.testing.assert_allclose(pa, pb, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(ca, cb)
+    assert (na.exited, na.escaped, na.returned) == (nb.exited, nb.escaped, nb.returned)
