@@ -38,6 +38,9 @@ from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_
 log = logging.getLogger(__name__)
 
 FLEET_COMMANDS = ("hold", "resume", "land")
+AIRBORNE_ABOVE_HOME_M = 0.2
+"""Height above home from which a vehicle counts as airborne (an interrupted takeoff then
+finishes with climb setpoints: ArduPilot refuses a takeoff command once flying)."""
 
 
 class State(str, Enum):
@@ -118,6 +121,7 @@ class Mission:
         self._pending: list[str] = []
         self._t_state = 0.0
         self._home: Vec | None = None
+        self._climb_by_velocity = False
         self._waypoints: list[Vec] = []
         self._wp_index = 0
         self._target: Vec | None = None
@@ -189,6 +193,9 @@ class Mission:
             self._plan_return(pos)
         elif dst == State.EXIT and pos is not None and self.geom is not None:
             self._target = (self.geom.x_outlet_m + self.cfg.exit_clearance_m, pos[1], pos[2])
+        elif dst == State.TAKEOFF:  # resuming an interrupted takeoff (a hold cuts ArduPilot's climb short)
+            self._climb_by_velocity = (pos is not None and self._home is not None
+                                       and pos[2] > self._home[2] + AIRBORNE_ABOVE_HOME_M)
         self._go(t, dst, reason)
 
     # ---- the step ------------------------------------------------------------------------
@@ -222,11 +229,11 @@ class Mission:
                     self._hold_escalated = True
                     self._hold_latched = True
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
-            elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
-                self._auto_resume(t, pos)
-            elif self._mode_taken(s):
+            elif self._mode_taken(s):  # checked before the auto-resume: never resume into a failsafe's mode
                 self._hold(t, f"pilot override: mode changed to {s.mode} outside the agent, hands off",
                            latched=True, armed=s.armed, hands_off=True)
+            elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
+                self._auto_resume(t, pos)
         elif self.state == State.LAND and lk and s.armed and self._mode_taken(s):
             self._hold(t, f"pilot override: mode changed to {s.mode} while landing, hands off",
                        latched=True, armed=True, hands_off=True)
@@ -251,6 +258,7 @@ class Mission:
             vel = None if by_command else ZERO
             want_mode, want_armed = "offboard", True
             if s.armed and s.mode == "offboard":
+                self._climb_by_velocity = False
                 self._go(t, State.TAKEOFF, "armed in offboard/guided")
             elif t - self._t_state > cfg.command_timeout_s:
                 self._go(t, State.DONE, f"failed: not armed in offboard/guided after {cfg.command_timeout_s:.0f} s")
@@ -258,7 +266,7 @@ class Mission:
             want_mode, want_armed = "offboard", True
             home = self._home if self._home is not None else pos
             target_z = home[2] + cfg.takeoff_alt_m
-            if by_command:
+            if by_command and not self._climb_by_velocity:
                 takeoff = cfg.takeoff_alt_m
                 done = pos[2] >= home[2] + 0.9 * cfg.takeoff_alt_m
             else:

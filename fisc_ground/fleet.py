@@ -46,6 +46,8 @@ class TelemetryListener:
         self.latest: dict[int, tuple[tc.Telemetry, float]] = {}
         self.bad = 0
         self._lock = threading.Lock()
+        self.started_s = time.monotonic()
+        """When the listener started listening (monotonic) [s]."""
         self._sub = session.declare_subscriber(keys.all_telemetry, self._on_sample)
 
     def _on_sample(self, sample: Any) -> None:
@@ -117,8 +119,13 @@ def matching(publisher: Any) -> bool:
 
 def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes | None,
                  match_timeout_s: float = 3.0, ack_timeout_s: float = 0.0,
-                 listener: TelemetryListener | None = None) -> CommandResult:
-    """Publish one command on ``<prefix>/<swarm>/cmd``; optionally wait for acknowledgements."""
+                 listener: TelemetryListener | None = None, settle_s: float = 1.0) -> CommandResult:
+    """Publish one command on ``<prefix>/<swarm>/cmd``; optionally wait for acknowledgements.
+
+    The targets of a fleet-wide command are the agents the listener has heard; so that a fleet
+    is not judged from the first agents heard, the wait for acknowledgements lasts at least
+    until the listener has listened for ``settle_s`` (bounded by ``ack_timeout_s``).
+    """
     pub = session.declare_publisher(keys.cmd)
     try:
         end = time.monotonic() + match_timeout_s
@@ -132,7 +139,7 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
             while time.monotonic() < end:
                 acked = {aid for aid, (t, _) in listener.snapshot().items() if t.ack_seq == cmd.seq}
                 targets = set(listener.snapshot()) if cmd.target_id == ALL_AGENTS else {cmd.target_id}
-                if targets and targets <= acked:
+                if targets and targets <= acked and time.monotonic() - listener.started_s >= settle_s:
                     break
                 time.sleep(0.05)
         return CommandResult(cmd, matched, tuple(sorted(acked)))

@@ -436,6 +436,8 @@ class MapFollower:
                  current_version: int = 0) -> None:
         self.session, self.keys, self.pipe, self.trusted = session, keys, pipe, trusted_keys
         self.version = int(current_version)
+        self.refused: set[int] = set()
+        """map_versions announced, fetched and refused (not fetched again)."""
         self._busy = threading.Lock()
         self._sub = session.declare_subscriber(keys.map, self._on_sample)
 
@@ -447,10 +449,11 @@ class MapFollower:
             head, _ = parse_chunk(sample.payload.to_bytes()[:96])
         except MapError:
             return
-        if head.kind == KIND_ANNOUNCE and head.map_version > self.version and self._busy.acquire(blocking=False):
-            threading.Thread(target=self._fetch, daemon=True, name="fisc-monitor-map").start()
+        if head.kind == KIND_ANNOUNCE and head.map_version > self.version and head.map_version not in self.refused \
+                and self._busy.acquire(blocking=False):
+            threading.Thread(target=self._fetch, args=(head.map_version,), daemon=True, name="fisc-monitor-map").start()
 
-    def _fetch(self) -> None:
+    def _fetch(self, announced_version: int = 0) -> None:
         from fisc_agent.mapfile import MapError
 
         try:
@@ -460,6 +463,7 @@ class MapFollower:
                 self.pipe.set_map(*got)
                 log.info("monitor switched to map %s (map_version %d)", got[0].sha256[:12], self.version)
         except MapError as exc:
+            self.refused.add(announced_version)
             log.warning("newer map announced but refused: %s", exc)
         finally:
             self._busy.release()
@@ -473,7 +477,7 @@ def run_monitor(args: Any) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from fisc_agent.mapfile import load_map, read_public_key
+    from fisc_agent.mapfile import MapError, load_map, read_public_key
     from fisc_ground.recording import Recorder
     from fisc_ground.zenoh_config import open_ground_session
 
@@ -488,10 +492,14 @@ def run_monitor(args: Any) -> int:
             cmap = load_map(args.map, trusted[0] if trusted else None)
             blob = open(args.map, "rb").read()
         else:
-            got = fetch_map(session, keys, trusted, timeout_s=args.map_timeout)
-            if got is None:
-                log.warning("no map on %s yet: showing fleet state only", keys.map)
-            else:
+            try:
+                got = fetch_map(session, keys, trusted, timeout_s=args.map_timeout)
+                if got is None:
+                    log.warning("no map on %s yet: showing fleet state only", keys.map)
+            except MapError as exc:  # e.g. a map signed by a stranger: the fleet is what to watch now
+                log.error("the swarm's map was refused (%s): showing fleet state only", exc)
+                got = None
+            if got is not None:
                 cmap, blob = got
         agg = TelemetryAggregator(None, sample_period_s=args.sample_period, stale_after_s=args.stale_after)
         if args.record:

@@ -569,7 +569,6 @@ class AutopilotEmulator:
         if self._thread is not None:
             raise RuntimeError("emulator already started")
         self.open()
-        _warm_up_plant()
         self._stop.clear()
         self._thread = threading.Thread(target=self.run, name=f"autopilot-{self.sysid}", daemon=True)
         self._thread.start()
@@ -599,6 +598,7 @@ class AutopilotEmulator:
     def run(self, stop: threading.Event | None = None) -> None:
         """Serve in real time until :meth:`stop` is called or ``stop`` is set."""
         self.open()
+        _warm_up_plant()
         ev = self._stop if stop is None else stop
         while not (ev.is_set() or self._stop.is_set()):
             wait = self.poll()
