@@ -7,15 +7,23 @@
    - a whole ``Runner.step()`` (mission state machine, failsafes, snapshot) on an in-memory link.
 2. Setpoint period jitter of ``Runner.run()`` at 20 Hz and 50 Hz (real clock, in-memory link):
    |actual period - nominal| p50 / p99 / max.
+3. CPU per agent: K real agents (one process each: ``MavlinkLink`` over UDP 127.0.0.1 + ``Runner``
+   at 20 Hz, 50 Hz position stream) against K emulated autopilots (``sim.autopilot.server``,
+   PX4 personality, all in one separate process), airborne at the inlet so they take over and
+   fly the map (``--exit-policy loop``).  After a warm-up, each agent measures its own process
+   CPU time (``time.process_time``: user + system, all threads) over the window:
+   CPU seconds per agent per second = % of one core.
 
-Targets: < 20 us per iteration; p99 jitter < 2 ms.
+Targets: < 20 us per iteration; p99 jitter < 2 ms; CPU per agent a few % of one core.
 
     python benchmarks/bench_agent.py [--seconds 5] [--map default|synthetic]
+                                     [--agents 4] [--cpu-seconds 5] [--cpu-rate 20]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
 import os
 import sys
 import time
@@ -157,11 +165,90 @@ def bench_jitter(cmap, rate_hz, seconds):
             np.percentile(late_ms, 50), np.percentile(late_ms, 99))
 
 
+def _emulators_worker(conn, n: int, start_ned: list[tuple[float, float, float]]) -> None:
+    """Child process: K emulated PX4 autopilots on free UDP ports until told to stop."""
+    from sim.autopilot.server import AutopilotEmulator
+
+    emus = [AutopilotEmulator("udpin:127.0.0.1:0", personality="px4", start_ned=start_ned[i], sysid=i + 1).start()
+            for i in range(n)]
+    try:
+        conn.send([e.local_address[1] for e in emus])
+        c0, w0 = time.process_time(), time.monotonic()
+        conn.recv()  # stop
+        conn.send((time.process_time() - c0) / (time.monotonic() - w0))
+    finally:
+        for e in emus:
+            e.stop()
+
+
+def _agent_worker(conn, port: int, agent_id: int, map_choice: str, rate_hz: float, warmup_s: float,
+                  seconds: float) -> None:
+    """Child process: one agent (MavlinkLink + Runner); reports its CPU over the window."""
+    import logging
+
+    from fisc_agent.link import MavlinkLink
+
+    logging.getLogger("fisc_agent").setLevel(logging.ERROR)  # the shutdown's "hold not confirmed" is expected
+    cmap = load_map(map_choice)
+    cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, rate_hz=rate_hz,
+                      exit_policy="loop")
+    link = MavlinkLink(cfg.mavlink_url, position_rate_hz=max(50.0, rate_hz))
+    r = Runner(cfg, link, cmap)
+    received = [0]
+    poll = link.poll
+
+    def counting_poll() -> int:
+        n = poll()
+        received[0] += n
+        return n
+
+    link.poll = counting_poll
+    try:
+        r.run(until_done=False, max_duration_s=warmup_s)
+        ticks0, sent0, recv0 = r.ticks, link.setpoints_sent, received[0]
+        c0, w0 = time.process_time(), time.monotonic()
+        r.run(until_done=False, max_duration_s=seconds)
+        cpu, wall = time.process_time() - c0, time.monotonic() - w0
+        states = sorted({t.dst.value for t in r.mission.transitions})
+        conn.send((cpu, wall, r.ticks - ticks0, link.setpoints_sent - sent0, received[0] - recv0,
+                   r.mission.state.value, states, r.overruns))
+    finally:
+        r.shutdown(settle_s=0.0)
+
+
+def bench_cpu_per_agent(map_choice: str, n_agents: int, rate_hz: float, seconds: float, warmup_s: float = 3.0):
+    """CPU time per agent per second (one process per agent, emulated autopilots over UDP)."""
+    ctx = mp.get_context("spawn")
+    starts = [(0.5, -0.4 + 0.8 * i / max(1, n_agents - 1), -10.0) for i in range(n_agents)]  # inlet, axis height
+    emu_conn, child = ctx.Pipe()
+    emu_proc = ctx.Process(target=_emulators_worker, args=(child, n_agents, starts), daemon=True)
+    emu_proc.start()
+    ports = emu_conn.recv()
+    conns, procs = [], []
+    for i, port in enumerate(ports):
+        a, b = ctx.Pipe()
+        p = ctx.Process(target=_agent_worker, args=(b, port, i + 1, map_choice, rate_hz, warmup_s, seconds),
+                        daemon=True)
+        p.start()
+        conns.append(a)
+        procs.append(p)
+    results = [c.recv() for c in conns]
+    for p in procs:
+        p.join(timeout=10)
+    emu_conn.send("stop")
+    emu_cpu = emu_conn.recv()
+    emu_proc.join(timeout=10)
+    return results, emu_cpu
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=5.0, help="duration of each jitter run")
     ap.add_argument("--map", choices=("default", "synthetic"), default="default")
     ap.add_argument("--realtime", action="store_true", help="run the jitter loops with SCHED_FIFO (needs privileges)")
+    ap.add_argument("--agents", type=int, default=4, help="agents (processes) for the CPU-per-agent run")
+    ap.add_argument("--cpu-seconds", type=float, default=5.0, help="measured window of the CPU-per-agent run")
+    ap.add_argument("--cpu-rate", type=float, default=20.0, help="setpoint rate of the CPU-per-agent run [Hz]")
     a = ap.parse_args()
     cmap = load_map(a.map)
     print(f"map: {a.map}, {cmap.n_cv} CVs")
@@ -182,6 +269,17 @@ def main() -> None:
         n, p50, p99, mx, over, l50, l99 = bench_jitter(cmap, rate, a.seconds)
         print(f"setpoint period jitter at {rate:4.0f} Hz over {n} setpoints: p50 {p50:.3f} ms, p99 {p99:.3f} ms, "
               f"max {mx:.3f} ms, overruns {over}; lateness vs deadline p50 {l50:.3f} ms, p99 {l99:.3f} ms")
+    results, emu_cpu = bench_cpu_per_agent(a.map, a.agents, a.cpu_rate, a.cpu_seconds)
+    per_agent = np.array([cpu / wall for cpu, wall, *_ in results])
+    for i, (cpu, wall, ticks, sent, recv, state, states, over) in enumerate(results, 1):
+        print(f"agent {i}: {cpu * 1e3:7.1f} ms CPU in {wall:.2f} s ({cpu / wall * 100:5.2f} % of a core), "
+              f"{ticks / wall:5.1f} ticks/s, {sent / wall:5.1f} setpoints/s, {recv / wall:5.1f} MAVLink msgs/s in, "
+              f"overruns {over}, now {state} "
+              f"(visited {', '.join(states)})")
+    print(f"CPU per agent at {a.cpu_rate:.0f} Hz ({a.agents} agent processes vs emulated PX4 over UDP, "
+          f"{a.cpu_seconds:.0f} s): mean {per_agent.mean() * 1e3:.1f} ms/s ({per_agent.mean() * 100:.2f} % of one "
+          f"core), max {per_agent.max() * 100:.2f} %; the {a.agents} emulators together used "
+          f"{emu_cpu * 100:.1f} % of a core")
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} CPUs")
 
 

@@ -27,14 +27,18 @@ EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="fisc-agent", description=__doc__.split("\n\n")[0],
+        epilog="Exit codes: 0 mission done or stopped by SIGINT/SIGTERM (vehicle left holding), 1 mission "
+               "failed, 2 invalid map, option or endpoint. Deployment guide: docs/deployment.md.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--map", dest="map_path", help="command map file (.fiscmap); omit with --swarm to receive it over Zenoh")
     p.add_argument("--mavlink", required=True,
                    help="autopilot endpoint: udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT, udp://:14540, "
                         "serial:///dev/ttyUSB0:921600, /dev/ttyACM0:57600")
     p.add_argument("--id", dest="agent_id", type=int, required=True, help="agent id N (slot and entry point)")
-    p.add_argument("--autopilot", choices=AUTOPILOTS, default="auto")
-    p.add_argument("--backend", choices=BACKENDS, default="pymavlink")
+    p.add_argument("--autopilot", choices=AUTOPILOTS, default="auto",
+                   help="autopilot flavour; auto: from the HEARTBEAT's autopilot field")
+    p.add_argument("--backend", choices=BACKENDS, default="pymavlink",
+                   help="MAVLink client library (mavsdk needs the mavsdk package)")
     p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="command mode")
     p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
     p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
@@ -43,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
     z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
     z.add_argument("--swarm", help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
-    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (default: peer on loopback, hub 127.0.0.1:7447)")
+    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: peer on loopback, hub 127.0.0.1:7447)")
     z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
     z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")
@@ -51,16 +55,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-accel", type=float, default=3.0, help="acceleration clamp [m/s^2]")
     p.add_argument("--join-speed", type=float, default=2.0, help="speed flying to the inlet [m/s]")
     p.add_argument("--return-speed", type=float, default=1.0, help="speed returning to the map [m/s]")
-    p.add_argument("--climb-speed", type=float, default=1.0, help="PX4 takeoff climb rate [m/s]")
+    p.add_argument("--climb-speed", type=float, default=1.0, help="climb rate of a setpoint takeoff (PX4, or an interrupted ArduPilot takeoff) [m/s]")
     p.add_argument("--takeoff-alt", type=float, default=2.5, help="takeoff height above start [m]")
-    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="hold")
+    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="hold",
+                   help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=0, help="with --exit-policy loop: passes before holding (0: no limit)")
     p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default="hold", help="outside the map while flowing")
     p.add_argument("--stale-timeout", type=float, default=0.5, help="position age that triggers a hold [s]")
     p.add_argument("--hold-grace", type=float, default=2.0, help="zero-velocity hold before hold mode [s]")
     p.add_argument("--link-timeout", type=float, default=3.0, help="HEARTBEAT age that means link lost [s]")
-    p.add_argument("--source-system", type=int, default=None, help="our MAVLink system id (default: the vehicle's)")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--source-system", type=int, default=None, help="our MAVLink system id (omitted: the vehicle's)", metavar="ID")
+    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="logging threshold (state transitions are logged at INFO)")
     p.add_argument("--max-duration", type=float, default=None, help="stop after this many seconds")
     return p
 

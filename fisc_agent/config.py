@@ -49,7 +49,7 @@ class AgentConfig:
     return_speed_m_s: float = 1.0
     """Speed when flying back to the nearest CV (geofence ``return``) [m/s]."""
     climb_speed_m_s: float = 1.0
-    """Climb rate of the PX4 offboard takeoff [m/s]."""
+    """Climb rate of a setpoint takeoff (PX4 offboard, or finishing an interrupted ArduPilot takeoff) [m/s]."""
     takeoff_alt_m: float = 2.5
     """Takeoff height above the start position [m]."""
     exit_policy: str = "hold"

@@ -297,3 +297,75 @@ def test_restart_in_the_air_takes_over(sfield):
     v.armed, v.mode, v.pos = True, "offboard", [1.0, 0.1, 0.1]
     run(m, v, cfg, lambda m, v, o: True)
     assert m.state == State.FLOW and "taking over" in m.reason
+
+
+class ArduCopterVehicle(SimVehicle):
+    """ArduPilot Copter's GUIDED takeoff, as far as the mission can tell: a velocity target
+    replaces the takeoff target (zero-velocity setpoints end the climb), and MAV_CMD_NAV_TAKEOFF
+    is refused once airborne ("already flying")."""
+
+    def __init__(self):
+        super().__init__("ardupilot")
+        self.takeoffs_refused = 0
+
+    def apply(self, out, cfg):
+        if not self.mute and self.mode == "offboard" and out.velocity_m_s is not None:
+            self.takeoff_to = None
+        if out.takeoff_alt_m is not None and self.takeoff_to is None and self.pos[2] > self.ground_z + 0.05:
+            self.takeoffs_refused += 1
+            out = out._replace(takeoff_alt_m=None)
+        super().apply(out, cfg)
+
+
+def test_ardupilot_takeoff_cut_by_a_stale_hold_finishes_with_climb_setpoints(sfield):
+    cfg, m, _ = make(sfield, autopilot="ardupilot", takeoff_alt_m=2.5)
+    v = ArduCopterVehicle()
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF and v.pos[2] > v.ground_z + 0.4)
+    v.drop_position = True                           # fix lost mid-climb: zero-velocity hold ...
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    assert m.reason == "position stale"
+    run_for(m, v, cfg, 0.3)
+    assert v.takeoff_to is None                      # ... which ended ArduPilot's takeoff climb
+    stuck_z = v.pos[2]
+    assert v.ground_z + 0.2 < stuck_z < v.ground_z + 0.9 * cfg.takeoff_alt_m
+    v.drop_position = False
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 30)
+    resumed = [o for o in outs if o.state == State.TAKEOFF]
+    assert resumed and all(o.takeoff_alt_m is None and o.velocity_m_s[2] > 0 for o in resumed)
+    assert [t.dst for t in m.transitions[-3:]] == [State.TAKEOFF, State.JOIN, State.FLOW]
+    assert m.transitions[-3].reason == "position fix back"
+
+
+def test_autopilot_failsafe_during_a_stale_hold_is_hands_off(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    assert m.reason == "position stale"
+    v.mode = "hold"                                  # PX4's offboard-loss failsafe switched to HOLD ...
+    v.drop_position = False                          # ... and the fix comes back in the same tick
+    modes_requested = list(v.modes)
+    outs = run_for(m, v, cfg, 3.0)
+    assert m.state == State.HOLD and m.reason.startswith("pilot override") and "hands off" in m.reason
+    assert all(o.state == State.HOLD and o.want_mode is None and o.velocity_m_s is None for o in outs)
+    assert v.mode == "hold" and v.modes == modes_requested
+    m.command("resume")                              # only a fleet resume takes the vehicle back
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 10)
+
+
+def test_fleet_resume_is_refused_without_a_position_fix(sfield):
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    m.command("hold")
+    run_for(m, v, cfg, 0.5)
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: v.t - v.last_fix > cfg.stale_timeout_s)
+    m.command("resume")                              # no fix: resuming would fly blind
+    outs = run_for(m, v, cfg, 0.5)
+    assert m.state == State.HOLD and m.reason == "fleet hold"
+    assert all(o.state == State.HOLD for o in outs)
+    v.drop_position = False
+    run_for(m, v, cfg, 1.0)
+    assert m.state == State.HOLD                     # the refused resume is not remembered
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
