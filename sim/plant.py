@@ -21,7 +21,8 @@ calls the pure :func:`step_plant`), or by :class:`VelocityPlant`, which adds che
 (heterogeneous fleets): any :class:`PlantParams` field may be an ``(N,)`` (or ``(N, 3)`` for the
 drag vectors) array.  :func:`step_single_agent` is a plain-Python scalar implementation kept as
 the test oracle.  An optional numba kernel (``backend="numba"``, used by ``"auto"`` when numba is
-importable) fuses the sub-step loop; the numpy path computes the same numbers.
+importable) fuses the sub-step loop, with a faster specialisation for fleet-wide parameters
+without wind or noise (the swarm simulator's case); the numpy path computes the same numbers.
 """
 
 from __future__ import annotations
@@ -450,7 +451,8 @@ def step_plant(
     the feed-forward; velocity measurement error fed back).  Inputs are not modified unless they
     are passed as ``out=(vel_out, thrust_out)`` (which may alias them: in-place stepping).
     ``backend``: "numpy", "numba" (error if unavailable) or "auto" (numba when importable).
-    Returns ``(vel, thrust_accel)``.
+    With numba, a fleet-wide coefficient row and no wind/wind_ff/noise, a specialised kernel
+    (same arithmetic, vectorised across agents) is used.  Returns ``(vel, thrust_accel)``.
     """
     vel = _as_state(vel_ned_m_s, "vel_ned_m_s")
     thr = _as_state(thrust_accel_ned_m_s2, "thrust_accel_ned_m_s2")
@@ -482,6 +484,12 @@ def step_plant(
     kernel = _select_kernel(backend)
     if kernel is None:
         _step_numpy(vel_out, thr_out, cmd, wind, wind_ff, noise, co, h, nsub)
+    elif co.rows == 1 and wind is None and wind_ff is None and noise is None:
+        _numba_fleet_kernel()(
+            vel_out, thr_out, cmd, float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
+            float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
+            float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
+        )  # fmt: skip
     else:
         z = np.zeros((1, 3))
         kernel(
@@ -600,6 +608,83 @@ def _numba_kernel():
                 v2 += (a2 - abs(y2) * y2 * kd2 + gi) * h
             v[i, 0], v[i, 1], v[i, 2] = v0, v1, v2
             a[i, 0], a[i, 1], a[i, 2] = a0, a1, a2
+
+    return kernel
+
+
+#: Agents per block of the fleet-wide kernel: the block's state (a few (B,) arrays) stays in L1
+#: while the sub-steps loop over it, and the innermost loop over the block's agents vectorises.
+_FLEET_BLOCK = 256
+
+
+@functools.lru_cache(maxsize=1)
+def _numba_fleet_kernel():
+    """The fleet-wide specialisation of :func:`_numba_kernel`, compiled on first use; None
+    without numba.
+
+    Used when every agent shares one coefficient row and there is no wind, wind feed-forward or
+    feedback noise (the swarm simulator's case).  Same arithmetic, in the same order, as the
+    general kernel with zero wind/noise, but with scalar coefficients and the loops interchanged
+    per block of agents (sub-steps outside, agents inside, branch-free limits), so that the
+    compiler vectorises across agents instead of following one agent's dependency chain.
+    """
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True, nogil=True, error_model="numpy")
+    def kernel(v, a, cmd, itvi, beta, gi, kd0, kd1, kd2, ffi, am, tt, h, nsub):
+        n = v.shape[0]
+        bs = _FLEET_BLOCK
+        am2, tt2 = am * am, tt * tt
+        fk0, fk1, fk2 = ffi * kd0, ffi * kd1, ffi * kd2
+        bc = cmd.shape[0] > 1
+        r0 = np.empty(bs)
+        r1 = np.empty(bs)
+        r2 = np.empty(bs)
+        b0 = np.empty(bs)
+        b1 = np.empty(bs)
+        b2 = np.empty(bs)
+        v0 = np.empty(bs)
+        v1 = np.empty(bs)
+        v2 = np.empty(bs)
+        a0 = np.empty(bs)
+        a1 = np.empty(bs)
+        a2 = np.empty(bs)
+        for start in range(0, n, bs):
+            m = min(bs, n - start)
+            for j in range(m):
+                i = start + j
+                ic = i if bc else 0
+                c0, c1, c2 = cmd[ic, 0], cmd[ic, 1], cmd[ic, 2]
+                r0[j], r1[j], r2[j] = c0, c1, c2
+                b0[j] = abs(c0) * c0 * fk0
+                b1[j] = abs(c1) * c1 * fk1
+                b2[j] = abs(c2) * c2 * fk2 - gi
+                v0[j], v1[j], v2[j] = v[i, 0], v[i, 1], v[i, 2]
+                a0[j], a1[j], a2[j] = a[i, 0], a[i, 1], a[i, 2]
+            for _ in range(nsub):
+                for j in range(m):
+                    x0, x1, x2 = v0[j], v1[j], v2[j]
+                    d0 = (r0[j] - x0) * itvi + b0[j]
+                    d1 = (r1[j] - x1) * itvi + b1[j]
+                    d2 = (r2[j] - x2) * itvi + b2[j]
+                    up = min(max(-d2, 0.0), am)
+                    hn2 = d0 * d0 + d1 * d1
+                    hmax2 = min(up * up * tt2, max(am2 - up * up, 0.0))
+                    s = math.sqrt(hmax2 / hn2) if hn2 > hmax2 else 1.0
+                    y0 = a0[j] + (d0 * s - a0[j]) * beta
+                    y1 = a1[j] + (d1 * s - a1[j]) * beta
+                    y2 = a2[j] + (-up - a2[j]) * beta
+                    a0[j], a1[j], a2[j] = y0, y1, y2
+                    v0[j] = x0 + (y0 - abs(x0) * x0 * kd0) * h
+                    v1[j] = x1 + (y1 - abs(x1) * x1 * kd1) * h
+                    v2[j] = x2 + (y2 - abs(x2) * x2 * kd2 + gi) * h
+            for j in range(m):
+                i = start + j
+                v[i, 0], v[i, 1], v[i, 2] = v0[j], v1[j], v2[j]
+                a[i, 0], a[i, 1], a[i, 2] = a0[j], a1[j], a2[j]
 
     return kernel
 

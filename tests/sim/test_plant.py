@@ -178,6 +178,43 @@ def test_numba_and_numpy_kernels_agree():
     np.testing.assert_allclose(out_np[1], out_nb[1], atol=1e-12)
 
 
+@pytest.mark.skipif(not numba_available(), reason="numba missing")
+@pytest.mark.parametrize("n", [1, 255, 1000])
+def test_fleet_wide_numba_kernel_equals_the_general_kernel(n, monkeypatch):
+    """Fleet-wide params without wind/noise take the specialised kernel; it computes exactly what
+    the general kernel computes with explicit zero wind (blocks of 256 agents, partial last block)."""
+    import sim.plant as plant_mod
+
+    calls = []
+    fleet = plant_mod._numba_fleet_kernel()
+
+    def counting():
+        calls.append(1)
+        return fleet
+
+    monkeypatch.setattr(plant_mod, "_numba_fleet_kernel", counting)
+    p = PlantParams()
+    _, vel, thr, cmd, _ = random_state(n, seed=12)
+    cmd[::3] *= 4.0  # drive part of the fleet into the tilt / thrust limits
+    zero = np.zeros(3)
+    for c in (cmd, cmd[0]):  # per-agent and broadcast (3,) command
+        fast = step_plant(vel, thr, c, 0.05, p, backend="numba")
+        general = step_plant(vel, thr, c, 0.05, p, zero, zero, zero, backend="numba")
+        reference = step_plant(vel, thr, c, 0.05, p, backend="numpy")
+        np.testing.assert_allclose(fast[0], general[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(fast[1], general[1], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(fast[0], reference[0], rtol=0, atol=1e-11)
+        np.testing.assert_allclose(fast[1], reference[1], rtol=0, atol=1e-11)
+    assert len(calls) == 2
+    v, a = vel.copy(), thr.copy()
+    step_plant(v, a, cmd, 0.05, p, out=(v, a), backend="numba")  # in place
+    np.testing.assert_allclose(v, step_plant(vel, thr, cmd, 0.05, p, zero, backend="numba")[0], rtol=0, atol=1e-12)
+    i = n - 1
+    r = step_single_agent(vel[i], thr[i], cmd[i], 0.05, p)
+    np.testing.assert_allclose(v[i], r[0], atol=1e-11)
+    np.testing.assert_allclose(a[i], r[1], atol=1e-11)
+
+
 def test_small_step_follows_the_continuous_derivatives():
     p = PlantParams()
     _, vel, thr, cmd, wind = random_state(50, seed=2)
