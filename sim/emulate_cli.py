@@ -1,0 +1,96 @@
+"""``fisc-sim emulate``: argument parsing and progress for ``sim.emulate`` (thin).
+
+Wiring (in sim/cli.py)::
+
+    from sim import emulate_cli
+    emulate_cli.add_parser(sub)                    # in build_parser
+    if args.command == "emulate":
+        return emulate_cli.run(args)               # in main
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from fisc_agent.config import EXIT_POLICIES
+from fisc_agent.lookup import COMMAND_MODES
+
+EXIT_OK, EXIT_ERROR = 0, 1
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``emulate`` on the ``fisc-sim`` subparsers; returns the new parser."""
+    p = subparsers.add_parser(
+        "emulate", help="emulated swarm with MAVLink in the loop: N autopilot emulators + N fisc-agents",
+        description="N autopilot emulators (PX4/ArduPilot personality, the paper's velocity plant) and N fisc-agent "
+                    "control loops talking real MAVLink over loopback UDP fly the paper's Case 2 (vehicles take off "
+                    "on the ground upstream of the inlet, join at the inlet at the source rate, flow, loop back) in "
+                    "real time; writes the fisc-sim run outputs (fields.csv, metrics.json, figures, report.md) plus "
+                    "emulation.json and comparison.json (difference to fisc-sim run on the same map).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--map", default=None,
+                   help="a .fiscmap file, or a reference (built-in name or CFD file) fitted now; default: the embedded "
+                        "default map (written to OUT/map.fiscmap for the agents)")
+    p.add_argument("--agents", type=int, required=True, help="number of vehicles N (emulator + agent pairs)")
+    p.add_argument("--duration", type=float, default=60.0, help="real seconds flown from the first launch")
+    p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="agent command mode")
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="personality of the emulators")
+    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="loop",
+                   help="after the outlet: loop (fly back to the inlet), hold or land")
+    p.add_argument("--rate", type=float, default=20.0, help="agent setpoint rate [Hz]")
+    p.add_argument("--average-window", type=float, default=100.0,
+                   help="time-average the fields over the last S seconds (as fisc-sim run)")
+    p.add_argument("--telemetry", choices=("full", "lean"), default="full",
+                   help="full: the autopilots' default streams; lean: agents switch all but HEARTBEAT and "
+                        "LOCAL_POSITION_NED off")
+    p.add_argument("--physics-rate", type=float, default=50.0, help="emulator service rate [Hz]")
+    p.add_argument("--physics-dt", type=float, default=0.02, help="emulated vehicle physics step [s]")
+    p.add_argument("--workers", type=int, default=0,
+                   help="processes for the emulators and, as many, for the agents (0: automatic)")
+    p.add_argument("--no-compare", action="store_true", help="skip the fisc-sim run reference and comparison.json")
+    p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--seed", type=int, default=0, help="seed of the reference fisc-sim run")
+    p.add_argument("-o", "--out", required=True, help="output directory")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def config_from_args(args: argparse.Namespace):
+    """The ``EmulateConfig`` of parsed arguments (``ValueError`` names a bad option)."""
+    from sim.emulate import EmulateConfig
+
+    return EmulateConfig(out_dir=args.out, map=args.map, agents=args.agents, duration_s=args.duration,
+                         mode=args.mode, personality=args.autopilot, exit_policy=args.exit_policy,
+                         rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
+                         physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt,
+                         emulator_workers=args.workers, agent_workers=args.workers,
+                         compare=not args.no_compare, figures=not args.no_figures, seed=args.seed)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``fisc-sim emulate``; prints a one-line summary; returns the exit code."""
+    from sim.emulate import run as emulate
+
+    try:
+        cfg = config_from_args(args)
+    except ValueError as exc:
+        print(f"fisc-sim emulate: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    show = not args.quiet and sys.stderr.isatty()
+    if show:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        with Progress(TextColumn(f"emulate {cfg.agents} vehicles"), BarColumn(),
+                      TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TimeRemainingColumn()) as prog:
+            task = prog.add_task("emulate", total=1.0)
+            res = emulate(cfg, progress=lambda f: prog.update(task, completed=f))
+    else:
+        res = emulate(cfg)
+    m, rt, en = res.run_result.metrics, res.realtime, res.entries
+    print(f"wrote {args.out}: {en['vehicles_entered']}/{cfg.agents} vehicles entered the tunnel "
+          f"({en['entries_total']} entries); nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "
+          f"density {m['nrmse_density']}; real time {'kept' if rt['keeps_real_time'] else 'NOT kept'} "
+          f"(setpoints {rt['setpoint_rate_mean_hz']:.1f} Hz at the autopilots, "
+          f"{1e3 * rt['cpu_per_agent']:.2f} ms CPU per vehicle-second)")
+    return EXIT_OK

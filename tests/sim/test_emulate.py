@@ -1,0 +1,196 @@
+"""``fisc-sim emulate``: launch plan, ground-truth fields, real-time verdict, and one short
+end-to-end run with real MAVLink over loopback UDP (autopilot emulators + fisc-agent runners)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from fisc_agent.control import MapGeometry
+from fisc_agent.frames import DeploymentTransform
+from fisc_agent.lookup import CommandField
+from fisc_ground.mapbuild import build_default_map
+from sim.emulate import (EmulateConfig, LaunchPlan, SwarmRun, entry_statistics, ground_truth_fields, launch_plan,
+                         realtime_summary, sample_window)
+from sim.scenarios import Reservoir, scale_for_agents
+
+TF = DeploymentTransform()
+
+
+@pytest.fixture(scope="module")
+def cmap():
+    return build_default_map()
+
+
+@pytest.fixture(scope="module")
+def field(cmap):
+    return CommandField.from_map(cmap)
+
+
+def test_launch_plan_starts_on_the_ground_upstream_of_the_inlet(field):
+    plan = launch_plan(field, 30, TF)
+    geom = MapGeometry.from_field(field)
+    start_map = TF.ned_to_map(plan.start_ned_m)
+    assert plan.start_ned_m.shape == (30, 3)
+    assert np.all(plan.start_ned_m[:, 2] == 0.0)  # on the ground, D = 0
+    assert np.all(start_map[:, 0] < geom.x_inlet_m - 1.5)  # upstream of the staging plane
+    assert np.allclose(start_map[:, 2], -10.0)  # 10 m below the tunnel axis (map origin at NED (0, 0, -10))
+    assert len({tuple(p) for p in np.round(plan.start_ned_m, 6)}) == 30  # no two vehicles on one spot
+
+
+def test_launch_plan_arrivals_follow_the_population_scaled_source_rate(field):
+    n = 20
+    plan = launch_plan(field, n, TF)
+    rate = Reservoir(field, population_scale=scale_for_agents(field, n)).rate_per_s
+    assert plan.inflow_rate_per_s == pytest.approx(rate)
+    assert np.allclose(np.diff(plan.arrival_time_s), 1.0 / rate)
+    assert plan.start_time_s.min() == pytest.approx(0.0)
+    assert np.all(plan.start_time_s <= plan.arrival_time_s)  # launch before arrival, by the travel time
+    travel = plan.arrival_time_s - plan.start_time_s
+    assert np.all(travel > 6.0)  # at least the launch overhead (arm, offboard, climb-out)
+
+
+def test_launch_plan_raises_the_rate_when_the_run_is_too_short_to_launch_everyone(field):
+    plan = launch_plan(field, 400, TF, duration_s=10.0)
+    assert plan.inflow_rate_per_s == pytest.approx(400 / 5.0)
+    assert plan.inflow_rate_per_s > plan.nominal_rate_per_s
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="agents"):
+        EmulateConfig(agents=0)
+    with pytest.raises(ValueError, match="personality"):
+        EmulateConfig(personality="betaflight")
+    with pytest.raises(ValueError, match="rate_hz"):
+        EmulateConfig(rate_hz=1.0)
+    assert EmulateConfig(agents=50).workers() == (1, 1)
+    assert EmulateConfig(agents=400).workers() == (2, 2)
+    assert EmulateConfig(agents=250).workers() == (2, 1)
+
+
+def _swarm(pos_ned: np.ndarray, vel_ned: np.ndarray, t: np.ndarray) -> SwarmRun:
+    n = pos_ned.shape[1]
+    return SwarmRun(agent_ids=np.arange(n), sample_t_s=t, pos_ned_m=pos_ned, vel_ned_m_s=vel_ned, agents=[],
+                    emulator_timing=[], agent_timing=[], setpoint_rate_hz=np.zeros(0), setpoint_rate_t_s=np.zeros(0),
+                    duration_s=float(t[-1]) if t.size else 0.0, setup_s=0.0, messages={})
+
+
+def test_ground_truth_fields_bin_true_states_into_cvs_in_the_map_frame(cmap, field):
+    j = 100
+    centre = field.centers_m[j]
+    k, n = 5, 3
+    pos = np.empty((k, n, 3))
+    pos[:, 0] = TF.map_to_ned(centre[None])[0]  # vehicle 0 at the centre of CV j
+    pos[:, 1] = (0.0, 0.0, 0.0)  # vehicle 1 on the ground, outside every CV
+    pos[:, 2] = np.nan  # vehicle 2 never sampled
+    vel = np.zeros((k, n, 3))
+    vel[:, 0] = (2.0, 0.5, -1.0)  # NED: climbing at 1 m/s -> map v_z = +1
+    ref = np.zeros((field.n_cv, 3))
+    fields, cv = ground_truth_fields(_swarm(pos, vel, np.arange(k) * 0.1), cmap, TF, np.arange(k), ref)
+    assert np.all(cv[:, 0] == j) and np.all(cv[:, 1:] == -1)
+    assert fields.samples[j] == k and fields.samples.sum() == k
+    assert np.allclose(fields.mean_velocity_m_s[j], (2.0, 0.5, 1.0))
+    assert fields.rho_s_kg_m3[j] == pytest.approx(float(cmap.body.get("agent_mass_kg", 1.0)) / field.cell_size_m ** 3)
+
+
+def test_sample_window_keeps_the_last_seconds():
+    t = np.arange(101) * 0.1
+    assert np.array_equal(sample_window(t, 10.0, 100.0), np.arange(101))
+    w = sample_window(t, 10.0, 2.0)
+    assert w[0] == 80 and w[-1] == 100
+
+
+def _timing(period: float, duration: float, drop_every: int = 0, lag: float = 0.001, cpu_cores: float = 0.1) -> dict:
+    """A worker loop log: ticks every period (every ``drop_every``-th one missing), constant lag."""
+    t = np.arange(0.0, duration, period)
+    if drop_every:
+        t = t[np.arange(t.size) % drop_every != 0]
+    ct = np.arange(0.0, duration + 1.0, 1.0)
+    return {"period_s": period, "tick_t_s": t, "lag_s": np.full(t.size, lag), "busy_s": np.full(t.size, period / 4),
+            "cpu_t_s": ct, "cpu_s": cpu_cores * ct}
+
+
+def test_realtime_verdict_needs_setpoint_rate_ticks_and_bounded_lag():
+    def summary(rates, agent_timing, emu_timing, t_from=0.0):
+        s = _swarm(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)), np.array([0.0, 20.0]))
+        s.setpoint_rate_hz = np.asarray(rates, dtype=float)
+        s.setpoint_rate_t_s = np.linspace(1.0, 19.0, len(rates))
+        s.agent_timing, s.emulator_timing = [agent_timing], [emu_timing]
+        return realtime_summary(s, 20.0, 4, t_from)
+
+    good_a, good_e = _timing(0.05, 20.0), _timing(0.02, 20.0)
+    ok = summary([20, 20, 21, 19], good_a, good_e)
+    assert ok["keeps_real_time"]
+    assert ok["cpu_per_agent"] == pytest.approx(2 * 0.1 / 4)  # two processes at 0.1 core each, 4 vehicles
+    assert not summary([17, 18, 18], good_a, good_e)["keeps_real_time"]  # setpoints arrive 10 % slow
+    assert not summary([20], _timing(0.05, 20.0, drop_every=5), good_e)["keeps_real_time"]  # 20 % ticks lost
+    assert not summary([20], good_a, _timing(0.02, 20.0, lag=0.06))["keeps_real_time"]  # lag > a control period
+    stalled = _timing(0.02, 20.0)
+    stalled["tick_t_s"] = np.arange(0.0, 20.0, 0.12)  # served every 120 ms: > 2 control periods
+    stalled["lag_s"] = np.full(stalled["tick_t_s"].size, 0.001)
+    stalled["busy_s"] = np.full(stalled["tick_t_s"].size, 0.001)
+    assert not summary([20], good_a, stalled)["keeps_real_time"]
+    # an emulator loop that skips a few of its 50 Hz ticks but serves every vehicle well within a
+    # control period keeps real time (the agents' 20 Hz loop is what must not drop ticks)
+    assert summary([20], good_a, _timing(0.02, 20.0, drop_every=5))["keeps_real_time"]
+    assert not summary([], good_a, good_e)["keeps_real_time"]  # no vehicle ever flew offboard
+    # only the window counts: slow setpoints before t_from are ignored
+    assert summary([10, 10, 20, 20, 20, 20], good_a, good_e, t_from=8.0)["keeps_real_time"]
+
+
+def test_entry_statistics_count_join_to_flow_transitions():
+    plan = LaunchPlan(np.zeros((2, 3)), np.zeros(2), np.array([10.0, 11.0]), 1.0, 1.0)
+    agents = [{"transitions": [(1.0, "WAIT_POSITION", "ARM", ""), (10.5, "JOIN", "FLOW", ""),
+                               (18.0, "FLOW", "JOIN", ""), (30.0, "JOIN", "FLOW", "")]},
+              {"transitions": [(12.5, "JOIN", "FLOW", "")]}]
+    s = entry_statistics(agents, plan)
+    assert s["vehicles_entered"] == 2 and s["entries_total"] == 3
+    assert s["arrival_error_mean_s"] == pytest.approx(1.0)
+    assert s["realised_first_entry_rate_per_s"] == pytest.approx(0.5)
+
+
+def test_cli_parser_maps_options_to_the_config(tmp_path):
+    from sim import emulate_cli
+
+    parser = argparse.ArgumentParser()
+    emulate_cli.add_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["emulate", "--agents", "7", "--duration", "12", "--mode", "slot", "--autopilot",
+                              "ardupilot", "--no-compare", "-o", str(tmp_path)])
+    cfg = emulate_cli.config_from_args(args)
+    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir) == (
+        7, 12.0, "slot", "ardupilot", False, str(tmp_path))
+
+
+@pytest.mark.slow
+def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
+    from sim.emulate import run
+
+    cfg = EmulateConfig(out_dir=str(tmp_path), agents=3, duration_s=22.0, figures=False, compare=True)
+    res = run(cfg)
+    # the mission went through the Case 2 entry: ground -> arm -> takeoff -> join -> flow
+    flown = [a for a in res.swarm.agents if any(dst == "FLOW" for _, _, dst, _ in a["transitions"])]
+    assert flown, [a["transitions"] for a in res.swarm.agents]
+    states = iter(dst for _, _, dst, _ in flown[0]["transitions"])
+    assert all(s in states for s in ("ARM", "TAKEOFF", "JOIN", "FLOW")), flown[0]["transitions"]  # in this order
+    # the ground truth saw vehicles inside CVs, moving downstream
+    rows = list(csv.DictReader(open(tmp_path / "fields.csv")))
+    assert len(rows) == res.run_result.cmap.n_cv
+    assert {"cv_x", "cv_y", "cv_z", "target_u_axial", "target_pressure", "target_density", "swarm_u_axial",
+            "swarm_pressure", "swarm_density", "swarm_temperature", "samples"} <= set(rows[0])
+    sampled = [r for r in rows if int(r["samples"]) > 0]
+    assert len(sampled) >= 5
+    assert np.nanmean([float(r["swarm_u_axial"]) for r in sampled]) > 0.3
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["agents"]["injected"] >= 1 and "emulation" in metrics
+    # MAVLink really was in the loop: setpoints arrived at the autopilots at the agents' rate
+    assert res.realtime["setpoint_rate_samples"] > 0
+    assert abs(res.realtime["setpoint_rate_mean_hz"] - 20.0) < 2.0
+    comparison = json.loads((tmp_path / "comparison.json").read_text())
+    assert set(comparison["metrics"]) >= {"nrmse_velocity", "nrmse_pressure", "nrmse_density"}
+    assert (tmp_path / "run_reference" / "metrics.json").is_file()
+    assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
+    assert (tmp_path / "map.fiscmap").is_file()
