@@ -39,6 +39,20 @@ def slot_index(agent_id: np.ndarray | int, cv_id: np.ndarray | int, n_star: np.n
     return (slot_hash(agent_id, cv_id) % np.asarray(n_star, dtype=np.uint64)).astype(np.int64)
 
 
+def lookahead_point(points_m: np.ndarray, velocity_m_s: np.ndarray, lead_s: float) -> np.ndarray:
+    """Point ``x + u t_lead`` whose command an agent flies to compensate its velocity lag.
+
+    A velocity-controlled multirotor responds to a command with a lag of roughly its time
+    constant tau, so an agent that looks up the command at its own position flies the command
+    of the point about ``u tau`` behind it.  Looking the command up ``t_lead ~ tau`` ahead
+    along the current velocity cancels that to first order.  ``points_m`` and ``velocity_m_s``
+    are (m, 3) in the same frame; ``lead_s`` >= 0 (0 returns a copy of the points).
+    """
+    if not (lead_s >= 0 and np.isfinite(lead_s)):
+        raise ValueError(f"lead_s must be finite and >= 0, got {lead_s!r}")
+    return np.asarray(points_m, dtype=float) + float(lead_s) * np.asarray(velocity_m_s, dtype=float)
+
+
 @dataclass(frozen=True)
 class CommandField:
     """A map's commands prepared for fast lookup (all arrays in the map/reference frame)."""

@@ -15,7 +15,7 @@ import numpy as np
 from fisc_agent.mapfile import CommandMap, decode_map, load_map
 from fisc_ground.fitting import fit_rmse, fit_velocities
 from fisc_ground.mapwrite import encode_map
-from fisc_ground.partition import ControlVolumes, partition_field
+from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
 from fisc_ground.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
@@ -100,6 +100,8 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         "target_density_kg_m3": cvs.target_density_kg_m3,
         "swarm_pressure_target": swarm_p,
         "node_count": cvs.node_count,
+        # optional (not in REQUIRED_ARRAYS): open-volume fraction A_j dx_j / l^3 of eq. swarm_density
+        "cv_open_fraction": cv_open_fraction(cvs),
     }
     now = datetime.now(timezone.utc)
     meta = {

@@ -203,3 +203,51 @@ def partition_field(
         cell_size_m=cell_size_m,
         min_nodes=min_nodes,
     )
+
+
+def full_cell_node_counts(node_count: np.ndarray, slice_index: np.ndarray) -> np.ndarray:
+    """Estimated node count of a *full* (entirely open) cell, per CV: the largest node count
+    among the CVs of the same axial slice.
+
+    On a regular lattice of spacing h every full cell holds (l/h)^3 nodes (125 for the shipped
+    0.1 m references with l = 0.5 m; the folded outlet slice holds 6/5 of that), and the
+    near-axis CVs of a tunnel slice are full, so the slice maximum recovers that number
+    whatever the axial resolution of the slice.  ``node_count`` and ``slice_index`` (the grid
+    x index) are (n_cv,) arrays.  Returns (n_cv,) float64.
+    """
+    counts = np.asarray(node_count, dtype=np.float64)
+    sl = np.asarray(slice_index, dtype=np.int64)
+    if counts.shape != sl.shape or counts.ndim != 1:
+        raise ValueError(f"node_count and slice_index must be equal (n,) arrays, got {counts.shape} and {sl.shape}")
+    if counts.size == 0:
+        return counts.copy()
+    if sl.min() < 0:
+        raise ValueError("slice_index must be >= 0")
+    top = np.zeros(int(sl.max()) + 1)
+    np.maximum.at(top, sl, counts)
+    return top[sl]
+
+
+def open_volume_fraction(node_count: np.ndarray, nodes_per_full_cell: np.ndarray | float) -> np.ndarray:
+    """Open-volume fraction A_j dx_j / l^3 of each CV (the paper's effective cross-section A_j of
+    eq. swarm_density), estimated as node_count / nodes_per_full_cell, clipped to (0, 1].
+
+    The reference nodes sample only the flow domain, so on a uniform lattice the share of a full
+    cell's nodes that a CV holds is the share of its volume inside the tunnel (a staircase wall CV
+    with 46 of 125 nodes is 37 % open).  ``nodes_per_full_cell``: scalar (e.g. 125 = (l/h)^3 for
+    lattice spacing h) or per-CV (``full_cell_node_counts``).  Returns (n_cv,) float64.
+    """
+    counts = np.asarray(node_count, dtype=np.float64)
+    full = np.broadcast_to(np.asarray(nodes_per_full_cell, dtype=np.float64), counts.shape)
+    if np.any(~(full > 0.0)):
+        raise ValueError("nodes_per_full_cell must be > 0")
+    if np.any(counts < 0):
+        raise ValueError("node_count must be >= 0")
+    frac = counts / full
+    return np.clip(frac, np.minimum(1.0, 1.0 / full), 1.0)
+
+
+def cv_open_fraction(cvs: ControlVolumes) -> np.ndarray:
+    """(n_cv,) open-volume fraction of every CV of a partition (``open_volume_fraction`` with the
+    per-slice full-cell estimate ``full_cell_node_counts``).  Stored in maps as ``cv_open_fraction``."""
+    return open_volume_fraction(cvs.node_count, full_cell_node_counts(cvs.node_count, cvs.index[:, 0]))

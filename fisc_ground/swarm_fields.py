@@ -239,6 +239,28 @@ def cv_moments(cv_ids: np.ndarray, velocities_m_s: np.ndarray, masses_kg: np.nda
 # The paper's equations, on per-CV moments
 
 
+def _volume(cell_volume_m3: np.ndarray | float) -> np.ndarray | float:
+    """A scalar volume as float, a per-CV volume array as float array (no checks)."""
+    v = np.asarray(cell_volume_m3, dtype=float)
+    return float(v) if v.ndim == 0 else v
+
+
+def check_cell_volumes(cell_volume_m3: np.ndarray | float, n_cv: int) -> np.ndarray | float:
+    """Validate a CV volume: a scalar > 0 (every CV l^3) or an (n_cv,) array of finite values > 0
+    (per-CV effective volumes A_j dx_j).  Returns a float or a float64 array."""
+    v = np.asarray(cell_volume_m3, dtype=float)
+    if v.ndim == 0:
+        if not float(v) > 0.0:
+            raise ValueError(f"cell_volume_m3 must be > 0, got {cell_volume_m3!r}")
+        return float(v)
+    if v.shape != (n_cv,):
+        raise ValueError(f"cell_volume_m3 must be a scalar or an ({n_cv},) array, got shape {v.shape}")
+    if np.any(~(v > 0.0)) or not np.all(np.isfinite(v)):
+        j = int(np.flatnonzero(~((v > 0.0) & np.isfinite(v)))[0])
+        raise ValueError(f"cell_volume_m3[{j}] must be finite and > 0, got {float(v[j])!r}")
+    return v.copy()
+
+
 def _safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     """num / den where den > 0, NaN elsewhere (broadcasts a trailing axis for vectors)."""
     den = np.asarray(den, dtype=float)
@@ -265,18 +287,23 @@ def swarm_velocity(momentum_kg_m_s: np.ndarray, mass_kg: np.ndarray,
     return u_axial, u_axial[:, None] * drift_dir
 
 
-def swarm_density(mass_kg: np.ndarray, cell_volume_m3: float) -> np.ndarray:
-    """Eq. swarm_density: rho_s = m N_j / (A_j dx_j); for cubic CVs A dx = dV = l^3.
+def swarm_density(mass_kg: np.ndarray, cell_volume_m3: np.ndarray | float) -> np.ndarray:
+    """Eq. swarm_density: rho_s = m N_j / (A_j dx_j).
 
-    Written with the CV's total mass M_j = sum m_i, which is m N_j for identical agents and
-    the mass-weighted generalisation for heterogeneous fleets.
+    ``cell_volume_m3`` is the CV's *effective* volume A_j dx_j: l^3 for a full cubic CV, or a
+    per-CV (n_cv,) array such as ``l^3 * cv_open_fraction`` for CVs that lie partly outside
+    the tunnel (A_j the effective cross-section).  Written with the CV's total mass
+    M_j = sum m_i, which is m N_j for identical agents and the mass-weighted generalisation
+    for heterogeneous fleets.
     """
-    return np.asarray(mass_kg, dtype=float) / float(cell_volume_m3)
+    return np.asarray(mass_kg, dtype=float) / _volume(cell_volume_m3)
 
 
-def swarm_pressure(m_v2_kg_m2_s2: np.ndarray, cell_volume_m3: float) -> np.ndarray:
-    """Eq. swarm_pressure: P_s = 2/(3 dV) sum_i m_i ||v_i||^2 (trace of the momentum-exchange tensor)."""
-    return 2.0 * np.asarray(m_v2_kg_m2_s2, dtype=float) / (3.0 * float(cell_volume_m3))
+def swarm_pressure(m_v2_kg_m2_s2: np.ndarray, cell_volume_m3: np.ndarray | float) -> np.ndarray:
+    """Eq. swarm_pressure: P_s = 2/(3 dV) sum_i m_i ||v_i||^2 (trace of the momentum-exchange tensor).
+
+    ``cell_volume_m3``: scalar or per-CV (n_cv,) effective volume dV_j (see ``swarm_density``)."""
+    return 2.0 * np.asarray(m_v2_kg_m2_s2, dtype=float) / (3.0 * _volume(cell_volume_m3))
 
 
 def pressure_density(rho_s_kg_m3: np.ndarray, mean_square_speed_m2_s2: np.ndarray) -> np.ndarray:
@@ -298,14 +325,15 @@ def internal_pressure(rho_s_kg_m3: np.ndarray, m_v2_kg_m2_s2: np.ndarray, mass_k
     return np.where(np.asarray(mass_kg) > 0.0, pressure_density(rho_s_kg_m3, var), 0.0)
 
 
-def dispersion_pressure(m_dev2_kg_m2_s2: np.ndarray, cell_volume_m3: float) -> np.ndarray:
+def dispersion_pressure(m_dev2_kg_m2_s2: np.ndarray, cell_volume_m3: np.ndarray | float) -> np.ndarray:
     """Eq. pressure_constraint: P = 2 m / (3 dV) sum_i ||v_i - v_target,j||^2.
 
     The pressure the paper compares with the CFD in its simulations ("computed from the mean
     squared difference of the target and actual velocities"), written with each agent's own
-    mass m_i.  Input: the moment sum m_i ||v_i - v_ref,j||^2 (``cv_moments``).
+    mass m_i.  Input: the moment sum m_i ||v_i - v_ref,j||^2 (``cv_moments``); ``cell_volume_m3``
+    scalar or per-CV (n_cv,) effective volume dV_j (see ``swarm_density``).
     """
-    return 2.0 * np.asarray(m_dev2_kg_m2_s2, dtype=float) / (3.0 * float(cell_volume_m3))
+    return 2.0 * np.asarray(m_dev2_kg_m2_s2, dtype=float) / (3.0 * _volume(cell_volume_m3))
 
 
 def temperature_random(m_v2_kg_m2_s2: np.ndarray, momentum_kg_m_s: np.ndarray, mass_kg: np.ndarray,
@@ -364,17 +392,17 @@ def fields_from_moments(moments: CVMoments, cell_volume_m3: float, drift_dir: np
     """All of Q from per-CV moments that describe *one* (possibly time-averaged) sample.
 
     ``moments``: per-sample moments (summed moments divided by ``n_time_samples``).
+    ``cell_volume_m3``: l^3 (scalar) or per-CV effective volumes (n_cv,) (eq. swarm_density).
     ``samples``: agent samples per CV (defaults to ``count``).
     """
-    if not cell_volume_m3 > 0.0:
-        raise ValueError(f"cell_volume_m3 must be > 0, got {cell_volume_m3!r}")
     p = SwarmGasParams() if params is None else params
     n_cv = moments.count.shape[0]
+    cell_volume_m3 = check_cell_volumes(cell_volume_m3, n_cv)
     d = drift_directions(drift_dir, n_cv)
     U = mean_velocity(moments.momentum_kg_m_s, moments.mass_kg)
     u_axial, u_vec = swarm_velocity(moments.momentum_kg_m_s, moments.mass_kg, d)
     rho = swarm_density(moments.mass_kg, cell_volume_m3)
-    n_density = moments.count / float(cell_volume_m3)
+    n_density = moments.count / cell_volume_m3
     p_s = swarm_pressure(moments.m_v2_kg_m2_s2, cell_volume_m3)
     p_int = internal_pressure(rho, moments.m_v2_kg_m2_s2, moments.mass_kg, u_vec, moments.momentum_kg_m_s)
     if moments.m_dev2_kg_m2_s2 is None:
@@ -395,13 +423,14 @@ def fields_from_moments(moments: CVMoments, cell_volume_m3: float, drift_dir: np
 
 
 def instantaneous_fields(cv_ids: np.ndarray, velocities_m_s: np.ndarray, masses_kg: np.ndarray | float,
-                         n_cv: int, cell_volume_m3: float, drift_dir: np.ndarray | None = None,
+                         n_cv: int, cell_volume_m3: np.ndarray | float, drift_dir: np.ndarray | None = None,
                          reference_velocity_m_s: np.ndarray | None = None,
                          params: SwarmGasParams | None = None) -> SwarmFields:
     """Q per CV at one instant from agent samples.
 
     ``cv_ids`` (N,) CV of each agent (-1 = outside the map, ignored); ``velocities_m_s``
-    (N, 3); ``masses_kg`` scalar or (N,); ``drift_dir`` None (+x), (3,) or (n_cv, 3);
+    (N, 3); ``masses_kg`` scalar or (N,); ``cell_volume_m3`` l^3 or per-CV effective volumes
+    (n_cv,) (eq. swarm_density); ``drift_dir`` None (+x), (3,) or (n_cv, 3);
     ``reference_velocity_m_s`` (n_cv, 3) per-CV target velocity for the dispersion pressure
     (eq. pressure_constraint), NaN fields without it.
     """
@@ -422,14 +451,13 @@ class FieldAccumulator:
 
     _SUMS = ("count", "mass_kg", "momentum_kg_m_s", "m_v2_kg_m2_s2", "m_dev2_kg_m2_s2")
 
-    def __init__(self, n_cv: int, cell_volume_m3: float, drift_dir: np.ndarray | None = None,
+    def __init__(self, n_cv: int, cell_volume_m3: np.ndarray | float, drift_dir: np.ndarray | None = None,
                  params: SwarmGasParams | None = None) -> None:
         if int(n_cv) < 0:
             raise ValueError(f"n_cv must be >= 0, got {n_cv}")
-        if not cell_volume_m3 > 0.0:
-            raise ValueError(f"cell_volume_m3 must be > 0, got {cell_volume_m3!r}")
         self.n_cv = int(n_cv)
-        self.cell_volume_m3 = float(cell_volume_m3)
+        self.cell_volume_m3 = check_cell_volumes(cell_volume_m3, self.n_cv)
+        """l^3 (float) or per-CV effective volumes (n_cv,) [m^3] (eq. swarm_density)."""
         self.drift_dir = drift_directions(drift_dir, self.n_cv)
         self.params = SwarmGasParams() if params is None else params
         self.count = np.zeros(self.n_cv)
@@ -455,7 +483,8 @@ class FieldAccumulator:
 
     def merge(self, other: "FieldAccumulator") -> None:
         """Add the sums of another accumulator over the same CVs (e.g. another time window)."""
-        if other.n_cv != self.n_cv or other.cell_volume_m3 != self.cell_volume_m3:
+        if other.n_cv != self.n_cv or not np.array_equal(np.asarray(other.cell_volume_m3),
+                                                          np.asarray(self.cell_volume_m3)):
             raise ValueError("merge: accumulators differ in n_cv or cell volume")
         for name in self._SUMS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
@@ -466,14 +495,14 @@ class FieldAccumulator:
         """The complete state as numpy arrays (``np.savez``-able); see ``from_state``."""
         out = {name: getattr(self, name).copy() for name in self._SUMS}
         out.update(n_time_samples=np.array(self.n_time_samples), n_ref_samples=np.array(self.n_ref_samples),
-                   cell_volume_m3=np.array(self.cell_volume_m3), drift_dir=self.drift_dir.copy())
+                   cell_volume_m3=np.array(self.cell_volume_m3, dtype=float), drift_dir=self.drift_dir.copy())
         return out
 
     @classmethod
     def from_state(cls, state: dict[str, np.ndarray], params: SwarmGasParams | None = None) -> "FieldAccumulator":
         """Rebuild an accumulator from ``state()`` output."""
         try:
-            acc = cls(int(np.asarray(state["count"]).shape[0]), float(state["cell_volume_m3"]),
+            acc = cls(int(np.asarray(state["count"]).shape[0]), np.asarray(state["cell_volume_m3"], dtype=float),
                       np.asarray(state["drift_dir"]), params)
             for name in cls._SUMS:
                 arr = np.array(state[name], dtype=float)

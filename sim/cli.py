@@ -13,6 +13,16 @@ import sys
 from contextlib import contextmanager
 
 
+def _agents(text: str):
+    """--agents: a non-negative integer or 'fitted' (N* as fitted)."""
+    if text == "fitted":
+        return "fitted"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--agents: an integer or 'fitted', got {text!r}") from None
+
+
 def _add_run(sub) -> None:
     p = sub.add_parser("run", help="simulate a swarm on a command map and write fields, metrics, report, figures",
                        description="Paper Case 2 (reservoir) or Case 1 (seed) on a command map; with no options the "
@@ -21,9 +31,9 @@ def _add_run(sub) -> None:
                                                "or a CFD file) fitted now; default: the embedded default map")
     p.add_argument("--scenario", choices=("reservoir", "seed"), default="reservoir",
                    help="reservoir = paper Case 2 (default), seed = paper Case 1")
-    p.add_argument("--agents", type=int, default=None,
+    p.add_argument("--agents", type=_agents, default=None,
                    help="population target N: N* scaled by N / sum N* (seed: exactly N seeded; reservoir: source "
-                        "rate scaled alike). Default: N* as fitted")
+                        "rate scaled alike), or 'fitted' for N* as fitted. Default 1000 (the paper's population)")
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default: 300 for reservoir, 20 for seed)")
     p.add_argument("--average-window", type=float, default=None,
@@ -34,6 +44,12 @@ def _add_run(sub) -> None:
     p.add_argument("--collisions", action="store_true", help="enable the collision layer")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--scale", type=float, default=None, help="override the map's speed scale S (paper: 0.1)")
+    p.add_argument("--max-speed", type=float, default=None,
+                   help="agent speed limit [m/s] setting S of a map fitted by the run (no --map, or a reference "
+                        "spec; default 2 = the paper's speed regime); a .fiscmap keeps its S")
+    p.add_argument("--lookahead", type=float, default=0.0, metavar="S",
+                   help="command look-ahead t_lead [s]: fly the command at x + u t_lead to compensate the plant "
+                        "lag (0.5 recommended; default 0 = the paper's Algorithm 1)")
     p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--out", default="out/run", help="output directory (default out/run)")
@@ -64,10 +80,15 @@ def _progress(enabled: bool, label: str):
 def _cmd_run(args) -> int:
     from sim.run import RunConfig, run
 
-    cfg = RunConfig(map=args.map, scenario=args.scenario, agents=args.agents, duration_s=args.duration,
+    extra = {}
+    if args.agents is not None:
+        extra["agents"] = None if args.agents == "fitted" else args.agents
+    if args.max_speed is not None:
+        extra["max_speed_m_s"] = args.max_speed
+    cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    out_dir=args.out)
+                    lookahead_s=args.lookahead, out_dir=args.out, **extra)
     show = not args.quiet and sys.stderr.isatty()
     with _progress(show, f"{cfg.scenario}/{cfg.mode}") as cb:
         res = run(cfg, progress=cb)

@@ -118,6 +118,20 @@ class EmulateConfig:
     """Seed of the comparison run (the emulated run itself is deterministic up to OS scheduling)."""
     worker_log_level: str = "WARNING"
     """Log level inside the worker processes (agents log every mission transition at INFO)."""
+    swarm: str | None = None
+    """Zenoh swarm name: when set, every agent publishes its telemetry on
+    ``<prefix>/<swarm>/agents/<id>/telemetry`` as a deployed fleet does, so ``fisc-ground monitor``
+    and ``status`` can watch the emulated swarm; None: no Zenoh."""
+    zenoh_config: str | None = None
+    """Standard Zenoh JSON5 config file for the agents' session (None: the lab default, peer mode on
+    loopback connecting to the hub ``tcp/127.0.0.1:7447``)."""
+    zenoh_prefix: str = "fisc"
+    """Zenoh key-expression prefix."""
+    telemetry_rate_hz: float = 5.0
+    """Zenoh telemetry rate per agent [Hz] (with ``swarm``)."""
+    trusted_key: str | None = None
+    """Ground Ed25519 public key (.pub) the agents trust for maps and fleet commands over Zenoh
+    (required with ``swarm``, as on a real fleet)."""
 
     def __post_init__(self) -> None:
         def need(cond: bool, msg: str) -> None:
@@ -139,6 +153,9 @@ class EmulateConfig:
         need(self.launch_overhead_s is None or self.launch_overhead_s >= 0, "launch_overhead_s must be >= 0")
         need(self.emulator_workers >= 0 and self.agent_workers >= 0, "worker counts must be >= 0")
         need(self.worker_log_level in ("DEBUG", "INFO", "WARNING", "ERROR"), "worker_log_level must be a level name")
+        need(self.telemetry_rate_hz > 0, f"telemetry_rate_hz must be > 0, is {self.telemetry_rate_hz!r}")
+        need(self.swarm is None or self.trusted_key is not None,
+             "a Zenoh swarm needs the ground's public key (trusted_key / --trusted-key) for maps and commands")
 
     def workers(self) -> tuple[int, int]:
         """(emulator processes, agent processes) actually used.  Automatic: one emulator process
@@ -264,6 +281,11 @@ class _AgentJob:
     position_rate_hz: float
     telemetry: str
     log_level: str
+    swarm: str | None = None
+    zenoh_config: str | None = None
+    zenoh_prefix: str = "fisc"
+    telemetry_rate_hz: float = 5.0
+    trusted_key: str | None = None
 
 
 class _LoopLog:
@@ -465,6 +487,23 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         conn.close()
 
 
+def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
+    """With ``job.swarm``: one Zenoh session for the worker and one ``AgentZenohLink`` per runner
+    (telemetry out; maps and fleet commands in, which need the ground's signature as on a real
+    fleet).  Returns (session, links); (None, []) without a swarm."""
+    if not job.swarm:
+        return None, []
+    from fisc_agent.mapfile import read_public_key
+    from fisc_agent.zenoh_link import AgentZenohLink, open_session
+
+    keys = [read_public_key(job.trusted_key)]
+    session = open_session(job.zenoh_config)
+    links = [AgentZenohLink(None, job.swarm, int(aid), keys, False, r.offer_map, r.fleet_command,
+                            prefix=job.zenoh_prefix, session=session).start()
+             for aid, r in zip(job.agent_ids, runners)]
+    return session, links
+
+
 def _agent_worker(conn, job: _AgentJob) -> None:
     """Host ``len(job.agent_ids)`` fisc-agent runners in one thread (spawned process)."""
     try:
@@ -489,6 +528,8 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         trims = [CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(mid), -1.0, 0, 0, 0, 0, 0), f"stream {mid} off")
                  for mid in (LEAN_OFF_MSG_IDS if job.telemetry == "lean" else ())]
         trimmed = np.zeros(len(runners), dtype=np.int64)
+        session, zlinks = _open_fleet_links(job, runners)
+        telemetry_every = max(1, round(job.rate_hz / job.telemetry_rate_hz))
         _freeze_heap()
         conn.send(("ready", None))
         msg = conn.recv()
@@ -514,6 +555,8 @@ def _agent_worker(conn, job: _AgentJob) -> None:
             for i in np.flatnonzero(active):
                 r = runners[i]
                 r.step()
+                if zlinks and tick % telemetry_every == 0:
+                    zlinks[i].publish_telemetry(r.snapshot())
                 if trimmed[i] < len(trims) and r.link.target_system is not None:
                     r.link.send_command(trims[trimmed[i]])
                     trimmed[i] += 1
@@ -531,6 +574,10 @@ def _agent_worker(conn, job: _AgentJob) -> None:
                 "transitions": [(float(tr.t_s - t0), tr.src.value, tr.dst.value, tr.reason) for tr in m.transitions],
             })
             r.link.close()
+        for zl in zlinks:
+            zl.close()
+        if session is not None:
+            session.close()
         conn.send(("result", {"agents": agents, "timing": timing}))
     except Exception:  # noqa: BLE001 - reported to the parent, which raises
         conn.send(("error", traceback.format_exc()))
@@ -614,7 +661,8 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             job = _AgentJob(tuple(int(i) for i in part), tuple(int(x) for x in ports[part]),
                             tuple(float(x) for x in plan.start_time_s[part]), str(map_path), config.personality,
                             config.mode, config.exit_policy, config.rate_hz, config.position_rate_hz,
-                            config.telemetry, config.worker_log_level)
+                            config.telemetry, config.worker_log_level, config.swarm, config.zenoh_config,
+                            config.zenoh_prefix, config.telemetry_rate_hz, config.trusted_key)
             p = ctx.Process(target=_agent_worker, args=(child, job), name="fisc-agents", daemon=True)
             p.start()
             child.close()

@@ -51,6 +51,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-compare", action="store_true", help="skip the fisc-sim run reference and comparison.json")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--seed", type=int, default=0, help="seed of the reference fisc-sim run")
+    z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
+    z.add_argument("--swarm", metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
+    z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
+                   "(omitted: peer mode on loopback, connecting to the hub tcp/127.0.0.1:7447)")
+    z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
+    z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
+    z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
+                   "commands (required with --swarm)")
     p.add_argument("-o", "--out", required=True, help="output directory")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     return p
@@ -65,7 +73,9 @@ def config_from_args(args: argparse.Namespace):
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt,
                          emulator_workers=args.workers, agent_workers=args.workers,
-                         compare=not args.no_compare, figures=not args.no_figures, seed=args.seed)
+                         compare=not args.no_compare, figures=not args.no_figures, seed=args.seed,
+                         swarm=args.swarm, zenoh_config=args.zenoh_config, zenoh_prefix=args.zenoh_prefix,
+                         telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,6 +6,11 @@ target command ``S v_target,j`` and the time-averaged agent density,
 ``P = 2 m / (3 dV) <sum_i ||u_i - S v_target,j||^2>`` (``SwarmFields.p_dispersion_pa``).  The
 kinetic P_s (eq. swarm_pressure) and internal P_s,internal (eq. internal_pressure) are written
 beside it.
+
+Density: ``swarm_density`` is eq. swarm_density with the CV cube l^3 as the volume (the agents
+fly in the whole cube).  ``swarm_density_open_volume`` / ``swarm_pressure_open_volume`` divide by
+the CFD's open volume A_j dx_j = l^3 * ``cv_open_fraction`` instead (1.0 for maps without that
+optional array); both are scored in metrics.json (``other_densities``, ``other_pressures``).
 """
 
 from __future__ import annotations
@@ -39,7 +44,17 @@ FIELD_COLUMNS = (
     "swarm_temperature", "swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random",
     "swarm_count",
     "swarm_u_x", "swarm_u_y", "swarm_u_z", "samples",
+    "cv_open_fraction", "swarm_density_open_volume", "swarm_pressure_open_volume",
 )
+
+
+def open_fraction(cmap) -> np.ndarray:
+    """(n_cv,) open-volume fraction A_j dx_j / l^3 of every CV from the map's optional
+    ``cv_open_fraction`` array; 1.0 everywhere for maps without it."""
+    n = int(np.asarray(cmap["cv_center_m"]).shape[0])
+    if "cv_open_fraction" in cmap.arrays:
+        return np.asarray(cmap["cv_open_fraction"], dtype=float).reshape(n)
+    return np.ones(n)
 
 
 def random_pressure(fields) -> np.ndarray:
@@ -56,6 +71,7 @@ def swarm_columns(result: "RunResult") -> dict[str, np.ndarray]:
     f = result.fields
     cmap = result.cmap
     c = np.asarray(cmap["cv_center_m"], dtype=float)
+    frac = open_fraction(cmap)
     return {
         "cv_id": np.arange(c.shape[0]),
         "cv_x": c[:, 0], "cv_y": c[:, 1], "cv_z": c[:, 2],
@@ -76,14 +92,19 @@ def swarm_columns(result: "RunResult") -> dict[str, np.ndarray]:
         "swarm_u_y": f.mean_velocity_m_s[:, 1],
         "swarm_u_z": f.mean_velocity_m_s[:, 2],
         "samples": f.samples,
+        # eq. swarm_density / pressure_constraint with the CFD's open volume A_j dx_j instead of l^3
+        "cv_open_fraction": frac,
+        "swarm_density_open_volume": f.rho_s_kg_m3 / frac,
+        "swarm_pressure_open_volume": f.p_dispersion_pa / frac,
     }
 
 
-def _metrics_for(cols: dict[str, np.ndarray], pressure: np.ndarray, min_samples: int) -> dict:
+def _metrics_for(cols: dict[str, np.ndarray], pressure: np.ndarray, min_samples: int,
+                 density: np.ndarray | None = None) -> dict:
     return fidelity_metrics(np.stack([cols["cv_x"], cols["cv_y"], cols["cv_z"]], axis=1),
                             cols["target_u_axial"], cols["target_pressure"], cols["target_density"],
-                            cols["swarm_u_axial"], pressure, cols["swarm_density"], cols["samples"],
-                            min_samples=min_samples).as_dict()
+                            cols["swarm_u_axial"], pressure, cols["swarm_density"] if density is None else density,
+                            cols["samples"], min_samples=min_samples).as_dict()
 
 
 def compute_metrics(result: "RunResult") -> dict:
@@ -94,10 +115,15 @@ def compute_metrics(result: "RunResult") -> dict:
     cfg = result.config
     fid = _metrics_for(cols, cols["swarm_pressure"], cfg.min_samples)
     alt = {}
-    for name in ("swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random"):
+    for name in ("swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random",
+                 "swarm_pressure_open_volume"):
         m = _metrics_for(cols, cols[name], cfg.min_samples)
         alt[name] = {"nrmse_pressure": m["nrmse_pressure"], "pearson_pressure": m["pearson_pressure"],
                      "centreline_max_dev_pressure": m["centreline_max_dev_pressure"]}
+    m = _metrics_for(cols, cols["swarm_pressure"], cfg.min_samples, density=cols["swarm_density_open_volume"])
+    alt_rho = {"swarm_density_open_volume": {
+        "nrmse_density": m["nrmse_density"], "pearson_density": m["pearson_density"],
+        "centreline_max_dev_density": m["centreline_max_dev_density"]}}
     c = result.counters
     out = dict(fid)
     out.update(
@@ -105,6 +131,9 @@ def compute_metrics(result: "RunResult") -> dict:
         pressure_definition="swarm_pressure = 2 m/(3 dV) <sum ||u_i - S v_target,j||^2> (eq. pressure_constraint, "
                             "time-averaged density)",
         other_pressures=alt,
+        density_definition="swarm_density = M_j / l^3 (eq. swarm_density with the CV cube as the swarm's volume: "
+                           "the agents fly in the whole cube)",
+        other_densities=alt_rho,
         agents={"injected": c.injected, "exited": c.exited, "escaped": c.escaped, "removed": c.removed,
                 "alive": int(result.alive), "return_agent_steps": c.returned},
         steps=c.steps, agent_steps=c.agent_steps, simulated_s=c.steps * cfg.dt_s,
@@ -179,6 +208,11 @@ def write_report_md(result: "RunResult", path: Path) -> Path:
               "Swarm pressure: " + m["pressure_definition"] + ".  Other definitions, same normalisation:", ""]
     for name, d in m["other_pressures"].items():
         lines.append(f"* {name}: nRMSE {_fmt(d['nrmse_pressure'])}, Pearson {_fmt(d['pearson_pressure'])}")
+    if m.get("other_densities"):
+        lines += ["", "Swarm density: " + m.get("density_definition", "") + ".  With the CFD's open volume "
+                  "A_j dx_j (the map's cv_open_fraction) instead:", ""]
+        for name, d in m["other_densities"].items():
+            lines.append(f"* {name}: nRMSE {_fmt(d['nrmse_density'])}, Pearson {_fmt(d['pearson_density'])}")
     a = m["agents"]
     lines += ["", "## Agents", "",
               f"injected {a['injected']}, exited through the outlet {a['exited']}, escaped {a['escaped']}, "

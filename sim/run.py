@@ -27,6 +27,14 @@ from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 log = logging.getLogger(__name__)
 
 SCENARIOS = ("reservoir", "seed")
+#: Default population target of a run (the paper's run holds about 10^3 agents; N* as fitted
+#: would hold ~6000 on the default map for the same fidelity, see docs/simulation.md).
+DEFAULT_AGENTS = 1000
+#: Agent speed limit [m/s] for the maps a run fits itself (no ``--map``, or a reference spec).
+#: The paper's speed regime: it flew S = 0.1 on 22.4 m/s peaks, i.e. ~2.2 m/s peak commands.
+#: With the plant's ~0.58 s lag the lag distance u tau is then ~1.2 m (about 2 CVs) instead of
+#: ~2.9 m at 5 m/s, which halves the velocity error (docs/simulation.md, "Fidelity").
+SIM_MAX_SPEED_M_S = 2.0
 #: Paper fig. 4 snapshot times [s].
 PAPER_SNAPSHOT_TIMES_S = (0.5, 6.0, 10.0, 15.0)
 
@@ -40,9 +48,10 @@ class RunConfig:
     a CFD file) to fit on the fly, or None for the embedded default map."""
     scenario: str = "reservoir"
     """``reservoir`` (paper Case 2) or ``seed`` (paper Case 1)."""
-    agents: int | None = None
+    agents: int | None = DEFAULT_AGENTS
     """Population target N: N* is scaled by N / sum N* (seed: exactly N agents seeded;
-    reservoir: the source rate is scaled so a swarm keeping the seeded density holds ~N).  None: N* as fitted."""
+    reservoir: the source rate is scaled so a swarm keeping the seeded density holds ~N).  None: N* as fitted.
+    Default ``DEFAULT_AGENTS`` = 1000, the paper's population."""
     duration_s: float | None = None
     """Simulated time [s]; None: 300 s for the reservoir (the paper's run), 20 s for seeding
     (a seeded swarm has flown through the 15 m tunnel by then)."""
@@ -61,6 +70,9 @@ class RunConfig:
     """Random seed (positions of seeded and injected agents)."""
     scale: float | None = None
     """Override of the map's speed scale S (the paper flew S = 0.1); None: the map's S."""
+    max_speed_m_s: float = SIM_MAX_SPEED_M_S
+    """Agent speed limit [m/s] that sets S when the run fits its map itself (no map given, or a
+    reference spec); a ``.fiscmap`` file keeps its own S.  Default ``SIM_MAX_SPEED_M_S``."""
     x_axial_m: float = math.inf
     """Case 1: seed the CVs with centre x <= this [m] (inf: the full tunnel)."""
     source_interval_s: float = 0.2
@@ -70,6 +82,9 @@ class RunConfig:
     """Time step of Algorithm 1 [s]."""
     escape_grace_s: float = 5.0
     """Return policy: longest time outside every CV before an agent counts as escaped [s]."""
+    lookahead_s: float = 0.0
+    """Command look-ahead t_lead [s] (``SwarmConfig.lookahead_s``): agents fly the command at
+    x + u t_lead to compensate the plant lag; 0 = the paper's Algorithm 1."""
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
     snapshot_times_s: tuple[float, ...] = PAPER_SNAPSHOT_TIMES_S
@@ -90,6 +105,10 @@ class RunConfig:
             raise ValueError(f"agents must be >= 0, got {self.agents!r}")
         if self.scale is not None and not self.scale > 0:
             raise ValueError(f"scale must be > 0, got {self.scale!r}")
+        if not (self.max_speed_m_s > 0 and math.isfinite(self.max_speed_m_s)):
+            raise ValueError(f"max_speed_m_s must be finite and > 0, got {self.max_speed_m_s!r}")
+        if not (self.lookahead_s >= 0 and math.isfinite(self.lookahead_s)):
+            raise ValueError(f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
         if not self.sample_interval_s > 0:
             raise ValueError(f"sample_interval_s must be > 0, got {self.sample_interval_s!r}")
 
@@ -142,18 +161,26 @@ class RunResult:
     """Written outputs by name."""
 
 
-def load_command_map(spec: str | None) -> CommandMap:
-    """The map of ``RunConfig.map``: default, a .fiscmap file, or a reference to fit now."""
+def load_command_map(spec: str | None, max_speed_m_s: float | None = None) -> CommandMap:
+    """The map of ``RunConfig.map``: default, a .fiscmap file, or a reference to fit now.
+
+    ``max_speed_m_s``: speed limit that sets S of a map fitted here (the default reference, or a
+    reference spec); None: the map builder's default (``FitConfig.max_speed_m_s``).  A
+    ``.fiscmap`` file is loaded as it is.
+    """
+    from fisc_ground.mapbuild import FitConfig
+
+    fit = FitConfig() if max_speed_m_s is None else FitConfig(max_speed_m_s=float(max_speed_m_s))
     if spec is None:
         from fisc_ground.mapbuild import build_default_map
 
-        return build_default_map()
+        return build_default_map(fit)
     p = Path(spec)
     if p.suffix == ".fiscmap" or (p.is_file() and p.read_bytes()[:8] == b"FISCMAP\x00"):
         return load_map(p)
     from fisc_ground.mapbuild import build_map_from_reference
 
-    return build_map_from_reference(spec)
+    return build_map_from_reference(spec, fit)
 
 
 def simulate(config: RunConfig, cmap: CommandMap,
@@ -171,7 +198,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
                                                   v_max_m_s=float(cmap.body.get("max_speed_m_s", 5.0)) * 1.5),
                                   cf.cell_size_m)
     swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=config.mode,
-                                                 escape_grace_s=config.escape_grace_s),
+                                                 escape_grace_s=config.escape_grace_s,
+                                                 lookahead_s=config.lookahead_s),
                   collider=collider)
     rng = np.random.default_rng(config.seed)
     reservoir = None
@@ -230,7 +258,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
     from sim import report
 
-    cmap = load_command_map(config.map)
+    cmap = load_command_map(config.map, config.max_speed_m_s)
     result = simulate(config, cmap, progress)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)

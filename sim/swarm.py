@@ -38,7 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.lookup import COMMAND_MODES, CommandField, slot_hash
+from fisc_agent.lookup import COMMAND_MODES, CommandField, lookahead_point, slot_hash
+from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
 from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
@@ -111,8 +112,14 @@ class SwarmConfig:
     plant_backend: str = "auto"
     """Plant kernel: ``auto`` (numba when importable), ``numpy`` or ``numba``."""
     lookup_backend: str = "auto"
-    """CV lookup + command gather (modes mean/slot): ``auto`` (fused numba kernel when
-    importable), ``numpy`` or ``numba``."""
+    """CV lookup + command gather, removals, return commands and position update (modes
+    mean/slot): ``auto`` (fused numba kernels, ``sim.kernels``, when importable), ``numpy`` (the
+    reference path) or ``numba``; both give the same trajectories."""
+    lookahead_s: float = 0.0
+    """Command look-ahead t_lead [s]: each agent flies the command of the CV at
+    ``x + u t_lead`` (its own CV when that point is outside the CVs) instead of the CV at x,
+    compensating the plant lag (~0.58 s for the default plant).  0 = the paper's Algorithm 1.
+    The CV assignment (exits, escapes, the fields) always uses x itself."""
 
     def __post_init__(self) -> None:
         if not (self.dt_s > 0 and np.isfinite(self.dt_s)):
@@ -125,6 +132,8 @@ class SwarmConfig:
             raise ValueError(f"SwarmConfig.lookup_backend {self.lookup_backend!r}: choose auto, numpy or numba")
         if self.return_radius_cells < 0:
             raise ValueError(f"SwarmConfig.return_radius_cells must be >= 0, got {self.return_radius_cells!r}")
+        if not (self.lookahead_s >= 0 and np.isfinite(self.lookahead_s)):
+            raise ValueError(f"SwarmConfig.lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
 
 
 class CVLookup:
@@ -249,6 +258,7 @@ class Swarm:
         self._n_star[:n_cv] = np.maximum(np.asarray(field.n_star), 1).astype(np.uint64)
         self.x_outlet_m = float(field.origin_m[0] + field.grid_cv.shape[0] * field.cell_size_m)
         self._fdt = MAP_TO_NED * self.config.dt_s
+        self._centers_m = np.ascontiguousarray(field.centers_m, dtype=np.float64)
         self.t_s = 0.0
         self.counters = SwarmCounters()
         self._next_id = 0
@@ -398,17 +408,22 @@ class Swarm:
             self._cmd_ready = True
         else:
             cv = self.lookup(self.pos_m)
-        exited = self.pos_m[:, 0] >= self.x_outlet_m
-        outside = (cv < 0) & ~exited
-        escaped = outside & (self.outside_s > self.config.escape_grace_s)
-        if outside.any():
-            # agents with no CV within the return radius cannot be steered back: escaped now
-            idx = np.flatnonzero(outside)
-            near = self.lookup.nearest_of_last(idx)
-            escaped[idx[near < 0]] = True
-        n_exit, n_esc = int(np.count_nonzero(exited)), int(np.count_nonzero(escaped))
+        if self._kernel is not None:  # same rule as below, one numba pass (sim.kernels)
+            keep = np.empty(n, dtype=bool)
+            n_exit, n_esc = removal_kernel()(self.pos_m, cv, self.lookup._last, self.outside_s, self.lookup._near,
+                                             self.x_outlet_m, self.config.escape_grace_s, keep)
+        else:
+            exited = self.pos_m[:, 0] >= self.x_outlet_m
+            outside = (cv < 0) & ~exited
+            escaped = outside & (self.outside_s > self.config.escape_grace_s)
+            if outside.any():
+                # agents with no CV within the return radius cannot be steered back: escaped now
+                idx = np.flatnonzero(outside)
+                near = self.lookup.nearest_of_last(idx)
+                escaped[idx[near < 0]] = True
+            n_exit, n_esc = int(np.count_nonzero(exited)), int(np.count_nonzero(escaped))
+            keep = ~(exited | escaped) if n_exit or n_esc else None
         if n_exit or n_esc:
-            keep = ~(exited | escaped)
             self.counters.exited += n_exit
             self.counters.escaped += n_esc
             cv = self._keep(keep, cv)
@@ -425,26 +440,63 @@ class Swarm:
         if n == 0:
             return
         cmd = self._cmd[:n]
-        if not self._cmd_ready:
+        if self.config.lookahead_s > 0:
+            self._lookahead_commands(cv, cmd)
+        elif not self._cmd_ready:
             self._command_ned(cv, cmd)
-        outside = cv < 0
-        out_s = self.outside_s
-        if outside.any():
-            self._return_commands(np.flatnonzero(outside), cmd)
-            out_s[outside] += self.config.dt_s
-            out_s[~outside] = 0.0
-            self.counters.returned += int(np.count_nonzero(outside))
-        elif self.counters.returned:
-            out_s[...] = 0.0
+        fused = self._kernel is not None  # numba: sim.kernels, same numbers as the numpy path
+        if fused:
+            self.counters.returned += self._fused_returns(cv, cmd)
+        else:
+            outside = cv < 0
+            out_s = self.outside_s
+            if outside.any():
+                self._return_commands(np.flatnonzero(outside), cmd)
+                out_s[outside] += self.config.dt_s
+                out_s[~outside] = 0.0
+                self.counters.returned += int(np.count_nonzero(outside))
+            elif self.counters.returned:
+                out_s[...] = 0.0
         vel, thr = self.vel_ned_m_s, self.thrust_ned_m_s2
         step_plant(vel, thr, cmd, self.config.dt_s, self._co, out=(vel, thr), backend=self.config.plant_backend)
         if self.collider is not None:
             self.collider.apply(self.pos_m, vel)
-        dx = self._scratch[:n]
-        np.multiply(vel, self._fdt, out=dx)
-        self.pos_m[...] += dx
+        if fused:
+            move_kernel()(self.pos_m, vel, self._fdt)
+        else:
+            dx = self._scratch[:n]
+            np.multiply(vel, self._fdt, out=dx)
+            self.pos_m[...] += dx
         self._cv = None
         self._cmd_ready = False
+
+    def _lookahead_commands(self, cv: np.ndarray, cmd_ned: np.ndarray) -> None:
+        """Fill ``cmd_ned`` with the command at the look-ahead point x + u t_lead (``lookahead_point``);
+        agents whose look-ahead point has no CV keep their own CV's command."""
+        pts = lookahead_point(self.pos_m, self.velocity_map(), self.config.lookahead_s)
+        ahead = self.lookup(pts)
+        fallback = ahead < 0
+        if fallback.any():
+            ahead[fallback] = cv[fallback]
+            pts[fallback] = self.pos_m[fallback]
+        if self.config.mode == "interpolated":
+            inside = ahead >= 0
+            cmd_ned[...] = 0.0
+            if inside.any():
+                cmd_ned[inside] = self.field.command(pts[inside], self.ids[inside], "interpolated",
+                                                     cv_ids=ahead[inside]) * MAP_TO_NED
+        else:
+            self._command_ned(ahead, cmd_ned)
+
+    def _fused_returns(self, cv: np.ndarray, cmd_ned: np.ndarray) -> int:
+        """``_return_commands`` for every agent with ``cv < 0`` plus the time-outside update, in one
+        numba pass (``sim.kernels.return_commands_kernel``); returns the number outside."""
+        lk = self.lookup
+        return return_commands_kernel()(
+            self.pos_m, self.ids, cv, cmd_ned, self.outside_s, self.config.dt_s, lk._origin, lk._inv_l, lk._hi,
+            lk._strides, lk._near, self._centers_m, self._mean_speed, self._mean_ned, self._slot_ned, self._n_star,
+            self.config.mode == "slot", self.config.return_gain_1_s, self.config.return_speed_fraction, MAP_TO_NED,
+        )  # fmt: skip
 
     def _return_commands(self, idx: np.ndarray, cmd_ned: np.ndarray) -> None:
         """Return policy for agents ``idx`` outside the CVs: nearest CV's command + inward pull."""

@@ -13,3 +13,16 @@ def test_shipped_default_map_matches_a_fresh_fit():
         assert shipped.body[key] == fresh.body[key], key
     for name in REQUIRED_ARRAYS:
         np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_default_map_carries_the_open_volume_fraction():
+    """Optional array cv_open_fraction (A_j dx_j / l^3 of eq. swarm_density): 1 for the near-axis
+    CVs, the node share of a full 0.1 m lattice cube (125 nodes; 150 in the folded outlet slice)
+    for the wall CVs."""
+    cmap = load_shipped_default_map()
+    frac = np.asarray(cmap["cv_open_fraction"])
+    np.testing.assert_allclose(frac, build_default_map()["cv_open_fraction"], rtol=0, atol=1e-12)
+    count = np.asarray(cmap["node_count"])
+    full = np.where(np.asarray(cmap["cv_index"])[:, 0] == cmap.grid_shape[0] - 1, 150, 125)
+    np.testing.assert_allclose(frac, count / full)
+    assert frac.min() > 0 and frac.max() == 1.0 and np.count_nonzero(frac == 1.0) > 200

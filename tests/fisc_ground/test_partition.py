@@ -200,3 +200,42 @@ def test_reference_export_partition(reference_nodes):
     # the throat (x = 6) is fastest
     throat = cv.target_velocity_m_s[:, 0].argmax()
     assert 5.0 <= cv.center_m[throat, 0] <= 7.0
+
+
+def test_open_volume_fraction_is_the_share_of_a_full_cells_nodes():
+    from fisc_ground.partition import open_volume_fraction
+
+    np.testing.assert_allclose(open_volume_fraction(np.array([125, 46, 3]), 125.0), [1.0, 46 / 125, 3 / 125])
+    # more nodes than the full-cell estimate (folded outlet plane) is still a full cell
+    np.testing.assert_allclose(open_volume_fraction(np.array([150]), 125.0), [1.0])
+    with pytest.raises(ValueError, match="nodes_per_full_cell"):
+        open_volume_fraction(np.array([3]), 0.0)
+
+
+def test_full_cell_count_is_the_slice_maximum():
+    from fisc_ground.partition import full_cell_node_counts
+
+    got = full_cell_node_counts(np.array([125, 40, 150, 60, 7]), np.array([0, 0, 2, 2, 1]))
+    np.testing.assert_array_equal(got, [125, 125, 150, 150, 7])
+
+
+def test_cv_open_fraction_of_a_round_tunnel_on_a_lattice():
+    """A 0.1 m lattice inside a cylinder of radius 0.75 m: the 4 near-axis cubes are full, the
+    outer ones partial with their share of the 125 lattice nodes; the outlet slice folds 6
+    x-planes into its cells and is still full on the axis."""
+    from fisc_ground.partition import cv_open_fraction
+
+    g = np.round(np.arange(-0.7, 0.7001, 0.1), 10)
+    x = np.round(np.arange(0.0, 1.0001, 0.1), 10)
+    X, Y, Z = np.meshgrid(x, g, g, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    pts = pts[np.hypot(pts[:, 1], pts[:, 2]) <= 0.75]
+    n = pts.shape[0]
+    cvs = partition(pts, np.tile([1.0, 0, 0], (n, 1)), np.zeros(n), None, cell_size_m=0.5)
+    frac = cv_open_fraction(cvs)
+    near_axis = np.all(np.abs(cvs.center_m[:, 1:]) < 0.5, axis=1)
+    np.testing.assert_allclose(frac[near_axis], 1.0)
+    outer = ~near_axis
+    assert outer.any() and np.all((frac[outer] > 0) & (frac[outer] < 1))
+    first = cvs.index[:, 0] == 0
+    np.testing.assert_allclose(frac[first], cvs.node_count[first] / 125.0)

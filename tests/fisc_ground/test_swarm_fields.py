@@ -204,3 +204,31 @@ def test_single_sample_accumulator_equals_instantaneous_and_state_roundtrip_and_
 
 def test_interagent_spacing():
     np.testing.assert_allclose(interagent_spacing(np.array([8.0, 1.0, 0.0])), [0.5, 1.0, np.nan])
+
+
+def test_per_cv_effective_volume_scales_density_and_pressures_per_cv():
+    """Eq. swarm_density with A_j dx_j per CV: a CV half outside the tunnel (volume dV/2) reads
+    twice the density and sum-pressures of the same agents in a full CV; means are unchanged."""
+    vol = np.array([DV, DV / 2])
+    full = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, reference_velocity_m_s=REF)
+    eff = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=vol, reference_velocity_m_s=REF)
+    np.testing.assert_allclose(eff.rho_s_kg_m3, [16, 16])
+    np.testing.assert_allclose(eff.number_density_per_m3, [16, 16])
+    for name in ("p_s_pa", "p_internal_pa", "p_dispersion_pa"):
+        np.testing.assert_allclose(getattr(eff, name), getattr(full, name) * [1, 2], err_msg=name)
+    np.testing.assert_allclose(eff.u_axial_m_s, full.u_axial_m_s)
+    np.testing.assert_allclose(eff.t_rand_m2_s2, full.t_rand_m2_s2)
+    acc = FieldAccumulator(2, vol)
+    acc.add(IDS, VEL, 1.0, REF)
+    np.testing.assert_allclose(acc.result().rho_s_kg_m3, eff.rho_s_kg_m3)
+    back = FieldAccumulator.from_state(acc.state())
+    np.testing.assert_allclose(back.result().p_dispersion_pa, eff.p_dispersion_pa)
+    with pytest.raises(ValueError, match="merge"):
+        acc.merge(FieldAccumulator(2, DV))
+
+
+def test_per_cv_volume_must_match_n_cv_and_be_positive():
+    with pytest.raises(ValueError, match=r"\(2,\)"):
+        FieldAccumulator(2, np.array([DV, DV, DV]))
+    with pytest.raises(ValueError, match=r"cell_volume_m3\[1\]"):
+        instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=np.array([DV, 0.0]))

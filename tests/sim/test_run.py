@@ -72,3 +72,62 @@ def test_time_average_uses_the_window():
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="scenario"):
         RunConfig(scenario="vortex")
+
+
+def test_run_defaults_are_the_papers_population_and_speed_regime():
+    """No options: ~10^3 agents (N* scaled to 1000) on the default reference fitted for a 2 m/s
+    speed limit (the paper's S = 0.1 x 22.4 m/s regime); look-ahead off (Algorithm 1)."""
+    from sim.run import DEFAULT_AGENTS, SIM_MAX_SPEED_M_S, load_command_map
+
+    cfg = RunConfig()
+    assert cfg.agents == DEFAULT_AGENTS == 1000 and cfg.lookahead_s == 0.0
+    assert cfg.max_speed_m_s == SIM_MAX_SPEED_M_S == 2.0
+    cmap = load_command_map(None, cfg.max_speed_m_s)
+    peak = np.nanmax(np.linalg.norm(cmap.scale * np.asarray(cmap["fit_velocity_m_s"]), axis=-1))
+    assert peak == pytest.approx(2.0)
+    assert load_command_map(None).scale == pytest.approx(2.5 * cmap.scale)  # map builder default: 5 m/s
+    with pytest.raises(ValueError, match="lookahead_s"):
+        RunConfig(lookahead_s=-1.0)
+
+
+def test_lookahead_reaches_the_swarm_and_cuts_the_velocity_error():
+    cmap = synthetic_tunnel_map(nx=16, speed_m_s=3.0)
+    base = dict(duration_s=10.0, average_window_s=5.0, agents=None, figures=False)
+    plain, ahead = simulate(RunConfig(**base), cmap), simulate(RunConfig(lookahead_s=0.5, **base), cmap)
+    err = {}
+    for name, r in (("plain", plain), ("ahead", ahead)):
+        ok = r.fields.samples >= 10
+        err[name] = np.sqrt(np.mean((r.fields.u_axial_m_s[ok] - r.target_command_m_s[ok, 0]) ** 2))
+    assert err["ahead"] < 0.6 * err["plain"]
+
+
+def test_open_volume_columns_use_the_maps_fraction_or_fall_back_to_one():
+    from sim.report import compute_metrics, open_fraction, swarm_columns
+
+    cmap = synthetic_tunnel_map(nx=8)
+    assert "cv_open_fraction" not in cmap.arrays
+    np.testing.assert_array_equal(open_fraction(cmap), 1.0)
+    r = simulate(RunConfig(duration_s=4.0, average_window_s=2.0, agents=None, figures=False), cmap)
+    cols = swarm_columns(r)
+    np.testing.assert_array_equal(cols["swarm_density_open_volume"], cols["swarm_density"])
+    m = compute_metrics(r)
+    assert set(m["other_densities"]) == {"swarm_density_open_volume"}
+    assert "swarm_pressure_open_volume" in m["other_pressures"]
+    # with a fraction, the open-volume density of a half-open CV is twice its cube density
+    arrays = dict(cmap.arrays)
+    arrays["cv_open_fraction"] = np.where(np.arange(cmap.n_cv) % 2 == 0, 1.0, 0.5)
+    cmap2 = type(cmap)(body=cmap.body, arrays=arrays, sha256=cmap.sha256, signed=False, public_key=None)
+    r.cmap = cmap2
+    cols2 = swarm_columns(r)
+    np.testing.assert_allclose(cols2["swarm_density_open_volume"], cols["swarm_density"] / arrays["cv_open_fraction"])
+
+
+def test_cli_lookahead_max_speed_and_fitted_population_reach_the_config(tmp_path, map_file):
+    out = tmp_path / "run"
+    rc = main(["run", "--map", str(map_file), "--duration", "2", "--average-window", "1", "--lookahead", "0.5",
+               "--max-speed", "3", "--agents", "fitted", "--no-figures", "-q", "-o", str(out)])
+    assert rc == 0
+    cfg = json.loads((out / "metrics.json").read_text())["config"]
+    assert cfg["lookahead_s"] == 0.5 and cfg["max_speed_m_s"] == 3.0 and cfg["agents"] is None
+    with pytest.raises(SystemExit):
+        main(["run", "--agents", "many"])
