@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import struct
 import threading
 from dataclasses import dataclass, field
@@ -192,7 +191,7 @@ def replay(path: str | Path, out_dir: str | Path, cmap: CommandMap | None = None
     out.mkdir(parents=True, exist_ok=True)
     fields = agg.fields()
     result = _result_like(agg.cmap, fields, min_samples)
-    from sim.report import swarm_columns, write_fields_csv
+    from fisc_ground.field_report import json_safe, swarm_columns, write_fields_csv
 
     from fisc_ground.metrics import fidelity_metrics
 
@@ -208,26 +207,14 @@ def replay(path: str | Path, out_dir: str | Path, cmap: CommandMap | None = None
                    agents=view.n_agents, time_samples=int(fields.n_time_samples),
                    sample_period_s=agg.sample_period_s, stale_after_s=agg.stale_after_s,
                    map={"sha256": agg.cmap.sha256, "map_version": agg.cmap.map_version})
-    (out / "metrics.json").write_text(json.dumps(_json_safe(metrics), indent=2, sort_keys=True) + "\n")
+    (out / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=2, sort_keys=True) + "\n")
     paths["metrics.json"] = out / "metrics.json"
     if figures:
-        from sim.figures import write_run_figures
+        from fisc_ground.field_figures import write_run_figures
 
         paths.update(write_run_figures(result, out))
     return paths
 
-
-def _json_safe(obj: Any) -> Any:
-    """NaN/inf -> None and numpy scalars -> Python, recursively (metrics.json is strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    return obj
 
 
 def _result_like(cmap: CommandMap, fields: Any, min_samples: int) -> Any:

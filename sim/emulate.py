@@ -18,7 +18,7 @@ vehicle state (not the telemetry), sampled on the ``fisc-sim run`` sampling grid
 the map frame with the default deployment transform (map x -> North, y -> East, z -> Up, map
 origin at local NED (0, 0, -10)) and accumulated per CV with ``FieldAccumulator`` exactly as the
 vectorised simulator does.  The outputs (fields.csv, metrics.json, figures, report.md) are
-written with ``sim.report``/``sim.figures``, so they have the format of ``fisc-sim run``; in
+written with ``fisc_ground.field_report``/``field_figures``, so they have the format of ``fisc-sim run``; in
 addition ``emulation.json`` (timing, real-time figures, per-agent mission outcome) and, unless
 disabled, ``comparison.json`` (the metric differences against ``fisc-sim run`` on the same
 map, duration, population and mode) are written, and report.md gets an "Emulation" section.
@@ -1002,7 +1002,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     res.paths["fields"] = report.write_fields_csv(rr, out / "fields.csv")
     res.paths["metrics"] = report.write_metrics_json(rr, out / "metrics.json")
     if config.figures:
-        from sim import figures
+        from fisc_ground import field_figures as figures
 
         rr.paths.update(figures.write_run_figures(rr, out))
         res.paths.update(rr.paths)

@@ -266,7 +266,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     result.paths["fields"] = report.write_fields_csv(result, out / "fields.csv")
     result.paths["metrics"] = report.write_metrics_json(result, out / "metrics.json")
     if config.figures:
-        from sim import figures
+        from fisc_ground import field_figures as figures
 
         result.paths.update(figures.write_run_figures(result, out))
     result.paths["report"] = report.write_report_md(result, out / "report.md")

@@ -376,7 +376,6 @@ class Swarm:
     def _keep(self, keep: np.ndarray, cv: np.ndarray) -> np.ndarray:
         """Remove the agents where ``keep`` is False by moving survivors from the tail into their
         slots (O(removed) copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
-        n = self.n
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m

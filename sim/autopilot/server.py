@@ -40,7 +40,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 import numpy as np
 
 from sim.autopilot.faults import DelayLine, FaultConfig, FaultInjector
-from sim.autopilot.personalities import FlightMode, Personality, get_personality
+from sim.autopilot.personalities import Personality, get_personality
 from sim.plant import PlantParams, VelocityPlant
 from sim.autopilot.vehicle import (
     ACCEPTED,

@@ -6,7 +6,6 @@ import socket
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # fake_autopilot

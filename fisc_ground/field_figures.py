@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from fisc_ground import plots
 from fisc_ground.metrics import centreline_profiles
 
-if TYPE_CHECKING:
-    from sim.run import RunResult
 
 
 def _minmax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -32,7 +30,7 @@ def _bymax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_run_figures(result: "RunResult", out_dir: Path) -> dict[str, Path]:
+def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
     """Write the PNGs into ``out_dir``; returns name -> path."""
     cmap, f, cfg = result.cmap, result.fields, result.config
     c = np.asarray(cmap["cv_center_m"], dtype=float)
