@@ -211,7 +211,7 @@ def launch_plan(field: CommandField, n_agents: int, transform: DeploymentTransfo
     row, col = k // ncol, k % ncol
     x0 = geom.x_inlet_m - staging_m - gap_m
     y_c = geom.inlet_center_yz_m[0]
-    start_map = np.empty((n_agents, 3))
+    start_map = np.zeros((n_agents, 3))  # z is irrelevant (D is set to 0) but must be finite: NaN*0 = NaN
     start_map[:, 0] = x0 - spacing_m * row
     start_map[:, 1] = y_c + spacing_m * (col - 0.5 * (ncol - 1))
     start_ned = transform.map_to_ned(start_map)

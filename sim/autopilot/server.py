@@ -30,6 +30,7 @@ import logging
 import math
 import select
 import socket
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -424,6 +425,40 @@ def _i16(x: float) -> int:
     return int(max(-32768, min(32767, round(x))))
 
 
+_HEADER_V2 = struct.Struct("<BBBBBBBHB")
+_CRC_EXTRA = [bytes([n]) for n in range(256)]
+
+
+def _pack(msg: mavlink.MAVLink_message, mav: mavlink.MAVLink) -> bytes:
+    """``msg.pack(mav)``: the same bytes, framed with a few struct calls instead of pymavlink's
+    generic ``MAVLink_message._pack`` (header object, CRC object, byte-array appends).
+
+    The message's own ``pack`` still lays out the payload; only the framing is swapped in, and
+    only for the unsigned MAVLink 2 frames the emulator sends (anything else goes through
+    pymavlink unchanged)."""
+    if mav.signing.sign_outgoing or float(mavlink.WIRE_PROTOCOL_VERSION) != 2.0:
+        return msg.pack(mav)
+    msg_id = msg.get_msgId()
+
+    def frame(mav_: mavlink.MAVLink, crc_extra: int, payload: bytes, force_mavlink1: bool = False) -> bytes:
+        if force_mavlink1:
+            return mavlink.MAVLink_message._pack(msg, mav_, crc_extra, payload, force_mavlink1)
+        body = payload.rstrip(b"\x00") or payload[:1]  # MAVLink 2 drops trailing zeros (keeps one byte)
+        head = _HEADER_V2.pack(253, len(body), 0, 0, mav_.seq, mav_.srcSystem, mav_.srcComponent,
+                               msg_id & 0xFFFF, msg_id >> 16)  # fmt: skip
+        crc = mavlink.x25crc(head[1:] + body + _CRC_EXTRA[crc_extra]).crc
+        return head + body + _CRC_U16.pack(crc)
+
+    msg._pack = frame  # type: ignore[method-assign]  # instance attribute: this message only
+    try:
+        return msg.pack(mav)  # type: ignore[attr-defined]
+    finally:
+        del msg._pack  # type: ignore[attr-defined]
+
+
+_CRC_U16 = struct.Struct("<H")
+
+
 def _warm_up_plant() -> None:
     """Compile (or load from cache) the plant kernel now, not on the first airborne step.
 
@@ -490,7 +525,7 @@ class AutopilotEmulator:
         self._transport: _Transport | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # re-entrant: `state` may be read from a handler inside poll()
         self._intervals: dict[int, float] = {}
         self._next_due: dict[int, float] = {}
         self._default_intervals = {
@@ -537,8 +572,9 @@ class AutopilotEmulator:
         self.stats = {"rx": 0, "tx": 0, "rx_dropped": 0, "tx_dropped": 0, "position_suppressed": 0, "errors": 0,
                       "setpoints": 0}
         """Message counters (read-only for callers)."""
-        self._state = self.vehicle.snapshot()
-        self._announced = (self._state.armed, self._state.custom_mode)
+        self._state: VehicleState | None = None  # built lazily by _snapshot() after each change
+        self._streams_due = -math.inf  # earliest next-due time of the streams (-inf: recompute)
+        self._announced = (self.vehicle.armed, self.personality.custom_mode(self.vehicle.mode))
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -557,7 +593,18 @@ class AutopilotEmulator:
     @property
     def state(self) -> VehicleState:
         """Latest immutable vehicle snapshot (thread-safe)."""
-        return self._state
+        with self._lock:
+            return self._snapshot()
+
+    def _snapshot(self) -> VehicleState:
+        """The vehicle snapshot as of the last change point (poll, command), built on first use.
+
+        Every place that used to take a snapshot now only drops the cached one; the vehicle does
+        not change between such a place and the next read, so what is read is the same."""
+        st = self._state
+        if st is None:
+            st = self._state = self.vehicle.snapshot()
+        return st
 
     @property
     def time_s(self) -> float:
@@ -631,21 +678,24 @@ class AutopilotEmulator:
                 veh.set_position_valid(not dropout, now)
             for ev in veh.drain_events():
                 self._statustext(ev.severity, ev.text)
-            self._state = veh.snapshot()
-            if (self._state.armed, self._state.custom_mode) != self._announced:
+            self._state = None
+            announced = (veh.armed, self.personality.custom_mode(veh.mode))
+            if announced != self._announced:
                 # arming / mode changes are announced at once (then the 1 Hz rhythm resumes)
-                self._announced = (self._state.armed, self._state.custom_mode)
+                self._announced = announced
                 self._next_due[mavlink.MAVLINK_MSG_ID_HEARTBEAT] = now
                 self._next_due[mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE] = now
-            next_due = self._send_streams(now)
-            for buf in self._delay.pop_due(now):
-                self._transport.send(buf)
-            next_due = min(next_due, self._delay.next_due())
+                self._streams_due = -math.inf
+            next_due = self._send_streams(now) if now >= self._streams_due else self._streams_due
+            if self._delay:  # latency fault injection only
+                for buf in self._delay.pop_due(now):
+                    self._transport.send(buf)
+                next_due = min(next_due, self._delay.next_due())
             return float(min(max(next_due - self.time_s, 0.0), 0.05))
 
     # ------------------------------------------------------------------ output
     def _send(self, msg: object) -> None:
-        buf = msg.pack(self._mav)  # type: ignore[attr-defined]
+        buf = _pack(msg, self._mav)
         self._mav.seq = (self._mav.seq + 1) % 256
         if self.faults.drop_outgoing():
             self.stats["tx_dropped"] += 1
@@ -665,7 +715,7 @@ class AutopilotEmulator:
             return True
         if self._transport is not None and not self._transport.has_peers:
             return True  # nobody listening yet (udpin before the first packet): skip the encoding
-        self._send(build(self._state))
+        self._send(build(self._snapshot()))
         return True
 
     def _send_streams(self, now: float) -> float:
@@ -679,6 +729,7 @@ class AutopilotEmulator:
                 due = due + interval if now - due < interval else now + interval
                 self._next_due[msg_id] = due
             next_due = min(next_due, due)
+        self._streams_due = next_due
         return next_due
 
     def _statustext(self, severity: int, text: str) -> None:
@@ -774,6 +825,7 @@ class AutopilotEmulator:
             parser.robust_parsing = True
             self._parsers[key] = parser
             self._next_due[mavlink.MAVLINK_MSG_ID_HEARTBEAT] = now  # greet a new peer at once
+            self._streams_due = -math.inf
         try:
             msgs = parser.parse_buffer(data) or []
         except mavlink.MAVError as exc:  # robust parsing should prevent this; count it
@@ -851,7 +903,7 @@ class AutopilotEmulator:
             follow_up.append(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         else:
             out = Outcome(UNSUPPORTED)
-        self._state = veh.snapshot()
+        self._state = None
         self._ack(msg, command, out)
         for msg_id in follow_up:
             if out.ok:
@@ -883,6 +935,7 @@ class AutopilotEmulator:
             interval = max(interval_us * 1e-6, 0.005)
         self._intervals[msg_id] = interval
         self._next_due[msg_id] = now
+        self._streams_due = -math.inf
         return Outcome(ACCEPTED)
 
     def _on_set_mode(self, msg: object, now: float) -> None:
@@ -891,7 +944,7 @@ class AutopilotEmulator:
         else:
             mode = self.personality.mode_from_custom(msg.custom_mode)  # type: ignore[attr-defined]
             out = Outcome(UNSUPPORTED, "Unknown mode") if mode is None else self.vehicle.set_mode(mode, now)
-        self._state = self.vehicle.snapshot()
+        self._state = None
         self._ack(msg, mavlink.MAVLINK_MSG_ID_SET_MODE, out)
 
     def _on_set_position_target_local_ned(self, msg: object, now: float) -> None:
@@ -900,7 +953,7 @@ class AutopilotEmulator:
         veh.step(now)
         sp = resolve_local_setpoint(
             m.coordinate_frame, m.type_mask, (m.x, m.y, m.z), (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
-            tuple(veh.pos), veh.yaw,
+            tuple(veh.pos.tolist()), veh.yaw,
         )  # fmt: skip
         if sp is None:
             _log.warning("SET_POSITION_TARGET_LOCAL_NED frame %d not supported; ignored", m.coordinate_frame)  # type: ignore[attr-defined]
@@ -923,7 +976,7 @@ class AutopilotEmulator:
         n, e, d = geodetic_to_ned(m.lat_int * 1e-7, m.lon_int * 1e-7, alt, self.home_lla)  # type: ignore[attr-defined]
         sp = resolve_local_setpoint(
             mavlink.MAV_FRAME_LOCAL_NED, m.type_mask, (n, e, d), (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
-            tuple(veh.pos), veh.yaw,
+            tuple(veh.pos.tolist()), veh.yaw,
         )  # fmt: skip
         if sp is not None:
             self.stats["setpoints"] += 1

@@ -38,7 +38,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode, Personality
-from sim.plant import PlantParams, VelocityPlant
+from sim.plant import PlantParams, VelocityPlant, _numba_fleet_kernel, substep_count
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
@@ -197,6 +197,8 @@ class Vehicle:
             raise ValueError(f"physics_dt_s must be > 0, got {self.config.physics_dt_s}")
         self.params: dict[str, float] = personality.default_params(sysid)
         self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
+        self._fast_step = None if plant_factory is not None else _fast_plant_step(self._plant, self.config.physics_dt_s)
+        self._px4 = personality.name == "px4"
         self.t_s = float(t0_s)
         self.pos = start.copy()
         self.vel = np.zeros(3)
@@ -248,7 +250,7 @@ class Vehicle:
 
     @property
     def _is_px4(self) -> bool:
-        return self.personality.name == "px4"
+        return self._px4
 
     def _reject(self) -> int:
         """Result code the personality uses for "not now" (PX4 TEMPORARILY_REJECTED, ArduPilot FAILED)."""
@@ -459,14 +461,15 @@ class Vehicle:
         while self.t_s + dt <= t_s + 1e-9:
             self._substep(dt)
 
-    def _velocity_command(self) -> np.ndarray:
-        """Velocity command [m/s] NED of the current mode (motors assumed on)."""
-        mode, pos = self.mode, self.pos
+    def _velocity_command(self) -> list[float]:
+        """Velocity command [m/s] NED of the current mode (motors assumed on), as 3 floats.
+
+        Plain float arithmetic (one vehicle: numpy's per-call overhead would dominate)."""
+        mode = self.mode
         k = self.config.position_gain_1_s
-        cmd = np.zeros(3)
         if self._takeoff_target_d is not None and mode in (FlightMode.TAKEOFF, FlightMode.GUIDED):
-            err = pos[2] - self._takeoff_target_d  # > 0 below the target
-            cmd[2] = -float(np.clip(k * err, -self._land_speed(), self._takeoff_speed()))
+            err = float(self.pos[2]) - self._takeoff_target_d  # > 0 below the target
+            up = -min(max(k * err, -self._land_speed()), self._takeoff_speed())
             if abs(err) <= self.config.takeoff_tolerance_m:
                 self._takeoff_target_d = None
                 if mode == FlightMode.TAKEOFF:
@@ -474,23 +477,24 @@ class Vehicle:
                     self._enter_mode(FlightMode.LOITER)
                 else:
                     self._event("Takeoff complete")
-            return cmd
+            return [0.0, 0.0, up]
         if mode in (FlightMode.OFFBOARD, FlightMode.GUIDED):
             sp = self._setpoint
             if sp is None:
-                return cmd
-            p = np.asarray(sp.position_ned_m, dtype=float)
-            v = np.asarray(sp.velocity_ned_m_s, dtype=float)
+                return [0.0, 0.0, 0.0]
+            v = sp.velocity_ned_m_s
             if mode == FlightMode.GUIDED and self.t_s - self._guided_vel_t > self._p("GUID_TIMEOUT"):
-                v = np.full(3, math.nan)  # ArduPilot: stale velocity target -> stop
-            cmd = np.where(np.isfinite(v), v, 0.0) + np.where(np.isfinite(p), k * (p - pos), 0.0)
-            return cmd
+                v = _NAN3  # ArduPilot: stale velocity target -> stop
+            isfinite = math.isfinite
+            return [
+                (vj if isfinite(vj) else 0.0) + (k * (pj - xj) if isfinite(pj) else 0.0)
+                for vj, pj, xj in zip(v, sp.position_ned_m, self.pos.tolist())
+            ]
         if mode == FlightMode.LAND:
-            cmd[2] = self._land_speed()
-            return cmd
+            return [0.0, 0.0, self._land_speed()]
         if mode == FlightMode.RTL:
-            return self._rtl_command()
-        return cmd  # hold modes (and TAKEOFF after completion): zero velocity
+            return self._rtl_command().tolist()
+        return [0.0, 0.0, 0.0]  # hold modes (and TAKEOFF after completion): zero velocity
 
     def _rtl_command(self) -> np.ndarray:
         k = self.config.position_gain_1_s
@@ -514,11 +518,16 @@ class Vehicle:
             cmd[2] = self._land_speed()
         return cmd
 
-    def _limit(self, cmd: np.ndarray) -> np.ndarray:
+    def _limit(self, cmd: list[float]) -> list[float]:
+        """Clamp a 3-float command in place to the horizontal / climb / descent limits."""
         xy_max, up_max, dn_max = self._limits()
-        h = float(np.hypot(cmd[0], cmd[1]))
-        if h > xy_max:
-            cmd[:2] *= xy_max / h
+        c0, c1 = cmd[0], cmd[1]
+        if not c0 * c0 + c1 * c1 <= 0.98 * xy_max * xy_max:  # else clearly inside: skip np.hypot
+            h = float(np.hypot(c0, c1))
+            if h > xy_max:
+                s = xy_max / h
+                cmd[0] *= s
+                cmd[1] *= s
         cmd[2] = min(max(cmd[2], -up_max), dn_max)
         return cmd
 
@@ -536,8 +545,8 @@ class Vehicle:
                 self._ground_contact(falling=True)
             self._update_yaw(dt)
             return
-        cmd = self._limit(self._velocity_command())
-        self.cmd = cmd
+        cmd_row = np.array([self._limit(self._velocity_command())])  # (1, 3), as the plant takes it
+        cmd = self.cmd = cmd_row[0]
         if self.landed:
             if cmd[2] < -1e-6:  # commanded to climb: lift off from rest
                 self.landed = False
@@ -549,7 +558,11 @@ class Vehicle:
                 self._auto_disarm_check()
                 self._update_yaw(dt)
                 return
-        self.vel = np.array(self._plant.step(cmd[None, :], dt)[0], dtype=float)
+        if self._fast_step is not None and dt == self.config.physics_dt_s:
+            self._fast_step(self._plant.velocity, self._plant.thrust_accel, cmd_row)
+            self.vel = self._plant.velocity[0].copy()
+        else:
+            self.vel = np.array(self._plant.step(cmd_row, dt)[0], dtype=float)
         self.pos += self.vel * dt
         self._ground_contact(falling=False)
         self._update_yaw(dt)
@@ -589,9 +602,9 @@ class Vehicle:
             max_r = self.config.yaw_rate_max_rad_s
             if math.isfinite(sp.yaw_rad):
                 err = (sp.yaw_rad - self.yaw + math.pi) % (2 * math.pi) - math.pi
-                rate = float(np.clip(err / dt, -max_r, max_r))
+                rate = min(max(err / dt, -max_r), max_r)
             elif math.isfinite(sp.yaw_rate_rad_s):
-                rate = float(np.clip(sp.yaw_rate_rad_s, -max_r, max_r))
+                rate = min(max(float(sp.yaw_rate_rad_s), -max_r), max_r)
         self.yaw = (self.yaw + rate * dt + math.pi) % (2 * math.pi) - math.pi
         self.yaw_rate = rate
 
@@ -600,7 +613,7 @@ class Vehicle:
         """(roll, pitch) [rad] from the direction of the realised thrust."""
         if not self.armed or self.landed:
             return 0.0, 0.0
-        a = np.asarray(self._plant.thrust_accel[0], dtype=float)
+        a = self._plant.thrust_accel[0].tolist()
         cy, sy = math.cos(self.yaw), math.sin(self.yaw)
         fwd = cy * a[0] + sy * a[1]
         right = -sy * a[0] + cy * a[1]
@@ -624,15 +637,45 @@ class Vehicle:
             armed=self.armed,
             mode=self.mode,
             custom_mode=self.personality.custom_mode(self.mode),
-            position_ned_m=tuple(float(x) for x in self.pos),
-            velocity_ned_m_s=tuple(float(x) for x in self.vel),
+            position_ned_m=tuple(self.pos.tolist()),
+            velocity_ned_m_s=tuple(self.vel.tolist()),
             roll_rad=roll,
             pitch_rad=pitch,
             yaw_rad=self.yaw,
             yaw_rate_rad_s=self.yaw_rate,
             landed_state=self._landed_state(),
-            home_ned_m=tuple(float(x) for x in self.home),
+            home_ned_m=tuple(self.home.tolist()),
             position_valid=self.position_valid,
             last_setpoint_t_s=self._setpoint_t,
-            velocity_command_ned_m_s=tuple(float(x) for x in self.cmd),
+            velocity_command_ned_m_s=tuple(self.cmd.tolist()),
         )
+
+
+def _fast_plant_step(plant: VelocityPlant, dt_s: float) -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None:
+    """The one-vehicle fast path of ``plant.step(cmd, dt_s)``: ``f(vel, thrust, cmd_row)`` steps the
+    (1, 3) state arrays in place with a (1, 3) command, or None when it does not apply.
+
+    It calls the very numba kernel :func:`sim.plant.step_plant` selects for one agent with one
+    coefficient row and no wind/noise (:func:`sim.plant._numba_fleet_kernel`), with the scalar
+    coefficients, sub-step count and sub-step length computed once here instead of on every
+    call (the argument checks and coefficient extraction of ``step_plant`` cost ~10x the kernel
+    for one agent).  Bit-identical results; None without numba, for a non-default backend, or
+    for a plant that is not one agent with shared coefficients.
+    """
+    kernel = _numba_fleet_kernel()
+    co = plant.coefficients
+    if (kernel is None or type(plant) is not VelocityPlant or plant.n_agents != 1 or co.rows != 1
+            or getattr(plant, "_backend", None) != "auto"):
+        return None
+    nsub = substep_count(dt_s, co)
+    h = dt_s / nsub
+    args = (
+        float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
+        float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
+        float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
+    )  # fmt: skip
+
+    def step(vel: np.ndarray, thrust: np.ndarray, cmd_row: np.ndarray) -> None:
+        kernel(vel, thrust, cmd_row, *args)
+
+    return step

@@ -194,3 +194,16 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert (tmp_path / "run_reference" / "metrics.json").is_file()
     assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "map.fiscmap").is_file()
+
+
+def test_launch_plan_start_positions_are_finite_on_the_ground_for_many_vehicles():
+    from fisc_agent.frames import DeploymentTransform
+    from fisc_agent.lookup import CommandField
+    from fisc_ground.mapbuild import load_shipped_default_map
+    from sim.emulate import launch_plan
+
+    field = CommandField.from_map(load_shipped_default_map())
+    plan = launch_plan(field, 400, DeploymentTransform(yaw_deg=30.0), duration_s=60.0)
+    assert plan.start_ned_m.shape == (400, 3)
+    assert np.all(np.isfinite(plan.start_ned_m)) and np.all(plan.start_ned_m[:, 2] == 0.0)
+    assert np.all(np.isfinite(plan.start_time_s)) and plan.start_time_s.min() == 0.0
