@@ -239,16 +239,21 @@ def _decode(data: memoryview, trusted_keys: list[bytes] | None) -> CommandMap:
                       public_key=seal.get("public_key") if signed else None)
 
 
-def read_public_key(path: str | Path) -> bytes:
-    """Read a ``NAME.pub`` file (hex Ed25519 public key, as written by ``fisc-ground keygen``)."""
+def read_hex_key(path: str | Path, what: str) -> bytes:
+    """Read a 32-byte Ed25519 key stored as hex text (``keygen``'s ``.pub`` and ``.key`` files)."""
     text = Path(path).read_text().strip()
     try:
         key = bytes.fromhex(text)
     except ValueError as exc:
-        raise MapError(f"{path}: not a hex Ed25519 public key") from exc
+        raise MapError(f"{path}: not a hex Ed25519 {what}") from exc
     if len(key) != 32:
-        raise MapError(f"{path}: an Ed25519 public key has 32 bytes, this has {len(key)}")
+        raise MapError(f"{path}: an Ed25519 {what} has 32 bytes, this has {len(key)}")
     return key
+
+
+def read_public_key(path: str | Path) -> bytes:
+    """Read a ``NAME.pub`` file (hex Ed25519 public key, as written by ``fisc-ground keygen``)."""
+    return read_hex_key(path, "public key")
 
 
 def load_map(path: str | Path, trusted_key: str | Path | bytes | None = None) -> CommandMap:

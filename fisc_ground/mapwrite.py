@@ -17,11 +17,11 @@ from fisc_agent.mapfile import (
     REQUIRED_ARRAYS,
     SCHEMA,
     SCHEMA_VERSION,
-    MapError,
     _U32,
     _U64,
     canonical_json,
     decode_map,
+    read_hex_key,
 )
 
 
@@ -106,12 +106,5 @@ def generate_keypair(stem: str | Path) -> tuple[Path, Path]:
 
 
 def read_signing_key(path: str | Path) -> bytes:
-    """Read a ``NAME.key`` file written by ``generate_keypair``."""
-    text = Path(path).read_text().strip()
-    try:
-        seed = bytes.fromhex(text)
-    except ValueError as exc:
-        raise MapError(f"{path}: not a hex Ed25519 private key") from exc
-    if len(seed) != 32:
-        raise MapError(f"{path}: an Ed25519 private key seed has 32 bytes, this has {len(seed)}")
-    return seed
+    """Read a ``NAME.key`` file written by ``generate_keypair`` (hex Ed25519 seed)."""
+    return read_hex_key(path, "private key seed")
