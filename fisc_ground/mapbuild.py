@@ -60,11 +60,11 @@ class FitConfig:
 
 
 def _software_version() -> str:
-    try:
-        from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
+    try:
         return version("fisc")
-    except Exception:  # noqa: BLE001 - metadata is absent when run from a source tree
+    except PackageNotFoundError:  # run from a source tree without installing
         return "0+unknown"
 
 
