@@ -63,7 +63,9 @@ def tls_net(pki, tmp_path):
 
 
 def test_documented_lab_config_parses():
-    zenoh.Config.from_json5(doc_config("lab-peer"))
+    cfg = zenoh.Config.from_json5(doc_config("lab-peer"))
+    assert cfg.get_json("mode") == '"peer"'
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
 
 
 def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, ground_key, pki):
