@@ -485,7 +485,7 @@ def step_plant(
     if kernel is None:
         _step_numpy(vel_out, thr_out, cmd, wind, wind_ff, noise, co, h, nsub)
     elif co.rows == 1 and wind is None and wind_ff is None and noise is None:
-        _numba_fleet_kernel()(
+        fleet_kernel()(
             vel_out, thr_out, cmd, float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
             float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
             float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
@@ -618,7 +618,7 @@ _FLEET_BLOCK = 256
 
 
 @functools.lru_cache(maxsize=1)
-def _numba_fleet_kernel():
+def fleet_kernel():
     """The fleet-wide specialisation of :func:`_numba_kernel`, compiled on first use; None
     without numba.
 

@@ -38,7 +38,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode, Personality
-from sim.plant import PlantParams, VelocityPlant, _numba_fleet_kernel, substep_count
+from sim.plant import PlantParams, VelocityPlant, fleet_kernel, substep_count
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
@@ -656,13 +656,13 @@ def _fast_plant_step(plant: VelocityPlant, dt_s: float) -> Callable[[np.ndarray,
     (1, 3) state arrays in place with a (1, 3) command, or None when it does not apply.
 
     It calls the very numba kernel :func:`sim.plant.step_plant` selects for one agent with one
-    coefficient row and no wind/noise (:func:`sim.plant._numba_fleet_kernel`), with the scalar
+    coefficient row and no wind/noise (:func:`sim.plant.fleet_kernel`), with the scalar
     coefficients, sub-step count and sub-step length computed once here instead of on every
     call (the argument checks and coefficient extraction of ``step_plant`` cost ~10x the kernel
     for one agent).  Bit-identical results; None without numba, for a non-default backend, or
     for a plant that is not one agent with shared coefficients.
     """
-    kernel = _numba_fleet_kernel()
+    kernel = fleet_kernel()
     co = plant.coefficients
     if (kernel is None or type(plant) is not VelocityPlant or plant.n_agents != 1 or co.rows != 1
             or getattr(plant, "_backend", None) != "auto"):

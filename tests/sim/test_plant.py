@@ -186,13 +186,13 @@ def test_fleet_wide_numba_kernel_equals_the_general_kernel(n, monkeypatch):
     import sim.plant as plant_mod
 
     calls = []
-    fleet = plant_mod._numba_fleet_kernel()
+    fleet = plant_mod.fleet_kernel()
 
     def counting():
         calls.append(1)
         return fleet
 
-    monkeypatch.setattr(plant_mod, "_numba_fleet_kernel", counting)
+    monkeypatch.setattr(plant_mod, "fleet_kernel", counting)
     p = PlantParams()
     _, vel, thr, cmd, _ = random_state(n, seed=12)
     cmd[::3] *= 4.0  # drive part of the fleet into the tilt / thrust limits
