@@ -21,6 +21,46 @@ import math
 
 
 @functools.lru_cache(maxsize=1)
+def cell_and_slot_helpers():
+    """``(padded_cell, slot_of)`` jitted helpers shared by the kernels; None without numba.
+
+    ``padded_cell(pos, i, origin, inv_l, hi, strides)``: flat index of agent ``i``'s cell on the
+    padded grid, indices clipped to ``[0, hi]`` (as ``CVLookup``).  ``slot_of(agent_id, j,
+    n_star_j)``: ``fisc_agent.lookup.slot_index`` (same 32-bit mix) for one agent.
+    """
+    try:
+        import numba
+        import numpy as np
+    except ImportError:
+        return None
+    m32 = np.uint64(0xFFFFFFFF)
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def padded_cell(pos, i, origin, inv_l, hi, strides):
+        c = 0
+        for k in range(3):
+            f = math.floor((pos[i, k] - origin[k]) * inv_l)
+            if f < 0.0:
+                f = 0.0
+            elif f > hi[k]:
+                f = hi[k]
+            c += np.int64(f) * strides[k]
+        return c
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def slot_of(agent_id, j, n_star_j):
+        a = np.uint64(agent_id) & m32
+        b = np.uint64(j) & m32
+        h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & m32
+        h ^= h >> np.uint64(15)
+        h = (h * np.uint64(0x2C1B3C6D)) & m32
+        h ^= h >> np.uint64(12)
+        return np.int64(h % n_star_j)
+
+    return padded_cell, slot_of
+
+
+@functools.lru_cache(maxsize=1)
 def return_commands_kernel():
     """Kernel ``(pos, ids, cv, cmd, out_s, dt_s, origin, inv_l, hi, strides, near_flat, centers,
     mean_speed, mean_ned, slot_ned, n_star, slot_mode, gain, frac, map_to_ned) -> n_outside``.
@@ -34,14 +74,13 @@ def return_commands_kernel():
     """
     try:
         import numba
-        import numpy as np
     except ImportError:
         return None
+    padded_cell, slot_of = cell_and_slot_helpers()
 
     @numba.njit(cache=True, nogil=True, error_model="numpy")
     def kernel(pos, ids, cv, cmd, out_s, dt_s, origin, inv_l, hi, strides, near_flat, centers,
                mean_speed, mean_ned, slot_ned, n_star, slot_mode, gain, frac, map_to_ned):
-        m32 = np.uint64(0xFFFFFFFF)
         n_out = 0
         for i in range(cv.shape[0]):
             if cv[i] >= 0:
@@ -49,14 +88,7 @@ def return_commands_kernel():
                 continue
             n_out += 1
             out_s[i] += dt_s
-            c = 0
-            for k in range(3):
-                f = math.floor((pos[i, k] - origin[k]) * inv_l)
-                if f < 0.0:
-                    f = 0.0
-                elif f > hi[k]:
-                    f = hi[k]
-                c += np.int64(f) * strides[k]
+            c = padded_cell(pos, i, origin, inv_l, hi, strides)
             j = near_flat[c]
             if j < 0:
                 j = 0
@@ -71,13 +103,7 @@ def return_commands_kernel():
             q1 *= s
             q2 *= s
             if slot_mode:
-                a = np.uint64(ids[i]) & m32
-                b = np.uint64(j) & m32
-                h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & m32
-                h ^= h >> np.uint64(15)
-                h = (h * np.uint64(0x2C1B3C6D)) & m32
-                h ^= h >> np.uint64(12)
-                kk = np.int64(h % n_star[j])
+                kk = slot_of(ids[i], j, n_star[j])
                 cmd[i, 0] = slot_ned[j, kk, 0] + q0 * map_to_ned[0]
                 cmd[i, 1] = slot_ned[j, kk, 1] + q1 * map_to_ned[1]
                 cmd[i, 2] = slot_ned[j, kk, 2] + q2 * map_to_ned[2]

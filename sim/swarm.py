@@ -33,13 +33,12 @@ Bookkeeping: ``injected == alive + exited + escaped`` at all times.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from fisc_agent.lookup import COMMAND_MODES, CommandField, lookahead_point, slot_hash
-from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
+from sim.kernels import cell_and_slot_helpers, move_kernel, removal_kernel, return_commands_kernel
 from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
@@ -57,31 +56,18 @@ def _numba_lookup():
         import numba
     except ImportError:
         return None
+    padded_cell, slot_of = cell_and_slot_helpers()
 
     @numba.njit(cache=True, nogil=True)
     def kernel(pos, ids, origin, inv_l, hi, strides, flat, mean_ned, slot_ned, n_star, slot_mode,
                cv_out, cmd_out, cell_out):
-        m32 = np.uint64(0xFFFFFFFF)
         for i in range(pos.shape[0]):
-            c = 0
-            for k in range(3):
-                f = math.floor((pos[i, k] - origin[k]) * inv_l)
-                if f < 0.0:
-                    f = 0.0
-                elif f > hi[k]:
-                    f = hi[k]
-                c += np.int64(f) * strides[k]
+            c = padded_cell(pos, i, origin, inv_l, hi, strides)
             cell_out[i] = c
             j = flat[c]
             cv_out[i] = j
             if slot_mode and j >= 0:
-                a = np.uint64(ids[i]) & m32
-                b = np.uint64(j) & m32
-                h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & m32
-                h ^= h >> np.uint64(15)
-                h = (h * np.uint64(0x2C1B3C6D)) & m32
-                h ^= h >> np.uint64(12)
-                kk = np.int64(h % n_star[j])
+                kk = slot_of(ids[i], j, n_star[j])
                 for k in range(3):
                     cmd_out[i, k] = slot_ned[j, kk, k]
             else:

@@ -52,6 +52,13 @@ def looks_axisymmetric(keys: tuple[str, ...]) -> bool:
     return (has_r or has_ur) and not has_z
 
 
+def axial_bins(x: np.ndarray) -> np.ndarray:
+    """Bin id per point in about sqrt(n)/2 equal x bins: the fallback for scattered data."""
+    nb = max(2, int(np.sqrt(x.size) / 2))
+    edges = np.linspace(x.min(), x.max(), nb + 1)
+    return np.clip(np.searchsorted(edges, x, side="right") - 1, 0, nb - 1)
+
+
 def axial_columns(x: np.ndarray) -> np.ndarray | None:
     """Group points into axial columns (cluster id per point), or None if x is not clustered.
 
@@ -92,9 +99,7 @@ def estimate_wall_from_cells(x: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, 
     """
     cid = axial_columns(x)
     if cid is None:
-        nb = max(2, int(np.sqrt(x.size) / 2))
-        edges = np.linspace(x.min(), x.max(), nb + 1)
-        cid = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, nb - 1)
+        cid = axial_bins(x)
         o = np.lexsort((r, cid))
         last = np.r_[np.nonzero(np.diff(cid[o]))[0], o.size - 1]
         return x[o][last], r[o][last]

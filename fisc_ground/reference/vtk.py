@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from fisc_ground.reference.analytic import LATTICE_SPACING_M
-from fisc_ground.reference.axisym import axial_columns, revolve_axisymmetric
+from fisc_ground.reference.axisym import axial_bins, axial_columns, revolve_axisymmetric
 from fisc_ground.reference.field import ReferenceError, ReferenceField
 from fisc_ground.reference.fluent_csv import to_gauge
 
@@ -214,9 +214,7 @@ def _wall_from_vertices(mesh_points: np.ndarray, axis_dir: np.ndarray
     rp = np.abs(mesh_points[:, 1] * axis_dir[0] + mesh_points[:, 2] * axis_dir[1])
     cid = axial_columns(x)
     if cid is None:  # scattered vertices: bin in x
-        nb = max(2, int(np.sqrt(x.size) / 2))
-        edges = np.linspace(x.min(), x.max(), nb + 1)
-        cid = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, nb - 1)
+        cid = axial_bins(x)
     o = np.lexsort((rp, cid))
     last = np.r_[np.nonzero(np.diff(cid[o]))[0], o.size - 1]
     return x[o][last], rp[o][last]
