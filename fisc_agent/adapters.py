@@ -13,7 +13,7 @@ OFFBOARD unless a setpoint stream (> 2 Hz) is already running: the commander wai
 ``stream_before_offboard_s`` of streaming first.  Takeoff: a climb in OFFBOARD (no command).
 
 ArduPilot Copter: ``custom_mode`` is the flight mode number: GUIDED 4, LOITER 5, LAND 9,
-BRAKE 17.  Mode change: MAV_CMD_DO_SET_MODE (param2 = mode number).  Takeoff:
+BRAKE 17; the agent's hold is BRAKE (LOITER follows the RC throttle stick and descends without one).  Mode change: MAV_CMD_DO_SET_MODE (param2 = mode number).  Takeoff:
 MAV_CMD_NAV_TAKEOFF with param7 = height above home, once armed in GUIDED.
 
 Both: arm with MAV_CMD_COMPONENT_ARM_DISARM (param1 = 1).
@@ -112,13 +112,21 @@ class Px4Adapter:
 
 
 class ArduPilotAdapter:
-    """ArduPilot Copter: GUIDED, NAV_TAKEOFF, LOITER (or BRAKE) hold, LAND."""
+    """ArduPilot Copter: GUIDED, NAV_TAKEOFF, BRAKE hold, LAND.
+
+    The hold is BRAKE: it stops and holds position and altitude with no pilot.  LOITER and
+    ALT_HOLD follow the RC throttle stick, so without an RC link (a swarm) they descend: real
+    ArduCopter SITL hit the ground 5 s after a LOITER hold.  A LOITER the pilot selects still
+    counts as a hold (the pilot is then in charge).
+    """
 
     name = "ardupilot"
     takeoff_by_command = True
     stream_before_offboard_s = 0.0
 
-    def __init__(self, hold_mode: int = AP_COPTER_LOITER) -> None:
+    def __init__(self, hold_mode: int = AP_COPTER_BRAKE) -> None:
+        if hold_mode not in (AP_COPTER_BRAKE, AP_COPTER_GUIDED):
+            raise ValueError(f"ArduPilot hold mode {hold_mode} follows the pilot's throttle; use BRAKE (17)")
         self.hold_mode = hold_mode
 
     def classify_mode(self, base_mode: int, custom_mode: int) -> str:

@@ -18,10 +18,23 @@ from fisc_agent.frames import GeodeticAnchor, parse_floats
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.mapfile import MapError, load_map
 from fisc_agent.mission import State
+from fisc_agent.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
+
+
+def _seconds_or_auto(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+    if not (value >= 0 and value < 10):
+        raise argparse.ArgumentTypeError(f"look-ahead must be in [0, 10) s, got {text}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,6 +53,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", choices=BACKENDS, default="pymavlink",
                    help="MAVLink client library (mavsdk needs the mavsdk package)")
     p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="command mode")
+    t = p.add_argument_group("streamline tracking (fisc_agent.tracking; docs/deployment.md)")
+    t.add_argument("--track-gain", type=float, default=TrackingConfig.gain_1_s,
+                   help="cross-stream feedback towards the agent's own streamline [1/s]; 0: fly the field open loop")
+    t.add_argument("--track-integral-gain", type=float, default=TrackingConfig.integral_gain_1_s2,
+                   help="cross-stream integral gain: learns a steady velocity bias [1/s^2]")
+    t.add_argument("--track-max-correction", type=float, default=TrackingConfig.max_correction_m_s,
+                   help="largest feedback velocity added to the map's command [m/s]")
+    t.add_argument("--lookahead", type=_seconds_or_auto, default="auto",
+                   help="evaluate the field this far ahead, compensating the vehicle's velocity lag [s]; auto: "
+                        "identify the lag (and the feed-forward gain) in flight during take-off and join")
+    t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
+                   help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
+                        "with --lookahead auto the identified value replaces it")
+    p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flightlog)")
     p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
     p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
     p.add_argument("--yaw", type=float, default=0.0, help="map x-axis direction, clockwise from North [deg]")
@@ -78,6 +105,11 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     return AgentConfig(
         mavlink_url=a.mavlink, agent_id=a.agent_id, map_path=a.map_path, trusted_key=a.trusted_key,
         autopilot=a.autopilot, backend=a.backend, mode=a.mode, rate_hz=a.rate,
+        tracking=TrackingConfig(gain_1_s=a.track_gain, integral_gain_1_s2=a.track_integral_gain,
+                                max_correction_m_s=a.track_max_correction,
+                                lookahead_s=0.0 if a.lookahead == "auto" else a.lookahead,
+                                feedforward_gain=a.feedforward_gain),
+        lookahead_auto=a.lookahead == "auto",
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
@@ -98,7 +130,7 @@ def make_link(cfg: AgentConfig):
 
 
 def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: float | None = None,
-        zenoh_args: argparse.Namespace | None = None) -> int:
+        zenoh_args: argparse.Namespace | None = None, flight_log: str | None = None) -> int:
     """Load the map (or receive it over Zenoh when ``zenoh_args.swarm`` is set), connect, fly."""
     from fisc_agent.runner import Runner
 
@@ -111,11 +143,20 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         log.info("map %s signed by %s", cfg.map_path, cmap.public_key)
     elif cmap is not None:
         log.warning("map %s is not signed; its integrity (sha256) is checked, its origin is not", cfg.map_path)
+    from fisc_agent.flightlog import FlightLog
+
+    try:
+        flog = FlightLog(flight_log) if flight_log else None
+    except OSError as exc:
+        log.error("cannot write the flight log: %s", exc)
+        return EXIT_INVALID
     link = make_link(cfg)
     try:
-        runner = Runner(cfg, link, cmap)
+        runner = Runner(cfg, link, cmap, on_tick=flog.write if flog else None)
     except MapError as exc:
         link.close()
+        if flog:
+            flog.close()
         log.error("invalid map, refusing to start: %s", exc)
         return EXIT_INVALID
     log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz", cfg.agent_id, cfg.mavlink_url,
@@ -138,6 +179,8 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         if zlink is not None:
             zlink.close()
         runner.shutdown()
+        if flog is not None:
+            flog.close()
     if final == State.DONE and runner.mission.reason.startswith("failed"):
         log.error("mission failed: %s", runner.mission.reason)
         return EXIT_FAILED
@@ -165,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, _on_signal)
-    return run(cfg, stop, args.max_duration, args)
+    return run(cfg, stop, args.max_duration, args, args.flight_log)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
 from fisc_agent.lookup import COMMAND_MODES
+from fisc_agent.tracking import TrackingConfig
 
 AUTOPILOTS = ("auto", "px4", "ardupilot")
 BACKENDS = ("pymavlink", "mavsdk")
@@ -32,6 +33,11 @@ class AgentConfig:
     """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
     mode: str = "mean"
     """Command mode: ``mean``, ``slot`` or ``interpolated`` (DESIGN.md section 3)."""
+    tracking: TrackingConfig = TrackingConfig()
+    """Streamline tracking: position feedback on a virtual parcel, look-ahead (``fisc_agent.tracking``)."""
+    lookahead_auto: bool = True
+    """Identify the vehicle's velocity response in flight (take-off and join) and set the tracking
+    look-ahead and feed-forward gain from it (``--lookahead auto``); False: use ``tracking`` as given."""
     rate_hz: float = 20.0
     """Setpoint rate [Hz]; PX4 needs > 2 Hz, ArduPilot's GUID_TIMEOUT needs > 1/3 Hz."""
     origin_ned_m: tuple[float, float, float] = DEFAULT_ORIGIN_NED_M

@@ -26,7 +26,7 @@ modes and streaming ("hands off") until a fleet ``resume``: it never fights the 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 from typing import NamedTuple
 
@@ -34,6 +34,8 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, goto_velocity,
                                 join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+from fisc_agent.identify import ResponseRecorder, VehicleResponse
+from fisc_agent.tracking import ParcelTracker
 
 log = logging.getLogger(__name__)
 
@@ -136,6 +138,10 @@ class Mission:
         self.sfield: ScalarField | None = None
         self.geom: MapGeometry | None = None
         self.entry: Vec | None = None
+        self.tracker = ParcelTracker(cfg.tracking)
+        self.response: VehicleResponse | None = None
+        """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
+        self._recorder = ResponseRecorder()
         self._last_pos: Vec | None = None
         if sfield is not None:
             self.set_map(sfield)
@@ -146,10 +152,37 @@ class Mission:
         self.sfield = sfield
         self.geom = MapGeometry.from_field(sfield.field)
         self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
+        self.tracker.x_outlet_m = self.geom.x_outlet_m
+        self.tracker.clear()  # a parcel of the old map means nothing in the new one
         if self._last_pos is not None and self.state == State.JOIN:
             self._plan_join(self._last_pos)
         if self._last_pos is not None and self.state == State.RETURN:
             self._plan_return(self._last_pos)
+
+    def observe_response(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
+        """Record a streamed setpoint and the measured velocity (TAKEOFF and JOIN) for identification."""
+        if self.state in (State.TAKEOFF, State.JOIN) and self.response is None:
+            self._recorder.add(t, (sp_m_s[0], sp_m_s[1]), (vel_m_s[0], vel_m_s[1]))
+
+    def _identify(self) -> None:
+        """Fit the velocity response once (``lookahead_auto``) and tune the tracker's feed-forward."""
+        if not self.cfg.lookahead_auto or self.response is not None:
+            return
+        resp = self._recorder.fit()
+        if resp is None:
+            log.warning("velocity response not identified (%d samples, too little excitation); flying with "
+                        "look-ahead %.2f s, feed-forward gain %.2f", len(self._recorder),
+                        self.tracker.cfg.lookahead_s, self.tracker.cfg.feedforward_gain)
+            self.response = None
+            self._recorder = ResponseRecorder(0)  # do not try again
+            return
+        self.response = resp
+        self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=resp.lookahead_s,
+                                   feedforward_gain=resp.feedforward_gain)
+        log.info("velocity response identified from %d samples: lag %.2f s, dead time %.2f s, gain %.2f, rise time "
+                 "%.2f s, max accel %.1f m/s^2 -> look-ahead %.2f s, feed-forward gain %.2f", resp.n_samples,
+                 resp.lag_s, resp.dead_time_s, resp.gain, resp.rise_time_s, resp.max_accel_m_s2, resp.lookahead_s,
+                 resp.feedforward_gain)
 
     def command(self, name: str) -> None:
         """Queue a fleet command (``hold``, ``resume``, ``land``); applied at the next step."""
@@ -163,6 +196,10 @@ class Mission:
             return
         self.transitions.append(Transition(t, self.state, dst, reason))
         log.info("mission %s -> %s (%s)", self.state.value, dst.value, reason)
+        if dst == State.FLOW and self.state != State.FLOW:
+            self._identify()
+            if self._last_pos is not None:
+                self.tracker.reset(self._last_pos, t)  # a new parcel where the vehicle (re-)enters the flow
         self.state, self.reason, self._t_state = dst, reason, t
 
     def _hold(self, t: float, reason: str, latched: bool, armed: bool, hands_off: bool = False) -> None:
@@ -213,6 +250,8 @@ class Mission:
         self._pending.clear()
 
         # -- failsafes in the air ------------------------------------------------------------
+        if pos is not None and s.vel_m_s is not None and s.position_age_s <= cfg.stale_timeout_s:
+            self.tracker.observe(t, pos, s.vel_m_s)
         if self.state in FLYING or self.state == State.HOLD:
             if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
                 self._go(t, State.DONE, "disarmed in flight (landed or killed by the autopilot/pilot)")
@@ -285,8 +324,11 @@ class Mission:
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._waypoints[self._wp_index], cfg.join_speed_m_s)
-                if self._wp_index == last:  # final leg: keep at least a crawl across the inlet plane
-                    vel = (max(vel[0], 0.3), vel[1], vel[2])
+                if self._wp_index == last:  # final leg: cross the inlet plane at the flow's own speed
+                    self._identify()
+                    v_in = self._field_command(*self._waypoints[last])
+                    crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
+                    vel = (max(vel[0], crawl), vel[1], vel[2])
         elif st == State.RETURN:
             want_mode = "offboard"
             if cv >= 0:
@@ -309,7 +351,10 @@ class Mission:
             want_mode = "offboard"
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
-                vel = self.sfield.command(pos[0], pos[1], pos[2], cfg.agent_id, cfg.mode, cv)
+                vel = self.tracker.step(t, pos, self._field_command)
+                if vel is None:  # the parcel's CV vanished with a new map: fly the field where we are
+                    self.tracker.reset(pos, t)
+                    vel = self.sfield.command(pos[0], pos[1], pos[2], cfg.agent_id, cfg.mode, cv)
             elif verdict == GeofenceVerdict.EXIT:
                 self.laps += 1
                 if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
@@ -338,6 +383,10 @@ class Mission:
         elif want_mode is not None and s.mode == want_mode:
             self._want_seen = True
         return MissionOutput(self.state, vel, want_mode, want_armed, takeoff, cv, self.reason)
+
+    def _field_command(self, x: float, y: float, z: float) -> Vec | None:
+        """The map's command at a point in the configured mode (None outside the map's CVs)."""
+        return self.sfield.command(x, y, z, self.cfg.agent_id, self.cfg.mode)
 
     def _mode_taken(self, s: VehicleStatus) -> bool:
         """The mode we asked for was reached and has since been changed by someone else

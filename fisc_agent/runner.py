@@ -72,6 +72,8 @@ class AgentSnapshot:
     """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
     laps: int
     """Completed passes through the tunnel."""
+    parcel_map_m: Vec | None = None
+    """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
 
 
 class Runner:
@@ -79,10 +81,13 @@ class Runner:
 
     def __init__(self, cfg: AgentConfig, link: VehicleLink, cmap: CommandMap | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
-                 wall_clock: Callable[[], float] = time.time) -> None:
+                 wall_clock: Callable[[], float] = time.time,
+                 on_tick: Callable[[AgentSnapshot], None] | None = None) -> None:
         self.cfg = cfg
         self.link = link
         self.clock, self.sleep, self.wall_clock = clock, sleep, wall_clock
+        self.on_tick = on_tick
+        """Called with the snapshot after every tick (the flight log); None: nothing."""
         self.transform = cfg.transform
         self.mission = Mission(cfg)
         self.adapter: Adapter | None = None
@@ -164,13 +169,13 @@ class Runner:
         raw = self._snap_raw
         if raw is None:
             return None
-        now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps = raw
+        now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps, parcel = raw
         return AgentSnapshot(
             time_s=now, wall_time_s=wall, agent_id=self.cfg.agent_id, state=out.state.value, reason=out.reason,
             position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
             map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
             link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age, autopilot=autopilot, armed=armed,
-            mode=mode, laps=laps)
+            mode=mode, laps=laps, parcel_map_m=parcel)
 
     # ---- the tick ------------------------------------------------------------------------
     def _apply_pending(self) -> list[str]:
@@ -250,6 +255,8 @@ class Runner:
             sp = clamp_velocity(out.velocity_m_s, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
             link.send_velocity_ned(*tf.vel_map_to_ned_xyz(*sp))
             self._last_sp, self._last_sp_t = sp, now
+            if vel is not None and pos_age <= self.cfg.stale_timeout_s:
+                self.mission.observe_response(now, sp, vel)
         else:
             self._stream_start = None
         stream_s = now - self._stream_start if self._stream_start is not None else 0.0
@@ -261,8 +268,11 @@ class Runner:
             self._last_hb_sent = now
         # the snapshot is assembled on demand from this immutable tuple (replaced whole: atomic)
         self._snap_raw = (now, self.wall_clock(), out, pos, vel, sp, self.cmap, link_ok, hb_age, pos_age,
-                          self.adapter.name if self.adapter else None, link.armed, mode, self.mission.laps)
+                          self.adapter.name if self.adapter else None, link.armed, mode, self.mission.laps,
+                          self.mission.tracker.parcel_m if out.state == State.FLOW else None)
         self.ticks += 1
+        if self.on_tick is not None:
+            self.on_tick(self.snapshot())
         return out
 
     # ---- loop and shutdown ---------------------------------------------------------------

@@ -54,6 +54,31 @@ def run_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_score_flight(args: argparse.Namespace) -> int:
+    from fisc_agent.flightlog import read_flight_log
+    from fisc_agent.mapfile import load_map
+    from fisc_ground.flight_score import DuctWall, score_track, track_from_rows
+    from fisc_ground.reference.load import load_reference
+
+    cmap = load_map(args.map)
+    spec = args.reference or cmap.body.get("provenance", {}).get("reference", {}).get("source", "")
+    spec = spec.removeprefix("builtin:")
+    if not spec:
+        raise ValueError(f"{args.map}: the map records no reference; pass --reference")
+    ref = load_reference(spec)
+    wall = DuctWall.from_reference(ref)
+    for path in args.logs:
+        score = score_track(*track_from_rows(read_flight_log(path)), ref, cmap.scale, *args.x_range, wall=wall)
+        if args.json:
+            print(json.dumps({"log": str(path), **score.as_dict()}))
+        else:
+            print(f"{path}: {'crossed' if score.crossed else 'did not cross'}"
+                  f"{' (held)' if score.held else ''}, max excursion {score.max_excursion_m:+.2f} m, "
+                  f"velocity nRMSE {score.velocity_nrmse:.3f} ({score.n_samples} samples, peak flown "
+                  f"{score.peak_flown_m_s:.2f} of {score.peak_target_m_s:.2f} m/s), crossing {score.crossing_time_s:.1f} s")
+    return 0
+
+
 def inspect_summary(cmap) -> dict:
     """The ``inspect --json`` object (its keys are a contract)."""
     body = cmap.body
@@ -201,6 +226,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="output folder")
     p.add_argument("--trusted-key", type=Path, metavar="PUB", help="require a valid signature by this key")
     p.set_defaults(func=run_plot)
+
+    p = sub.add_parser("score-flight", help="score flown passes (fisc-agent --flight-log) against the CFD",
+                       description="Per flight log: crossed without a hold, largest excursion outside the duct wall, "
+                                   "axial-velocity nRMSE against S x the CFD, crossing time (fisc_ground.flight_score).")
+    p.add_argument("logs", metavar="LOG", type=Path, nargs="+", help="flight log CSV files")
+    p.add_argument("--map", required=True, type=Path, help="the map flown (its scale S and reference)")
+    p.add_argument("--reference", help="reference flow (default: the one recorded in the map)")
+    p.add_argument("--x-range", nargs=2, type=float, default=(0.0, 15.0), metavar=("X_LO", "X_HI"),
+                   help="the duct's axial extent scored [m]")
+    p.add_argument("--json", action="store_true", help="print one JSON object per log")
+    p.set_defaults(func=run_score_flight)
 
     try:
         from fisc_ground.zenoh_cli import add_parsers

@@ -61,6 +61,14 @@ _HOLD_MODES = frozenset(
 )  # fmt: skip
 
 
+# ArduPilot modes that take the climb rate from the RC throttle stick: with no RC (a swarm
+# vehicle) the stick reads low and the vehicle descends (real ArduCopter SITL: LOITER with no
+# RC descended and hit the ground at 2.47 m/s).  PX4's AUTO.LOITER holds altitude by itself.
+_AP_THROTTLE_STICK_MODES = frozenset({FlightMode.LOITER, FlightMode.ALTCTL, FlightMode.POSCTL})
+AP_NO_RC_DESCENT_M_S = 2.5
+"""Descent rate of an ArduPilot throttle-stick mode with no RC [m/s] (PILOT_SPEED_DN default)."""
+
+
 @dataclass(frozen=True)
 class Outcome:
     """Result of a command: a MAV_RESULT code and a short human-readable reason."""
@@ -492,6 +500,8 @@ class Vehicle:
             ]
         if mode == FlightMode.LAND:
             return [0.0, 0.0, self._land_speed()]
+        if not self._is_px4 and mode in _AP_THROTTLE_STICK_MODES:
+            return [0.0, 0.0, AP_NO_RC_DESCENT_M_S]  # the throttle stick at zero: no RC, it sinks
         if mode == FlightMode.RTL:
             return self._rtl_command().tolist()
         return [0.0, 0.0, 0.0]  # hold modes (and TAKEOFF after completion): zero velocity

@@ -36,8 +36,9 @@ def test_ardupilot_mode_encoding():
     assert ap.classify_mode(1, 9) == "land"
     assert ap.classify_mode(1, 0) == "other"
     assert ap.set_mode("offboard").params[:2] == (1.0, 4.0)
-    assert ap.set_mode("hold").params[1] == 5.0
-    assert ArduPilotAdapter(hold_mode=17).set_mode("hold").params[1] == 17.0
+    assert ap.set_mode("hold").params[1] == 17.0          # BRAKE: holds with no pilot
+    with pytest.raises(ValueError, match="throttle"):       # LOITER follows the RC throttle: refused
+        ArduPilotAdapter(hold_mode=5)
     t = ap.takeoff(2.5)
     assert t.command == MAV_CMD_NAV_TAKEOFF and t.params[6] == 2.5
     assert isinstance(adapter_for("px4"), Px4Adapter) and isinstance(adapter_for("ardupilot"), ArduPilotAdapter)

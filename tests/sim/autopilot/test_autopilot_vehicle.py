@@ -289,7 +289,20 @@ def test_rtl_returns_home_and_lands():
 
 def test_airborne_start_is_armed_and_holding():
     s = Vehicle(ARDUPILOT, VehicleConfig(start_ned_m=(1.0, 2.0, -4.0))).snapshot()
-    assert s.armed and s.mode == FlightMode.LOITER and s.in_air
+    assert s.armed and s.mode == FlightMode.BRAKE and s.in_air   # ArduPilot's pilot-free hold
+
+
+def test_ardupilot_throttle_stick_modes_sink_without_rc_and_brake_holds():
+    """Real ArduCopter SITL: LOITER with no RC descended and hit the ground at 2.47 m/s; BRAKE held."""
+    for mode, sinks in ((FlightMode.LOITER, True), (FlightMode.ALTCTL, True), (FlightMode.BRAKE, False)):
+        v = Vehicle(ARDUPILOT, VehicleConfig(start_ned_m=(0.0, 0.0, -10.0)))
+        assert v.set_mode(mode, 0.0).result == 0
+        v.step(2.0)
+        d = v.snapshot().position_ned_m[2]
+        assert (d > -8.5) if sinks else (abs(d + 10.0) < 0.1), (mode, d)   # sank > 1.5 m in 2 s
+    px4 = Vehicle(PX4, VehicleConfig(start_ned_m=(0.0, 0.0, -10.0)))
+    px4.step(2.0)
+    assert px4.snapshot().mode == FlightMode.LOITER and abs(px4.snapshot().position_ned_m[2] + 10.0) < 0.1
 
 
 def test_start_below_ground_is_an_error():

@@ -1,0 +1,55 @@
+"""The agent's own flight log: one CSV row per control tick (``fisc-agent --flight-log FILE``).
+
+What the agent saw and did, in the map frame: mission state, position and velocity as the
+autopilot reported them, the setpoint it sent, its CV and its tracking parcel.  It is what the
+real-autopilot tests score (excursion outside the map, velocity fidelity, hold altitude) and
+what a person plots after a flight; the autopilot's own log (ULog, DataFlash) holds the truth
+about the estimator.  Rows are flushed once a second, so a killed agent loses at most that.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import IO
+
+from fisc_agent.runner import AgentSnapshot
+
+COLUMNS = ("time_s", "wall_time_s", "state", "reason", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
+           "sp_x_m_s", "sp_y_m_s", "sp_z_m_s", "cv", "parcel_x_m", "parcel_y_m", "parcel_z_m", "mode", "armed")
+"""Column names, in order (map frame: x along the tunnel axis, z up)."""
+
+
+def _xyz(v: tuple[float, float, float] | None) -> list[str]:
+    return ["", "", ""] if v is None else [f"{c:.4f}" for c in v]
+
+
+class FlightLog:
+    """Append-only CSV writer of ``AgentSnapshot`` rows."""
+
+    def __init__(self, path: str | Path, flush_period_s: float = 1.0) -> None:
+        self.path = Path(path)
+        self._fh: IO[str] = open(self.path, "w", newline="", encoding="utf-8")
+        self._w = csv.writer(self._fh)
+        self._w.writerow(COLUMNS)
+        self._flush_period_s = flush_period_s
+        self._last_flush_s = -math.inf
+
+    def write(self, s: AgentSnapshot) -> None:
+        """One row for one tick."""
+        self._w.writerow([f"{s.time_s:.4f}", f"{s.wall_time_s:.4f}", s.state, s.reason, *_xyz(s.position_map_m),
+                          *_xyz(s.velocity_map_m_s), *_xyz(s.setpoint_map_m_s), s.cv_id, *_xyz(s.parcel_map_m),
+                          s.mode, int(s.armed)])
+        if s.time_s - self._last_flush_s >= self._flush_period_s:
+            self._fh.flush()
+            self._last_flush_s = s.time_s
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def read_flight_log(path: str | Path) -> list[dict[str, str]]:
+    """The rows of a flight log as dicts keyed by ``COLUMNS`` (values as written)."""
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))

@@ -1,0 +1,95 @@
+"""Streamline tracking (fisc_agent.tracking) on analytic fields, on a simulated clock."""
+
+import math
+
+import pytest
+
+from fisc_agent.tracking import ParcelTracker, TrackingConfig
+
+
+def uniform(x, y, z):
+    return (2.0, 0.0, 0.0) if abs(y) <= 1.0 and abs(z) <= 1.0 and 0.0 <= x < 10.0 else None
+
+
+def linear(x, y, z):
+    """u = 1 + x along x: acceleration u du/dx = 1 + x."""
+    return (1.0 + x, 0.0, 0.0) if 0.0 <= x < 10.0 else None
+
+
+def test_open_loop_is_the_field_at_the_vehicle():
+    tr = ParcelTracker(TrackingConfig(gain_1_s=0.0))
+    assert tr.step(0.0, (3.0, 0.2, 0.0), linear) == (4.0, 0.0, 0.0)
+    assert tr.parcel_m is None
+    assert tr.step(0.0, (11.0, 0.0, 0.0), linear) is None
+
+
+def test_cross_stream_error_is_pulled_back_and_along_stream_is_not():
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.0, bias_time_constant_s=0.0)
+    tr = ParcelTracker(cfg)
+    tr.reset((0.0, 0.0, 0.0), 0.0)
+    v = tr.step(0.05, (1.0, 0.3, -0.2), uniform)
+    assert tr.parcel_m == pytest.approx((1.0, 0.0, 0.0))          # slid abreast of the vehicle
+    assert v == pytest.approx((2.0, -0.3, 0.2))                   # pull across, none along
+    v = tr.step(0.10, (4.0, 0.0, 0.0), uniform)                   # far ahead along the stream
+    assert v == pytest.approx((2.0, 0.0, 0.0)) and tr.parcel_m == pytest.approx((4.0, 0.0, 0.0))
+
+
+def test_correction_and_integral_are_bounded_and_the_integral_learns_a_steady_offset():
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.5, max_correction_m_s=0.5, max_integral_m_s=0.3,
+                         bias_time_constant_s=0.0)
+    tr = ParcelTracker(cfg)
+    tr.reset((0.0, 0.0, 0.0), 0.0)
+    t = 0.0
+    for _ in range(200):  # a vehicle stuck 0.2 m off its streamline for 10 s
+        t += 0.05
+        v = tr.step(t, (1.0, 0.2, 0.0), uniform)
+    assert tr.integral_m_s[1] == pytest.approx(-0.3)              # anti-windup bound
+    assert math.hypot(v[1], v[2]) == pytest.approx(0.5)           # total correction bound
+    assert v[0] == pytest.approx(2.0)
+
+
+def test_lookahead_on_a_linear_field_adds_lag_times_acceleration_within_and_beyond_its_reach():
+    for reach in (5.0, 0.2):
+        tr = ParcelTracker(TrackingConfig(gain_1_s=0.0, lookahead_s=0.5, lookahead_reach_m=reach))
+        v = tr.step(0.0, (1.0, 0.0, 0.0), linear)                 # u = 2, a = u du/dx = 2
+        assert v[0] == pytest.approx(2.0 + 0.5 * 2.0)
+
+
+def test_feedforward_gain_scales_the_field_not_the_correction():
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.0, bias_time_constant_s=0.0, feedforward_gain=1.25)
+    tr = ParcelTracker(cfg)
+    tr.reset((0.0, 0.0, 0.0), 0.0)
+    assert tr.step(0.05, (1.0, 0.1, 0.0), uniform) == pytest.approx((2.5, -0.1, 0.0))
+
+
+def test_velocity_estimate_bias_is_learnt_from_position_against_reported_velocity():
+    tr = ParcelTracker(TrackingConfig(bias_time_constant_s=1.0))
+    t, y = 0.0, 0.0
+    for _ in range(200):  # moves 0.5 m/s east while reporting 0 east
+        tr.observe(t, (0.0, y, 0.0), (0.0, 0.0, 0.0))
+        t, y = t + 0.05, y + 0.5 * 0.05
+    assert tr.bias_m_s == pytest.approx((0.0, 0.5, 0.0), abs=1e-3)
+    tr.reset((1.0, 0.0, 0.0), t)
+    v = tr.step(t + 0.05, (1.0, 0.0, 0.0), uniform)
+    assert v[1] == pytest.approx(-0.5, abs=1e-3)                  # flies against the bias
+
+
+def test_a_slide_into_a_wall_cube_keeps_its_axial_part_and_the_parcel_coasts_past_the_outlet():
+    def duct(x, y, z):  # flow angled towards +y, wall at y = 0.5
+        return (1.0, 1.0, 0.0) if y <= 0.5 and 0.0 <= x < 5.0 else None
+
+    tr = ParcelTracker(TrackingConfig(bias_time_constant_s=0.0), x_outlet_m=5.0)
+    tr.reset((1.0, 0.45, 0.0), 0.0)
+    tr.step(0.05, (1.3, 0.45, 0.0), duct)
+    assert tr.parcel_m[1] <= 0.5 and tr.parcel_m[0] > 1.0
+    tr.reset((4.9, 0.0, 0.0), 1.0)
+    tr.step(1.05, (4.9, 0.0, 0.0), duct)
+    assert tr.step(1.10, (5.6, 0.7, 0.0), duct) is not None      # downstream of the outlet: coasts
+    assert tr.parcel_m[0] > 5.0
+
+
+def test_config_rejects_nonsense():
+    with pytest.raises(ValueError, match="gain_1_s"):
+        TrackingConfig(gain_1_s=-1.0)
+    with pytest.raises(ValueError, match="feedforward_gain"):
+        TrackingConfig(feedforward_gain=math.nan)
