@@ -15,6 +15,7 @@ import sys
 
 from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.lookup import COMMAND_MODES
+from fisc_agent.names import prefix_arg, swarm_name_arg
 
 EXIT_OK, EXIT_ERROR = 0, 1
 
@@ -52,10 +53,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--seed", type=int, default=0, help="seed of the reference fisc-sim run")
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
-    z.add_argument("--swarm", metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
+    z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
                    "(omitted: peer mode on loopback, connecting to the hub tcp/127.0.0.1:7447)")
-    z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
+    z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
                    "commands (required with --swarm)")

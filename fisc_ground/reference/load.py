@@ -14,11 +14,13 @@ _VTK = (".vtu", ".vtk")
 
 def _sniff_csv_header(path: Path) -> tuple[str, ...]:
     """Normalised header cells of a CSV (first non-blank line)."""
-    with path.open("r", encoding="utf-8-sig", errors="replace") as fh:
-        for line in fh:
-            if line.strip():
-                cells = line.split(",") if "," in line else line.split()
-                return tuple(normalise_column_name(c) for c in cells if c.strip())
+    from fisc_ground.reference.files import check_text_head
+
+    text = check_text_head(path).decode("utf-8-sig", errors="replace")
+    for line in text.split("\n"):
+        if line.strip():
+            cells = line.split(",") if "," in line else line.split()
+            return tuple(normalise_column_name(c) for c in cells if c.strip())
     raise ReferenceError(f"{path}: empty file (no header, no data)")
 
 
