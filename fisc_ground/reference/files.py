@@ -55,8 +55,8 @@ def check_vtk_head(path: str | Path) -> None:
     text = head.lstrip(b"\xef\xbb\xbf \t\r\n")
     if path.suffix.lower() == ".vtu":
         if not text.startswith(b"<"):
-            raise ReferenceError(f"{path}: not a VTU file (an XML VTKFile must start with '<', "
+            raise ReferenceError(f"{path}: cannot read as VTK: not a VTU file (an XML VTKFile must start with '<', "
                                  f"this starts with {head[:16]!r})")
     elif not text.startswith(b"# vtk DataFile"):
-        raise ReferenceError(f"{path}: not a legacy VTK file (must start with '# vtk DataFile', "
+        raise ReferenceError(f"{path}: cannot read as VTK: not a legacy VTK file (must start with '# vtk DataFile', "
                              f"this starts with {head[:16]!r})")
