@@ -46,19 +46,24 @@ def _human(n: int) -> str:
     return f"{n} bytes"
 
 
+def _check_kind(mode: int, path: Path, what: str, error: type[Exception]) -> None:
+    if not stat.S_ISREG(mode):
+        kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+        raise error(f"{path}: file type: {what} must be a regular file, this is {kind}")
+
+
 def _open_checked(path: Path, what: str, max_bytes: int, error: type[Exception]) -> tuple[int, int]:
     """Open ``path`` read-only and check it is a regular file within ``max_bytes``: (fd, size)."""
     try:
+        _check_kind(os.stat(path).st_mode, path, what, error)  # before open: a FIFO or socket is never opened
         fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise error(f"{path}: {what} not found") from None
     except OSError as exc:
         raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
     try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a regular file")
-            raise error(f"{path}: file type: {what} must be a regular file, this is {kind}")
+        st = os.fstat(fd)  # again on the open file: the path may have been swapped meanwhile
+        _check_kind(st.st_mode, path, what, error)
         if st.st_size > max_bytes:
             raise error(f"{path}: size: {what} is {_human(st.st_size)}, larger than the {_human(max_bytes)} limit")
     except BaseException:
