@@ -19,6 +19,8 @@ from fisc_agent.link import TYPEMASK_VELOCITY_ONLY, MavlinkLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mission import State
 from fisc_agent.runner import Runner
+from fisc_ground.mapbuild import build_default_map
+from sim.autopilot import server
 
 pytestmark = pytest.mark.slow
 
@@ -106,10 +108,8 @@ def _check_flight(flight, cmap):
 
 @pytest.mark.parametrize("personality", ["px4", "ardupilot"])
 def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personality, tunnel_map):
-    server = pytest.importorskip("sim.autopilot.server")
     if personality == "px4":
-        mapbuild = pytest.importorskip("fisc_ground.mapbuild")
-        cmap = mapbuild.build_default_map()          # the embedded default: 15 m nozzle
+        cmap = build_default_map()          # the embedded default: 15 m nozzle
     else:
         cmap = tunnel_map                            # 3 m synthetic tunnel (keeps the test short)
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality=personality).start()
@@ -200,8 +200,7 @@ def test_geodetic_anchor_positions_from_global_position_int(udp_port, tunnel_map
 
 
 def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
-    server = pytest.importorskip("sim.autopilot.server")
-    pytest.importorskip("mavsdk")
+    pytest.importorskip("mavsdk")  # an optional backend (the `mavsdk` extra)
     from fisc_agent.mavsdk_backend import MavsdkLink
 
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()

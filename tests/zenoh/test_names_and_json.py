@@ -18,7 +18,6 @@ from fisc_ground.cli import main as ground_main
 from fisc_ground.fleet import make_command
 from sim.cli import build_parser as sim_parser
 
-from .conftest import wait_for
 
 
 def _argvs(swarm: str, prefix: str = "fisc") -> dict[str, tuple]:
