@@ -133,3 +133,15 @@ def test_real_openfoam_wedge(case, shared_path):
     r = np.hypot(fl.points_m[:, 1], fl.points_m[:, 2])
     core = r < 0.6
     np.testing.assert_allclose(f.velocity_m_s[core], fl.velocity_m_s[core], atol=0.05)
+
+
+def test_damaged_or_sparse_vtu_gives_a_message_not_an_empty_read_error(tmp_path):
+    """meshio raises ReadError('') on a cut-off XML file; a sparse file is refused before meshio."""
+    cut = tmp_path / "cut.vtu"
+    cut.write_text('<?xml version="1.0"?>\n<VTKFile type="UnstructuredGrid">')
+    with pytest.raises(ReferenceError, match=r"cut\.vtu: cannot read as VTK: ReadError: meshio gave no details"):
+        read_vtk(cut)
+    zeros = tmp_path / "zeros.vtu"
+    zeros.write_bytes(b"\0" * 4096)
+    with pytest.raises(ReferenceError, match=r"zeros\.vtu: cannot read as VTK: not a VTU file"):
+        read_vtk(zeros)
