@@ -613,16 +613,16 @@ def run_monitor(args: Any) -> int:
     trusted = [read_public_key(p) for p in (args.trusted_key or [])]
     roster = args.roster if args.roster is None or isinstance(args.roster, AgentRoster) else AgentRoster.parse(args.roster)
     if args.map:  # read before opening the session: a bad file fails fast
-        blob = read_regular_file(args.map, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC,
-                                 error=MapError)
-        map_arg = verify_monitor_map(blob, trusted, args.allow_unsigned, source=str(args.map))
+        map_file_blob = read_regular_file(args.map, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC,
+                                          error=MapError)
+        map_file = verify_monitor_map(map_file_blob, trusted, args.allow_unsigned, source=str(args.map))
     console = Console(stderr=False)
     session = open_ground_session(args.zenoh_config)
     recorder = None
     try:
         cmap, blob = None, None
         if args.map:
-            cmap = map_arg
+            cmap, blob = map_file, map_file_blob
         else:
             try:
                 got = fetch_map(session, keys, trusted, timeout_s=args.map_timeout, allow_unsigned=args.allow_unsigned)

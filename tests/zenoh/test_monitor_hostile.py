@@ -153,3 +153,19 @@ def test_the_monitor_refuses_an_unsigned_map_unless_allowed(net, sessions, make_
         pipe.close()
     finally:
         server.close()
+
+
+def test_monitor_cli_records_its_map_file_and_refuses_an_unsigned_one(net, make_map, tmp_path, capsys):
+    from fisc_ground.cli import main
+
+    hub, _ = net
+    signed, unsigned = tmp_path / "signed.fiscmap", tmp_path / "unsigned.fiscmap"
+    signed.write_bytes(make_map(3))
+    unsigned.write_bytes(make_map(4, signing_key=None))
+    rec = tmp_path / "m.fiscrec"
+    base = ["monitor", "--swarm", "alpha", "--zenoh-config", str(hub), "--duration", "0.3"]
+    assert main([*base, "--map", str(signed), "--record", str(rec)]) == 0
+    assert read_recording(rec).maps() == [signed.read_bytes()]  # replay needs the map in the recording
+    assert main([*base, "--map", str(unsigned)]) == 1
+    assert "the map is unsigned" in capsys.readouterr().err
+    assert main([*base, "--map", str(unsigned), "--allow-unsigned"]) == 0
