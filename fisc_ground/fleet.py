@@ -13,6 +13,7 @@ from typing import Any
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
 from fisc_agent.zenoh_link import Keys
+from fisc_ground.monitor import DEFAULT_MAX_AGENTS
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ class TelemetryListener:
     """Collects the newest telemetry per agent of one swarm (for status and acknowledgements);
     at most ``max_agents`` ids (messages from further new ids are counted in ``over_cap``)."""
 
-    def __init__(self, session: Any, keys: Keys, max_agents: int = 10_000) -> None:
+    def __init__(self, session: Any, keys: Keys, max_agents: int = DEFAULT_MAX_AGENTS) -> None:
         self.keys = keys
         self.latest: dict[int, tuple[tc.Telemetry, float]] = {}
         self.bad = 0

@@ -169,3 +169,20 @@ def test_monitor_cli_records_its_map_file_and_refuses_an_unsigned_one(net, make_
     assert main([*base, "--map", str(unsigned)]) == 1
     assert "the map is unsigned" in capsys.readouterr().err
     assert main([*base, "--map", str(unsigned), "--allow-unsigned"]) == 0
+
+
+def test_status_listener_caps_forged_agent_ids(net, sessions):
+    from fisc_ground.fleet import TelemetryListener
+
+    hub, member = net
+    keys = Keys("fisc", "alpha")
+    listener = TelemetryListener(sessions(hub), keys, max_agents=3)
+    sender = sessions(member)
+    try:
+        assert wait_for(lambda: (sender.put(keys.telemetry(0), telemetry(0)), 0 in listener.snapshot())[1])
+        for aid in range(1, 20):
+            sender.put(keys.telemetry(aid), telemetry(aid))
+        assert wait_for(lambda: listener.over_cap >= 17)
+        assert sorted(listener.snapshot()) == [0, 1, 2]
+    finally:
+        listener.close()
