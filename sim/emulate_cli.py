@@ -88,16 +88,23 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"fisc-sim emulate: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    show = not args.quiet and sys.stderr.isatty()
-    if show:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from fisc_agent.mapfile import MapError
+    from fisc_ground.reference.field import ReferenceError
 
-        with Progress(TextColumn(f"emulate {cfg.agents} vehicles"), BarColumn(),
-                      TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TimeRemainingColumn()) as prog:
-            task = prog.add_task("emulate", total=1.0)
-            res = emulate(cfg, progress=lambda f: prog.update(task, completed=f))
-    else:
-        res = emulate(cfg)
+    show = not args.quiet and sys.stderr.isatty()
+    try:
+        if show:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            with Progress(TextColumn(f"emulate {cfg.agents} vehicles"), BarColumn(),
+                          TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TimeRemainingColumn()) as prog:
+                task = prog.add_task("emulate", total=1.0)
+                res = emulate(cfg, progress=lambda f: prog.update(task, completed=f))
+        else:
+            res = emulate(cfg)
+    except (MapError, ReferenceError) as exc:  # a bad --map file or reference: the reason, no traceback
+        print(f"fisc-sim emulate: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     m, rt, en = res.run_result.metrics, res.realtime, res.entries
     print(f"wrote {args.out}: {en['vehicles_entered']}/{cfg.agents} vehicles entered the tunnel "
           f"({en['entries_total']} entries); nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "

@@ -44,6 +44,11 @@ def load_reference(spec: str | Path, pressure_kind: str = "auto") -> ReferenceFi
         return load_builtin(name)  # raises, listing the known names
     path = Path(s)
     suffix = path.suffix.lower()
+    if path.exists() and not path.is_file():  # /dev/zero, a FIFO, a directory: say what it is
+        from fisc_agent.safe_files import check_regular_file
+        from fisc_ground.reference.files import MAX_REFERENCE_BYTES
+
+        check_regular_file(path, what="CFD export", max_bytes=MAX_REFERENCE_BYTES, error=ReferenceError)
     if not path.is_file():
         hint = ("" if suffix in _CSV + _VTK else
                 f"; not a built-in either (known: {', '.join(builtin_names())})")

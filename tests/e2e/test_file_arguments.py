@@ -113,6 +113,10 @@ def _cases(f: dict) -> dict[str, list]:
                                   "--duration", "1", *z],
         "cmd --key": [*cli("fisc-ground"), "cmd", "hold", "--swarm", "t", "--key", "/dev/zero", "--wait", "0.1", *z],
         "fit --sign": [*cli("fisc-ground"), "fit", "analytic", "-o", f["dir"] / "x.fiscmap", "--sign", "/dev/zero"],
+        "fit REFERENCE": [*cli("fisc-ground"), "fit", "/dev/zero", "-o", f["dir"] / "y.fiscmap"],
+        "fisc-sim run --map": [*cli("fisc-sim"), "run", "--map", "/dev/zero", "-o", f["dir"] / "run"],
+        "fisc-sim emulate --map": [*cli("fisc-sim"), "emulate", "--map", "/dev/zero", "--agents", "2", "-q",
+                                   "-o", f["dir"] / "emu"],
         "fisc-agent --map": [*cli("fisc-agent"), "--map", "/dev/zero", "--mavlink", udp, "--id", "1"],
         "fisc-agent --trusted-key": [*cli("fisc-agent"), "--map", f["good"], "--trusted-key", "/dev/zero",
                                      "--mavlink", udp, "--id", "1"],
@@ -120,7 +124,9 @@ def _cases(f: dict) -> dict[str, list]:
 
 
 CASES = ["inspect MAP", "inspect --trusted-key", "plot --trusted-key", "publish MAP", "replay FILE", "replay --map",
-         "monitor --map", "monitor --trusted-key", "cmd --key", "fit --sign", "fisc-agent --map",
+         "monitor --map", "monitor --trusted-key", "cmd --key", "fit --sign", "fit REFERENCE", "fisc-sim run --map",
+         "fisc-sim emulate --map",
+         "fisc-agent --map",
          "fisc-agent --trusted-key"]
 
 
