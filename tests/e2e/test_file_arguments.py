@@ -164,3 +164,19 @@ def test_a_zero_filled_csv_that_is_not_sparse_is_refused_by_its_head(tmp_path):
     path.write_bytes(b"\0" * (1 << 20))
     rc, _, _, out = run_watched([*cli("fisc-ground"), "fit", path, "-o", tmp_path / "m.fiscmap"])
     assert rc == 1 and "NUL byte at offset 0" in out, out
+
+
+def test_inspect_checks_size_and_magic_before_reading_a_2gb_file(tmp_path):
+    """`inspect` read a 2 GB file whole before checking the 8-byte magic."""
+    big, wrong = tmp_path / "big.fiscmap", tmp_path / "wrong.fiscmap"
+    with open(big, "wb") as fh:
+        fh.write(b"FISCMAP\0")
+        fh.truncate(2 * 10**9)
+    with open(wrong, "wb") as fh:
+        fh.write(b"NOTAMAP!")
+        fh.truncate(900 * 2**20)  # under the 1 GiB cap: refused on its first 8 bytes
+    for path, expect in ((big, "size: FISC map is 1.86 GiB, larger than the 1 GiB limit"), (wrong, "magic: not a FISC map")):
+        rc, wall, rss_mb, out = run_watched([*cli("fisc-ground"), "inspect", path])
+        print(f"\ninspect {path.name}: exit {rc}, {wall:.2f} s, peak RSS {rss_mb:.0f} MB")
+        assert rc == 1 and expect in out, out
+        assert rss_mb < MAX_RSS_MB
