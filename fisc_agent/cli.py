@@ -17,6 +17,7 @@ from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.mapfile import MapError, load_map
+from fisc_agent.names import prefix_arg, swarm_name_arg
 from fisc_agent.mission import State
 from fisc_agent.tracking import TrackingConfig
 
@@ -73,9 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geodetic-anchor", help="map origin LAT,LON,ALT_AMSL,HEADING (uses GLOBAL_POSITION_INT)")
     p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
     z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
-    z.add_argument("--swarm", help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
+    z.add_argument("--swarm", type=swarm_name_arg, help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
     z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: peer on loopback, hub 127.0.0.1:7447)")
-    z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
+    z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
     z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")
     p.add_argument("--max-speed", type=float, default=5.0, help="speed clamp [m/s]")

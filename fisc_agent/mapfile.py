@@ -239,11 +239,19 @@ def _decode(data: memoryview, trusted_keys: list[bytes] | None) -> CommandMap:
                       public_key=seal.get("public_key") if signed else None)
 
 
+#: Largest map file ``load_map`` reads (a 10^6-CV map is about 0.4 GB).
+MAX_MAP_FILE_BYTES = 1 << 30
+#: Largest key file (64 hex digits and a newline; whitespace tolerated).
+MAX_KEY_FILE_BYTES = 4096
+
+
 def read_hex_key(path: str | Path, what: str) -> bytes:
     """Read a 32-byte Ed25519 key stored as hex text (``keygen``'s ``.pub`` and ``.key`` files)."""
-    text = Path(path).read_text().strip()
+    from fisc_agent.safe_files import read_regular_file
+
+    raw = read_regular_file(path, what=f"Ed25519 {what} file", max_bytes=MAX_KEY_FILE_BYTES, error=MapError)
     try:
-        key = bytes.fromhex(text)
+        key = bytes.fromhex(raw.decode("ascii").strip())
     except ValueError as exc:
         raise MapError(f"{path}: not a hex Ed25519 {what}") from exc
     if len(key) != 32:
@@ -258,11 +266,10 @@ def read_public_key(path: str | Path) -> bytes:
 
 def load_map(path: str | Path, trusted_key: str | Path | bytes | None = None) -> CommandMap:
     """Load and verify a map file.  ``trusted_key``: a ``.pub`` path or raw key bytes."""
+    from fisc_agent.safe_files import read_regular_file
+
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise MapError(f"{path}: cannot read map ({exc.strerror})") from exc
+    data = read_regular_file(path, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC, error=MapError)
     keys = None
     if trusted_key is not None:
         keys = [trusted_key if isinstance(trusted_key, bytes) else read_public_key(trusted_key)]

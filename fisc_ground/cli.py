@@ -119,7 +119,9 @@ def run_inspect(args: argparse.Namespace) -> int:
     cmap = load_map(args.map, trusted_key=args.trusted_key)
     summary = inspect_summary(cmap)
     if args.json:
-        print(json.dumps(summary, indent=None if args.compact else 2))
+        from fisc_ground.field_report import json_safe
+
+        print(json.dumps(json_safe(summary), indent=None if args.compact else 2, allow_nan=False))
         return 0
     ref = summary["reference"] or {}
     print(f"{args.map}: OK (schema v{summary['schema_version']}, sha256 {summary['sha256']})")

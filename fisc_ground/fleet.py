@@ -13,6 +13,7 @@ from typing import Any
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
 from fisc_agent.zenoh_link import Keys
+from fisc_ground.monitor import DEFAULT_MAX_AGENTS
 
 log = logging.getLogger(__name__)
 
@@ -39,12 +40,15 @@ def make_command(name: str, swarm: str, target_id: int | None = None, start_at_u
 
 
 class TelemetryListener:
-    """Collects the newest telemetry per agent of one swarm (for status and acknowledgements)."""
+    """Collects the newest telemetry per agent of one swarm (for status and acknowledgements);
+    at most ``max_agents`` ids (messages from further new ids are counted in ``over_cap``)."""
 
-    def __init__(self, session: Any, keys: Keys) -> None:
+    def __init__(self, session: Any, keys: Keys, max_agents: int = DEFAULT_MAX_AGENTS) -> None:
         self.keys = keys
         self.latest: dict[int, tuple[tc.Telemetry, float]] = {}
         self.bad = 0
+        self.max_agents = int(max_agents)
+        self.over_cap = 0
         self._lock = threading.Lock()
         self.started_s = time.monotonic()
         """When the listener started listening (monotonic) [s]."""
@@ -64,6 +68,9 @@ class TelemetryListener:
             log.warning("telemetry on %s claims agent %d: ignored", sample.key_expr, t.agent_id)
             return
         with self._lock:
+            if t.agent_id not in self.latest and len(self.latest) >= self.max_agents:
+                self.over_cap += 1
+                return
             self.latest[t.agent_id] = (t, now)
 
     def snapshot(self) -> dict[int, tuple[tc.Telemetry, float]]:
@@ -196,8 +203,10 @@ def run_status(args: Any) -> int:
     finally:
         session.close()
     report = status_report(latest, time.time())
-    if args.json:
-        print(json.dumps(report))
+    if args.json:  # strict JSON: a non-finite position or velocity is null, never NaN/Infinity
+        from fisc_ground.field_report import json_safe
+
+        print(json.dumps(json_safe(report), allow_nan=False))
         return 0
     from rich.console import Console
     from rich.table import Table

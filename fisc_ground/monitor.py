@@ -37,6 +37,54 @@ log = logging.getLogger(__name__)
 
 FLYING_STATES = frozenset({"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"})
 NO_AGENT = 0xFFFFFFFF
+"""Key agent id of a message whose key names no valid agent (telemetry ids are u32)."""
+DEFAULT_MAX_AGENTS = 10_000
+"""Agent ids the monitor tracks at most; messages from further new ids are counted, not shown."""
+
+
+class AgentRoster:
+    """The agent ids a monitor accepts telemetry from: inclusive ranges, e.g. ``"1-100,205"``.
+
+    Stored as ranges (not a set), so ``0-4294967294`` costs two numbers."""
+
+    def __init__(self, ranges: list[tuple[int, int]]) -> None:
+        merged: list[list[int]] = []
+        for lo, hi in sorted(ranges):
+            if not 0 <= lo <= hi < NO_AGENT:
+                raise ValueError(f"agent id range {lo}-{hi} outside 0..{NO_AGENT - 1}")
+            if merged and lo <= merged[-1][1] + 1:
+                merged[-1][1] = max(merged[-1][1], hi)
+            else:
+                merged.append([lo, hi])
+        if not merged:
+            raise ValueError("an agent roster needs at least one id")
+        self.lo = np.array([m[0] for m in merged], dtype=np.int64)
+        self.hi = np.array([m[1] for m in merged], dtype=np.int64)
+
+    @classmethod
+    def parse(cls, text: str) -> "AgentRoster":
+        """``"1-100,205"`` -> roster (ids are decimal integers; ranges inclusive)."""
+        ranges = []
+        for part in str(text).split(","):
+            part = part.strip()
+            lo, sep, hi = part.partition("-")
+            try:
+                ranges.append((int(lo), int(hi) if sep else int(lo)))
+            except ValueError:
+                raise ValueError(f"roster: {part!r} is not an agent id or an id range like 1-100") from None
+        return cls(ranges)
+
+    def spec(self) -> str:
+        """The canonical text form (``parse(spec())`` gives the same roster)."""
+        return ",".join(f"{a}-{b}" if a != b else str(a) for a, b in zip(self.lo.tolist(), self.hi.tolist()))
+
+    def contains(self, ids: np.ndarray) -> np.ndarray:
+        """Boolean mask: which ``ids`` are on the roster."""
+        ids = np.asarray(ids, dtype=np.int64)
+        k = np.searchsorted(self.lo, ids, side="right") - 1
+        inside = k >= 0
+        inside[inside] = ids[inside] <= self.hi[k[inside]]
+        return inside
 
 
 @dataclass(frozen=True)
@@ -63,20 +111,31 @@ class FleetView:
     """Messages whose payload agent id differs from their key's."""
     time_samples: int
     """Fleet samples in the field average."""
+    off_roster: int = 0
+    """Messages from agent ids not on the roster (``--roster``), not shown."""
+    over_cap: int = 0
+    """Messages from new agent ids refused because ``max_agents`` ids are already tracked."""
 
 
 class TelemetryAggregator:
     """Newest telemetry per agent plus time-averaged swarm fields over the map's CVs."""
 
-    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = 0.5, stale_after_s: float = 3.0) -> None:
+    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = 0.5, stale_after_s: float = 3.0,
+                 roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS) -> None:
         if not sample_period_s > 0 or not stale_after_s > 0:
             raise ValueError("sample_period_s and stale_after_s must be > 0")
+        if int(max_agents) < 1:
+            raise ValueError(f"max_agents must be >= 1, got {max_agents}")
         self.sample_period_s = float(sample_period_s)
         self.stale_after_s = float(stale_after_s)
+        self.roster = roster
+        """Agent ids accepted (None: any id, up to ``max_agents``)."""
+        self.max_agents = int(max_agents)
+        """Most agent ids tracked; later new ids are refused and counted in ``over_cap``."""
         self.slots: dict[int, int] = {}
         self.latest = np.zeros(64, dtype=tc.DTYPE)
         self.seen_s = np.full(64, -math.inf)
-        self.messages = self.bad_messages = self.spoofed = 0
+        self.messages = self.bad_messages = self.spoofed = self.off_roster = self.over_cap = 0
         self.next_sample_s: float | None = None
         self._tmax = -math.inf
         self.cmap: CommandMap | None = None
@@ -109,6 +168,10 @@ class TelemetryAggregator:
         spoof = ok & (records["agent_id"].astype(np.int64) != key_ids)
         self.spoofed += int(spoof.sum())
         ok &= ~spoof
+        if self.roster is not None:
+            off = ok & ~self.roster.contains(key_ids)
+            self.off_roster += int(off.sum())
+            ok &= ~off
         tmax = np.maximum.accumulate(np.r_[self._tmax, recv_s])[1:]
         self._tmax = float(tmax[-1])
         if self.next_sample_s is None:
@@ -123,11 +186,15 @@ class TelemetryAggregator:
             i = j
 
     def _slot_of(self, agent_ids: np.ndarray) -> np.ndarray:
+        """Slot of each id (new ids get one while fewer than ``max_agents`` are tracked, else -1)."""
         slots = np.empty(len(agent_ids), dtype=np.int64)
         for k, aid in enumerate(agent_ids.tolist()):
             s = self.slots.get(aid)
             if s is None:
-                s = self.slots[aid] = len(self.slots)
+                if len(self.slots) >= self.max_agents:
+                    s = -1
+                else:
+                    s = self.slots[aid] = len(self.slots)
             slots[k] = s
         if len(self.slots) > len(self.latest):
             grow = max(len(self.slots), 2 * len(self.latest))
@@ -139,6 +206,12 @@ class TelemetryAggregator:
         if len(records) == 0:
             return
         slots = self._slot_of(records["agent_id"])
+        refused = slots < 0
+        if refused.any():
+            self.over_cap += int(refused.sum())
+            slots, records, recv_s = slots[~refused], records[~refused], recv_s[~refused]
+            if len(slots) == 0:
+                return
         # last message per slot wins (as if applied one by one)
         rev_unique, rev_first = np.unique(slots[::-1], return_index=True)
         last = len(slots) - 1 - rev_first
@@ -212,10 +285,16 @@ class TelemetryAggregator:
                 alarms.append(f"flying another map than {self.cmap.sha256[:12]}: agents {_id_list(ids[other])}")
         if self.spoofed:
             alarms.append(f"{self.spoofed} messages claimed another agent's id (spoofing?)")
+        if self.off_roster:
+            alarms.append(f"{self.off_roster} messages from agent ids not on the roster (ignored)")
+        if self.over_cap:
+            alarms.append(f"{self.over_cap} messages from new agent ids refused: {self.max_agents} agents "
+                          "already tracked (forged telemetry? raise --max-agents or give --roster)")
         stale = tuple(int(i) for i in ids[~live])
         return FleetView(now_s=now, n_agents=len(ids), by_state=by_state, stale=stale, map_versions=versions,
                          alarms=tuple(alarms), messages=self.messages, bad_messages=self.bad_messages,
-                         spoofed=self.spoofed, time_samples=0 if self.acc is None else self.acc.n_time_samples)
+                         spoofed=self.spoofed, time_samples=0 if self.acc is None else self.acc.n_time_samples,
+                         off_roster=self.off_roster, over_cap=self.over_cap)
 
 
 def _id_list(ids: np.ndarray, limit: int = 12) -> str:
@@ -243,6 +322,13 @@ class TelemetryPipe:
         self.lock = threading.Lock()
         self.dropped = 0
         self.received = 0
+        self.worker_errors = 0
+        """Batches the consumer failed to process (each logged; the consumer keeps running)."""
+        self.lost_to_errors = 0
+        """Messages in those batches (not ingested; recorded if the failure came after recording)."""
+        self.last_error = ""
+        """``Type: message`` of the newest worker error (shown on the dashboard)."""
+        self._error_types: set[str] = set()
         self._q: queue.Queue = queue.Queue(maxsize)
         self._batch = int(batch)
         self._stop = threading.Event()
@@ -281,9 +367,26 @@ class TelemetryPipe:
                     items.append(self._q.get_nowait())
                 except queue.Empty:
                     break
-            self._process(items)
-            for _ in items:
-                self._q.task_done()
+            try:
+                self._process(items)
+            except Exception as exc:  # noqa: BLE001 - no message may kill the consumer: count, log, show
+                self._worker_error(exc, items)
+            finally:
+                for _ in items:
+                    self._q.task_done()
+
+    def _worker_error(self, exc: Exception, items: list) -> None:
+        name = type(exc).__name__
+        self.worker_errors += 1
+        self.lost_to_errors += sum(1 for it in items if it[0] != "map")
+        self.last_error = f"{name}: {exc}"
+        if name not in self._error_types:  # full traceback once per exception type, then a count
+            self._error_types.add(name)
+            log.error("monitor worker: a batch of %d items failed (%s); the worker keeps running",
+                      len(items), self.last_error, exc_info=exc)
+        else:
+            log.debug("monitor worker: batch failed again (%s), %d failures so far", self.last_error,
+                      self.worker_errors)
 
     def _process(self, items: list) -> None:
         run: list = []
@@ -332,8 +435,10 @@ class TelemetryPipe:
 
 
 def _key_id(keys: Keys, key: str) -> int:
+    """Agent id from a telemetry key; ``NO_AGENT`` unless it is a u32 below ``NO_AGENT``
+    (``.../agents/99999999999999999999/telemetry`` names no agent)."""
     aid = keys.agent_of(key)
-    return NO_AGENT if aid is None else aid
+    return aid if aid is not None and 0 <= aid < NO_AGENT else NO_AGENT
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,7 +477,8 @@ def heatmap_text(cmap: CommandMap, values: np.ndarray, max_cols: int = 60) -> An
     return text
 
 
-def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None, dropped: int, title: str) -> Any:
+def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None, dropped: int, title: str,
+           worker_errors: int = 0, last_error: str = "") -> Any:
     """The dashboard as one rich renderable."""
     from rich.console import Group
     from rich.panel import Panel
@@ -388,7 +494,10 @@ def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None,
     info.add_row("agents heard", str(view.n_agents))
     info.add_row("map", f"{cmap.sha256[:12]} v{cmap.map_version} ({cmap.n_cv} CVs)" if cmap else "none yet")
     info.add_row("map versions flown", ", ".join(f"v{k}: {v}" for k, v in sorted(view.map_versions.items())) or "-")
-    info.add_row("messages", f"{view.messages}  (bad {view.bad_messages}, dropped {dropped})")
+    info.add_row("messages", f"{view.messages}  (bad {view.bad_messages}, dropped {dropped}, "
+                             f"off roster {view.off_roster}, over agent cap {view.over_cap})")
+    if worker_errors:
+        info.add_row("worker errors", f"{worker_errors} batches failed; last: {last_error}", style="bold red")
     info.add_row("field samples", str(view.time_samples))
     parts: list[Any] = [Panel(info, title=title), table]
     alarms = "\n".join(view.alarms) if view.alarms else "none"
@@ -404,12 +513,29 @@ def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None,
 # --------------------------------------------------------------------------------------------
 # Map discovery for the monitor
 
-def fetch_map(session: Any, keys: Keys, trusted_keys: list[bytes] | None, timeout_s: float = 5.0) -> tuple[CommandMap, bytes] | None:
-    """Query the swarm's current map (verified; unsigned accepted only without trusted keys)."""
+def verify_monitor_map(blob: bytes | bytearray, trusted_keys: list[bytes] | None, allow_unsigned: bool,
+                       claimed_version: int | None = None, source: str = "<zenoh>") -> CommandMap:
+    """The monitor's rule for a map: with trusted keys, signed by one of them; without, any valid
+    signature; an unsigned map only with ``allow_unsigned`` (``MapError`` names the refusal)."""
+    from fisc_agent.mapfile import MapError
+    from fisc_agent.zenoh_link import verify_map_bytes
+
+    if trusted_keys:
+        return verify_map_bytes(blob, trusted_keys, allow_unsigned=False, claimed_version=claimed_version,
+                                source=source)
+    cmap = verify_map_bytes(blob, None, allow_unsigned=True, claimed_version=claimed_version, source=source)
+    if not cmap.signed and not allow_unsigned:
+        raise MapError(f"{source}: signature: the map is unsigned (refused; --allow-unsigned accepts it in a lab)")
+    return cmap
+
+
+def fetch_map(session: Any, keys: Keys, trusted_keys: list[bytes] | None, timeout_s: float = 5.0,
+              allow_unsigned: bool = False) -> tuple[CommandMap, bytes] | None:
+    """Query the swarm's current map, verified by ``verify_monitor_map``."""
     import zenoh
 
     from fisc_agent.mapfile import MapError
-    from fisc_agent.zenoh_link import MapAssembler, verify_map_bytes
+    from fisc_agent.zenoh_link import MapAssembler
 
     asm = MapAssembler()
     for reply in session.get(keys.map, consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
@@ -422,8 +548,8 @@ def fetch_map(session: Any, keys: Keys, trusted_keys: list[bytes] | None, timeou
             log.warning("map chunk refused: %s", exc)
             continue
         if blob is not None:
-            cmap = verify_map_bytes(blob, trusted_keys, allow_unsigned=not trusted_keys, claimed_version=head.map_version,
-                                    source=keys.map)
+            cmap = verify_monitor_map(blob, trusted_keys, allow_unsigned, claimed_version=head.map_version,
+                                      source=keys.map)
             return cmap, bytes(blob)
     return None
 
@@ -433,8 +559,9 @@ class MapFollower:
     and verify it, then switch the pipe to it (in stream order, so replays switch there too)."""
 
     def __init__(self, session: Any, keys: Keys, pipe: TelemetryPipe, trusted_keys: list[bytes] | None,
-                 current_version: int = 0) -> None:
+                 current_version: int = 0, allow_unsigned: bool = False) -> None:
         self.session, self.keys, self.pipe, self.trusted = session, keys, pipe, trusted_keys
+        self.allow_unsigned = bool(allow_unsigned)
         self.version = int(current_version)
         self.refused: set[int] = set()
         """map_versions announced, fetched and refused (not fetched again)."""
@@ -457,7 +584,7 @@ class MapFollower:
         from fisc_agent.mapfile import MapError
 
         try:
-            got = fetch_map(self.session, self.keys, self.trusted)
+            got = fetch_map(self.session, self.keys, self.trusted, allow_unsigned=self.allow_unsigned)
             if got is not None and got[0].map_version > self.version:
                 self.version = got[0].map_version
                 self.pipe.set_map(*got)
@@ -477,23 +604,28 @@ def run_monitor(args: Any) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from fisc_agent.mapfile import MapError, load_map, read_public_key
+    from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, read_public_key
+    from fisc_agent.safe_files import read_regular_file
     from fisc_ground.recording import Recorder
     from fisc_ground.zenoh_config import open_ground_session
 
     keys = Keys(args.prefix, args.swarm)
     trusted = [read_public_key(p) for p in (args.trusted_key or [])]
+    roster = args.roster if args.roster is None or isinstance(args.roster, AgentRoster) else AgentRoster.parse(args.roster)
+    if args.map:  # read before opening the session: a bad file fails fast
+        map_file_blob = read_regular_file(args.map, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC,
+                                          error=MapError)
+        map_file = verify_monitor_map(map_file_blob, trusted, args.allow_unsigned, source=str(args.map))
     console = Console(stderr=False)
     session = open_ground_session(args.zenoh_config)
     recorder = None
     try:
         cmap, blob = None, None
         if args.map:
-            cmap = load_map(args.map, trusted[0] if trusted else None)
-            blob = open(args.map, "rb").read()
+            cmap, blob = map_file, map_file_blob
         else:
             try:
-                got = fetch_map(session, keys, trusted, timeout_s=args.map_timeout)
+                got = fetch_map(session, keys, trusted, timeout_s=args.map_timeout, allow_unsigned=args.allow_unsigned)
                 if got is None:
                     log.warning("no map on %s yet: showing fleet state only", keys.map)
             except MapError as exc:  # e.g. a map signed by a stranger: the fleet is what to watch now
@@ -501,17 +633,21 @@ def run_monitor(args: Any) -> int:
                 got = None
             if got is not None:
                 cmap, blob = got
-        agg = TelemetryAggregator(None, sample_period_s=args.sample_period, stale_after_s=args.stale_after)
+        agg = TelemetryAggregator(None, sample_period_s=args.sample_period, stale_after_s=args.stale_after,
+                                  roster=roster, max_agents=args.max_agents)
         if args.record:
             recorder = Recorder(args.record, {"swarm": args.swarm, "prefix": args.prefix,
                                               "sample_period_s": args.sample_period,
-                                              "stale_after_s": args.stale_after})
+                                              "stale_after_s": args.stale_after,
+                                              "roster": roster.spec() if roster else None,
+                                              "max_agents": args.max_agents})
         pipe = TelemetryPipe(keys, agg, recorder)
         if cmap is not None:
             pipe.set_map(cmap, blob)
         pipe.attach(session)
         follower = None if args.map else MapFollower(session, keys, pipe, trusted,
-                                                     cmap.map_version if cmap is not None else 0)
+                                                     cmap.map_version if cmap is not None else 0,
+                                                     allow_unsigned=args.allow_unsigned)
         end = time.monotonic() + args.duration if args.duration else math.inf
         title = f"FISC swarm {args.swarm}" + (f"  recording {args.record}" if args.record else "")
         try:
@@ -521,7 +657,8 @@ def run_monitor(args: Any) -> int:
                         view = agg.view(time.time())
                         fields = agg.fields()
                         shown_map = agg.cmap
-                    live.update(render(view, fields, shown_map, pipe.dropped, title))
+                    live.update(render(view, fields, shown_map, pipe.dropped, title, pipe.worker_errors,
+                                       pipe.last_error))
                     time.sleep(0.5)
         except KeyboardInterrupt:
             pass
@@ -529,6 +666,8 @@ def run_monitor(args: Any) -> int:
             follower.close()
         pipe.close()
         console.print(f"{pipe.received} messages received, {pipe.dropped} dropped"
+                      + (f", {pipe.worker_errors} worker errors ({pipe.lost_to_errors} messages lost; "
+                         f"last: {pipe.last_error})" if pipe.worker_errors else "")
                       + (f", recorded to {args.record}" if args.record else ""))
     finally:
         if recorder is not None:

@@ -35,7 +35,7 @@ import numpy as np
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import CommandMap, decode_map
-from fisc_ground.monitor import TelemetryAggregator
+from fisc_ground.monitor import DEFAULT_MAX_AGENTS, AgentRoster, TelemetryAggregator
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,9 @@ KIND_TELEMETRY = 1
 KIND_MAP = 2
 _HEAD = struct.Struct("<8sIQ")
 _REC = struct.Struct("<BdII")
+#: Largest recording ``read_recording`` reads (it holds the file in memory; about 2 h of 1000
+#: agents at 10 Hz).
+MAX_RECORDING_BYTES = 8 << 30
 _REC_DTYPE = np.dtype([("kind", "u1"), ("recv_s", "<f8"), ("agent_id", "<u4"), ("length", "<u4")])
 
 
@@ -113,11 +116,11 @@ class Recording:
 
 def read_recording(path: str | Path) -> Recording:
     """Read a recording (tolerates a truncated tail)."""
+    from fisc_agent.safe_files import read_regular_file
+
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read recording ({exc.strerror})") from exc
+    data = read_regular_file(path, what="FISC telemetry recording", max_bytes=MAX_RECORDING_BYTES, magic=MAGIC,
+                             error=RecordingError)
     if len(data) < _HEAD.size or data[:8] != MAGIC:
         raise RecordingError(f"{path}: not a FISC telemetry recording (bad magic)")
     _, version, n = _HEAD.unpack_from(data)
@@ -169,8 +172,11 @@ def aggregate(recording: Recording, cmap: CommandMap | None = None) -> Telemetry
 
     ``cmap``: use this map for the whole recording instead of the map records in it."""
     meta = recording.meta
+    roster = meta.get("roster")
     agg = TelemetryAggregator(cmap, sample_period_s=float(meta.get("sample_period_s", 0.5)),
-                              stale_after_s=float(meta.get("stale_after_s", 3.0)))
+                              stale_after_s=float(meta.get("stale_after_s", 3.0)),
+                              roster=AgentRoster.parse(roster) if roster else None,
+                              max_agents=int(meta.get("max_agents", DEFAULT_MAX_AGENTS)))
     for ev in recording.events:
         if ev[0] == "map":
             if cmap is None:

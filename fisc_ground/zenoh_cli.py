@@ -13,17 +13,39 @@ from pathlib import Path
 from typing import Any
 
 from fisc_agent.fleet_commands import COMMANDS
+from fisc_agent.names import prefix_arg, swarm_name_arg
 from fisc_agent.zenoh_link import DEFAULT_CHUNK_BYTES, DEFAULT_PREFIX
 
 log = logging.getLogger(__name__)
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--swarm", required=True, metavar="NAME", help="swarm name (key expressions <prefix>/NAME/...)")
+    p.add_argument("--swarm", required=True, type=swarm_name_arg, metavar="NAME",
+                   help="swarm name (key expressions <prefix>/NAME/...): 1-64 of A-Z a-z 0-9 _ - .")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE",
                    help="standard Zenoh JSON5 config (default: peer mode on loopback, multicast off, "
                         "hub tcp/127.0.0.1:7447)")
-    p.add_argument("--prefix", default=DEFAULT_PREFIX, help=f"key expression prefix (default {DEFAULT_PREFIX})")
+    p.add_argument("--prefix", type=prefix_arg, default=DEFAULT_PREFIX,
+                   help=f"key expression prefix: chunks of A-Z a-z 0-9 _ - . joined by / (default {DEFAULT_PREFIX})")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def _roster(text: str) -> Any:
+    from fisc_ground.monitor import AgentRoster
+
+    try:
+        return AgentRoster.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def run_publish(args: Any) -> int:
@@ -69,7 +91,7 @@ def run_publish(args: Any) -> int:
 def add_parsers(subparsers: Any) -> None:
     """Register publish, cmd, status, monitor and replay on ``fisc-ground``'s subparsers."""
     from fisc_ground.fleet import run_cmd, run_status
-    from fisc_ground.monitor import run_monitor
+    from fisc_ground.monitor import DEFAULT_MAX_AGENTS, run_monitor
     from fisc_ground.recording import run_replay
 
     p = subparsers.add_parser(
@@ -118,6 +140,13 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--map", type=Path, metavar="MAP", help="map for the CVs (default: fetched from the swarm)")
     p.add_argument("--trusted-key", type=Path, action="append", metavar="PUB",
                    help="require the map to be signed by this key (repeatable)")
+    p.add_argument("--allow-unsigned", action="store_true",
+                   help="accept an unsigned map (lab only; refused by default, like the agents do)")
+    p.add_argument("--roster", type=_roster, metavar="IDS",
+                   help="agent ids to accept telemetry from, e.g. 1-100,205 (default: any id, up to --max-agents)")
+    p.add_argument("--max-agents", type=_positive_int, default=DEFAULT_MAX_AGENTS, metavar="N",
+                   help=f"track at most N agent ids; further new ids are counted and shown, not tracked "
+                        f"(default {DEFAULT_MAX_AGENTS})")
     p.add_argument("--record", type=Path, metavar="FILE", help="record the telemetry stream to FILE")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: run)")
     p.add_argument("--sample-period", type=float, default=0.5, metavar="S",

@@ -66,11 +66,10 @@ class MapServer:
 
     def serve_file(self, path: str | Path) -> CommandMap:
         """Read a ``.fiscmap`` file and serve it."""
-        path = Path(path)
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise MapError(f"{path}: cannot read map ({exc.strerror})") from exc
+        from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES
+        from fisc_agent.safe_files import read_regular_file
+
+        data = read_regular_file(path, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC, error=MapError)
         return self.serve(data, source=str(path))
 
     def _on_query(self, query: Any) -> None:

@@ -132,7 +132,14 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.command == "run":
-        return _cmd_run(args)
+        from fisc_agent.mapfile import MapError
+        from fisc_ground.reference.field import ReferenceError
+
+        try:
+            return _cmd_run(args)
+        except (MapError, ReferenceError) as exc:  # a bad --map file or reference: the reason, no traceback
+            print(f"fisc-sim run: error: {exc}", file=sys.stderr)
+            return 1
     if args.command == "bench":
         return _cmd_bench(args)
     if args.command == "autopilot":

@@ -46,7 +46,8 @@ from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.control import MapGeometry, ScalarField, entry_point, join_waypoints
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.lookup import COMMAND_MODES, CommandField
-from fisc_agent.mapfile import CommandMap, load_map
+from fisc_agent.mapfile import MAGIC, CommandMap, load_map
+from fisc_agent.safe_files import read_head
 from sim.scenarios import Reservoir, scale_for_agents
 
 log = logging.getLogger(__name__)
@@ -236,7 +237,7 @@ def prepare_map(spec: str | None, out_dir: Path) -> tuple[Path, CommandMap]:
     map (None) or a reference spec is built now and written to ``out_dir/map.fiscmap``."""
     if spec is not None:
         p = Path(spec)
-        if p.suffix == ".fiscmap" or (p.is_file() and p.read_bytes()[:8] == b"FISCMAP\x00"):
+        if p.suffix == ".fiscmap" or (p.is_file() and read_head(p, 8, what="map or reference file") == MAGIC):
             return p, load_map(p)
     from fisc_ground.mapbuild import DEFAULT_REFERENCE, build_map
     from fisc_ground.mapwrite import write_map

@@ -15,6 +15,7 @@ import sys
 
 from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.lookup import COMMAND_MODES
+from fisc_agent.names import prefix_arg, swarm_name_arg
 
 EXIT_OK, EXIT_ERROR = 0, 1
 
@@ -52,10 +53,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--seed", type=int, default=0, help="seed of the reference fisc-sim run")
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
-    z.add_argument("--swarm", metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
+    z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
                    "(omitted: peer mode on loopback, connecting to the hub tcp/127.0.0.1:7447)")
-    z.add_argument("--zenoh-prefix", default="fisc", help="key expression prefix")
+    z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
                    "commands (required with --swarm)")
@@ -87,16 +88,23 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"fisc-sim emulate: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    show = not args.quiet and sys.stderr.isatty()
-    if show:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from fisc_agent.mapfile import MapError
+    from fisc_ground.reference.field import ReferenceError
 
-        with Progress(TextColumn(f"emulate {cfg.agents} vehicles"), BarColumn(),
-                      TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TimeRemainingColumn()) as prog:
-            task = prog.add_task("emulate", total=1.0)
-            res = emulate(cfg, progress=lambda f: prog.update(task, completed=f))
-    else:
-        res = emulate(cfg)
+    show = not args.quiet and sys.stderr.isatty()
+    try:
+        if show:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+            with Progress(TextColumn(f"emulate {cfg.agents} vehicles"), BarColumn(),
+                          TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), TimeRemainingColumn()) as prog:
+                task = prog.add_task("emulate", total=1.0)
+                res = emulate(cfg, progress=lambda f: prog.update(task, completed=f))
+        else:
+            res = emulate(cfg)
+    except (MapError, ReferenceError) as exc:  # a bad --map file or reference: the reason, no traceback
+        print(f"fisc-sim emulate: {exc}", file=sys.stderr)
+        return EXIT_ERROR
     m, rt, en = res.run_result.metrics, res.realtime, res.entries
     print(f"wrote {args.out}: {en['vehicles_entered']}/{cfg.agents} vehicles entered the tunnel "
           f"({en['entries_total']} entries); nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "

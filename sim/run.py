@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import CommandMap, load_map
+from fisc_agent.mapfile import MAGIC, CommandMap, load_map
+from fisc_agent.safe_files import read_head
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant import PlantParams
@@ -176,7 +177,7 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None) -> Co
 
         return build_default_map(fit)
     p = Path(spec)
-    if p.suffix == ".fiscmap" or (p.is_file() and p.read_bytes()[:8] == b"FISCMAP\x00"):
+    if p.suffix == ".fiscmap" or (p.is_file() and read_head(p, 8, what="map or reference file") == MAGIC):
         return load_map(p)
     from fisc_ground.mapbuild import build_map_from_reference
 

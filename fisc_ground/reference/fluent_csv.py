@@ -69,10 +69,12 @@ def read_numeric_table(path: str | Path) -> NumericTable:
     the first problem: missing file, empty file, header only, wrong cell count, non-numeric cell.
     (Non-finite values are parsed; callers check them per required column.)
     """
+    from fisc_ground.reference.files import read_text_export
+
     p = Path(path)
     if not p.is_file():
         raise ReferenceError(f"{p}: file not found")
-    raw = p.read_bytes()
+    raw = read_text_export(p)
     sha = hashlib.sha256(raw).hexdigest()
     try:
         text = raw.decode("utf-8-sig")

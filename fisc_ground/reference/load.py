@@ -14,11 +14,13 @@ _VTK = (".vtu", ".vtk")
 
 def _sniff_csv_header(path: Path) -> tuple[str, ...]:
     """Normalised header cells of a CSV (first non-blank line)."""
-    with path.open("r", encoding="utf-8-sig", errors="replace") as fh:
-        for line in fh:
-            if line.strip():
-                cells = line.split(",") if "," in line else line.split()
-                return tuple(normalise_column_name(c) for c in cells if c.strip())
+    from fisc_ground.reference.files import check_text_head
+
+    text = check_text_head(path).decode("utf-8-sig", errors="replace")
+    for line in text.split("\n"):
+        if line.strip():
+            cells = line.split(",") if "," in line else line.split()
+            return tuple(normalise_column_name(c) for c in cells if c.strip())
     raise ReferenceError(f"{path}: empty file (no header, no data)")
 
 
@@ -42,6 +44,11 @@ def load_reference(spec: str | Path, pressure_kind: str = "auto") -> ReferenceFi
         return load_builtin(name)  # raises, listing the known names
     path = Path(s)
     suffix = path.suffix.lower()
+    if path.exists() and not path.is_file():  # /dev/zero, a FIFO, a directory: say what it is
+        from fisc_agent.safe_files import check_regular_file
+        from fisc_ground.reference.files import MAX_REFERENCE_BYTES
+
+        check_regular_file(path, what="CFD export", max_bytes=MAX_REFERENCE_BYTES, error=ReferenceError)
     if not path.is_file():
         hint = ("" if suffix in _CSV + _VTK else
                 f"; not a built-in either (known: {', '.join(builtin_names())})")

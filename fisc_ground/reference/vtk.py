@@ -82,7 +82,11 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
     if not p.is_file():
         raise ReferenceError(f"{p}: file not found")
     src = str(p)
-    raw = p.read_bytes()
+    from fisc_ground.reference.files import MAX_REFERENCE_BYTES, check_vtk_head
+    from fisc_agent.safe_files import read_regular_file
+
+    check_vtk_head(p)
+    raw = read_regular_file(p, what="VTK export", max_bytes=MAX_REFERENCE_BYTES, error=ReferenceError)
     sha = hashlib.sha256(raw).hexdigest()
     # the format readers directly: meshio.read() prints and calls sys.exit() on a bad file
     readers = {".vtu": meshio.vtu.read, ".vtk": meshio.vtk.read}
@@ -92,7 +96,8 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
     try:
         mesh = reader(str(p))
     except Exception as exc:  # meshio raises many types (ReadError, ParseError, KeyError, ...)
-        raise ReferenceError(f"{src}: cannot read as VTK: {type(exc).__name__}: {exc}") from exc
+        detail = str(exc).strip() or "meshio gave no details; the file is damaged or not a complete export"
+        raise ReferenceError(f"{src}: cannot read as VTK: {type(exc).__name__}: {detail}") from exc
 
     # prefer cell data (OpenFOAM's native values) over interpolated point data
     vol = [i for i, c in enumerate(mesh.cells) if c.type in _VOLUME_CELLS]

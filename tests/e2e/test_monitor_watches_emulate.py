@@ -56,3 +56,12 @@ def test_monitor_records_the_emulated_swarm_and_replay_gives_density_and_pressur
     visited = [r for r in rows if int(r["samples"]) > 0]
     assert len(visited) >= 5, "the emulated agents' telemetry placed them in too few CVs"
     assert all(float(r["swarm_density"]) > 0 and math.isfinite(float(r["swarm_pressure"])) for r in visited)
+    # the values, not only their sign: density = mean agent count x 1 kg / l^3 (l = 0.5 m); the
+    # internal pressure lies between the random pressure and the kinetic P_s; the reported
+    # swarm_pressure is the dispersion pressure, a column of its own
+    for r in visited:
+        assert float(r["swarm_density"]) == pytest.approx(float(r["swarm_count"]) * 1.0 / 0.5 ** 3, rel=1e-12)
+        kin, internal, rand = (float(r[k]) for k in ("swarm_pressure_kinetic", "swarm_pressure_internal",
+                                                     "swarm_pressure_random"))
+        assert rand <= internal * (1 + 1e-9) + 1e-12 and internal <= kin * (1 + 1e-9)
+    assert any(float(r["swarm_pressure"]) != pytest.approx(float(r["swarm_pressure_kinetic"])) for r in visited)

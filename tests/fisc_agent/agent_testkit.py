@@ -58,3 +58,60 @@ def tunnel_map_bytes(signing_key: bytes | None = None, map_version: int = 1, **k
     return encode_map(meta, arrays, signing_key)
 
 
+
+
+class EmulatorProbe:
+    """Records what the project's autopilot emulator (``sim.autopilot``) receives, and injects
+    faults into it at run time; the emulator still handles every message itself.
+
+    ``setpoints``: (emulator time [s], vx, vy, vz, type_mask, frame, source system) of every
+    SET_POSITION_TARGET_LOCAL_NED; ``commands``: (emulator time [s], command, params, source
+    system) of every COMMAND_LONG.  Replaces the hand-written fake autopilot of earlier tests
+    (issue 12), whose PX4 rules had drifted from the emulator's (offboard loss 0.5 s vs 1.0 s).
+    """
+
+    def __init__(self, emulator) -> None:
+        import threading
+
+        self.em = emulator
+        self.setpoints: list[tuple] = []
+        self.commands: list[tuple] = []
+        self._lock = threading.Lock()
+        handlers = emulator._handlers  # the emulator's own dispatch table, wrapped, not replaced
+        sp, cmd = handlers["SET_POSITION_TARGET_LOCAL_NED"], handlers["COMMAND_LONG"]
+
+        def on_setpoint(msg, now):
+            with self._lock:
+                self.setpoints.append((now, msg.vx, msg.vy, msg.vz, msg.type_mask, msg.coordinate_frame,
+                                       msg.get_srcSystem()))
+            sp(msg, now)
+
+        def on_command(msg, now):
+            with self._lock:
+                self.commands.append((now, msg.command, (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5,
+                                                         msg.param6, msg.param7), msg.get_srcSystem()))
+            cmd(msg, now)
+
+        handlers["SET_POSITION_TARGET_LOCAL_NED"] = on_setpoint
+        handlers["COMMAND_LONG"] = on_command
+
+    def setpoints_since(self, t_s: float) -> list[tuple]:
+        with self._lock:
+            return [s for s in self.setpoints if s[0] >= t_s]
+
+    def commands_since(self, t_s: float) -> list[tuple]:
+        with self._lock:
+            return [c for c in self.commands if c[0] >= t_s]
+
+    def drop_position(self, on: bool = True) -> None:
+        """Stop (or restart) the position estimate and its messages from now on (a GPS/EKF loss)."""
+        from sim.autopilot.faults import FaultConfig, FaultInjector
+
+        windows = ((self.em.time_s, 1e9),) if on else ()
+        self.em.faults = FaultInjector(FaultConfig(position_dropouts=windows))
+
+    def mute(self, on: bool = True) -> None:
+        """Lose every message in both directions from now on (a radio link loss)."""
+        from sim.autopilot.faults import FaultConfig, FaultInjector
+
+        self.em.faults = FaultInjector(FaultConfig(loss_probability=1.0 if on else 0.0))

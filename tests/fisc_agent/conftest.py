@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))  # fake_autopilot
+sys.path.insert(0, str(Path(__file__).parent))  # agent_testkit
 
 from fisc_agent.mapfile import decode_map  # noqa: E402
 

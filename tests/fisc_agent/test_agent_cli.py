@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from agent_testkit import tunnel_map_bytes
-from fake_autopilot import FakeAutopilot
+from agent_testkit import EmulatorProbe, tunnel_map_bytes
+from sim.autopilot import server
 from fisc_agent.cli import build_parser, config_from_args, main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -105,27 +105,32 @@ def test_agent_package_is_lean():
 def test_sigterm_holds_the_vehicle_and_exits_cleanly(tmp_path, udp_port):
     mp = tmp_path / "tunnel.fiscmap"
     mp.write_bytes(tunnel_map_bytes())
-    fake = FakeAutopilot(f"udpout:127.0.0.1:{udp_port}", "px4", start_ned=(-3.0, 0.0, -2.0)).start()
+    emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{udp_port}", personality="px4", start_ned=(-3.0, 0.0, -2.0)).start()
+    probe = EmulatorProbe(emu)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--map", str(mp), "--mavlink",
                              f"udpin:127.0.0.1:{udp_port}", "--id", "2", "--origin", "0,0,-4", "--takeoff-alt", "1"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         end = time.monotonic() + 15
-        while time.monotonic() < end and not (fake.mode == "offboard" and len(fake.setpoints) > 30):
+        while time.monotonic() < end and not (emu.state.mode.value == "offboard" and len(probe.setpoints) > 30):
             time.sleep(0.05)
-        assert fake.mode == "offboard", "agent never took the vehicle into OFFBOARD"
+        assert emu.state.mode.value == "offboard", "agent never took the vehicle into OFFBOARD"
+        t_term = emu.time_s
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=10)
         assert proc.returncode == 0, out
-        assert fake.setpoints[-1][1:4] == (0.0, 0.0, 0.0)
-        time.sleep(0.1)
-        assert fake.mode == "hold" and fake.armed
+        assert probe.setpoints[-1][1:4] == (0.0, 0.0, 0.0)
+        # the agent itself asked for Hold (AUTO.LOITER) on its way out, before the emulator's
+        # offboard-loss failsafe (COM_OF_LOSS_T = 1.0 s) could have acted
+        holds = [c for c in probe.commands_since(t_term) if c[1] == 176 and (c[2][1], c[2][2]) == (4.0, 3.0)]
+        assert holds and holds[0][0] - probe.setpoints[-1][0] < 1.0, (holds, probe.setpoints[-1])
+        assert emu.state.mode.value == "loiter" and emu.state.armed
         assert "SIGTERM" in out
     finally:
         if proc.poll() is None:
             proc.kill()
-        fake.stop()
+        emu.stop()
 
 
 def test_origin_and_geodetic_anchor_are_exclusive(caplog):

@@ -1,7 +1,7 @@
 """End-to-end: the agent over real UDP sockets on 127.0.0.1 against an autopilot.
 
-Peers: the project's MAVLink autopilot emulator (``sim.autopilot.server``) for whole flights,
-and the tiny fake in ``fake_autopilot.py`` for injected faults.
+Peer: the project's MAVLink autopilot emulator (``sim.autopilot.server``), for whole flights and,
+through ``agent_testkit.EmulatorProbe``, for injected faults (position loss, link loss).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from fake_autopilot import FakeAutopilot
+from agent_testkit import EmulatorProbe
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import MapGeometry
 from fisc_agent.frames import GeodeticAnchor
@@ -19,6 +19,8 @@ from fisc_agent.link import TYPEMASK_VELOCITY_ONLY, MavlinkLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mission import State
 from fisc_agent.runner import Runner
+from fisc_ground.mapbuild import build_default_map
+from sim.autopilot import server
 
 pytestmark = pytest.mark.slow
 
@@ -106,10 +108,8 @@ def _check_flight(flight, cmap):
 
 @pytest.mark.parametrize("personality", ["px4", "ardupilot"])
 def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personality, tunnel_map):
-    server = pytest.importorskip("sim.autopilot.server")
     if personality == "px4":
-        mapbuild = pytest.importorskip("fisc_ground.mapbuild")
-        cmap = mapbuild.build_default_map()          # the embedded default: 15 m nozzle
+        cmap = build_default_map()          # the embedded default: 15 m nozzle
     else:
         cmap = tunnel_map                            # 3 m synthetic tunnel (keeps the test short)
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality=personality).start()
@@ -127,67 +127,105 @@ def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personali
         emu.stop()
 
 
-def _fake_flight(personality, port, **kw):
-    fake = FakeAutopilot(f"udpout:127.0.0.1:{port}", personality, start_ned=(-3.0, 0.0, -2.0)).start()
+PX4_HOLD = (4.0, 3.0)  # DO_SET_MODE param2/param3 of AUTO.LOITER ("Hold")
+PX4_OFFBOARD = (6.0, 0.0)
+
+
+def _emulated_flight(personality, port, start_ned=(-3.0, 0.0, -2.0), home_lla=None, **kw):
+    """The project's emulator sending to the agent's udpin port, with a probe on what it receives."""
+    extra = {} if home_lla is None else {"home_lla": home_lla}
+    emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{port}", personality=personality, start_ned=start_ned,
+                                   **extra).start()
     cfg = agent_cfg(f"udpin:127.0.0.1:{port}", **kw)
-    return fake, Runner(cfg, MavlinkLink(cfg.mavlink_url))
+    return emu, EmulatorProbe(emu), Runner(cfg, MavlinkLink(cfg.mavlink_url))
 
 
-def test_fake_records_velocity_only_local_ned_setpoints_at_the_rate(udp_port, tunnel_map):
-    fake, runner = _fake_flight("px4", udp_port)
+def _mode_requests(probe, since_s, mode):
+    return [c for c in probe.commands_since(since_s) if c[1] == 176 and (c[2][1], c[2][2]) == mode]
+
+
+def test_setpoints_are_velocity_only_local_ned_at_the_rate(udp_port, tunnel_map):
+    emu, probe, runner = _emulated_flight("px4", udp_port)
     runner.offer_map(tunnel_map)
     try:
         with Flight(runner) as f:
             f.wait(lambda s: s.state == "FLOW", 20, "FLOW")
-        sps = fake.setpoints
+            assert emu.state.mode.value == "offboard"      # the emulator accepted the agent's OFFBOARD
+            t0 = emu.time_s
+            time.sleep(1.0)
+            sps = probe.setpoints_since(t0)
         assert sps and all(sp[4] == TYPEMASK_VELOCITY_ONLY == 0b0000110111000111 and sp[5] == 1 for sp in sps)
         ts = [sp[0] for sp in sps]
         rate = (len(ts) - 1) / (ts[-1] - ts[0])
-        assert 15.0 < rate < 25.0
-        assert "offboard" in fake.modes_seen
+        assert 15.0 < rate < 25.0, rate
+        assert max(b - a for a, b in zip(ts, ts[1:])) < 0.25
     finally:
-        fake.stop()
+        emu.stop()
 
 
-def test_position_dropout_holds_with_zero_velocity_then_autopilot_hold(udp_port, tunnel_map):
-    fake, runner = _fake_flight("px4", udp_port, hold_grace_s=1.0)
+def test_position_dropout_holds_with_zero_velocity_then_requests_the_autopilot_hold(udp_port, tunnel_map):
+    emu, probe, runner = _emulated_flight("px4", udp_port, hold_grace_s=1.0)
     runner.offer_map(tunnel_map)
     try:
         with Flight(runner) as f:
             f.wait(lambda s: s.state == "JOIN" and s.mode == "offboard", 15, "JOIN in offboard")
-            fake.drop_position = True
+            t0 = emu.time_s
+            probe.drop_position()
             f.wait(lambda s: s.state == "HOLD", 3, "stale hold")
-            time.sleep(0.5)
-            assert fake.setpoints[-1][1:4] == (0.0, 0.0, 0.0)
-            f.wait(lambda s: s.mode == "hold", 4, "autopilot hold mode")
-            assert fake.mode == "hold"
+            t_stale = emu.time_s
             assert runner.mission.reason == "position stale"
+            f.wait(lambda s: s.mode == "hold", 5, "autopilot hold mode")
+            t_hold = emu.time_s
+        requests = _mode_requests(probe, t0, PX4_HOLD)
+        assert requests, "the agent never asked the autopilot for its hold mode"
+        sps = [sp for sp in probe.setpoints_since(t0) if sp[0] <= requests[0][0]]
+        # the agent streamed (zero) setpoints right up to its hold request: the hold is the agent's
+        # escalation, not the autopilot's offboard-loss failsafe (COM_OF_LOSS_T = 1.0 s)
+        gaps = [b[0] - a[0] for a, b in zip(sps, sps[1:])] + [requests[0][0] - sps[-1][0]]
+        assert max(gaps) < 0.5, max(gaps)
+        # after the agent's stale hold: the commanded speed ramps down (acceleration clamp) to zero
+        speeds = [sum(c * c for c in sp[1:4]) ** 0.5 for sp in sps if sp[0] >= t_stale]
+        assert all(b <= a + 1e-6 for a, b in zip(speeds, speeds[1:])), speeds
+        settled = [sp for sp in sps if sp[0] > t_stale + 0.5]
+        assert settled and all(sp[1:4] == (0.0, 0.0, 0.0) for sp in settled), settled[:3]
+        assert emu.state.mode.value == "loiter" and emu.state.armed and t_hold >= requests[0][0]
     finally:
-        fake.stop()
+        emu.stop()
 
 
-def test_link_loss_is_detected_and_the_autopilot_failsafe_takes_over(udp_port, tunnel_map):
-    fake, runner = _fake_flight("px4", udp_port)
+def test_link_loss_holds_latched_and_requests_hold_when_the_link_is_back(udp_port, tunnel_map):
+    emu, probe, runner = _emulated_flight("px4", udp_port)
     runner.offer_map(tunnel_map)
     try:
         with Flight(runner) as f:
             f.wait(lambda s: s.state == "JOIN" and s.mode == "offboard", 15, "JOIN in offboard")
-            fake.mute = True
+            probe.mute()
             snap = f.wait(lambda s: not s.link_ok, 5, "link lost")
             assert snap.heartbeat_age_s > runner.cfg.link_timeout_s
             f.wait(lambda s: s.state == "HOLD" and s.reason == "link lost", 2, "link-lost hold")
-            assert fake.mode == "hold"          # the autopilot's own offboard-loss failsafe
+            t_back = emu.time_s
+            probe.mute(False)
+            f.wait(lambda s: s.link_ok, 5, "link back")
+            f.wait(lambda s: s.mode == "hold", 5, "hold mode after the link came back")
+            time.sleep(1.5)
+            # latched: a link that comes back does not resume the flight by itself
+            assert runner.mission.state == State.HOLD and runner.mission.reason == "link lost"
+            assert runner.snapshot().state == "HOLD"
+        assert not _mode_requests(probe, t_back, PX4_OFFBOARD), "resumed OFFBOARD without a fleet resume"
+        moving = [sp for sp in probe.setpoints_since(t_back) if sp[1:4] != (0.0, 0.0, 0.0)]
+        assert not moving, f"non-zero setpoints after the link came back: {moving[:3]}"
+        assert emu.state.mode.value == "loiter" and emu.state.armed
     finally:
-        fake.stop()
+        emu.stop()
 
 
 def test_geodetic_anchor_positions_from_global_position_int(udp_port, tunnel_map):
     anchor_geo = GeodeticAnchor(47.3977, 8.5456, 488.0, 0.0)
-    # map origin 5 m North, 2 m East, 4 m up of the fake's EKF origin, tunnel pointing East
+    # map origin 5 m North, 2 m East, 4 m up of the emulator's home, tunnel pointing East
     lat, lon, alt = anchor_geo.ned_to_geodetic(5.0, 2.0, -4.0)
     anchor = GeodeticAnchor(lat, lon, alt, 90.0)
-    fake = FakeAutopilot(f"udpout:127.0.0.1:{udp_port}", "px4", start_ned=(3.0, -1.0, -2.0),
-                         geo_origin=(47.3977, 8.5456, 488.0)).start()
+    emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{udp_port}", personality="px4", start_ned=(3.0, -1.0, -2.0),
+                                   home_lla=(47.3977, 8.5456, 488.0)).start()
     cfg = agent_cfg(f"udpin:127.0.0.1:{udp_port}", geodetic_anchor=anchor, origin_ned_m=(0.0, 0.0, -10.0))
     runner = Runner(cfg, MavlinkLink(cfg.mavlink_url, anchor=anchor), tunnel_map)
     try:
@@ -196,12 +234,11 @@ def test_geodetic_anchor_positions_from_global_position_int(udp_port, tunnel_map
             # vehicle at NED (3,-1,-2): relative to the anchor (-2,-3,+2); tunnel axis along East
             assert snap.position_map_m == pytest.approx((-3.0, 2.0, -2.0), abs=0.05)
     finally:
-        fake.stop()
+        emu.stop()
 
 
 def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
-    server = pytest.importorskip("sim.autopilot.server")
-    pytest.importorskip("mavsdk")
+    pytest.importorskip("mavsdk")  # an optional backend (the `mavsdk` extra)
     from fisc_agent.mavsdk_backend import MavsdkLink
 
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()

@@ -175,6 +175,8 @@ def test_position_lost_escalates_to_autopilot_hold_and_waits_for_resume(sfield):
     _fly_to_flow(m, v, cfg)
     v.drop_position = True
     outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
+    assert m.state == State.HOLD and m.reason == "position stale"  # the hold is the stale-position one
+    assert [t.reason for t in m.transitions].count("position stale") == 1
     assert v.t - v.last_fix > cfg.stale_timeout_s + cfg.hold_grace_s - 2 * DT
     assert outs[-1].velocity_m_s is None
     v.drop_position = False

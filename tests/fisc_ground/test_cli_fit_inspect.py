@@ -13,7 +13,6 @@ import pytest
 from fisc_agent.mapfile import load_map
 from fisc_ground.cli import main
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "reference"
 
 
 def fisc_ground(*args: str) -> subprocess.CompletedProcess:
@@ -102,13 +101,12 @@ def test_rans_builtin_keeps_reversed_flow_cvs(tmp_path):
                                atol=1e-6)
 
 
-@pytest.mark.skipif(not SHARED.exists(), reason="../shared/reference not beside the checkout")
 @pytest.mark.parametrize("case", ["cd_nozzle_inviscid", "cd_nozzle"])
-def test_three_exports_of_one_solution_give_the_same_cv_count(tmp_path, case):
+def test_three_exports_of_one_solution_give_the_same_cv_count(tmp_path, case, shared_path):
     counts = {}
     for name in ("fluent_export_3d.csv", "openfoam_internal.vtu", "axisym_cells.csv"):
         out = tmp_path / f"{name}.fiscmap"
-        assert main(["fit", str(SHARED / case / name), "-o", str(out)]) == 0, name
+        assert main(["fit", str(shared_path("reference", case, name)), "-o", str(out)]) == 0, name
         counts[name] = load_map(out).n_cv
     assert len(set(counts.values())) == 1, counts
 

@@ -11,7 +11,6 @@ import pytest
 from fisc_ground.partition import ControlVolumes, cell_of, grid_origin_and_shape, partition, partition_field
 from fisc_ground.reference.field import ReferenceField
 
-REFERENCE_CSV = Path("/work/shared/reference/cd_nozzle_inviscid/fluent_export_3d.csv")
 
 
 def _read_fluent_export(path: Path) -> dict[str, np.ndarray]:
@@ -26,10 +25,8 @@ def _read_fluent_export(path: Path) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def reference_nodes() -> dict[str, np.ndarray]:
-    if not REFERENCE_CSV.exists():
-        pytest.skip(f"shared reference data not present: {REFERENCE_CSV}")
-    return _read_fluent_export(REFERENCE_CSV)
+def reference_nodes(shared_path) -> dict[str, np.ndarray]:
+    return _read_fluent_export(shared_path("reference", "cd_nozzle_inviscid", "fluent_export_3d.csv"))
 
 
 def _partition_oracle(points, values, cell_size, min_nodes=1):
@@ -175,7 +172,7 @@ def test_reference_export_partition(reference_nodes):
         pressure_gauge_pa=nodes["pressure"],
         density_kg_m3=nodes["density"],
         name="cd_nozzle_inviscid",
-        source=str(REFERENCE_CSV),
+        source="../shared/reference/cd_nozzle_inviscid/fluent_export_3d.csv",
         source_sha256="",
     )
     cv = partition_field(field)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +18,6 @@ from fisc_ground.scaling import (
     swarm_pressure_target,
 )
 
-REFERENCE_CSV = Path("/work/shared/reference/cd_nozzle_inviscid/fluent_export_3d.csv")
 DV = 0.125
 
 
@@ -68,11 +66,9 @@ def test_scale_is_the_largest_that_keeps_every_command_within_the_speed_limit():
         choose_scale(np.full((2, 3), np.nan))
 
 
-def test_scaled_reference_map_is_flyable():
+def test_scaled_reference_map_is_flyable(shared_path):
     """End to end on the shipped inviscid export: default kappa and S give flyable commands."""
-    if not REFERENCE_CSV.exists():
-        pytest.skip(f"shared reference data not present: {REFERENCE_CSV}")
-    data = np.loadtxt(REFERENCE_CSV, delimiter=",", skiprows=1)
+    data = np.loadtxt(shared_path("reference", "cd_nozzle_inviscid", "fluent_export_3d.csv"), delimiter=",", skiprows=1)
     cv = partition(data[:, 1:4], data[:, 6:9], data[:, 4], data[:, 5])
     disp = default_max_dispersion(cv.target_velocity_m_s)
     kappa = choose_kappa(cv.target_pressure_gauge_pa, cv.cell_volume_m3, 1.0, 2, disp)

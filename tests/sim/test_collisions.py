@@ -98,7 +98,6 @@ def test_close_pairs_sparse_fallback_equals_dense():
 
 
 def test_close_pairs_numba_and_numpy_paths_agree():
-    pytest.importorskip("numba")
     rng = np.random.default_rng(9)
     p = rng.random((2000, 3)) * 2.0
     a = close_pairs(p, 0.1, backend="auto")

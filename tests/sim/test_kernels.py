@@ -9,7 +9,7 @@ from sim.plant import PlantParams
 from sim.scenarios import seed_positions, synthetic_tunnel_map
 from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
 
-pytest.importorskip("numba")
+import numba  # noqa: E402,F401  (a dependency of sim: missing means broken, not skipped)
 
 
 @pytest.fixture(scope="module")

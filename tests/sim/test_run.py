@@ -42,6 +42,7 @@ def test_cli_run_writes_all_outputs(tmp_path, map_file, scenario, extra):
     assert a["injected"] == a["alive"] + a["exited"] + a["escaped"]
     assert m["steps"] == 160 and m["config"]["scenario"] == scenario
     assert m["nrmse_velocity"] is not None and m["nrmse_velocity"] < 0.2
+    _check_density_and_pressure_columns(rows, m)
     report = (out / "report.md").read_text()
     assert "0.15 - 0.9" in report and "nrmse_density" in report
     for name in ("velocity_cfd_fit_swarm.png", "pressure_cfd_fit_swarm.png", "density_cfd_fit_swarm.png",
@@ -50,6 +51,30 @@ def test_cli_run_writes_all_outputs(tmp_path, map_file, scenario, extra):
     assert list(out.glob("snapshot_*.png"))
     if "--collisions" in extra:
         assert m["collisions"] is not None
+
+
+def _check_density_and_pressure_columns(rows, metrics):
+    """Density and pressure answers, not only "> 0": the density is the count times the agent
+    mass (1 kg on this map) over l^3; the internal pressure (spread about u_s) is at most the
+    kinetic P_s and at least the random pressure (spread about U, its minimum); and the
+    pressure and density scores in metrics.json are those of the swarm_pressure (dispersion)
+    and swarm_density columns."""
+    from fisc_ground.metrics import fidelity_metrics
+
+    col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    np.testing.assert_allclose(col["swarm_density"], col["swarm_count"] * 1.0 / 0.5 ** 3, rtol=1e-12)
+    seen = col["samples"] > 0
+    assert seen.sum() > 10
+    kin, internal, rand = (col[k][seen] for k in ("swarm_pressure_kinetic", "swarm_pressure_internal",
+                                                  "swarm_pressure_random"))
+    assert np.all(internal <= kin * (1 + 1e-9)) and np.all(rand <= internal * (1 + 1e-9) + 1e-12)
+    assert not np.allclose(col["swarm_pressure"][seen], kin)  # the dispersion pressure, not P_s
+    again = fidelity_metrics(np.stack([col["cv_x"], col["cv_y"], col["cv_z"]], axis=1), col["target_u_axial"],
+                             col["target_pressure"], col["target_density"], col["swarm_u_axial"], col["swarm_pressure"],
+                             col["swarm_density"], col["samples"].astype(int),
+                             min_samples=metrics["config"]["min_samples"]).as_dict()
+    for key in ("nrmse_pressure", "nrmse_density", "nrmse_velocity"):
+        assert again[key] == pytest.approx(metrics[key], rel=1e-9), key
 
 
 def test_simulation_is_reproducible_with_a_seed():

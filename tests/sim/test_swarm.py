@@ -131,7 +131,6 @@ def test_bad_mode_is_refused():
 
 @pytest.mark.parametrize("mode", ["mean", "slot"])
 def test_fused_numba_lookup_matches_the_numpy_path(field, mode):
-    pytest.importorskip("numba")
     runs = []
     for backend in ("numpy", "numba"):
         sw = Swarm(field, config=SwarmConfig(mode=mode, lookup_backend=backend))

@@ -15,11 +15,12 @@ from fisc_agent.zenoh_link import Keys, connect_runner
 from fisc_ground.fleet import TelemetryListener, make_command, send_command
 from fisc_ground.mapwrite import encode_map
 from fisc_ground.zenoh_publish import MapServer
+from sim.autopilot import server as server_mod
 
 from .conftest import wait_for
 
 pytestmark = pytest.mark.slow
-server_mod = pytest.importorskip("sim.autopilot.server")
+
 
 
 def short_tunnel(version: int, key: bytes) -> bytes:

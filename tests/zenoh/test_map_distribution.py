@@ -6,7 +6,7 @@ import threading
 
 import pytest
 
-from fisc_agent.zenoh_link import AgentZenohLink
+from fisc_agent.zenoh_link import KIND_ANNOUNCE, KIND_CHUNK, AgentZenohLink, parse_chunk
 from fisc_ground.mapwrite import encode_map
 from fisc_ground.zenoh_publish import MapServer
 
@@ -64,11 +64,24 @@ def test_map_update_switches_running_subscribers_and_older_maps_are_ignored(net,
     server.serve(make_map(200, seed=1))
     assert wait_for(lambda: all(a.versions() == [100, 200] for a in fleet))
     # A second (rogue or stale) server pushing an older, validly signed map changes nothing.
+    # Positive control: a probe on the agents' own session sees that map's chunks and
+    # announcements arrive, and a genuine newer map sent afterwards is still installed.
+    seen_150: list[int] = []
+
+    def on_map(sample):
+        head, _ = parse_chunk(sample.payload.to_bytes()[:96])
+        if head.map_version == 150:
+            seen_150.append(head.kind)
+
+    probe = shared.declare_subscriber("fisc/alpha/map", on_map)
     other = MapServer(shared, "alpha", announce_period_s=0.2)
     other.serve(make_map(150, seed=2))
-    threading.Event().wait(0.6)
+    assert wait_for(lambda: KIND_CHUNK in seen_150 and seen_150.count(KIND_ANNOUNCE) >= 2), seen_150
     assert all(a.versions() == [100, 200] for a in fleet)
     assert all(a.link.current.map_version == 200 for a in fleet)
+    server.serve(make_map(300, seed=3))
+    assert wait_for(lambda: all(a.versions() == [100, 200, 300] for a in fleet))
+    probe.undeclare()
     other.close()
     server.close()
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import re
 import shutil
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -86,20 +85,28 @@ def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, grou
         # the router saw the agents' certificate names
         assert {"agent-1", "agent-2"} <= {link.auth_identifier for link in router.info.links()}
 
-        # agent 1 posing as agent 2, and agent 1 publishing a command: dropped by the router
-        forged, cmds = [], []
-        ground.declare_subscriber("fisc/alpha/cmd", lambda s: cmds.append(s))
+        # agent 1 posing as agent 2, and agent 1 publishing a command: dropped by the router.
+        # Positive control: agent 1's puts on its OWN telemetry key, interleaved on the same
+        # session and route, do arrive; once the last of them is in, a forged message sent
+        # before it would have arrived too (one session, one route, in order).
+        forged, cmds, control = [], [], []
+        cmd_sub = ground.declare_subscriber("fisc/alpha/cmd", lambda s: cmds.append(s))
         spy = ground.declare_subscriber("fisc/alpha/agents/2/telemetry",
                                         lambda s: forged.append(s) if s.payload.to_bytes() == b"forged" else None)
+        ctl = ground.declare_subscriber("fisc/alpha/agents/1/telemetry",
+                                        lambda s: control.append(s) if s.payload.to_bytes() == b"control" else None)
         a1 = links[1]._session  # noqa: SLF001
-        time.sleep(0.5)
+        # wait until a control put gets through (routes established), then run the rounds
+        assert wait_for(lambda: (a1.put("fisc/alpha/agents/1/telemetry", b"control"), len(control) > 0)[1], 10)
+        before = len(control)
         for _ in range(5):
             a1.put("fisc/alpha/agents/2/telemetry", b"forged")
             a1.put("fisc/alpha/cmd", b"agent command")
-            time.sleep(0.05)
-        time.sleep(0.5)
+            a1.put("fisc/alpha/agents/1/telemetry", b"control")
+        assert wait_for(lambda: len(control) >= before + 5, 10), "the positive control never arrived"
         assert forged == [] and cmds == []
-        spy.undeclare()
+        for sub in (spy, ctl, cmd_sub):
+            sub.undeclare()
     finally:
         for link in links.values():
             link.close()

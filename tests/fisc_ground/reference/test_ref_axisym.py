@@ -1,6 +1,5 @@
 """Specification of the axisymmetric importer and the revolve into 3-D."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,14 +13,8 @@ from fisc_ground.reference.axisym import (
 from fisc_ground.reference.field import ReferenceError
 from fisc_ground.reference.fluent_csv import read_fluent_csv
 
-SHARED = Path(__file__).parents[3] / ".." / "shared" / "reference"
 
 
-def shared_file(case, fname):
-    p = SHARED / case / fname
-    if not p.is_file():
-        pytest.skip(f"shared reference data not found at {p} (needs ../shared beside the repo)")
-    return p
 
 
 def cell_grid(length=2.0, radius=1.0, nx=40, nr=10, grading=1.0):
@@ -120,9 +113,9 @@ def test_axisym_bad_inputs(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["cd_nozzle_inviscid", "cd_nozzle"])
-def test_real_axisym_gives_the_fluent_node_set(case):
-    f = read_axisym_csv(shared_file(case, "axisym_cells.csv"))
-    fl = read_fluent_csv(shared_file(case, "fluent_export_3d.csv"))
+def test_real_axisym_gives_the_fluent_node_set(case, shared_path):
+    f = read_axisym_csv(shared_path("reference", case, "axisym_cells.csv"))
+    fl = read_fluent_csv(shared_path("reference", case, "fluent_export_3d.csv"))
     assert f.n_nodes == 63539
     np.testing.assert_array_equal(f.points_m, fl.points_m)
     # same solution: away from the wall layer the interpolants agree closely

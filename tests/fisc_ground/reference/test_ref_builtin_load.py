@@ -2,7 +2,6 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +11,6 @@ from fisc_ground.reference.field import ReferenceError
 from fisc_ground.reference.fluent_csv import read_fluent_csv
 from fisc_ground.reference.load import load_reference
 
-SHARED = Path(__file__).parents[3] / ".." / "shared" / "reference"
 
 
 def test_names():
@@ -40,10 +38,8 @@ def test_separated_rans_case_keeps_reversed_flow_nodes():
 
 
 @pytest.mark.parametrize("name", ["cd_nozzle_inviscid", "cd_nozzle"])
-def test_builtin_equals_its_source_csv(name):
-    csv = SHARED / name / "fluent_export_3d.csv"
-    if not csv.is_file():
-        pytest.skip(f"shared reference data not found at {csv}")
+def test_builtin_equals_its_source_csv(name, shared_path):
+    csv = shared_path("reference", name, "fluent_export_3d.csv")
     b, f = load_builtin(name), read_fluent_csv(csv)
     assert b.source_sha256 == f.source_sha256
     for a, c in ((b.points_m, f.points_m), (b.velocity_m_s, f.velocity_m_s),

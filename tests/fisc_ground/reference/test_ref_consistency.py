@@ -1,7 +1,6 @@
 """The three CFD sources of one solution (Fluent CSV, axisymmetric CSV, OpenFOAM VTU), the
 built-in and the analytic reference describe the same flow."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,17 +11,12 @@ from fisc_ground.reference.builtin import load_builtin
 from fisc_ground.reference.fluent_csv import read_fluent_csv
 from fisc_ground.reference.vtk import read_vtk
 
-SHARED = Path(__file__).parents[3] / ".." / "shared" / "reference"
-CASE = SHARED / "cd_nozzle_inviscid"
-
-
 @pytest.fixture(scope="module")
-def sources():
-    if not (CASE / "fluent_export_3d.csv").is_file():
-        pytest.skip(f"shared reference data not found at {CASE}")
-    return {"fluent": read_fluent_csv(CASE / "fluent_export_3d.csv"),
-            "axisym": read_axisym_csv(CASE / "axisym_cells.csv"),
-            "vtu": read_vtk(CASE / "openfoam_internal.vtu"),
+def sources(shared_path):
+    case = ("reference", "cd_nozzle_inviscid")
+    return {"fluent": read_fluent_csv(shared_path(*case, "fluent_export_3d.csv")),
+            "axisym": read_axisym_csv(shared_path(*case, "axisym_cells.csv")),
+            "vtu": read_vtk(shared_path(*case, "openfoam_internal.vtu")),
             "builtin": load_builtin("cd_nozzle_inviscid"),
             "analytic": analytic_nozzle()}
 

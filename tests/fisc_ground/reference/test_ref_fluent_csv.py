@@ -1,6 +1,5 @@
 """Specification of the Fluent-style CSV importer (read_fluent_csv)."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,7 +7,6 @@ import pytest
 from fisc_ground.reference.field import P_REF_PA, ReferenceError
 from fisc_ground.reference.fluent_csv import read_fluent_csv
 
-SHARED = Path(__file__).parents[3] / ".." / "shared" / "reference"
 HEADER = ("nodenumber, x-coordinate, y-coordinate, z-coordinate, pressure, density, "
           "x-velocity, y-velocity, z-velocity")
 ROWS = [
@@ -30,11 +28,6 @@ def canonical(tmp_path):
     return write(tmp_path, HEADER + "\n" + body + "\n", "canonical.csv")
 
 
-def shared_file(case, fname):
-    p = SHARED / case / fname
-    if not p.is_file():
-        pytest.skip(f"shared reference data not found at {p} (needs ../shared beside the repo)")
-    return p
 
 
 def test_reads_canonical_layout(tmp_path):
@@ -179,8 +172,8 @@ def test_2d_file_is_recognised(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["cd_nozzle_inviscid", "cd_nozzle"])
-def test_real_export(case):
-    f = read_fluent_csv(shared_file(case, "fluent_export_3d.csv"))
+def test_real_export(case, shared_path):
+    f = read_fluent_csv(shared_path("reference", case, "fluent_export_3d.csv"))
     assert f.n_nodes == 63539
     assert f.pressure_kind == "gauge" and f.density_kg_m3 is not None
     assert np.all(np.isfinite(f.velocity_m_s))

@@ -1,6 +1,5 @@
 """Specification of the VTK/VTU importer (meshio), including the axisymmetric-wedge revolve."""
 
-from pathlib import Path
 
 import meshio
 import numpy as np
@@ -11,14 +10,8 @@ from fisc_ground.reference.field import P_REF_PA, ReferenceError
 from fisc_ground.reference.fluent_csv import read_fluent_csv
 from fisc_ground.reference.vtk import read_vtk
 
-SHARED = Path(__file__).parents[3] / ".." / "shared" / "reference"
 
 
-def shared_file(case, fname):
-    p = SHARED / case / fname
-    if not p.is_file():
-        pytest.skip(f"shared reference data not found at {p} (needs ../shared beside the repo)")
-    return p
 
 
 def box_mesh(n=3):
@@ -129,9 +122,9 @@ def test_synthetic_wedge_is_revolved(tmp_path):
 
 
 @pytest.mark.parametrize("case", ["cd_nozzle_inviscid", "cd_nozzle"])
-def test_real_openfoam_wedge(case):
-    f = read_vtk(shared_file(case, "openfoam_internal.vtu"))
-    fl = read_fluent_csv(shared_file(case, "fluent_export_3d.csv"))
+def test_real_openfoam_wedge(case, shared_path):
+    f = read_vtk(shared_path("reference", case, "openfoam_internal.vtu"))
+    fl = read_fluent_csv(shared_path("reference", case, "fluent_export_3d.csv"))
     assert f.extras["revolved"] and f.extras["axisym_points"] == 18000
     assert f.pressure_kind == "absolute"  # OpenFOAM's p, detected and converted
     np.testing.assert_array_equal(f.points_m, fl.points_m)  # same lattice node set
@@ -140,3 +133,15 @@ def test_real_openfoam_wedge(case):
     r = np.hypot(fl.points_m[:, 1], fl.points_m[:, 2])
     core = r < 0.6
     np.testing.assert_allclose(f.velocity_m_s[core], fl.velocity_m_s[core], atol=0.05)
+
+
+def test_damaged_or_sparse_vtu_gives_a_message_not_an_empty_read_error(tmp_path):
+    """meshio raises ReadError('') on a cut-off XML file; a sparse file is refused before meshio."""
+    cut = tmp_path / "cut.vtu"
+    cut.write_text('<?xml version="1.0"?>\n<VTKFile type="UnstructuredGrid">')
+    with pytest.raises(ReferenceError, match=r"cut\.vtu: cannot read as VTK: ReadError: meshio gave no details"):
+        read_vtk(cut)
+    zeros = tmp_path / "zeros.vtu"
+    zeros.write_bytes(b"\0" * 4096)
+    with pytest.raises(ReferenceError, match=r"zeros\.vtu: cannot read as VTK: not a VTU file"):
+        read_vtk(zeros)

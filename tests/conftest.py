@@ -1,0 +1,41 @@
+"""Suite-wide fixtures.
+
+``shared_path``: the one resolver for the CFD data in ``../shared`` (beside the checkout, or
+``$FISC_SHARED_DIR``).  On a developer machine without it the test is skipped with the reason;
+when the environment variable ``CI`` is set (``.ci/run`` runs with ``CI=true``) a missing file
+FAILS the test, so CI can never pass by skipping the reference checks.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_root() -> Path:
+    """``$FISC_SHARED_DIR`` if set, else ``../shared`` beside the repository."""
+    env = os.environ.get("FISC_SHARED_DIR")
+    return Path(env) if env else REPO_ROOT.parent / "shared"
+
+
+def resolve_shared(*parts: str) -> Path:
+    """The file ``<shared>/<parts...>``; skip (developer machine) or fail (``CI`` set) if missing."""
+    path = shared_root().joinpath(*parts)
+    if path.exists():
+        return path
+    msg = (f"shared data {'/'.join(parts)} not found at {path} (the CFD data beside the checkout, "
+           "../shared, or $FISC_SHARED_DIR)")
+    if os.environ.get("CI"):
+        pytest.fail(msg + "; CI is set, so missing data is an error, not a skip", pytrace=False)
+    pytest.skip(msg)
+
+
+@pytest.fixture(scope="session")
+def shared_path() -> Callable[..., Path]:
+    """``shared_path("reference", "cd_nozzle", "axisym_cells.csv")`` -> Path (see ``resolve_shared``)."""
+    return resolve_shared
