@@ -67,6 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
                    help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
                         "with --lookahead auto the identified value replaces it")
+    p.add_argument("--entry-stagger", type=float, default=0.0,
+                   help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
+                        "length on the UNIX clock (agent i: window i mod slots); 0: no stagger [s]")
+    p.add_argument("--entry-slots", type=int, default=8, help="windows per entry-stagger cycle")
     p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flightlog)")
     p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
     p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
@@ -114,7 +118,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
-        exit_policy=a.exit_policy, laps=a.laps, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
+        exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system)
 
 

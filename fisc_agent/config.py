@@ -82,6 +82,11 @@ class AgentConfig:
     """Acceptance radius of join waypoints [m]."""
     entry_radius_fraction: float = 0.6
     """Entry points are spread over this fraction of the inlet radius."""
+    entry_stagger_s: float = 0.0
+    """Staggered entry: agents cross the inlet in windows of this length on the shared clock, agent i in
+    window ``i mod entry_slots`` (``control.entry_slot_open``); 0 = enter as soon as staged [s]."""
+    entry_slots: int = 8
+    """Number of entry windows in a stagger cycle (agents with equal ``id mod entry_slots`` share one)."""
     exit_clearance_m: float = 2.0
     """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
     source_system: int | None = None
@@ -111,6 +116,8 @@ class AgentConfig:
             need(math.isfinite(v) and v >= 0, f"{name} must be >= 0, is {v!r}")
         need(0.0 < self.entry_radius_fraction <= 1.0, "entry_radius_fraction must be in (0, 1]")
         need(self.laps >= 0, "laps must be >= 0")
+        need(math.isfinite(self.entry_stagger_s) and self.entry_stagger_s >= 0, "entry_stagger_s must be >= 0")
+        need(isinstance(self.entry_slots, int) and self.entry_slots >= 1, "entry_slots must be >= 1")
         need(self.source_system is None or 1 <= self.source_system <= 255, "source_system must be 1..255")
         need(0 <= self.source_component <= 255, "source_component must be 0..255")
         DeploymentTransform(self.origin_ned_m, self.yaw_deg)  # validates

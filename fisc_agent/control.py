@@ -227,6 +227,21 @@ def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1
     return wps
 
 
+def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:
+    """May agent ``agent_id`` cross the inlet now?  Decentralised staggered entry on a shared clock.
+
+    Time is cut into a cycle of ``slots`` windows of ``stagger_s``; agent i owns window
+    ``i mod slots`` and crosses in its first half, so two agents with different windows enter at
+    least ``stagger_s / 2`` apart and no agent waits longer than one cycle.  ``stagger_s = 0``:
+    always open (no stagger).
+    """
+    if stagger_s <= 0.0 or slots <= 1:
+        return True
+    phase = math.fmod(wall_time_s, stagger_s * slots)
+    start = (int(agent_id) % slots) * stagger_s
+    return start <= phase < start + 0.5 * stagger_s
+
+
 def check_map(field: CommandField, mode: str) -> list[str]:
     """Agent-side checks of a decoded map's commands; raises ``MapError`` naming the check.
 

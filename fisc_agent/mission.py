@@ -31,8 +31,8 @@ from enum import Enum
 from typing import NamedTuple
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, goto_velocity,
-                                join_waypoints)
+from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
+                                goto_velocity, join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.identify import ResponseRecorder, VehicleResponse
 from fisc_agent.tracking import ParcelTracker
@@ -82,6 +82,8 @@ class VehicleStatus(NamedTuple):
     mode: str
     """Autopilot mode class: ``offboard`` (PX4 OFFBOARD / ArduPilot GUIDED), ``hold``, ``land``,
     ``other`` or ``unknown``."""
+    wall_time_s: float = 0.0
+    """UNIX time [s] (the shared clock of the entry slots; GNSS/NTP-disciplined on real vehicles)."""
 
 
 class MissionOutput(NamedTuple):
@@ -126,6 +128,7 @@ class Mission:
         self._climb_by_velocity = False
         self._waypoints: list[Vec] = []
         self._wp_index = 0
+        self._entry_cleared = False
         self._target: Vec | None = None
         self._last_want: str | None = None
         self._want_seen = False
@@ -319,7 +322,18 @@ class Mission:
             last = len(self._waypoints) - 1
             while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
                 self._wp_index += 1
-            if self._wp_index == last and cv >= 0:
+                if self._wp_index == last:
+                    self._entry_cleared = False
+            waiting = False
+            if self._wp_index == last and not self._entry_cleared:  # at the staging point: wait for our slot
+                waiting = not entry_slot_open(s.wall_time_s, cfg.agent_id, cfg.entry_stagger_s, cfg.entry_slots)
+                if not waiting:
+                    self._entry_cleared = True
+                    if cfg.entry_stagger_s > 0:
+                        log.info("entry slot open: crossing the inlet")
+            if waiting:
+                vel = goto_velocity(pos, self._waypoints[last - 1], cfg.join_speed_m_s)
+            elif self._wp_index == last and cv >= 0:
                 self._go(t, State.FLOW, f"entered the map at CV {cv}")
                 st = State.FLOW
             else:

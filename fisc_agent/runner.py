@@ -240,7 +240,7 @@ class Runner:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
             self._link_was_ok = link_ok
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
-                               link.armed, mode)
+                               link.armed, mode, self.wall_clock())
         out = self.mission.step(status)
 
         sp: Vec | None = None

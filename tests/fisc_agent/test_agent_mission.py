@@ -433,3 +433,32 @@ def test_tracking_holds_the_streamline_against_a_velocity_estimate_bias(default_
     cross = [math.hypot(p[1] - q[1], p[2] - q[2]) for p, q in track]
     assert max(cross[10:]) < 0.35
     assert m.tracker.bias_m_s[1] == pytest.approx(0.4, abs=0.05)   # the bias was learnt
+
+
+def test_entry_slots_stagger_agents_on_the_shared_clock():
+    from fisc_agent.control import entry_slot_open
+
+    open_at = {i: [t / 10 for t in range(0, 240) if entry_slot_open(1000.0 + t / 10, i, 2.0, 6)] for i in range(6)}
+    assert all(open_at[i] for i in range(6))
+    for i in range(6):
+        for j in range(i + 1, 6):  # different windows: never open at the same time, >= 1 s apart
+            assert min(abs(a - b) for a in open_at[i] for b in open_at[j]) >= 1.0 - 1e-9
+    assert entry_slot_open(5.0, 3, 0.0, 8)      # no stagger: always open
+
+
+def test_a_staged_agent_waits_for_its_window_then_enters(sfield):
+    cfg, m, v = make(sfield, entry_stagger_s=2.0, entry_slots=4, agent_id=1, lookahead_auto=False)
+    wall0 = 1_000_000.0 + 2.0 * 2  # the cycle is 8 s; agent 1 owns [2, 3) s of it: first open 6 s later
+    entered_at = []
+
+    def status():
+        st = v.status()
+        return st._replace(wall_time_s=wall0 + v.t)
+
+    while v.t < 60.0 and m.state != State.FLOW:
+        out = m.step(status())
+        v.apply(out, cfg)
+    assert m.state == State.FLOW
+    entered_at.append(next(t.t_s for t in m.transitions if t.dst == State.FLOW))
+    phase = (wall0 + entered_at[0]) % 8.0
+    assert 2.0 <= phase < 5.0, phase     # crossed the inlet plane after its window opened (1.5 m from staging)

@@ -1,0 +1,296 @@
+"""Real autopilots for the tests: PX4 SITL (SIH physics) and ArduCopter SITL from ``../shared/sitl``.
+
+Everything here runs the autopilots the way their READMEs say (``start.sh N``, ``stop.sh``,
+API link on udp 14540+i, ground-station link on 14550), with the run state in a temporary folder:
+
+- ``Px4Sitl`` / ``ArduPilotSitl``: context managers that start N vehicles, wait until they are
+  ready (PX4: "Ready for takeoff" in each console log; ArduPilot: its EKF reports GPS in use),
+  and stop them, leaving their flight logs (ULog / DataFlash) in ``run_dir``.
+- The shared PX4 folder is read-only and its ``bin/px4-<module>`` command links arrive as plain
+  files that name their target (``px4``); PX4's startup scripts call those commands, so
+  ``px4_install`` lays a shadow install in the run folder: a copy of the ``px4`` binary, real
+  symlinks for the module commands, and the read-only ``etc`` (ROMFS) linked in.
+- ``ulog_*`` / ``dataflash_*``: the truth from the autopilots' own logs (pyulog, pymavlink DFReader).
+- ``Track``: an agent's flight log (``fisc-agent --flight-log``), positions in the map frame.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fisc_agent.flightlog import read_flight_log
+from fisc_ground.flight_score import track_from_rows
+
+HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_M = 47.397742, 8.545594, 489.4
+"""The SITL folders' default home (both autopilots)."""
+
+PX4_TUNED_PARAMS = {"MPC_XY_VEL_P_ACC": 3.5, "MPC_XY_VEL_I_ACC": 1.5}
+"""PX4's horizontal velocity loop tuned for SIH's airframe (docs/deployment.md): with the stock
+gains (1.8 / 0.4) the loop settles at 0.80-0.85 of its setpoint against SIH's linear drag
+(SIH_KDV = 1) until the integrator catches up, identified in flight as a 0.85-0.9 s lag."""
+
+
+def _wait(pred, timeout_s: float, period_s: float = 0.25):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        value = pred()
+        if value:
+            return value
+        time.sleep(period_s)
+    return None
+
+
+def px4_install(shared_px4: Path, dest: Path) -> Path:
+    """A runnable PX4 SITL folder at ``dest`` built from the read-only shared one."""
+    dest.mkdir(parents=True, exist_ok=True)
+    bin_dir = dest / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    shutil.copy2(shared_px4 / "bin" / "px4", bin_dir / "px4")
+    os.chmod(bin_dir / "px4", 0o755)
+    for f in (shared_px4 / "bin").iterdir():
+        target = bin_dir / f.name
+        if f.name == "px4" or target.exists() or target.is_symlink():
+            continue
+        if f.name.startswith("px4-") and f.stat().st_size < 64 and f.read_text(errors="replace").strip() == "px4":
+            target.symlink_to("px4")
+        else:
+            shutil.copy2(f, target)
+    if not (dest / "etc").exists():
+        (dest / "etc").symlink_to(shared_px4 / "etc")
+    for script in ("start.sh", "stop.sh"):
+        shutil.copy2(shared_px4 / script, dest / script)
+        os.chmod(dest / script, 0o755)
+    return dest
+
+
+@dataclass
+class SitlRun:
+    """What a started SITL left: its run folder and how many vehicles."""
+
+    run_dir: Path
+    n: int
+
+
+class Px4Sitl:
+    """``with Px4Sitl(shared/sitl/px4, tmp, n) as run:`` N PX4 SIH vehicles, ready to arm."""
+
+    def __init__(self, shared_px4: Path, work: Path, n: int = 1, spacing_m: float | None = None,
+                 params: dict[str, float] | None = None, ready_timeout_s: float = 60.0) -> None:
+        self.install = px4_install(shared_px4, work / "px4-install")
+        self.run_dir = work / "px4-run"
+        self.n, self.spacing_m, self.params = n, spacing_m, dict(params or {})
+        self.ready_timeout_s = ready_timeout_s
+
+    def _env(self) -> dict[str, str]:
+        env = dict(os.environ, PX4_SITL_RUN=str(self.run_dir))
+        if self.spacing_m is not None:
+            env["SITL_SPACING_M"] = str(self.spacing_m)
+        if self.params:
+            env["SITL_EXTRA_PARAMS"] = " ".join(f"PX4_PARAM_{k}={v}" for k, v in self.params.items())
+        return env
+
+    def console(self, i: int) -> str:
+        p = self.run_dir / "logs" / f"px4_{i}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def __enter__(self) -> SitlRun:
+        out = subprocess.run([str(self.install / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
+                             text=True, timeout=60)
+        if out.returncode != 0:
+            self.__exit__(None, None, None)
+            raise RuntimeError(f"PX4 SITL did not start: {out.stdout}{out.stderr}\n{self.console(0)[-2000:]}")
+        ready = _wait(lambda: all("Ready for takeoff" in self.console(i) for i in range(self.n)),
+                      self.ready_timeout_s)
+        if not ready:
+            logs = "\n".join(self.console(i)[-1500:] for i in range(self.n))
+            self.__exit__(None, None, None)
+            raise RuntimeError(f"PX4 SITL not ready for takeoff within {self.ready_timeout_s:.0f} s:\n{logs}")
+        return SitlRun(self.run_dir, self.n)
+
+    def __exit__(self, *exc) -> None:
+        subprocess.run([str(self.install / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+
+
+class ArduPilotSitl:
+    """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters, EKF using GPS."""
+
+    def __init__(self, shared_ap: Path, work: Path, n: int = 1, spacing_m: float | None = None,
+                 ready_timeout_s: float = 90.0) -> None:
+        self.shared = shared_ap
+        self.run_dir = work / "ap-run"
+        self.n, self.spacing_m = n, spacing_m
+        self.ready_timeout_s = ready_timeout_s
+
+    def _env(self) -> dict[str, str]:
+        env = dict(os.environ, AP_SITL_RUN=str(self.run_dir))
+        if self.spacing_m is not None:
+            env["SITL_SPACING_M"] = str(self.spacing_m)
+        return env
+
+    def __enter__(self) -> SitlRun:
+        from pymavlink import mavutil
+
+        gcs = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=245)  # the GCS link
+        try:
+            out = subprocess.run([str(self.shared / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
+                                 text=True, timeout=60)
+            if out.returncode != 0:
+                raise RuntimeError(f"ArduPilot SITL did not start: {out.stdout}{out.stderr}")
+            using_gps: set[int] = set()
+            end = time.monotonic() + self.ready_timeout_s
+            while len(using_gps) < self.n and time.monotonic() < end:
+                m = gcs.recv_match(type="STATUSTEXT", blocking=True, timeout=1.0)
+                if m is not None and "is using GPS" in m.text:
+                    using_gps.add(m.get_srcSystem())
+            if len(using_gps) < self.n:
+                self.__exit__(None, None, None)
+                raise RuntimeError(f"ArduPilot EKF not using GPS within {self.ready_timeout_s:.0f} s "
+                                   f"(ready: {sorted(using_gps)})")
+        finally:
+            gcs.close()
+        return SitlRun(self.run_dir, self.n)
+
+    def __exit__(self, *exc) -> None:
+        subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+
+
+# ---- the autopilots' own logs ------------------------------------------------------------
+def px4_ulog(run: SitlRun, i: int) -> Path:
+    """The newest ULog of PX4 instance ``i``."""
+    files = sorted(glob.glob(str(run.run_dir / "logs" / f"ulog_{i}" / "*" / "*.ulg")), key=os.path.getmtime)
+    if not files:
+        raise FileNotFoundError(f"no ULog for PX4 instance {i} under {run.run_dir}")
+    return Path(files[-1])
+
+
+@dataclass(frozen=True)
+class UlogSummary:
+    """What a PX4 flight log says about a flight."""
+
+    offboard_setpoint_hz: float
+    """Median rate of the offboard setpoints PX4 received while in OFFBOARD [Hz]."""
+    max_setpoint_gap_s: float
+    """Longest gap between two offboard setpoints while in OFFBOARD [s]."""
+    failsafe_seen: bool
+    """vehicle_status.failsafe was set at some point."""
+    gps_fused: bool
+    """The estimator fused GNSS position (estimator_status_flags.cs_gnss_pos / cs_gps)."""
+    nav_states: tuple[int, ...]
+    """The sequence of vehicle_status.nav_state values (consecutive repeats removed)."""
+    max_pos_error_m: float
+    """Largest horizontal distance between PX4's position estimate and SIH's ground truth [m]."""
+
+
+def ulog_summary(path: Path) -> UlogSummary:
+    from pyulog import ULog
+
+    u = ULog(str(path), ["vehicle_status", "trajectory_setpoint", "estimator_status_flags",
+                         "vehicle_local_position", "vehicle_local_position_groundtruth"])
+
+    def data(name):
+        ds = [d for d in u.data_list if d.name == name]
+        return ds[0].data if ds else None
+
+    st = data("vehicle_status")
+    nav = st["nav_state"].astype(int)
+    states = tuple(int(s) for k, s in enumerate(nav) if k == 0 or s != nav[k - 1])
+    NAV_OFFBOARD = 14
+    t_st = st["timestamp"]
+    off = nav == NAV_OFFBOARD
+    ts = data("trajectory_setpoint")
+    hz, gap = 0.0, float("inf")
+    if ts is not None and off.any():
+        t_sp = ts["timestamp"]
+        idx = np.clip(np.searchsorted(t_st, t_sp, side="right") - 1, 0, len(t_st) - 1)
+        t_in = t_sp[off[idx]] / 1e6
+        if len(t_in) > 2:
+            d = np.diff(t_in)
+            d = d[d < 5.0]  # separate OFFBOARD episodes
+            hz, gap = (1.0 / float(np.median(d)), float(d.max())) if len(d) else (0.0, float("inf"))
+    flags = data("estimator_status_flags")
+    key = "cs_gnss_pos" if flags is not None and "cs_gnss_pos" in flags else "cs_gps"
+    gps = bool(flags is not None and np.any(flags[key]))
+    lp, gt = data("vehicle_local_position"), data("vehicle_local_position_groundtruth")
+    err = float("nan")
+    if lp is not None and gt is not None:
+        j = np.clip(np.searchsorted(gt["timestamp"], lp["timestamp"]), 0, len(gt["timestamp"]) - 1)
+        err = float(np.max(np.hypot(lp["x"] - gt["x"][j], lp["y"] - gt["y"][j])))
+    return UlogSummary(hz, gap, bool(np.any(st["failsafe"])), gps, states, err)
+
+
+def dataflash_log(run: SitlRun, i: int) -> Path:
+    files = sorted(glob.glob(str(run.run_dir / "instances" / str(i) / "logs" / "*.BIN")), key=os.path.getmtime)
+    if not files:
+        raise FileNotFoundError(f"no DataFlash log for ArduPilot instance {i} under {run.run_dir}")
+    return Path(files[-1])
+
+
+def dataflash_modes_and_texts(path: Path) -> tuple[list[int], list[str]]:
+    """(flight mode numbers in order, STATUSTEXT messages) from an ArduPilot DataFlash log."""
+    from pymavlink import DFReader
+
+    log = DFReader.DFReader_binary(str(path))
+    modes, texts = [], []
+    while True:
+        m = log.recv_match(type=["MODE", "MSG"])
+        if m is None:
+            break
+        if m.get_type() == "MODE":
+            if not modes or modes[-1] != m.Mode:
+                modes.append(int(m.Mode))
+        else:
+            texts.append(str(m.Message))
+    return modes, texts
+
+
+# ---- the agent's own flight log ------------------------------------------------------------
+@dataclass
+class Track:
+    """One agent's flight log as arrays (map frame)."""
+
+    rows: list[dict[str, str]]
+    t_s: np.ndarray
+    pos_m: np.ndarray
+    vel_m_s: np.ndarray
+    states: np.ndarray
+    wall_s: np.ndarray
+
+    @classmethod
+    def read(cls, path: Path) -> "Track":
+        rows = read_flight_log(path)
+        t, pos, vel, states = track_from_rows(rows)
+        wall = np.array([float(r["wall_time_s"]) for r in rows if r["x_m"] != "" and r["vx_m_s"] != ""])
+        return cls(rows, t, pos, vel, states, wall)
+
+    def hold_altitude_range_m(self, min_duration_s: float = 5.0) -> tuple[float, float]:
+        """(largest |z - z at the hold's start| during the last HOLD, its duration [s])."""
+        hold = np.flatnonzero(self.states == "HOLD")
+        if not hold.size:
+            return float("nan"), 0.0
+        start = hold[0]
+        for k in range(len(hold) - 1, 0, -1):  # the last contiguous HOLD episode
+            if hold[k] - hold[k - 1] > 1:
+                start = hold[k]
+                break
+        seg = hold[hold >= start]
+        z = self.pos_m[seg, 2]
+        return float(np.max(np.abs(z - z[0]))), float(self.t_s[seg[-1]] - self.t_s[seg[0]])
+
+
+def stop_process(p: subprocess.Popen, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> None:
+    if p.poll() is None:
+        p.send_signal(sig)
+        try:
+            p.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait(timeout=5)

@@ -1,0 +1,131 @@
+"""fisc-agent on the real PX4 flight stack (PX4 SITL with SIH physics, ``../shared/sitl/px4``).
+
+Marked ``sitl``: ``pytest -m "not sitl"`` runs the fast part alone.  Each test starts its own
+PX4 instances, flies real ``fisc-agent`` processes over MAVLink/UDP, scores the agents' flight
+logs against the CFD (``fisc_ground.flight_score``) and reads PX4's own ULog for the truth:
+setpoint timing as PX4 received it, failsafe flags, estimator state and SIH's ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fisc_agent.flightlog import read_flight_log
+from fisc_ground.flight_score import DuctWall, score_track
+from fisc_agent.mapfile import load_map
+from fisc_ground.reference.builtin import load_builtin
+
+from .conftest import Processes, cli, poll, run_cli
+from .sitl_kit import PX4_TUNED_PARAMS, Px4Sitl, Track, px4_ulog, ulog_summary
+
+pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
+
+NAV_AUTO_LOITER, NAV_OFFBOARD = 4, 14
+MAX_EXCURSION_M = 0.3
+MAX_VELOCITY_NRMSE = 0.10
+
+
+@pytest.fixture(scope="module")
+def tunnel(tmp_path_factory):
+    """The embedded default map (``fisc-ground fit cd_nozzle_inviscid``), its reference and wall."""
+    path = tmp_path_factory.mktemp("map") / "tunnel.fiscmap"
+    out = run_cli(cli("fisc-ground") + ["fit", "cd_nozzle_inviscid", "-o", path])
+    assert out.returncode == 0, out.stderr
+    ref = load_builtin("cd_nozzle_inviscid")
+    return path, ref, DuctWall.from_reference(ref), load_map(path).scale
+
+
+def _held_for(log: Path, seconds: float) -> bool:
+    """The flight log shows the autopilot's hold mode for ``seconds`` after the pass."""
+    try:
+        rows = read_flight_log(log)
+    except (OSError, KeyError):
+        return False
+    held = [float(r["time_s"]) for r in rows if r["state"] == "HOLD" and r["mode"] == "hold"]
+    flowed = any(r["state"] == "FLOW" for r in rows)
+    return flowed and bool(held) and held[-1] - held[0] >= seconds
+
+
+def _score(log: Path, tunnel):
+    _, ref, wall, scale = tunnel
+    tr = Track.read(log)
+    return tr, score_track(tr.t_s, tr.pos_m, tr.vel_m_s, tr.states, ref, scale, wall=wall)
+
+
+def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path, tunnel):
+    """Take-off, join, the pass and the exit hold on one real PX4, in the local frame."""
+    log = tmp_path / "agent1.csv"
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=PX4_TUNED_PARAMS) as run:
+        procs = Processes(tmp_path / "logs")
+        try:
+            agent = procs.start("agent1", cli("fisc-agent") + [
+                "--map", tunnel[0], "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "px4",
+                "--flight-log", log])
+            done = poll(lambda: _held_for(log, 8.0) or not agent.alive, 150.0, 0.5)
+            assert done and agent.alive, procs.report()
+        finally:
+            procs.stop_all()
+        ulog = ulog_summary(px4_ulog(run, 0))
+    tr, score = _score(log, tunnel)
+    agent_log = agent.log_path.read_text()
+    assert "velocity response identified" in agent_log, agent_log[-3000:]
+    assert score.crossed and not score.held, score
+    assert score.max_excursion_m < MAX_EXCURSION_M, score
+    assert score.velocity_nrmse <= MAX_VELOCITY_NRMSE, score
+    alt_dev, hold_s = tr.hold_altitude_range_m()
+    assert hold_s >= 8.0 and alt_dev < 0.5, (alt_dev, hold_s)
+    # PX4's own log: what it received and how it flew
+    assert ulog.offboard_setpoint_hz >= 15.0 and ulog.max_setpoint_gap_s < 0.5, ulog
+    assert not ulog.failsafe_seen and ulog.gps_fused, ulog
+    assert NAV_OFFBOARD in ulog.nav_states and ulog.nav_states[-1] == NAV_AUTO_LOITER, ulog
+    print(json.dumps({"score": score.as_dict(), "hold_alt_dev_m": alt_dev, "ulog": ulog.__dict__}, default=str))
+
+
+def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct(shared_path, tmp_path, tunnel):
+    """SIGKILL the agent mid-flow: no hold request, no goodbye.  PX4's own offboard-loss failsafe
+    (COM_OF_LOSS_T = 1 s, COM_OBL_RC_ACT) takes the vehicle; it must stop inside the duct or land."""
+    log = tmp_path / "agent1.csv"
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=PX4_TUNED_PARAMS) as run:
+        procs = Processes(tmp_path / "logs")
+        try:
+            agent = procs.start("agent1", cli("fisc-agent") + [
+                "--map", tunnel[0], "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "px4",
+                "--flight-log", log])
+
+            def mid_flow():
+                try:
+                    rows = read_flight_log(log)
+                except (OSError, KeyError):
+                    return False
+                return any(r["state"] == "FLOW" and r["x_m"] and float(r["x_m"]) > 3.0 for r in rows)
+
+            assert poll(mid_flow, 120.0, 0.2), procs.report()
+            agent.popen.send_signal(signal.SIGKILL)
+            killed_at = time.time()
+            time.sleep(12.0)  # PX4 alone from here
+        finally:
+            procs.stop_all()
+        ulog_path = px4_ulog(run, 0)
+        ulog = ulog_summary(ulog_path)
+    assert ulog.failsafe_seen, ulog
+    assert ulog.nav_states[-1] != NAV_OFFBOARD, ulog                      # PX4 left OFFBOARD by itself
+    from pyulog import ULog
+
+    lp = ULog(str(ulog_path), ["vehicle_local_position"]).get_dataset("vehicle_local_position").data
+    # the local frame's origin is the start point; the map origin is 10 m above it (default transform)
+    x, y, z_up = lp["x"], lp["y"], -(lp["z"] + 10.0)
+    t = lp["timestamp"] / 1e6
+    after = t >= t[-1] - 8.0                                              # the last 8 s: PX4's failsafe
+    _, ref, wall, _ = tunnel
+    r = np.hypot(y[after], z_up[after])
+    inside = (x[after] >= 0) & (x[after] <= 15)
+    excursion = float(np.max(r[inside] - wall.radius_at(x[after][inside]))) if inside.any() else -1.0
+    speed = float(np.max(np.hypot(lp["vx"][after][-20:], lp["vy"][after][-20:])))
+    assert excursion < MAX_EXCURSION_M and speed < 0.5, (excursion, speed)  # stopped, inside (or landing)
+    print(json.dumps({"killed_at": killed_at, "excursion_after_m": excursion, "nav_states": ulog.nav_states}))
