@@ -177,9 +177,10 @@ class UlogSummary:
     """What a PX4 flight log says about a flight."""
 
     offboard_setpoint_hz: float
-    """Median rate of the offboard setpoints PX4 received while in OFFBOARD [Hz]."""
+    """Median rate at which PX4 *logged* its offboard setpoint (trajectory_setpoint) while in
+    OFFBOARD [Hz]: the default logger profile samples it at about 5 Hz, so this is a floor."""
     max_setpoint_gap_s: float
-    """Longest gap between two offboard setpoints while in OFFBOARD [s]."""
+    """Longest gap between two logged offboard setpoints while in OFFBOARD [s]."""
     failsafe_seen: bool
     """vehicle_status.failsafe was set at some point."""
     gps_fused: bool
@@ -207,15 +208,17 @@ def ulog_summary(path: Path) -> UlogSummary:
     t_st = st["timestamp"]
     off = nav == NAV_OFFBOARD
     ts = data("trajectory_setpoint")
-    hz, gap = 0.0, float("inf")
+    gaps: list[np.ndarray] = []
     if ts is not None and off.any():
         t_sp = ts["timestamp"]
-        idx = np.clip(np.searchsorted(t_st, t_sp, side="right") - 1, 0, len(t_st) - 1)
-        t_in = t_sp[off[idx]] / 1e6
-        if len(t_in) > 2:
-            d = np.diff(t_in)
-            d = d[d < 5.0]  # separate OFFBOARD episodes
-            hz, gap = (1.0 / float(np.median(d)), float(d.max())) if len(d) else (0.0, float("inf"))
+        edges = np.flatnonzero(np.diff(np.r_[0, off.astype(int), 0]))  # OFFBOARD episodes [start, end)
+        for a, b in zip(edges[::2], edges[1::2]):
+            t0, t1 = t_st[a], (t_st[b] if b < len(t_st) else np.inf)
+            sel = t_sp[(t_sp >= t0) & (t_sp < t1)] / 1e6
+            if len(sel) > 2:
+                gaps.append(np.diff(sel))
+    d = np.concatenate(gaps) if gaps else np.array([])
+    hz, gap = (1.0 / float(np.median(d)), float(d.max())) if len(d) else (0.0, float("inf"))
     flags = data("estimator_status_flags")
     key = "cs_gnss_pos" if flags is not None and "cs_gnss_pos" in flags else "cs_gps"
     gps = bool(flags is not None and np.any(flags[key]))

@@ -81,7 +81,9 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     alt_dev, hold_s = tr.hold_altitude_range_m()
     assert hold_s >= 8.0 and alt_dev < 0.5, (alt_dev, hold_s)
     # PX4's own log: what it received and how it flew
-    assert ulog.offboard_setpoint_hz >= 15.0 and ulog.max_setpoint_gap_s < 0.5, ulog
+    assert ulog.offboard_setpoint_hz >= 4.0 and ulog.max_setpoint_gap_s < 0.5, ulog   # logger samples ~5 Hz
+    flow_t = tr.t_s[tr.states == "FLOW"]
+    assert np.median(np.diff(flow_t)) == pytest.approx(0.05, abs=0.005), "agent streamed below 20 Hz"
     assert not ulog.failsafe_seen and ulog.gps_fused, ulog
     assert NAV_OFFBOARD in ulog.nav_states and ulog.nav_states[-1] == NAV_AUTO_LOITER, ulog
     print(json.dumps({"score": score.as_dict(), "hold_alt_dev_m": alt_dev, "ulog": ulog.__dict__}, default=str))
