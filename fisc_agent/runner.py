@@ -22,14 +22,22 @@ from typing import Callable
 from fisc_agent.adapters import Adapter, Commander, adapter_for
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
-from fisc_agent.link import VehicleLink
+from fisc_agent.link import PositionSample, VehicleLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap, MapError
 from fisc_agent.mission import FLEET_COMMANDS, FLYING, Mission, MissionOutput, State, VehicleStatus
+from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
+from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
 HEARTBEAT_PERIOD_S = 1.0
+LOG_PERIOD_S = 5.0
+
+
+def position_gate_config(cfg: AgentConfig) -> PositionGateConfig:
+    """The plausibility limits for this agent: three times its speed clamp, at least 15 m/s."""
+    return PositionGateConfig(max_speed_m_s=max(15.0, 3.0 * cfg.max_speed_m_s))
 
 
 @dataclass(frozen=True)
@@ -97,6 +105,11 @@ class Runner:
         self._stream_start: float | None = None
         self._last_hb_sent = -math.inf
         self._link_was_ok = False
+        self.position_gate = PositionGate(position_gate_config(cfg))
+        self.rlog = RateLimitedLog(log, LOG_PERIOD_S, clock=clock)
+        """Counters of rejected position fixes (``position:<verdict>``) and their rate-limited log."""
+        self._seen_sample: PositionSample | None = None
+        self._good_sample: PositionSample | None = None
         self.ticks = 0
         self.overruns = 0
         if cmap is not None:
@@ -206,6 +219,24 @@ class Runner:
         self.commander = Commander(self.adapter, self.link.send_command, self.cfg.command_retry_s)
         log.info("using the %s adapter", name)
 
+    def _gated(self, sample: PositionSample | None) -> PositionSample | None:
+        """The newest fix that passed ``position_gate`` (a rejected fix leaves the previous one,
+        which then ages: the mission's stale-position hold applies)."""
+        if sample is None or sample is self._seen_sample:
+            return self._good_sample
+        self._seen_sample = sample
+        verdict = self.position_gate.check(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s)
+        if verdict.accepted:
+            if verdict == GateVerdict.REANCHORED:
+                log.warning("position: a consistent track %.1f s long far from the last accepted fix is taken as "
+                            "the new position (NED %s)", self.position_gate.cfg.reanchor_after_s,
+                            _fmt(sample.pos_ned_m))
+            self._good_sample = sample
+        else:
+            self.rlog.event(f"position:{verdict.value}", logging.WARNING, "position fix rejected (%s): NED %s, "
+                            "velocity %s", verdict.value, _fmt(sample.pos_ned_m), _fmt(sample.vel_ned_m_s))
+        return self._good_sample
+
     def step(self) -> MissionOutput:
         """One control tick."""
         now = self.clock()
@@ -221,7 +252,7 @@ class Runner:
         hb_age = now - link.last_heartbeat_t if link.last_heartbeat_t is not None else math.inf
         mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
                 if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
-        sample = link.latest_position()
+        sample = self._gated(link.latest_position())
         tf = self.transform
         if sample is not None:
             pos: Vec | None = tf.ned_to_map_xyz(*sample.pos_ned_m)
@@ -315,3 +346,7 @@ class Runner:
                     log.warning("shutdown: hold mode not confirmed; the autopilot's offboard-loss failsafe applies")
         finally:
             link.close()
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{float(x):.2f}" for x in v) + ")"
