@@ -15,8 +15,9 @@ cannot desynchronise the parser), and it sends only to the autopilot's address (
 the configured one; ``udpin``: the address the autopilot's HEARTBEATs come from; nothing
 before that), never to every sender.  On every transport only the autopilot's own system,
 component (and UDP address) change its armed state, mode and type or deliver positions and
-acks.  Refusals are counted in ``rlog`` and logged at most once per 5 s per kind.  Position
-values are checked by the runner (``fisc_agent.position_gate``).
+acks.  Every position fix passes ``fisc_agent.position_gate`` (finite, reachable from the last
+accepted fix) before it becomes ``latest_position``.  Refusals are counted in ``rlog`` and
+logged at most once per 5 s per kind.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from fisc_agent.adapters import (MAV_CMD_SET_MESSAGE_INTERVAL, CommandLong, auto
 from fisc_agent.endpoints import Endpoint, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor
 from fisc_agent.mavlink_input import AutopilotTracker, HeartbeatVerdict, parse_datagram
+from fisc_agent.position_gate import PositionGate, PositionGateConfig
 from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
@@ -153,7 +155,8 @@ class MavlinkLink:
 
     def __init__(self, endpoint: Endpoint | str, source_system: int | None = None, source_component: int = 191,
                  anchor: GeodeticAnchor | None = None, position_rate_hz: float = 50.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 position_gate: PositionGateConfig | None = None) -> None:
         self.endpoint = parse_endpoint(endpoint) if isinstance(endpoint, str) else endpoint
         self.anchor = anchor
         self.clock = clock
@@ -164,6 +167,7 @@ class MavlinkLink:
         self.bad_bytes = 0
         """Received bytes that were not part of a valid frame."""
         self.tracker = AutopilotTracker(RELOCK_AFTER_S)
+        self.position_gate = PositionGate(position_gate)
         self.udp: UdpTransport | None = None
         self.conn = None
         if self.endpoint.kind in ("udpin", "udpout"):
@@ -236,11 +240,11 @@ class MavlinkLink:
             return
         if mtype == "LOCAL_POSITION_NED":
             if self.anchor is None:
-                self._position = PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz))
+                self._offer_position(PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz)))
         elif mtype == "GLOBAL_POSITION_INT":
             if self.anchor is not None:
                 ned = self.anchor.geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-                self._position = PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01))
+                self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)))
         elif mtype == "COMMAND_ACK":
             self._acks.append((int(msg.command), int(msg.result)))
         elif mtype == "STATUSTEXT":
@@ -248,6 +252,14 @@ class MavlinkLink:
             self.status_texts.append(text)
             del self.status_texts[:-50]
             log.info("autopilot: %s", text)
+
+    def _offer_position(self, sample: PositionSample) -> None:
+        verdict = self.position_gate.check(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s)
+        if verdict.accepted:
+            self._position = sample
+        else:
+            self.rlog.event(f"position:{verdict.value}", logging.WARNING, "position fix rejected (%s): NED %s",
+                            verdict.value, tuple(round(float(v), 2) for v in sample.pos_ned_m))
 
     def _on_heartbeat(self, msg, addr=None) -> None:
         src, comp = msg.get_srcSystem(), msg.get_srcComponent()
@@ -266,6 +278,7 @@ class MavlinkLink:
             self.target_system, self.target_component = src, comp
             self.autopilot = autopilot_from_heartbeat(msg.autopilot)
             self._position = None  # never mix fixes of two vehicles
+            self.position_gate = PositionGate(self.position_gate.cfg)
             self.armed, self.last_heartbeat_t = False, None
             (log.warning if relock else log.info)(
                 "autopilot %s: system %d component %d (%s)%s", "changed to" if relock else "found", src, comp,

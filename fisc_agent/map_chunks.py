@@ -256,6 +256,8 @@ class MapAssembler:
             limits = replace(limits, max_pending=int(max_pending))
         self.limits = limits
         self.floor_version = 0
+        self.current_sha256: bytes | None = None
+        """sha256 of the installed map (its chunks are ignored, not refused)."""
         self.pending: dict[bytes, _Assembly] = {}
         self.buffered_bytes = 0
         """Bytes charged to the budget right now (received data + per-chunk overhead)."""
@@ -321,11 +323,12 @@ class MapAssembler:
             self._note_announce(head, now_s)
             return head, None
         sha = head.sha256
-        if sha in self.done or sha in self.refused:
+        if head.map_version <= self.floor_version and sha != self.current_sha256:
+            if self.refused.get(sha) != DropReason.OLD_VERSION:  # reported once per map
+                self.refused.add(sha, DropReason.OLD_VERSION)
+                self._drops.append(AssemblyDrop(DropReason.OLD_VERSION, head, 0))
             return head, None
-        if head.map_version <= self.floor_version:
-            self.refused.add(sha, DropReason.OLD_VERSION)
-            self._drops.append(AssemblyDrop(DropReason.OLD_VERSION, head, 0))
+        if sha in self.done or sha in self.refused:
             return head, None
         if head.total_bytes > self.limits.max_map_bytes or head.total_bytes > self.limits.budget_bytes:
             self.refused.add(sha, "too_large")
@@ -376,9 +379,13 @@ class MapAssembler:
             self.done.discard(head.sha256)
             raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
 
-    def accept(self, map_version: int) -> None:
-        """A map of this version was installed: drop everything not newer."""
+    def accept(self, map_version: int, sha256: bytes | None = None) -> None:
+        """A map of this version (and sha256) was installed: drop everything not newer.  Chunks
+        of the installed map are ignored from then on; chunks of any other map not newer,
+        including maps installed before (a replay), are refused as ``OLD_VERSION``."""
         self.floor_version = max(self.floor_version, int(map_version))
+        if sha256 is not None:
+            self.current_sha256 = bytes(sha256)
         for asm in [a for a in self.pending.values() if a.head.map_version <= self.floor_version]:
             del self.pending[asm.head.sha256]
             self.buffered_bytes -= asm.cost

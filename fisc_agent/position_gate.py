@@ -34,6 +34,12 @@ class PositionGateConfig:
     reanchor_after_s: float = 3.0
     """A consistent track of rejected fixes this long becomes the new reference [s]."""
 
+    @classmethod
+    def for_speed_clamp(cls, max_speed_m_s: float) -> "PositionGateConfig":
+        """The limits for an agent whose setpoints are clamped to ``max_speed_m_s``: three
+        times that, at least 15 m/s."""
+        return cls(max_speed_m_s=max(15.0, 3.0 * float(max_speed_m_s)))
+
     def __post_init__(self) -> None:
         for name in ("max_speed_m_s", "jump_tolerance_m", "reanchor_after_s"):
             value = getattr(self, name)

@@ -35,11 +35,6 @@ HEARTBEAT_PERIOD_S = 1.0
 LOG_PERIOD_S = 5.0
 
 
-def position_gate_config(cfg: AgentConfig) -> PositionGateConfig:
-    """The plausibility limits for this agent: three times its speed clamp, at least 15 m/s."""
-    return PositionGateConfig(max_speed_m_s=max(15.0, 3.0 * cfg.max_speed_m_s))
-
-
 @dataclass(frozen=True)
 class AgentSnapshot:
     """Telemetry of one agent at one tick."""
@@ -105,7 +100,7 @@ class Runner:
         self._stream_start: float | None = None
         self._last_hb_sent = -math.inf
         self._link_was_ok = False
-        self.position_gate = PositionGate(position_gate_config(cfg))
+        self.position_gate = PositionGate(PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
         self.rlog = RateLimitedLog(log, LOG_PERIOD_S, clock=clock)
         """Counters of rejected position fixes (``position:<verdict>``) and their rate-limited log."""
         self._seen_sample: PositionSample | None = None
@@ -221,7 +216,9 @@ class Runner:
 
     def _gated(self, sample: PositionSample | None) -> PositionSample | None:
         """The newest fix that passed ``position_gate`` (a rejected fix leaves the previous one,
-        which then ages: the mission's stale-position hold applies)."""
+        which then ages: the mission's stale-position hold applies).  ``MavlinkLink`` gates
+        every fix it receives as well (so that bogus fixes interleaved with good ones cannot
+        hide them); this gate covers every backend."""
         if sample is None or sample is self._seen_sample:
             return self._good_sample
         self._seen_sample = sample
@@ -249,7 +246,8 @@ class Runner:
         for command, result in link.pop_acks():
             if self.commander is not None:
                 self.commander.on_ack(command, result)
-        hb_age = now - link.last_heartbeat_t if link.last_heartbeat_t is not None else math.inf
+        # ages are >= 0: a message received during this tick's poll is newer than ``now``
+        hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
         mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
                 if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
         sample = self._gated(link.latest_position())
@@ -257,7 +255,7 @@ class Runner:
         if sample is not None:
             pos: Vec | None = tf.ned_to_map_xyz(*sample.pos_ned_m)
             vel: Vec | None = tf.vel_ned_to_map_xyz(*sample.vel_ned_m_s)
-            pos_age = now - sample.t_s
+            pos_age = max(0.0, now - sample.t_s)
         else:
             pos = vel = None
             pos_age = math.inf

@@ -533,7 +533,7 @@ class AgentZenohLink:
             self.current = cmap
             self.stats.maps_accepted += 1
         with self._asm_lock:
-            self._assembler.accept(cmap.map_version)
+            self._assembler.accept(cmap.map_version, head.sha256)
         log.info("map %s accepted (map_version %d, %d CVs)", cmap.sha256[:12], cmap.map_version, cmap.n_cv)
 
     def _reject(self, exc: Exception, key: str | None = None) -> None:
