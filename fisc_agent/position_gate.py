@@ -1,7 +1,7 @@
 """Position plausibility gate (pure): which fixes the mission may see.
 
-A fix reaches the mission only if every position and velocity component is finite and it is
-reachable from the last accepted fix: ``|p - p_ref| <= max_speed_m_s * dt + jump_tolerance_m``
+A fix reaches the mission only if every position and velocity component is finite (and below
+1000 km, or km/s) and it is reachable from the last accepted fix: ``|p - p_ref| <= max_speed_m_s * dt + jump_tolerance_m``
 (``dt`` between receive times).  A rejected fix leaves the last accepted one in place, so its
 age grows and the usual stale-position hold applies if good fixes stop coming.
 
@@ -33,6 +33,8 @@ class PositionGateConfig:
     """Allowance on top of ``max_speed_m_s * dt`` for noise, small EKF corrections and bunched packets [m]."""
     reanchor_after_s: float = 3.0
     """A consistent track of rejected fixes this long becomes the new reference [s]."""
+    max_abs_m: float = 1.0e6
+    """Largest plausible |component| of a local position or velocity (1000 km; m or m/s)."""
 
     @classmethod
     def for_speed_clamp(cls, max_speed_m_s: float) -> "PositionGateConfig":
@@ -41,7 +43,7 @@ class PositionGateConfig:
         return cls(max_speed_m_s=max(15.0, 3.0 * float(max_speed_m_s)))
 
     def __post_init__(self) -> None:
-        for name in ("max_speed_m_s", "jump_tolerance_m", "reanchor_after_s"):
+        for name in ("max_speed_m_s", "jump_tolerance_m", "reanchor_after_s", "max_abs_m"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"PositionGateConfig.{name} must be a finite number > 0, got {value}")
@@ -55,6 +57,8 @@ class GateVerdict(str, Enum):
     """Accepted: a consistent track far from the old reference lasted ``reanchor_after_s``."""
     NON_FINITE = "non_finite"
     """Rejected: NaN or infinity in position or velocity."""
+    OUT_OF_RANGE = "out_of_range"
+    """Rejected: a component beyond ``max_abs_m`` (no local frame is that large)."""
     IMPLAUSIBLE_JUMP = "implausible_jump"
     """Rejected: farther from the last accepted fix than the vehicle can fly."""
 
@@ -65,7 +69,7 @@ class GateVerdict(str, Enum):
 
 def reachable(p: Vec, q: Vec, dt_s: float, cfg: PositionGateConfig) -> bool:
     """True when ``q`` can follow ``p`` after ``dt_s`` seconds."""
-    d = math.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
+    d = math.hypot(q[0] - p[0], q[1] - p[1], q[2] - p[2])  # no overflow: inf for absurd values
     return d <= cfg.max_speed_m_s * max(0.0, dt_s) + cfg.jump_tolerance_m
 
 
@@ -83,6 +87,8 @@ class PositionGate:
         """Judge one fix; an accepted fix becomes the reference."""
         if not all(math.isfinite(v) for v in (*pos, *vel, t_s)):
             return GateVerdict.NON_FINITE
+        if not all(abs(v) <= self.cfg.max_abs_m for v in (*pos, *vel)):
+            return GateVerdict.OUT_OF_RANGE
         pos = (float(pos[0]), float(pos[1]), float(pos[2]))
         if self.ref is None or reachable(self.ref[1], pos, t_s - self.ref[0], self.cfg):
             self.ref = (t_s, pos)
