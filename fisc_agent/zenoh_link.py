@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_PREFIX = "fisc"
 DEFAULT_PORT = 7447
-DEFAULT_RX_QUEUE_BYTES = 256 << 20
+DEFAULT_RX_QUEUE_BYTES = 512 << 20
 """Map-key payloads waiting for the assembler thread, at most [bytes] (more are dropped and counted)."""
 DEFAULT_RX_QUEUE_MESSAGES = 4096
 """... and at most this many messages."""

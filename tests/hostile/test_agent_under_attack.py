@@ -23,9 +23,9 @@ from fisc_agent.map_chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND
 
 from .conftest import FLYING, mav_encoder, poll, rss_mb, steady, transitions, tunnel_map
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(120)]
 
 FLOOD_S = float(os.environ.get("FISC_HOSTILE_FLOOD_S", "8"))
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(120 + FLOOD_S)]
 MIN_RATE_HZ = 19.0
 MAX_GAP_S = 0.5
 """Longest setpoint gap tolerated at the emulator (PX4's offboard-loss timeout there is 1 s)."""
