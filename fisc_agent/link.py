@@ -235,7 +235,7 @@ class MavlinkLink:
             self._on_heartbeat(msg, addr)
             return
         if not self.tracker.is_autopilot(msg.get_srcSystem(), msg.get_srcComponent(), addr):
-            self.rlog.event("mavlink:foreign_message", logging.INFO, "MAVLink: %s from system %d component %d "
+            self.rlog.event("mavlink:foreign_message", logging.DEBUG, "MAVLink: %s from system %d component %d "
                             "(not the autopilot) ignored", mtype, msg.get_srcSystem(), msg.get_srcComponent())
             return
         if mtype == "LOCAL_POSITION_NED":

@@ -37,8 +37,8 @@ IFLAG_SIGNED = 0x01
 MAX_BAD_FRAMES_PER_DATAGRAM = 4
 """Failed frame decodes after which the rest of a datagram is dropped (bounds the CPU a datagram costs)."""
 
-NON_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30})
-"""MAV_TYPE of GCS, onboard controller, gimbal, ADSB, ODID: never an autopilot."""
+NON_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30, 34})
+"""MAV_TYPE of GCS, onboard controller, gimbal, ADSB, camera, OpenDroneID: never an autopilot."""
 MAV_AUTOPILOT_INVALID = 8
 
 
