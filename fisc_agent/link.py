@@ -123,7 +123,12 @@ class UdpTransport:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             self.sock.bind((endpoint.host, int(endpoint.port)))
         else:
-            self.peer = (socket.gethostbyname(endpoint.host), int(endpoint.port))
+            try:
+                host = socket.gethostbyname(endpoint.host)
+            except OSError as exc:  # no DNS yet: sendto resolves the name on each send
+                log.warning("cannot resolve %s (%s); will retry on every send", endpoint.host, exc)
+                host = endpoint.host
+            self.peer = (host, int(endpoint.port))
 
     @property
     def local_address(self) -> tuple[str, int]:

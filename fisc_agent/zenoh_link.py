@@ -20,7 +20,9 @@ its own that is not arriving.  Reassembled bytes must match the header's sha256,
 ``decode_map`` (schema, content hash, Ed25519 signature from a trusted key) and carry a
 ``map_version`` above the current one; otherwise the map is refused, counted, logged and
 reported in telemetry, and the agent keeps the last good map.  The chunk header is not
-authenticated (the map's own seal is): forged chunks can waste bandwidth, not install a map.
+authenticated (the map's own seal is): forged chunks can waste bandwidth, not install a map,
+and their cost is bounded (``fisc_agent.map_chunks``: memory only for bytes received, a byte
+budget, stall timeouts, announced maps first, bounded caches).
 
 This module is onboard code: numpy, the standard library, PyNaCl and zenoh only.
 """
@@ -266,12 +268,18 @@ class AgentZenohLink:
     is called for anything refused: refusals are logged, counted in ``stats`` and reported in
     telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
     default); or pass an open ``session`` to share one (it is then not closed by ``close``).
+
+    Threads: Zenoh's callbacks only queue map-key payloads (``rx_queue_bytes`` /
+    ``rx_queue_messages``, beyond that dropped and counted in ``stats.map_messages_dropped``);
+    the assembler thread reassembles within ``assembly_limits`` (``max_map_bytes`` overrides
+    its size limit); the install thread decodes, verifies and calls ``on_map``.  ``rlog``
+    counts every refusal by kind and logs at most one line per kind per ``LOG_PERIOD_S``.
     """
 
     def __init__(self, session_config: Any, swarm: str, agent_id: int, trusted_keys: list[bytes] | None,
                  allow_unsigned: bool, on_map: Callable[[CommandMap], object],
                  on_command: Callable[[FleetCommand], None], *, prefix: str = DEFAULT_PREFIX,
-                 session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int = DEFAULT_MAX_MAP_BYTES,
+                 session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int | None = None,
                  command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time,
                  assembly_limits: AssemblyLimits | None = None, rx_queue_bytes: int = DEFAULT_RX_QUEUE_BYTES,
                  rx_queue_messages: int = DEFAULT_RX_QUEUE_MESSAGES) -> None:
