@@ -412,26 +412,27 @@ class AgentZenohLink:
     def _on_reply(self, reply: Any) -> None:
         sample = reply.ok
         if sample is not None:
-            self._enqueue(sample.payload.to_bytes())
+            self._enqueue(sample.payload)
 
     def _on_map_sample(self, sample: Any) -> None:
-        self._enqueue(sample.payload.to_bytes())
+        self._enqueue(sample.payload)
 
-    def _enqueue(self, payload: bytes) -> None:
+    def _enqueue(self, zbytes: Any) -> None:
         """Zenoh's thread: hand the payload to the assembler thread (never blocks, never parses);
-        dropped and counted when the queue is full."""
+        dropped and counted when the queue is full (checked before the payload is copied)."""
         max_bytes, max_msgs = self._rx_limits
+        size = len(zbytes)
         with self._lock:
-            full = self._rx_bytes + len(payload) > max_bytes or self._rx.qsize() >= max_msgs
-            if full:
-                self.stats.map_messages_dropped += 1
-            else:
-                self._rx_bytes += len(payload)
-        if full:
-            self.rlog.event("rx:queue_full", logging.WARNING, "map message dropped: receive queue full "
-                            "(%d bytes / %d messages)", max_bytes, max_msgs)
+            full = self._rx_bytes + size > max_bytes or self._rx.qsize() >= max_msgs
+            if not full:
+                self._rx_bytes += size
+        if not full:
+            self._rx.put(zbytes.to_bytes())
             return
-        self._rx.put(payload)
+        with self._lock:
+            self.stats.map_messages_dropped += 1
+        self.rlog.event("rx:queue_full", logging.WARNING, "map message of %d bytes dropped: receive queue full "
+                        "(%d bytes / %d messages)", size, max_bytes, max_msgs)
 
     def _assemble_loop(self) -> None:
         """Assembler thread: parse, reassemble and hash map chunks; completed maps go to the
