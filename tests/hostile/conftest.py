@@ -19,7 +19,6 @@ Process management, ports and polling come from ``tests/e2e/conftest.py``.
 
 from __future__ import annotations
 
-import os
 import re
 import select
 import socket

@@ -53,6 +53,8 @@ def assert_flying(flight, t0: float, t1: float, what: str) -> None:
     """Alive, in a flying state, setpoints at >= 19/s with no gap over 0.5 s in [t0, t1)."""
     assert flight.alive(), f"agent exited during {what}\n{flight.report()}"
     mean, fewest, gap = steady(flight, t0, t1)
+    print(f"{what}: {mean:.1f} setpoints/s at the emulator over {t1 - t0:.1f} s, fewest {fewest} in a second, "
+          f"longest gap {gap:.3f} s, state {flight.state()}")
     assert mean >= MIN_RATE_HZ and gap < MAX_GAP_S, \
         f"{what}: setpoints at the emulator {mean:.1f}/s (fewest {fewest} in a second), longest gap {gap:.2f} s"
     assert flight.state() in FLYING, f"{what}: agent state {flight.state()}\n{flight.report()}"
@@ -169,14 +171,18 @@ def test_garbage_and_partial_frames_leave_position_and_link_intact(flight):
     assert "bad bytes" in text
 
 
-def test_stray_heartbeat_from_another_component_changes_nothing(flight):
-    """Finding 4: HEARTBEAT from system 1 component 100, autopilot GENERIC, base_mode 0 (disarmed)."""
-    enc = mav_encoder(1, 100)
-    hb = enc.heartbeat_encode(2, 0, 0, 0, 4).pack(enc)  # quadrotor, MAV_AUTOPILOT_GENERIC, disarmed
+def test_stray_heartbeat_from_another_component_or_system_changes_nothing(flight):
+    """Finding 4: HEARTBEAT from system 1 component 100, autopilot GENERIC, base_mode 0
+    (disarmed); and one from system 2 (a PX4, disarmed), both on the autopilot's path."""
+    comp = mav_encoder(1, 100)
+    hb = comp.heartbeat_encode(2, 0, 0, 0, 4).pack(comp)  # quadrotor, MAV_AUTOPILOT_GENERIC, disarmed
+    other = mav_encoder(2, 1)
+    hb2 = other.heartbeat_encode(2, 12, 1, 0, 3).pack(other)  # quadrotor, PX4, custom mode bit, disarmed
     flight.log.mark()
     t0 = time.monotonic()
     for _ in range(3):
         flight.relay.inject(hb)
+        flight.relay.inject(hb2)
         time.sleep(0.3)
     time.sleep(1.5)
     assert_flying(flight, t0, time.monotonic(), "a stray heartbeat")

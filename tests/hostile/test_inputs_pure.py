@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_ANNOUNCE, KIND_CHUNK,
+from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK,
                                    AssemblyLimits, DropReason, MapAssembler, announce_message, split_map)
 from fisc_agent.mapfile import MapError
 from fisc_agent.mavlink_input import (MAX_BAD_FRAMES_PER_DATAGRAM, AutopilotTracker, HeartbeatVerdict,
