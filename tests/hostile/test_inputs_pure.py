@@ -312,3 +312,48 @@ def test_rate_limited_log_counts_everything_and_logs_once_per_period(caplog):
         rl.event(key, logging.DEBUG, "x")
     assert rl.count(OVERFLOW_KEY) == 2 and len(rl.counts()) == 4 and rl.total() == 1004
 
+
+
+# ------------------------------------------------------------------------------------- the whole input path
+@pytest.fixture(scope="module")
+def udp_link():
+    """A real ``MavlinkLink`` listening on a free loopback UDP port, and a sender socket."""
+    import socket
+
+    from fisc_agent.link import MavlinkLink
+
+    link = MavlinkLink("udpin:127.0.0.1:0")
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx.bind(("127.0.0.1", 0))
+    yield link, tx
+    tx.close()
+    link.close()
+
+
+def _deliver(link, tx, datagrams) -> None:
+    import select
+
+    for d in datagrams:
+        tx.sendto(d, link.udp.local_address)
+    while select.select([link.udp.sock], [], [], 0.02)[0]:  # loopback: queued by the time sendto returns
+        link.poll()
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(st.binary(min_size=1, max_size=300), min_size=1, max_size=5), st.floats(-50, 50))
+def test_fuzz_the_udp_input_path_never_raises_and_the_next_fix_gets_through(udp_link, garbage, x):
+    """Raw datagrams into a real ``MavlinkLink`` (socket, per-datagram framing, identity, gate):
+    ``poll`` never raises, the autopilot stays the autopilot, and its next fix is used."""
+    link, tx = udp_link
+    ap = _mav(1, 1)
+    if link.target_system is None:
+        _deliver(link, tx, [ap.heartbeat_encode(2, 12, 1, 0, 3).pack(ap)])
+        assert link.target_system == 1 and link.udp.peer == tx.getsockname()
+    _deliver(link, tx, garbage)
+    # far jumps are gated; move the reference slowly so every fix here is plausible
+    link.position_gate = PositionGate(link.position_gate.cfg)
+    _deliver(link, tx, [ap.heartbeat_encode(2, 12, 1, 0, 3).pack(ap),
+                        ap.local_position_ned_encode(0, x, 1.0, -2.0, 0.0, 0.0, 0.0).pack(ap)])
+    fix = link.latest_position()
+    assert fix is not None and fix.pos_ned_m[0] == pytest.approx(x, abs=1e-4)
+    assert link.target_system == 1 and link.target_component == 1
