@@ -53,6 +53,7 @@ POLL_BUDGET_S = 0.01
 RELOCK_AFTER_S = 3.0
 """A disarmed autopilot silent this long may be replaced by another vehicle (``AutopilotTracker``)."""
 UDP_MAX_DATAGRAM = 65535
+MAX_ACKS_KEPT = 32
 LOG_PERIOD_S = 5.0
 
 
@@ -252,6 +253,7 @@ class MavlinkLink:
                 self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)))
         elif mtype == "COMMAND_ACK":
             self._acks.append((int(msg.command), int(msg.result)))
+            del self._acks[:-MAX_ACKS_KEPT]  # bounded even if nobody pops them
         elif mtype == "STATUSTEXT":
             text = str(msg.text).rstrip("\x00")
             self.status_texts.append(text)
