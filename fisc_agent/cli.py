@@ -129,9 +129,11 @@ def make_link(cfg: AgentConfig):
 
         return MavsdkLink(cfg.mavlink_url, anchor=cfg.geodetic_anchor)
     from fisc_agent.link import MavlinkLink
+    from fisc_agent.position_gate import PositionGateConfig
 
     return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
-                       anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz))
+                       anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz),
+                       position_gate=PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
 
 
 def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: float | None = None,

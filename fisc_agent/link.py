@@ -8,12 +8,23 @@ control loop never waits on the network.
 Positions: LOCAL_POSITION_NED (EKF local frame), or, with a ``GeodeticAnchor``,
 GLOBAL_POSITION_INT converted to NED relative to the anchor.  Times are local monotonic
 receive times (age = now - receive time), so a delayed or frozen stream reads as stale.
+
+Hostile or broken input (``fisc_agent.mavlink_input``): on UDP the link owns its socket and
+parses each datagram on its own (a partial or garbage frame is dropped with its datagram and
+cannot desynchronise the parser), and it sends only to the autopilot's address (``udpout``:
+the configured one; ``udpin``: the address the autopilot's HEARTBEATs come from; nothing
+before that), never to every sender.  On every transport only the autopilot's own system,
+component (and UDP address) change its armed state, mode and type or deliver positions and
+acks.  Every position fix passes ``fisc_agent.position_gate`` (finite, reachable from the last
+accepted fix) before it becomes ``latest_position``.  Refusals are counted in ``rlog`` and
+logged at most once per 5 s per kind.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import socket
 import time
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
@@ -21,6 +32,9 @@ from typing import Callable, Protocol, runtime_checkable
 from fisc_agent.adapters import (MAV_CMD_SET_MESSAGE_INTERVAL, CommandLong, autopilot_from_heartbeat, is_armed)
 from fisc_agent.endpoints import Endpoint, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.mavlink_input import AutopilotTracker, HeartbeatVerdict, parse_datagram
+from fisc_agent.position_gate import PositionGate, PositionGateConfig
+from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +47,14 @@ MSG_ID_GLOBAL_POSITION_INT = 33
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
-_NON_VEHICLE_TYPES = {6, 18, 26, 27}  # GCS, onboard controller, gimbal, ADSB
 MAX_MESSAGES_PER_POLL = 2000
+POLL_BUDGET_S = 0.01
+"""At most this long per ``poll`` (a flood of datagrams must not stretch a control tick)."""
+RELOCK_AFTER_S = 3.0
+"""A disarmed autopilot silent this long may be replaced by another vehicle (``AutopilotTracker``)."""
+UDP_MAX_DATAGRAM = 65535
+MAX_ACKS_KEPT = 32
+LOG_PERIOD_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -87,23 +107,88 @@ def _import_mavutil():
     return mavutil
 
 
+class UdpTransport:
+    """One non-blocking UDP socket that sends only to the autopilot's address.
+
+    ``udpin``: bound to the endpoint; ``peer`` is None (nothing is sent) until the link locks on
+    an autopilot and sets it.  ``udpout``: an ephemeral socket; ``peer`` is the endpoint (the
+    agent talks first so that the autopilot learns its address).  ``write`` is what a pymavlink
+    ``MAVLink`` encoder calls."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self.listening = endpoint.kind == "udpin"
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.peer: tuple[str, int] | None = None
+        if self.listening:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self.sock.bind((endpoint.host, int(endpoint.port)))
+        else:
+            try:
+                host = socket.gethostbyname(endpoint.host)
+            except OSError as exc:  # no DNS yet: sendto resolves the name on each send
+                log.warning("cannot resolve %s (%s); will retry on every send", endpoint.host, exc)
+                host = endpoint.host
+            self.peer = (host, int(endpoint.port))
+
+    @property
+    def local_address(self) -> tuple[str, int]:
+        return self.sock.getsockname()
+
+    def recv(self) -> tuple[bytes, tuple[str, int]] | None:
+        """One datagram and its sender, or None when none is waiting."""
+        try:
+            return self.sock.recvfrom(UDP_MAX_DATAGRAM)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except ConnectionRefusedError:  # ICMP port unreachable from an earlier send (peer not up yet)
+            return None
+
+    def write(self, buf: bytes) -> None:
+        if self.peer is None:
+            return
+        try:
+            self.sock.sendto(buf, self.peer)
+        except OSError as exc:  # peer unreachable right now: the link timeout covers it
+            log.debug("MAVLink send to %s:%d failed: %s", *self.peer, exc)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 class MavlinkLink:
     """pymavlink connection to one autopilot: vehicle state, positions, setpoints, commands."""
 
     def __init__(self, endpoint: Endpoint | str, source_system: int | None = None, source_component: int = 191,
                  anchor: GeodeticAnchor | None = None, position_rate_hz: float = 50.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 position_gate: PositionGateConfig | None = None) -> None:
         self.endpoint = parse_endpoint(endpoint) if isinstance(endpoint, str) else endpoint
         self.anchor = anchor
         self.clock = clock
         self.position_rate_hz = position_rate_hz
         self._fixed_source = source_system
-        mavutil = _import_mavutil()
-        kwargs = dict(source_system=source_system or 255, source_component=source_component, autoreconnect=True)
-        if self.endpoint.kind == "serial":
-            kwargs["baud"] = self.endpoint.baud
-        self.conn = mavutil.mavlink_connection(self.endpoint.device, **kwargs)
-        self.mav = self.conn.mav
+        self.rlog = RateLimitedLog(log, LOG_PERIOD_S, clock=clock)
+        """Counters of refused MAVLink input (``mavlink:<kind>``) and their rate-limited log."""
+        self.bad_bytes = 0
+        """Received bytes that were not part of a valid frame."""
+        self.tracker = AutopilotTracker(RELOCK_AFTER_S)
+        self.position_gate = PositionGate(position_gate)
+        self.udp: UdpTransport | None = None
+        self.conn = None
+        if self.endpoint.kind in ("udpin", "udpout"):
+            from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
+            self.udp = UdpTransport(self.endpoint)
+            self.mav = mavlink2.MAVLink(self.udp, srcSystem=source_system or 255, srcComponent=source_component)
+            self._decoder = mavlink2.MAVLink(None)
+        else:  # serial and TCP are byte streams: pymavlink's stream parser
+            mavutil = _import_mavutil()
+            kwargs = dict(source_system=source_system or 255, source_component=source_component, autoreconnect=True)
+            if self.endpoint.kind == "serial":
+                kwargs["baud"] = self.endpoint.baud
+            self.conn = mavutil.mavlink_connection(self.endpoint.device, **kwargs)
+            self.mav = self.conn.mav
         self.autopilot: str | None = None
         self.target_system: int | None = None
         self.target_component: int = 1
@@ -119,52 +204,98 @@ class MavlinkLink:
 
     # ---- receive -------------------------------------------------------------------------
     def poll(self) -> int:
-        """Drain received messages (non-blocking); returns how many were handled."""
+        """Drain received messages (non-blocking, at most ``POLL_BUDGET_S``); returns how many
+        were handled."""
         n = 0
-        while n < MAX_MESSAGES_PER_POLL:
+        t_end = time.monotonic() + POLL_BUDGET_S
+        while n < MAX_MESSAGES_PER_POLL and time.monotonic() < t_end:
+            if self.udp is not None:
+                got = self.udp.recv()
+                if got is None:
+                    break
+                data, addr = got
+                scan = parse_datagram(data, self._decoder.decode)
+                if scan.bad_bytes:
+                    self.bad_bytes += scan.bad_bytes
+                    self.rlog.event("mavlink:bad_bytes", logging.WARNING, "MAVLink: %d bad bytes in a %d-byte datagram "
+                                    "from %s:%d dropped (garbage, partial or corrupted frames)", scan.bad_bytes,
+                                    len(data), *addr)
+                for msg in scan.messages:
+                    n += 1
+                    self._handle(msg, addr)
+                continue
             msg = self.conn.recv_msg()
             if msg is None:
                 break
             n += 1
-            self._handle(msg)
+            if msg.get_type() == "BAD_DATA":
+                self.rlog.event("mavlink:bad_bytes", logging.WARNING, "MAVLink: bad data dropped (%s)",
+                                getattr(msg, "reason", "?"))
+                continue
+            self._handle(msg, None)
         return n
 
-    def _handle(self, msg) -> None:
+    def _handle(self, msg, addr=None) -> None:
         mtype = msg.get_type()
         if mtype == "HEARTBEAT":
-            self._on_heartbeat(msg)
+            self._on_heartbeat(msg, addr)
             return
-        if self.target_system is not None and msg.get_srcSystem() != self.target_system:
+        if not self.tracker.is_autopilot(msg.get_srcSystem(), msg.get_srcComponent(), addr):
+            self.rlog.event("mavlink:foreign_message", logging.DEBUG, "MAVLink: %s from system %d component %d "
+                            "(not the autopilot) ignored", mtype, msg.get_srcSystem(), msg.get_srcComponent())
             return
         if mtype == "LOCAL_POSITION_NED":
             if self.anchor is None:
-                self._position = PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz))
+                self._offer_position(PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz)))
         elif mtype == "GLOBAL_POSITION_INT":
             if self.anchor is not None:
                 ned = self.anchor.geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-                self._position = PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01))
+                self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)))
         elif mtype == "COMMAND_ACK":
             self._acks.append((int(msg.command), int(msg.result)))
+            del self._acks[:-MAX_ACKS_KEPT]  # bounded even if nobody pops them
         elif mtype == "STATUSTEXT":
             text = str(msg.text).rstrip("\x00")
             self.status_texts.append(text)
             del self.status_texts[:-50]
             log.info("autopilot: %s", text)
 
-    def _on_heartbeat(self, msg) -> None:
-        if msg.type in _NON_VEHICLE_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID:
+    def _offer_position(self, sample: PositionSample) -> None:
+        verdict = self.position_gate.check(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s)
+        if verdict.accepted:
+            self._position = sample
+        else:
+            self.rlog.event(f"position:{verdict.value}", logging.WARNING, "position fix rejected (%s): NED %s",
+                            verdict.value, tuple(round(float(v), 2) for v in sample.pos_ned_m))
+
+    def _on_heartbeat(self, msg, addr=None) -> None:
+        src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        verdict = self.tracker.on_heartbeat(src, comp, addr, msg.type, msg.autopilot, is_armed(msg.base_mode),
+                                            self.clock())
+        if verdict == HeartbeatVerdict.NOT_A_VEHICLE:
             return
-        src = msg.get_srcSystem()
-        if self.target_system is None:
-            self.target_system, self.target_component = src, msg.get_srcComponent()
+        if verdict == HeartbeatVerdict.FOREIGN:
+            self.rlog.event("mavlink:foreign_heartbeat", logging.WARNING, "MAVLink: HEARTBEAT from system %d "
+                            "component %d (type %d, autopilot %d, base_mode %d) is not the autopilot's (system %d "
+                            "component %d): ignored", src, comp, msg.type, msg.autopilot, msg.base_mode,
+                            self.target_system, self.target_component)
+            return
+        if verdict == HeartbeatVerdict.LOCKED:
+            relock = self.target_system is not None
+            self.target_system, self.target_component = src, comp
             self.autopilot = autopilot_from_heartbeat(msg.autopilot)
-            log.info("autopilot found: system %d component %d (%s)", src, self.target_component,
-                     self.autopilot or f"MAV_AUTOPILOT {msg.autopilot}")
+            self._position = None  # never mix fixes of two vehicles
+            self.position_gate = PositionGate(self.position_gate.cfg)
+            self.armed, self.last_heartbeat_t = False, None
+            (log.warning if relock else log.info)(
+                "autopilot %s: system %d component %d (%s)%s", "changed to" if relock else "found", src, comp,
+                self.autopilot or f"MAV_AUTOPILOT {msg.autopilot}",
+                f" at {addr[0]}:{addr[1]}" if isinstance(addr, tuple) else "")
+            if self.udp is not None and self.udp.listening:
+                self.udp.peer = addr  # replies go to the autopilot only
             if self._fixed_source is None:
                 self.mav.srcSystem = src
             self._request_position_stream()
-        elif src != self.target_system:
-            return
         self.base_mode, self.custom_mode = int(msg.base_mode), int(msg.custom_mode)
         self.armed = is_armed(msg.base_mode)
         self.last_heartbeat_t = self.clock()
@@ -204,4 +335,7 @@ class MavlinkLink:
         self.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
 
     def close(self) -> None:
-        self.conn.close()
+        if self.udp is not None:
+            self.udp.close()
+        else:
+            self.conn.close()

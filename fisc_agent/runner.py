@@ -22,14 +22,17 @@ from typing import Callable
 from fisc_agent.adapters import Adapter, Commander, adapter_for
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
-from fisc_agent.link import VehicleLink
+from fisc_agent.link import PositionSample, VehicleLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap, MapError
 from fisc_agent.mission import FLEET_COMMANDS, FLYING, Mission, MissionOutput, State, VehicleStatus
+from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
+from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
 HEARTBEAT_PERIOD_S = 1.0
+LOG_PERIOD_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -102,6 +105,11 @@ class Runner:
         self._stream_start: float | None = None
         self._last_hb_sent = -math.inf
         self._link_was_ok = False
+        self.position_gate = PositionGate(PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
+        self.rlog = RateLimitedLog(log, LOG_PERIOD_S, clock=clock)
+        """Counters of rejected position fixes (``position:<verdict>``) and their rate-limited log."""
+        self._seen_sample: PositionSample | None = None
+        self._good_sample: PositionSample | None = None
         self.ticks = 0
         self.overruns = 0
         if cmap is not None:
@@ -211,6 +219,26 @@ class Runner:
         self.commander = Commander(self.adapter, self.link.send_command, self.cfg.command_retry_s)
         log.info("using the %s adapter", name)
 
+    def _gated(self, sample: PositionSample | None) -> PositionSample | None:
+        """The newest fix that passed ``position_gate`` (a rejected fix leaves the previous one,
+        which then ages: the mission's stale-position hold applies).  ``MavlinkLink`` gates
+        every fix it receives as well (so that bogus fixes interleaved with good ones cannot
+        hide them); this gate covers every backend."""
+        if sample is None or sample is self._seen_sample:
+            return self._good_sample
+        self._seen_sample = sample
+        verdict = self.position_gate.check(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s)
+        if verdict.accepted:
+            if verdict == GateVerdict.REANCHORED:
+                log.warning("position: a consistent track %.1f s long far from the last accepted fix is taken as "
+                            "the new position (NED %s)", self.position_gate.cfg.reanchor_after_s,
+                            _fmt(sample.pos_ned_m))
+            self._good_sample = sample
+        else:
+            self.rlog.event(f"position:{verdict.value}", logging.WARNING, "position fix rejected (%s): NED %s, "
+                            "velocity %s", verdict.value, _fmt(sample.pos_ned_m), _fmt(sample.vel_ned_m_s))
+        return self._good_sample
+
     def step(self) -> MissionOutput:
         """One control tick."""
         now = self.clock()
@@ -223,15 +251,16 @@ class Runner:
         for command, result in link.pop_acks():
             if self.commander is not None:
                 self.commander.on_ack(command, result)
-        hb_age = now - link.last_heartbeat_t if link.last_heartbeat_t is not None else math.inf
+        # ages are >= 0: a message received during this tick's poll is newer than ``now``
+        hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
         mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
                 if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
-        sample = link.latest_position()
+        sample = self._gated(link.latest_position())
         tf = self.transform
         if sample is not None:
             pos: Vec | None = tf.ned_to_map_xyz(*sample.pos_ned_m)
             vel: Vec | None = tf.vel_ned_to_map_xyz(*sample.vel_ned_m_s)
-            pos_age = now - sample.t_s
+            pos_age = max(0.0, now - sample.t_s)
         else:
             pos = vel = None
             pos_age = math.inf
@@ -325,3 +354,7 @@ class Runner:
                     log.warning("shutdown: hold mode not confirmed; the autopilot's offboard-loss failsafe applies")
         finally:
             link.close()
+
+
+def _fmt(v) -> str:
+    return "(" + ", ".join(f"{float(x):.2f}" for x in v) + ")"

@@ -43,7 +43,8 @@ STATES = ("UNKNOWN", "WAIT_MAP", "WAIT_POSITION", "ARM", "TAKEOFF", "JOIN", "FLO
 """State names by code.  Mission states of ``fisc_agent.mission.State`` plus WAIT_MAP (no map yet)."""
 
 REJECT_REASONS = ("none", "truncated", "magic", "container", "sha256", "signature", "schema",
-                  "schema_version", "header", "seal", "trailing", "version_mismatch", "chunks", "other")
+                  "schema_version", "header", "seal", "trailing", "version_mismatch", "chunks", "other",
+                  "old_version")
 """Map-refusal reasons by code (the ``MapError`` check names, plus transport-level ones)."""
 
 ACK_COMMANDS = ("none", "hold", "resume", "land", "start-at")

@@ -20,19 +20,19 @@ its own that is not arriving.  Reassembled bytes must match the header's sha256,
 ``decode_map`` (schema, content hash, Ed25519 signature from a trusted key) and carry a
 ``map_version`` above the current one; otherwise the map is refused, counted, logged and
 reported in telemetry, and the agent keeps the last good map.  The chunk header is not
-authenticated (the map's own seal is): forged chunks can waste bandwidth, not install a map.
+authenticated (the map's own seal is): forged chunks can waste bandwidth, not install a map,
+and their cost is bounded (``fisc_agent.map_chunks``: memory only for bytes received, a byte
+budget, stall timeouts, announced maps first, bounded caches).
 
 This module is onboard code: numpy, the standard library, PyNaCl and zenoh only.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
 import queue
-import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -41,20 +41,22 @@ from typing import Any, Callable, Mapping
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, decode_command
+from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, DEFAULT_CHUNK_BYTES,  # noqa: F401
+                                   DEFAULT_MAX_MAP_BYTES, KIND_ANNOUNCE, KIND_CHUNK, AssemblyDrop, AssemblyLimits,
+                                   ChunkHeader, DropReason, MapAssembler, announce_message, parse_chunk, split_map)
 from fisc_agent.mapfile import CommandMap, MapError, decode_map
+from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PREFIX = "fisc"
 DEFAULT_PORT = 7447
-DEFAULT_CHUNK_BYTES = 1 << 20
-DEFAULT_MAX_MAP_BYTES = 1 << 30
-
-CHUNK_MAGIC = b"FMCH"
-CHUNK_VERSION = 1
-KIND_CHUNK = 1
-KIND_ANNOUNCE = 2
-CHUNK_HEADER = struct.Struct("<4sBBHQ32sQIIQ")
+DEFAULT_RX_QUEUE_BYTES = 512 << 20
+"""Map-key payloads waiting for the assembler thread, at most [bytes] (more are dropped and counted)."""
+DEFAULT_RX_QUEUE_MESSAGES = 4096
+"""... and at most this many messages."""
+LOG_PERIOD_S = 5.0
+"""Refusals of the same kind are logged at most once per this period (all are counted)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -150,143 +152,12 @@ def open_session(config: Any = None):
 
 
 # --------------------------------------------------------------------------------------------
-# Map chunks (pure)
+# Map refusals (pure)
 
-@dataclass(frozen=True)
-class ChunkHeader:
-    """Header of one map-transport message."""
-
-    kind: int
-    """``KIND_CHUNK`` or ``KIND_ANNOUNCE``."""
-    map_version: int
-    """map_version claimed for the map (checked against the decoded map)."""
-    sha256: bytes
-    """sha256 of the complete map bytes (32 raw bytes)."""
-    total_bytes: int
-    """Size of the complete map [bytes]."""
-    index: int
-    """Chunk index (0 for an announcement)."""
-    count: int
-    """Number of chunks of the map."""
-    offset: int
-    """Byte offset of this chunk in the map."""
-
-
-def split_map(blob: bytes, map_version: int, chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> list[bytes]:
-    """Map bytes -> transport messages (header + slice), in order."""
-    if chunk_bytes <= 0:
-        raise ValueError("chunk_bytes must be > 0")
-    sha = hashlib.sha256(blob).digest()
-    count = max(1, -(-len(blob) // chunk_bytes))
-    view = memoryview(blob)
-    return [CHUNK_HEADER.pack(CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK, 0, map_version, sha, len(blob), i, count,
-                              i * chunk_bytes) + view[i * chunk_bytes:(i + 1) * chunk_bytes]
-            for i in range(count)]
-
-
-def announce_message(blob_sha256: bytes, map_version: int, total_bytes: int, count: int) -> bytes:
-    """The periodic 'current map is ...' message (no data)."""
-    return CHUNK_HEADER.pack(CHUNK_MAGIC, CHUNK_VERSION, KIND_ANNOUNCE, 0, map_version, blob_sha256, total_bytes,
-                             0, count, 0)
-
-
-def parse_chunk(msg: bytes | memoryview) -> tuple[ChunkHeader, memoryview]:
-    """Split a transport message into header and data; ``MapError`` if malformed."""
-    view = memoryview(msg)
-    if len(view) < CHUNK_HEADER.size:
-        raise MapError(f"chunks: message of {len(view)} bytes is shorter than the chunk header")
-    magic, version, kind, _, map_version, sha, total, index, count, offset = CHUNK_HEADER.unpack_from(view)
-    if magic != CHUNK_MAGIC:
-        raise MapError("chunks: bad magic (not a FISC map chunk)")
-    if version != CHUNK_VERSION:
-        raise MapError(f"chunks: chunk format {version} is not supported")
-    if kind not in (KIND_CHUNK, KIND_ANNOUNCE):
-        raise MapError(f"chunks: unknown message kind {kind}")
-    data = view[CHUNK_HEADER.size:]
-    if kind == KIND_CHUNK and (index >= count or offset + len(data) > total or (count > 1 and len(data) == 0)):
-        raise MapError(f"chunks: chunk {index}/{count} at offset {offset} does not fit a {total}-byte map")
-    return ChunkHeader(kind, map_version, sha, total, index, count, offset), data
-
-
-class _Assembly:
-    def __init__(self, head: ChunkHeader) -> None:
-        self.head = head
-        self.buf = bytearray(head.total_bytes)
-        self.have: set[int] = set()
-        self.received = 0
-        self.last_chunk_s = 0.0
-
-
-class MapAssembler:
-    """Reassembles maps from chunks (any order, duplicates ignored), pure apart from the clock.
-
-    ``feed(msg, now_s)`` returns ``(header, blob)`` when a map completes (blob is a bytearray
-    whose sha256 matched the header's; with ``verify=False`` the caller must call
-    ``verify(header, blob)`` itself, e.g. off the network thread) and ``(header, None)`` otherwise.  Only maps announced
-    newer than ``floor_version`` are assembled; at most ``max_pending`` maps at once (the
-    newest win) and none over ``max_bytes``.  ``MapError`` for malformed chunks or a map whose
-    bytes do not hash to its header (both are refusals to count).
-    """
-
-    def __init__(self, max_bytes: int = DEFAULT_MAX_MAP_BYTES, max_pending: int = 2) -> None:
-        self.max_bytes = int(max_bytes)
-        self.max_pending = int(max_pending)
-        self.floor_version = 0
-        self.pending: dict[bytes, _Assembly] = {}
-        self.done: set[bytes] = set()
-
-    def feed(self, msg: bytes | memoryview, now_s: float = 0.0,
-             verify: bool = True) -> tuple[ChunkHeader, bytearray | None]:
-        head, data = parse_chunk(msg)
-        if head.kind != KIND_CHUNK or head.map_version <= self.floor_version or head.sha256 in self.done:
-            return head, None
-        if head.total_bytes > self.max_bytes:
-            raise MapError(f"chunks: map of {head.total_bytes} bytes exceeds the {self.max_bytes}-byte limit")
-        asm = self.pending.get(head.sha256)
-        if asm is None:
-            if len(self.pending) >= self.max_pending:
-                oldest = min(self.pending.values(), key=lambda a: a.head.map_version)
-                if oldest.head.map_version >= head.map_version:
-                    return head, None
-                del self.pending[oldest.head.sha256]
-            asm = self.pending[head.sha256] = _Assembly(head)
-        elif (asm.head.total_bytes, asm.head.count, asm.head.map_version) != (head.total_bytes, head.count,
-                                                                              head.map_version):
-            raise MapError("chunks: chunk disagrees with earlier chunks of the same map")
-        asm.last_chunk_s = now_s
-        if head.index in asm.have:
-            return head, None
-        asm.buf[head.offset:head.offset + len(data)] = data
-        asm.have.add(head.index)
-        asm.received += len(data)
-        if len(asm.have) < head.count:
-            return head, None
-        del self.pending[head.sha256]
-        self.done.add(head.sha256)
-        if asm.received != head.total_bytes:
-            self.done.discard(head.sha256)
-            raise MapError("chunks: chunk sizes do not add up to the map size (corrupted or forged chunks)")
-        if verify:
-            self.verify(head, asm.buf)
-        return head, asm.buf
-
-    def verify(self, head: ChunkHeader, blob: bytearray) -> None:
-        """Check a completed map against its header's sha256; on mismatch forget it (so that a
-        later query can fetch good chunks) and raise ``MapError``."""
-        if hashlib.sha256(blob).digest() != head.sha256:
-            self.done.discard(head.sha256)
-            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
-
-    def progressing(self, sha256: bytes, now_s: float, within_s: float) -> bool:
-        """True when chunks of this map arrived within the last ``within_s`` seconds."""
-        asm = self.pending.get(sha256)
-        return asm is not None and now_s - asm.last_chunk_s < within_s
-
-    def accept(self, map_version: int) -> None:
-        """A map of this version was installed: drop everything not newer."""
-        self.floor_version = max(self.floor_version, int(map_version))
-        for sha in [s for s, a in self.pending.items() if a.head.map_version <= self.floor_version]:
-            del self.pending[sha]
+def _command_check(exc: Exception) -> str:
+    """The check a ``CommandError`` names (``"<check>: <detail>"``), for the counter's key."""
+    head = str(exc).split(":", 1)[0].strip()
+    return head if head.isidentifier() and len(head) <= 24 else "other"
 
 
 def reject_code(exc: Exception) -> str:
@@ -364,7 +235,11 @@ class LinkStats:
     maps_rejected: int = 0
     """Maps refused (any failed check, including the runner's own)."""
     maps_ignored_old: int = 0
-    """Valid maps not newer than the current one."""
+    """Maps not newer than the current one (also counted in ``maps_rejected``, reason ``old_version``)."""
+    maps_incomplete: int = 0
+    """Maps in progress dropped unfinished (stalled, evicted, over the byte budget); also in ``maps_rejected``."""
+    map_messages_dropped: int = 0
+    """Map-key messages dropped unread: receive queue full, or no reassembly slot free."""
     last_reject_reason: str = "none"
     """Check that refused the last refused map (``REJECT_REASONS``)."""
     last_reject_message: str = ""
@@ -393,13 +268,21 @@ class AgentZenohLink:
     is called for anything refused: refusals are logged, counted in ``stats`` and reported in
     telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
     default); or pass an open ``session`` to share one (it is then not closed by ``close``).
+
+    Threads: Zenoh's callbacks only queue map-key payloads (``rx_queue_bytes`` /
+    ``rx_queue_messages``, beyond that dropped and counted in ``stats.map_messages_dropped``);
+    the assembler thread reassembles within ``assembly_limits`` (``max_map_bytes`` overrides
+    its size limit); the install thread decodes, verifies and calls ``on_map``.  ``rlog``
+    counts every refusal by kind and logs at most one line per kind per ``LOG_PERIOD_S``.
     """
 
     def __init__(self, session_config: Any, swarm: str, agent_id: int, trusted_keys: list[bytes] | None,
                  allow_unsigned: bool, on_map: Callable[[CommandMap], object],
                  on_command: Callable[[FleetCommand], None], *, prefix: str = DEFAULT_PREFIX,
-                 session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int = DEFAULT_MAX_MAP_BYTES,
-                 command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time) -> None:
+                 session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int | None = None,
+                 command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time,
+                 assembly_limits: AssemblyLimits | None = None, rx_queue_bytes: int = DEFAULT_RX_QUEUE_BYTES,
+                 rx_queue_messages: int = DEFAULT_RX_QUEUE_MESSAGES) -> None:
         if not trusted_keys and not allow_unsigned:
             raise ValueError("no trusted key given: pass --trusted-key (or --allow-unsigned in a lab)")
         self.keys = Keys(prefix, swarm)
@@ -416,7 +299,13 @@ class AgentZenohLink:
         self._session_config = session_config
         self._session = session
         self._own_session = session is None
-        self._assembler = MapAssembler(max_bytes=max_map_bytes)
+        self._assembler = MapAssembler(max_bytes=max_map_bytes, limits=assembly_limits)
+        self.rlog = RateLimitedLog(log, LOG_PERIOD_S)
+        """Refusal counters by kind (``map:<reason>``, ``cmd:<reason>``, ``rx:<what>``) and their rate-limited log."""
+        self._rx: queue.Queue = queue.Queue()
+        self._rx_bytes = 0
+        self._rx_limits = (int(rx_queue_bytes), int(rx_queue_messages))
+        self._assembler_thread: threading.Thread | None = None
         self._gate = CommandGate(swarm, self.agent_id, max_age_s=command_max_age_s)
         self._lock = threading.Lock()
         self._asm_lock = threading.Lock()
@@ -439,6 +328,9 @@ class AgentZenohLink:
         query the current map.  Never blocks for long."""
         self._worker = threading.Thread(target=self._work_loop, name=f"fisc-zenoh-map-{self.agent_id}", daemon=True)
         self._worker.start()
+        self._assembler_thread = threading.Thread(target=self._assemble_loop, name=f"fisc-zenoh-asm-{self.agent_id}",
+                                                  daemon=True)
+        self._assembler_thread.start()
         if not self._try_connect():
             threading.Thread(target=self._connect_loop, name=f"fisc-zenoh-open-{self.agent_id}", daemon=True).start()
         return self
@@ -483,7 +375,8 @@ class AgentZenohLink:
         for hook in self.close_hooks:
             hook()
         self._work.put(None)
-        for t in (self._telemetry_thread, self._worker):
+        self._rx.put(None)
+        for t in (self._telemetry_thread, self._worker, self._assembler_thread):
             if t is not None and t is not threading.current_thread():
                 t.join(timeout=5.0)
         self._pub = None
@@ -519,28 +412,91 @@ class AgentZenohLink:
     def _on_reply(self, reply: Any) -> None:
         sample = reply.ok
         if sample is not None:
-            self._on_map_payload(sample.payload.to_bytes())
+            self._enqueue(sample.payload)
 
     def _on_map_sample(self, sample: Any) -> None:
-        self._on_map_payload(sample.payload.to_bytes())
+        self._enqueue(sample.payload)
+
+    def _enqueue(self, zbytes: Any) -> None:
+        """Zenoh's thread: hand the payload to the assembler thread (never blocks, never parses);
+        dropped and counted when the queue is full (checked before the payload is copied)."""
+        max_bytes, max_msgs = self._rx_limits
+        size = len(zbytes)
+        with self._lock:
+            full = self._rx_bytes + size > max_bytes or self._rx.qsize() >= max_msgs
+            if not full:
+                self._rx_bytes += size
+        if not full:
+            self._rx.put(zbytes.to_bytes())
+            return
+        with self._lock:
+            self.stats.map_messages_dropped += 1
+        self.rlog.event("rx:queue_full", logging.WARNING, "map message of %d bytes dropped: receive queue full "
+                        "(%d bytes / %d messages)", size, max_bytes, max_msgs)
+
+    def _assemble_loop(self) -> None:
+        """Assembler thread: parse, reassemble and hash map chunks; completed maps go to the
+        install worker.  Off Zenoh's threads and off the control loop."""
+        while True:
+            try:
+                payload = self._rx.get(timeout=1.0)
+            except queue.Empty:
+                payload = b""
+            if payload is None or self._stop.is_set():
+                return
+            if payload:
+                with self._lock:
+                    self._rx_bytes -= len(payload)
+            try:
+                self._on_map_payload(payload)
+            except Exception as exc:  # never let one message kill the thread; counted and shown
+                with self._lock:
+                    self._reject(MapError(f"{self.keys.map}: other: map message could not be processed ({exc!r})"))
 
     def _on_map_payload(self, payload: bytes) -> None:
         now = self.clock()
         with self._asm_lock:
             try:
-                head, blob = self._assembler.feed(payload, now, verify=False)
+                if not payload:
+                    self._assembler.expire(now)
+                    head, blob = None, None
+                else:
+                    head, blob = self._assembler.feed(payload, now)
             except MapError as exc:
                 with self._lock:
                     self._reject(exc)
-                return
-            if head.kind == KIND_ANNOUNCE:
-                newer = head.map_version > self._assembler.floor_version and head.sha256 not in self._assembler.done
-                if newer and not self._assembler.progressing(head.sha256, now, 1.0) \
+                head = blob = None
+            drops = self._assembler.drain_drops()
+            if head is not None and head.kind == KIND_ANNOUNCE:
+                if self._assembler.wanted(head) and not self._assembler.progressing(head.sha256, now, 1.0) \
                         and now - self._last_query_s > 1.0:
                     self._work.put(("query", None, None))
-                return
+        for drop in drops:
+            self._on_drop(drop)
         if blob is not None:
             self._work.put(("map", head, blob))
+
+    def _on_drop(self, drop: AssemblyDrop) -> None:
+        """Count and (rate-limited) log a map the assembler dropped."""
+        head = drop.head
+        what = f"map {head.sha256.hex()[:12]} (map_version {head.map_version}, {drop.received_bytes} of " \
+               f"{head.total_bytes} bytes received)"
+        if drop.reason == DropReason.NO_SLOT:
+            with self._lock:
+                self.stats.map_messages_dropped += 1
+            self.rlog.event("map:no_slot", logging.WARNING, "map chunk dropped: every reassembly slot holds an "
+                            "announced map (%s)", what)
+            return
+        with self._lock:
+            if drop.reason == DropReason.OLD_VERSION:
+                self.stats.maps_ignored_old += 1
+                floor = self._assembler.floor_version
+                exc = MapError(f"{self.keys.map}: old_version: {what} is not newer than map_version {floor} in use "
+                               "(replayed or rolled back)")
+            else:
+                self.stats.maps_incomplete += 1
+                exc = MapError(f"{self.keys.map}: chunks: {what} dropped unfinished ({drop.reason.value})")
+            self._reject(exc, key=f"map:{drop.reason.value}")
 
     def _work_loop(self) -> None:
         while True:
@@ -557,11 +513,9 @@ class AgentZenohLink:
             self._install(head, blob)
 
     def _install(self, head: ChunkHeader, blob: bytearray) -> None:
-        """Worker thread: hash, decode and verify a completed map, hand it to ``on_map``."""
+        """Install worker thread: decode and verify a completed map (its sha256 was checked as
+        the chunks arrived), hand it to ``on_map``."""
         try:
-            if hashlib.sha256(blob).digest() != head.sha256:  # large maps: hashed here, not on the network thread
-                with self._asm_lock:
-                    self._assembler.verify(head, blob)  # forgets the map and raises
             cmap = verify_map_bytes(blob, self.trusted_keys, self.allow_unsigned, head.map_version,
                                     source=self.keys.map)
         except MapError as exc:
@@ -570,11 +524,12 @@ class AgentZenohLink:
             return
         with self._lock:
             current = self.current
-        if current is not None and cmap.map_version <= current.map_version:
-            self.stats.maps_ignored_old += 1
-            log.info("ignoring map %s: map_version %d is not newer than the current %d",
-                     cmap.sha256[:12], cmap.map_version, current.map_version)
-            return
+            if current is not None and cmap.map_version <= current.map_version:
+                if cmap.sha256 != current.sha256:
+                    self.stats.maps_ignored_old += 1
+                    self._reject(MapError(f"{self.keys.map}: old_version: map {cmap.sha256[:12]} has map_version "
+                                          f"{cmap.map_version}, not newer than {current.map_version} in use"))
+                return
         if not cmap.signed:
             log.warning("*** UNSIGNED map %s (map_version %d) offered to the agent ***", cmap.sha256[:12],
                         cmap.map_version)
@@ -587,15 +542,18 @@ class AgentZenohLink:
             self.current = cmap
             self.stats.maps_accepted += 1
         with self._asm_lock:
-            self._assembler.accept(cmap.map_version)
+            self._assembler.accept(cmap.map_version, head.sha256)
         log.info("map %s accepted (map_version %d, %d CVs)", cmap.sha256[:12], cmap.map_version, cmap.n_cv)
 
-    def _reject(self, exc: Exception) -> None:
+    def _reject(self, exc: Exception, key: str | None = None) -> None:
+        """Count a refused map (caller holds ``_lock``) and log it, at most once per
+        ``LOG_PERIOD_S`` per kind."""
         self.stats.maps_rejected += 1
         self.stats.last_reject_reason = reject_code(exc)
         self.stats.last_reject_message = str(exc)
-        log.error("map refused (%s): %s; keeping the %s", self.stats.last_reject_reason, exc,
-                  "current map" if self.current is not None else "ground hold (no map yet)")
+        self.rlog.event(key or f"map:{self.stats.last_reject_reason}", logging.ERROR,
+                        "map refused (%s): %s; keeping the %s", self.stats.last_reject_reason, exc,
+                        "current map" if self.current is not None else "ground hold (no map yet)")
 
     # -- commands ----------------------------------------------------------------------------
     def _on_cmd_sample(self, sample: Any) -> None:
@@ -605,8 +563,9 @@ class AgentZenohLink:
                 self._gate.check(cmd, self.clock())
         except CommandError as exc:
             if "target:" not in str(exc):
-                self.stats.commands_rejected += 1
-                log.warning("fleet command refused: %s", exc)
+                with self._lock:
+                    self.stats.commands_rejected += 1
+                self.rlog.event(f"cmd:{_command_check(exc)}", logging.WARNING, "fleet command refused: %s", exc)
             return
         with self._lock:
             self.stats.commands_accepted += 1

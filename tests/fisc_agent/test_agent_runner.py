@@ -263,3 +263,22 @@ def test_map_offers_and_fleet_commands_from_another_thread_while_running():
         stop.set()
         th.join(timeout=2)
     assert not th.is_alive()
+
+
+def test_runner_gates_fixes_of_any_backend_non_finite_and_implausible_never_reach_the_mission():
+    """Issue 12 finding 3 (any backend: the runner gates what ``latest_position`` returns): a NaN
+    or inf fix used to raise in the mission; a fix 1 km away ended the pass."""
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    sent = len(link.setpoints)
+    for bad in ((math.nan, 0.0, -3.0), (math.inf, 0.0, -3.0), (link.pos[0] + 1000.0, link.pos[1], link.pos[2])):
+        link.freeze_position = True
+        link._fix = PositionSample(clock(), bad, (0.0, 0.0, 0.0))
+        out = r.step()
+        clock.sleep(cfg.period_s)
+        link.freeze_position = False
+        assert out.state == State.FLOW and math.isfinite(r.snapshot().position_map_m[0])
+    assert len(link.setpoints) == sent + 3
+    assert r.rlog.count("position:non_finite") == 2 and r.rlog.count("position:implausible_jump") == 1
+    tick_until(r, clock, lambda: len(link.setpoints) > sent + 20, max_s=5.0)
+    assert r.mission.state not in (State.HOLD, State.DONE), r.mission.transitions[-3:]
