@@ -39,7 +39,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="autopilot flavour; auto: from the HEARTBEAT's autopilot field")
     p.add_argument("--backend", choices=BACKENDS, default="pymavlink",
                    help="MAVLink client library (mavsdk needs the mavsdk package)")
-    p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="command mode")
+    p.add_argument("--mode", choices=COMMAND_MODES, default=None,
+                   help="command mode (default: the map's recommended mode; mean for a schema-1 map)")
+    p.add_argument("--lookahead", type=float, default=None, metavar="SECONDS",
+                   help="command look-ahead t_lead [s] compensating the vehicle's lag (default: the map's "
+                        "recommended value; 0 for a schema-1 map)")
+    p.add_argument("--preset", choices=("paper",), default=None,
+                   help="paper: the paper's Algorithm 1 (mean commands, no look-ahead) whatever the map recommends")
     p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
     p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
     p.add_argument("--yaw", type=float, default=0.0, help="map x-axis direction, clockwise from North [deg]")
@@ -77,7 +83,9 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     anchor = GeodeticAnchor.parse(a.geodetic_anchor) if a.geodetic_anchor else None
     return AgentConfig(
         mavlink_url=a.mavlink, agent_id=a.agent_id, map_path=a.map_path, trusted_key=a.trusted_key,
-        autopilot=a.autopilot, backend=a.backend, mode=a.mode, rate_hz=a.rate,
+        autopilot=a.autopilot, backend=a.backend, rate_hz=a.rate,
+        mode="mean" if (a.preset == "paper" and a.mode is None) else a.mode,
+        lookahead_s=0.0 if (a.preset == "paper" and a.lookahead is None) else a.lookahead,
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,

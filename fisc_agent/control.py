@@ -15,7 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.lookup import COMMAND_MODES, CommandField
+from fisc_agent.lookup import (
+    COMMAND_MODES,
+    FACE_MODES,
+    PAPER_SETTINGS,
+    CommandField,
+    DeviationState,
+    FlightSettings,
+    flight_command,
+)
 from fisc_agent.mapfile import MapError
 
 Vec = tuple[float, float, float]
@@ -47,6 +55,7 @@ class ScalarField:
         self._slot: list[list[Vec]] = [[tuple(v) for v in cv] for cv in np.asarray(field.slot_cmd_m_s, dtype=float).tolist()]
         self._n_star: list[int] = np.asarray(field.n_star, dtype=np.int64).tolist()
         self.centers: list[Vec] = [tuple(r) for r in np.asarray(field.centers_m, dtype=float).tolist()]
+        self._dev_state: DeviationState | None = None
 
     def _cell_id(self, i: int, j: int, k: int) -> int:
         if 0 <= i < self._nx and 0 <= j < self._ny and 0 <= k < self._nz:
@@ -73,6 +82,29 @@ class ScalarField:
         if mode == "interpolated":
             return self._interpolate(x, y, z, cv)
         raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
+
+    def settings(self, mode: str | None = None, lookahead_s: float | None = None) -> FlightSettings:
+        """Flight settings: the given mode / look-ahead, the map's recommended ones where None."""
+        base = self.field.recommended or PAPER_SETTINGS
+        return FlightSettings(base.mode if mode is None else mode,
+                              base.lookahead_s if lookahead_s is None else float(lookahead_s), base.persistence_s)
+
+    def flight(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float, mode: str | None = None,
+               lookahead_s: float | None = None, cv: int | None = None) -> Vec | None:
+        """This vehicle's command: ``fisc_agent.lookup.flight_command`` (the simulator's function) for
+        one agent; the kinetic-mode state is kept here (one ``ScalarField`` per vehicle).  ``mode`` and
+        ``lookahead_s`` None: the map's recommended settings; a look-ahead identified in flight is just
+        passed in.  ``vel`` None (no velocity estimate yet) flies without look-ahead.  None outside the map."""
+        st = self.settings(mode, lookahead_s)
+        if vel is None:
+            st = FlightSettings(st.mode, 0.0, st.persistence_s)
+            vel = ZERO
+        cmd, _, self._dev_state = flight_command(
+            self.field, np.array([pos], dtype=float), np.array([vel], dtype=float), np.array([agent_id]),
+            t_s, st, self._dev_state, None if cv is None else np.array([cv]))
+        if not np.all(np.isfinite(cmd[0])):
+            return None
+        return (float(cmd[0, 0]), float(cmd[0, 1]), float(cmd[0, 2]))
 
     def _interpolate(self, x: float, y: float, z: float, cv: int) -> Vec:
         l = self._l
@@ -227,11 +259,13 @@ def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1
     return wps
 
 
-def check_map(field: CommandField, mode: str) -> list[str]:
+def check_map(field: CommandField, mode: str | None) -> list[str]:
     """Agent-side checks of a decoded map's commands; raises ``MapError`` naming the check.
 
-    Returns warnings (strings) that do not prevent flight.
+    ``mode`` None: the map's recommended mode.  Returns warnings (strings) that do not prevent flight.
     """
+    if mode is None:
+        mode = (field.recommended or PAPER_SETTINGS).mode
     if mode not in COMMAND_MODES:
         raise MapError(f"mode: unknown command mode {mode!r}")
     n = field.n_cv
@@ -249,6 +283,10 @@ def check_map(field: CommandField, mode: str) -> list[str]:
     n_max = field.slot_cmd_m_s.shape[1]
     if np.any(ns < 1) or np.any(ns > n_max):
         raise MapError(f"n_star: values must lie in 1..{n_max}")
+    if mode in FACE_MODES and field.face_u_m_s is None:
+        raise MapError(f"mode: {mode!r} needs a schema-2 map with the staggered face field")
+    if mode in FACE_MODES and not all(np.all(np.isfinite(f)) for f in field.face_u_m_s):
+        raise MapError("commands: non-finite face velocity")
     if mode == "slot":
         k = np.arange(n_max)[None, :] < ns[:, None]
         if not np.all(np.isfinite(field.slot_cmd_m_s[k])):
@@ -260,8 +298,16 @@ def check_map(field: CommandField, mode: str) -> list[str]:
     return warnings
 
 
-def max_command_speed(field: CommandField, mode: str) -> float:
-    """Largest commanded speed the map can ask for in ``mode`` [m/s]."""
+def max_command_speed(field: CommandField, mode: str | None) -> float:
+    """Largest commanded speed the map can ask for in ``mode`` [m/s] (None: the map's recommended mode)."""
+    if mode is None:
+        mode = (field.recommended or PAPER_SETTINGS).mode
+    if mode in FACE_MODES:
+        faces = max(float(np.max(np.abs(f))) for f in field.face_u_m_s)
+        v = math.sqrt(3.0) * faces
+        if mode == "kinetic" and field.spread_m_s is not None:
+            v += float(np.max(field.spread_m_s))
+        return v
     if mode == "slot":
         v = np.asarray(field.slot_cmd_m_s)
         return float(np.nanmax(np.linalg.norm(v, axis=2)))

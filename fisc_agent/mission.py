@@ -309,7 +309,7 @@ class Mission:
             want_mode = "offboard"
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
-                vel = self.sfield.command(pos[0], pos[1], pos[2], cfg.agent_id, cfg.mode, cv)
+                vel = self.sfield.flight(pos, s.vel_m_s, cfg.agent_id, t, cfg.mode, cfg.lookahead_s, cv)
             elif verdict == GeofenceVerdict.EXIT:
                 self.laps += 1
                 if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):

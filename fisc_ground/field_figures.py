@@ -41,7 +41,9 @@ def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
     tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
     fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
     paths: dict[str, Path] = {}
-    tag = f"{cfg.scenario}, {cfg.mode}{', collisions' if cfg.collisions else ''}"
+    settings = getattr(result, "settings", None)
+    mode = settings.mode if settings is not None else getattr(cfg, "mode", None)
+    tag = f"{cfg.scenario}, {mode}{', collisions' if cfg.collisions else ''}"
     for t, pos in result.snapshots:  # fig. 4
         name = f"snapshot_{cfg.scenario}_{t:05.1f}s".replace(".", "_")
         paths[name] = plots.plot_swarm_snapshot(pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)

@@ -85,7 +85,8 @@ def write_report_md(result: "RunResult", path: Path) -> Path:
     cfg = result.config
     lines = [
         "# FISC swarm simulation report", "",
-        f"Scenario **{cfg.scenario}**, mode **{cfg.mode}**, collisions **{'on' if cfg.collisions else 'off'}**, "
+        f"Scenario **{cfg.scenario}**, preset **{cfg.preset}**, mode **{result.settings.mode}**, look-ahead "
+        f"**{result.settings.lookahead_s:g} s**, map schema {result.cmap.schema_version}, collisions **{'on' if cfg.collisions else 'off'}**, "
         f"map `{m['map']['reference']}` (sha256 {result.cmap.sha256[:12]}...), S = {result.scale:.3f}, "
         f"{m['simulated_s']:.1f} s simulated at dt = {cfg.dt_s} s, fields averaged over "
         f"t = {result.window_s[0]:.1f}-{result.window_s[1]:.1f} s ({m['time_samples']} samples), seed {cfg.seed}.", "",

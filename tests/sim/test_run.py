@@ -76,18 +76,31 @@ def test_bad_config_is_refused():
 
 def test_run_defaults_are_the_papers_population_and_speed_regime():
     """No options: ~10^3 agents (N* scaled to 1000) on the default reference fitted for a 2 m/s
-    speed limit (the paper's S = 0.1 x 22.4 m/s regime); look-ahead off (Algorithm 1)."""
+    speed limit (the paper's S = 0.1 x 22.4 m/s regime), as a schema-2 map flown with its recommended
+    settings; ``--preset paper`` flies the paper's Algorithm 1 (schema-1 map, mean, no look-ahead)."""
+    from fisc_agent.lookup import PAPER_SETTINGS, map_flight_settings
+    from fisc_ground.mapbuild import DEFAULT_FLIGHT
     from sim.run import DEFAULT_AGENTS, SIM_MAX_SPEED_M_S, load_command_map
 
     cfg = RunConfig()
-    assert cfg.agents == DEFAULT_AGENTS == 1000 and cfg.lookahead_s == 0.0
+    assert cfg.agents == DEFAULT_AGENTS == 1000 and cfg.lookahead_s is None and cfg.mode is None
     assert cfg.max_speed_m_s == SIM_MAX_SPEED_M_S == 2.0
     cmap = load_command_map(None, cfg.max_speed_m_s)
+    assert cmap.schema_version == 2
+    assert cfg.flight_settings(cmap) == map_flight_settings(cmap) == DEFAULT_FLIGHT
+    assert DEFAULT_FLIGHT.lookahead_s > 0 and DEFAULT_FLIGHT.mode != "mean"
+    paper = load_command_map(None, cfg.max_speed_m_s, preset="paper")
+    assert paper.schema_version == 1
+    assert RunConfig(preset="paper").flight_settings(paper) == PAPER_SETTINGS
+    assert RunConfig(preset="paper").flight_settings(cmap) == PAPER_SETTINGS  # whatever the map recommends
+    assert RunConfig(mode="slot", lookahead_s=0.3).flight_settings(cmap).mode == "slot"
     peak = np.nanmax(np.linalg.norm(cmap.scale * np.asarray(cmap["fit_velocity_m_s"]), axis=-1))
     assert peak == pytest.approx(2.0)
     assert load_command_map(None).scale == pytest.approx(2.5 * cmap.scale)  # map builder default: 5 m/s
     with pytest.raises(ValueError, match="lookahead_s"):
         RunConfig(lookahead_s=-1.0)
+    with pytest.raises(ValueError, match="preset"):
+        RunConfig(preset="fancy")
 
 
 def test_lookahead_reaches_the_swarm_and_cuts_the_velocity_error():
