@@ -25,7 +25,7 @@ from fisc_ground.staggered import (
     StaggeredConfig,
     build_staggered,
 )
-from fisc_ground.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
+from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,9 @@ DEFAULT_MAP_FILE = "default.fiscmap"
 
 
 #: Recommended flight settings of the maps this project builds (docs/simulation.md, "Fidelity").
-DEFAULT_FLIGHT = FlightSettings("staggered", 0.5, DEFAULT_PERSISTENCE_S)
+DEFAULT_FLIGHT = FlightSettings("kinetic", 0.5, DEFAULT_PERSISTENCE_S)
+#: Dispersion ratio of schema-2 maps (``FitConfig.dispersion_ratio``).
+KINETIC_DISPERSION_RATIO = 0.75
 #: ``--preset paper``: the fit settings of the paper's schema-1 map.
 PAPER_PRESET = "paper"
 
@@ -57,7 +59,12 @@ class FitConfig:
     """Pressure mapping P_target = kappa (P_cfd - min P_cfd); None chooses it from ``max_dispersion_m_s``."""
     max_dispersion_m_s: float | None = None
     """Largest rms per-agent velocity dispersion the fit may ask for, before scaling [m/s];
-    None = 0.25 x the peak target speed (``scaling.default_max_dispersion``)."""
+    None = ``dispersion_ratio`` x the peak target speed (``scaling.default_max_dispersion``)."""
+    dispersion_ratio: float | None = None
+    """Ratio of that dispersion to the peak target speed; None: ``KINETIC_DISPERSION_RATIO`` (0.75)
+    for a schema-2 map, whose kinetic mode realises the spread as a persistent deviation and needs it
+    to dominate the tracking error near the throat (docs/simulation.md); 0.25
+    (``scaling.DEFAULT_DISPERSION_RATIO``) for the paper's map."""
     agent_mass_kg: float = 1.0
     """Agent mass m_i [kg] in the fitting equations (paper: 1 kg)."""
     min_nodes: int = 1
@@ -113,7 +120,10 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
     cell_volume = config.cell_size_m ** 3
     p = cvs.target_pressure_gauge_pa
     if config.kappa is None:
-        dispersion = (default_max_dispersion(cvs.target_velocity_m_s) if config.max_dispersion_m_s is None
+        ratio = config.dispersion_ratio
+        if ratio is None:
+            ratio = KINETIC_DISPERSION_RATIO if config.staggered else DEFAULT_DISPERSION_RATIO
+        dispersion = (default_max_dispersion(cvs.target_velocity_m_s, ratio) if config.max_dispersion_m_s is None
                       else config.max_dispersion_m_s)
         kappa = choose_kappa(p, cell_volume, config.agent_mass_kg, config.n_min, dispersion)
     else:

@@ -41,7 +41,7 @@ DEFAULT_CONTINUITY_WEIGHT = 0.5
 #: Default exponent p of the face weights w_f = max(open_fraction, floor)^p.
 DEFAULT_WEIGHT_EXPONENT = 0.0
 #: Default ratio of the weights of axial to lateral face corrections (see ``project``).
-DEFAULT_AXIAL_WEIGHT = 1.0 / 9.0
+DEFAULT_AXIAL_WEIGHT = 100.0
 #: Smallest open fraction used in the weights (keeps W invertible).
 WEIGHT_FLOOR = 0.02
 

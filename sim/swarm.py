@@ -455,12 +455,7 @@ class Swarm:
         if n == 0:
             return
         cmd = self._cmd[:n]
-        if self.config.mode not in ("mean", "slot"):
-            self._flight_commands(cv, cmd, self.t_s - self.config.dt_s)
-        elif self.config.lookahead_s > 0:
-            self._lookahead_commands(cv, cmd)
-        elif not self._cmd_ready:
-            self._command_ned(cv, cmd)
+        self._select_commands(cv, cmd, self.t_s - self.config.dt_s, into_buffer=True)
         fused = self._kernel is not None  # numba: sim.kernels, same numbers as the numpy path
         if fused:
             self.counters.returned += self._fused_returns(cv, cmd)
@@ -486,6 +481,34 @@ class Swarm:
             self.pos_m[...] += dx
         self._cv = None
         self._cmd_ready = False
+
+    def _select_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float, into_buffer: bool) -> None:
+        """NED commands of the configured mode for agents with CVs ``cv`` at time ``t_s`` (rows with
+        cv = -1 are overwritten by the return policy later).  ``into_buffer``: ``cmd_ned`` is the
+        step's own buffer, which the fused lookup kernel may already have filled."""
+        if self.config.mode not in ("mean", "slot"):
+            self._flight_commands(cv, cmd_ned, t_s)
+        elif self.config.lookahead_s > 0:
+            self._lookahead_commands(cv, cmd_ned)
+        elif self._cmd_ready:
+            if not into_buffer:
+                cmd_ned[...] = self._cmd[:self.n]
+        else:
+            self._command_ned(cv, cmd_ned)
+
+    def current_commands_map(self) -> np.ndarray:
+        """(n, 3) map-frame commands the next ``step`` flies for agents inside a CV (NaN rows for
+        agents outside, which fly the return policy), without changing any state (the kinetic
+        mode's deviation state included).  For tests comparing the simulator with the agent."""
+        cv = self.assign()
+        n = self.n
+        epoch, sign = self._epoch[:n].copy(), self._sign[:n].copy()
+        cmd = np.zeros((n, 3))
+        self._select_commands(cv, cmd, self.t_s, into_buffer=False)
+        self._epoch[:n], self._sign[:n] = epoch, sign
+        out = cmd * MAP_TO_NED
+        out[cv < 0] = np.nan
+        return out
 
     def _flight_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float) -> None:
         """Commands of every agent from ``fisc_agent.lookup.flight_command`` (the onboard agent's
