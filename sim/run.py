@@ -11,7 +11,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +108,9 @@ class RunConfig:
     """Times of the XZ swarm snapshots (paper fig. 4) [s]; times beyond the run are skipped."""
     figures: bool = True
     """Write the PNG figures."""
+    compare_paper: bool = True
+    """``run`` (not ``simulate``) also flies the paper's preset on the same reference, for report.md and
+    the figures side by side (skipped when this run is the paper preset itself)."""
     out_dir: str = "out/run"
     """Output directory."""
 
@@ -190,6 +193,8 @@ class RunResult:
     """metrics.json content (filled by ``sim.report.compute_metrics``)."""
     paths: dict[str, Path] = field(default_factory=dict)
     """Written outputs by name."""
+    paper: "RunResult | None" = None
+    """``run``: the companion run of the paper's preset (``RunConfig.compare_paper``), else None."""
 
 
 def load_command_map(spec: str | None, max_speed_m_s: float | None = None, preset: str = "default") -> CommandMap:
@@ -296,7 +301,16 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     from sim import report
 
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
-    result = simulate(config, cmap, progress)
+    paper = settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
+    result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)))
+    paper = None
+    if config.compare_paper and not settings_are_paper:
+        pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
+        pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
+            load_command_map(config.map, config.max_speed_m_s, "paper")
+        paper = simulate(pcfg, pmap)
+        paper.metrics = report.compute_metrics(paper)
+        result.paper = paper
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result.metrics = report.compute_metrics(result)
