@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fisc_agent.config import EXIT_POLICIES
+from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
 from fisc_agent.control import MapGeometry, ScalarField, entry_point, join_waypoints
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.lookup import COMMAND_MODES, CommandField
@@ -86,6 +86,9 @@ class EmulateConfig:
     """Autopilot emulated: ``px4`` or ``ardupilot``."""
     exit_policy: str = "loop"
     """Agent exit policy after the outlet: ``loop`` (back to the inlet, keeps feeding), ``hold``, ``land``."""
+    geofence: str = "return"
+    """Agents leaving the CVs sideways: ``return`` (fly back to the nearest CV, as the simulator's return
+    policy; the kinetic mode's deviations reach the staircase walls) or ``hold``."""
     rate_hz: float = 20.0
     """Agent setpoint (control loop) rate [Hz]."""
     position_rate_hz: float = 20.0
@@ -152,6 +155,7 @@ class EmulateConfig:
         need(self.preset in ("default", "paper"), f"preset {self.preset!r}: choose default or paper")
         need(self.personality in PERSONALITIES, f"personality {self.personality!r}: choose px4 or ardupilot")
         need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
+        need(self.geofence in GEOFENCE_POLICIES, f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
         need(self.telemetry in TELEMETRY, f"telemetry {self.telemetry!r}: choose one of {', '.join(TELEMETRY)}")
         for name in ("rate_hz", "position_rate_hz", "physics_rate_hz", "physics_dt_s", "average_window_s",
                      "sample_interval_s", "start_spacing_m"):
@@ -295,6 +299,7 @@ class _AgentJob:
     mode: str | None
     lookahead_s: float | None
     exit_policy: str
+    geofence: str
     rate_hz: float
     position_rate_hz: float
     telemetry: str
@@ -539,7 +544,7 @@ def _agent_worker(conn, job: _AgentJob) -> None:
             cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=int(aid), map_path=job.map_path,
                               autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s,
                               rate_hz=job.rate_hz,
-                              exit_policy=job.exit_policy)
+                              exit_policy=job.exit_policy, geofence=job.geofence)
             link = MavlinkLink(parse_endpoint(cfg.mavlink_url), position_rate_hz=job.position_rate_hz)
             runners.append(Runner(cfg, link, cmap))
         # lean telemetry: once the autopilot is found, switch its streams other than HEARTBEAT and
@@ -680,7 +685,8 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             parent, child = ctx.Pipe()
             job = _AgentJob(tuple(int(i) for i in part), tuple(int(x) for x in ports[part]),
                             tuple(float(x) for x in plan.start_time_s[part]), str(map_path), config.personality,
-                            settings.mode, settings.lookahead_s, config.exit_policy, config.rate_hz,
+                            settings.mode, settings.lookahead_s, config.exit_policy, config.geofence,
+                            config.rate_hz,
                             config.position_rate_hz,
                             config.telemetry, config.worker_log_level, config.swarm, config.zenoh_config,
                             config.zenoh_prefix, config.telemetry_rate_hz, config.trusted_key)
