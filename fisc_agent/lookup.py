@@ -284,9 +284,12 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
 
     Each agent keeps a direction for ``persistence_s`` (intervals staggered per agent by a hashed
     phase, so the swarm does not switch in step), drawn uniformly on the sphere from a hash of
-    (agent id, interval).  A component pointing at a staircase face without a neighbour CV (a wall;
-    the inlet counts as one) is reflected while the agent is in the half of its cell next to that
-    face: the kinetic picture of a gas whose molecules bounce off the walls.
+    (agent id, interval).  A component pointing at a staircase face without a neighbour CV (a wall)
+    is reflected while the agent is within ``WALL_ZONE`` cells of that face (the zone absorbs the
+    vehicle's lag, which would otherwise carry it across): the kinetic picture of a gas whose
+    molecules bounce off the walls.  The inlet is an inflow boundary instead: an upstream (-x)
+    component fades out linearly over the first cell, so agents neither leave through the inlet
+    nor stall at it.
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
@@ -309,9 +312,14 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
         has[inside] = field.grid_cv[c[:, 0], c[:, 1], c[:, 2]] >= 0
         if a == 0:
             has |= nb[:, 0] >= shape[0]  # the outlet is open
+            has |= nb[:, 0] < 0      # and the inlet is an inflow boundary: no reflection, the ramp below
         flip = toward & ~has
         sign[flip, a] *= -1.0
         d[flip, a] *= -1.0
+    # the inlet is an inflow boundary, not a wall: an upstream deviation fades out over the first cell
+    # (a reflection there sends a persistent excess of fast agents downstream and empties the inlet)
+    ramp = np.clip(f[:, 0], 0.0, 1.0)
+    d[:, 0] = np.where(d[:, 0] < 0, d[:, 0] * ramp, d[:, 0])
     return d, DeviationState(epoch, sign)
 
 

@@ -80,7 +80,8 @@ def test_kinetic_state_evolves_the_same_one_by_one_and_vectorised(field):
 def test_kinetic_deviation_has_the_fitted_spread_persists_and_reflects(field):
     ids = np.arange(500)
     # agents at the centre of one interior CV: |cmd - staggered| is that CV's fitted spread
-    j = int(np.argmax(field.spread_m_s))
+    inner = np.where(field.centers_m[:, 0] > field.origin_m[0] + 2 * field.cell_size_m, field.spread_m_s, -1.0)
+    j = int(np.argmax(inner))  # past the inlet cell, where the upstream component fades out
     pts = np.repeat(field.centers_m[j:j + 1], 500, axis=0)
     base = field.command(pts, ids, "staggered")
     settings = FlightSettings("kinetic", 0.0, 2.0)
@@ -106,3 +107,8 @@ def test_kinetic_deviation_has_the_fitted_spread_persists_and_reflects(field):
     d, new = kinetic_deviation(field, np.repeat(p[None], 500, axis=0), ids, 10.0, 2.0, DeviationState.new(500))
     assert np.all(d[:, 1] <= 0)  # nothing heads into the wall
     assert np.any(new.sign[:, 1] < 0)
+    # the inlet is no wall: an upstream component fades out over the first cell instead
+    q = field.centers_m[field.centers_m[:, 0] < field.origin_m[0] + field.cell_size_m][:1].copy()
+    q[0, 0] = field.origin_m[0] + 0.25 * field.cell_size_m
+    d, new = kinetic_deviation(field, np.repeat(q, 500, axis=0), ids, 10.0, 2.0, DeviationState.new(500))
+    assert d[:, 0].min() >= -0.25 - 1e-12 and d[:, 0].max() > 0.5 and np.all(new.sign[:, 0] > 0)
