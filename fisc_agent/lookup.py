@@ -10,6 +10,7 @@ existing CV in a bounded neighbourhood for the "return to the map" policy.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -117,6 +118,23 @@ class CommandField:
     @property
     def n_cv(self) -> int:
         return int(self.centers_m.shape[0])
+
+    @functools.cached_property
+    def wall_faces(self) -> np.ndarray:
+        """(nx, ny, nz, 3, 2) bool: face (axis, lower/upper) of a CV's cell has no neighbour CV (a
+        staircase wall).  The inlet (lower x of the first slice) and the outlet (upper x of the last)
+        are not walls; cells without a CV have none."""
+        g = np.asarray(self.grid_cv) >= 0
+        pad = np.zeros(tuple(s + 2 for s in g.shape), dtype=bool)
+        pad[1:-1, 1:-1, 1:-1] = g
+        pad[0, 1:-1, 1:-1] = pad[-1, 1:-1, 1:-1] = True  # inlet and outlet: open
+        out = np.zeros(g.shape + (3, 2), dtype=bool)
+        core = (slice(1, -1),) * 3
+        for a in range(3):
+            for side, shift in ((0, -1), (1, 1)):
+                nb = np.roll(pad, -shift, axis=a)[core]
+                out[..., a, side] = g & ~nb
+        return out
 
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
@@ -300,22 +318,14 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     f = (pts - field.origin_m) / field.cell_size_m
     cell = np.floor(f).astype(np.int64)
     frac = f - cell
-    shape = np.asarray(field.grid_cv.shape)
-    for a in range(3):
-        step = np.where(d[:, a] >= 0, 1, -1)
-        toward = np.where(step > 0, frac[:, a] >= 1.0 - WALL_ZONE, frac[:, a] < WALL_ZONE)
-        nb = cell.copy()
-        nb[:, a] += step
-        inside = np.all((nb >= 0) & (nb < shape), axis=1)
-        has = np.zeros(len(pts), dtype=bool)
-        c = nb[inside]
-        has[inside] = field.grid_cv[c[:, 0], c[:, 1], c[:, 2]] >= 0
-        if a == 0:
-            has |= nb[:, 0] >= shape[0]  # the outlet is open
-            has |= nb[:, 0] < 0      # and the inlet is an inflow boundary: no reflection, the ramp below
-        flip = toward & ~has
-        sign[flip, a] *= -1.0
-        d[flip, a] *= -1.0
+    c = np.clip(cell, 0, np.asarray(field.grid_cv.shape) - 1)
+    walls = field.wall_faces[c[:, 0], c[:, 1], c[:, 2]]          # (m, 3, 2)
+    up = d >= 0
+    wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
+    toward = np.where(up, frac >= 1.0 - WALL_ZONE, frac < WALL_ZONE)
+    flip = toward & wall_ahead
+    sign[flip] *= -1.0
+    d[flip] *= -1.0
     # the inlet is an inflow boundary, not a wall: an upstream deviation fades out over the first cell
     # (a reflection there sends a persistent excess of fast agents downstream and empties the inlet)
     ramp = np.clip(f[:, 0], 0.0, 1.0)
