@@ -28,6 +28,10 @@ FACE_MODES = ("staggered", "kinetic")
 #: Kinetic mode: depth of the zone next to a wall face in which a deviation toward the wall is
 #: reflected [cells] (thin, so the reflection itself empties little of the wall cube).
 WALL_ZONE = 0.25
+#: Kinetic mode: a vehicle heading for a wall face at normal speed v_n reflects once the face is
+#: within v_n * BRAKE_S (if that is deeper than ``WALL_ZONE``): the lag-proportional turning
+#: distance that keeps the reflection scale-free (a 5 m/s map deviates 2.5x faster than a 2 m/s one).
+BRAKE_S = 0.25
 #: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
 DEFAULT_PERSISTENCE_S = 2.0
 
@@ -297,14 +301,16 @@ def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
 
 
 def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
-                      persistence_s: float, state: DeviationState) -> tuple[np.ndarray, DeviationState]:
+                      persistence_s: float, state: DeviationState,
+                      velocity_m_s: np.ndarray | None = None) -> tuple[np.ndarray, DeviationState]:
     """(m, 3) unit deviation directions at time ``t_s`` and the new state.
 
     Each agent keeps a direction for ``persistence_s`` (intervals staggered per agent by a hashed
     phase, so the swarm does not switch in step), drawn uniformly on the sphere from a hash of
     (agent id, interval).  A component pointing at a staircase face without a neighbour CV (a wall)
-    is reflected while the agent is within ``WALL_ZONE`` cells of that face (the zone absorbs the
-    vehicle's lag, which would otherwise carry it across): the kinetic picture of a gas whose
+    is reflected while the agent is within ``WALL_ZONE`` cells of that face, or within its turning
+    distance v_n ``BRAKE_S`` when ``velocity_m_s`` is given (the zone absorbs the vehicle's lag,
+    which would otherwise carry it across): the kinetic picture of a gas whose
     molecules bounce off the walls.  The inlet is an inflow boundary instead: an upstream (-x)
     component fades out linearly over the first cell, so agents neither leave through the inlet
     nor stall at it.
@@ -322,7 +328,13 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     walls = field.wall_faces[c[:, 0], c[:, 1], c[:, 2]]          # (m, 3, 2)
     up = d >= 0
     wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
-    toward = np.where(up, frac >= 1.0 - WALL_ZONE, frac < WALL_ZONE)
+    zone = np.full(frac.shape, WALL_ZONE)
+    if velocity_m_s is not None and BRAKE_S > 0:
+        # a vehicle heading for a face at v_n turns once the face is within v_n * BRAKE_S
+        v = np.atleast_2d(velocity_m_s)
+        v_n = np.where(up, np.maximum(v, 0.0), np.maximum(-v, 0.0))
+        zone = np.maximum(zone, v_n * BRAKE_S / field.cell_size_m)
+    toward = np.where(up, frac >= 1.0 - zone, frac < zone)
     flip = toward & wall_ahead
     sign[flip] *= -1.0
     d[flip] *= -1.0
@@ -359,7 +371,7 @@ def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.n
     if settings.mode != "kinetic":
         return cmd, cv, state
     st = DeviationState.new(len(pts)) if state is None else state
-    d, st = kinetic_deviation(field, pts, ids, t_s, settings.persistence_s, st)
+    d, st = kinetic_deviation(field, pts, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
     ok = look_cv >= 0
     cmd[ok] += field.spread_m_s[look_cv[ok], None] * d[ok]
     return cmd, cv, st
