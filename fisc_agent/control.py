@@ -303,8 +303,13 @@ def max_command_speed(field: CommandField, mode: str | None) -> float:
     if mode is None:
         mode = (field.recommended or PAPER_SETTINGS).mode
     if mode in FACE_MODES:
-        faces = max(float(np.max(np.abs(f))) for f in field.face_u_m_s)
-        v = math.sqrt(3.0) * faces
+        # each component is linear between its cube's two faces: bounded per cube by the larger face
+        i, j, k = np.floor((np.asarray(field.centers_m) - field.origin_m) / field.cell_size_m).astype(np.int64).T
+        fx, fy, fz = field.face_u_m_s
+        ax = np.maximum(np.abs(fx[i, j, k]), np.abs(fx[i + 1, j, k]))
+        ay = np.maximum(np.abs(fy[i, j, k]), np.abs(fy[i, j + 1, k]))
+        az = np.maximum(np.abs(fz[i, j, k]), np.abs(fz[i, j, k + 1]))
+        v = float(np.max(np.sqrt(ax * ax + ay * ay + az * az)))
         if mode == "kinetic" and field.spread_m_s is not None:
             v += float(np.max(field.spread_m_s))
         return v

@@ -32,6 +32,8 @@ WALL_ZONE = 0.25
 #: within v_n * BRAKE_S (if that is deeper than ``WALL_ZONE``): the lag-proportional turning
 #: distance that keeps the reflection scale-free (a 5 m/s map deviates 2.5x faster than a 2 m/s one).
 BRAKE_S = 0.25
+#: Kinetic mode: length of the inlet ramp of an upstream deviation component [cells].
+INLET_RAMP_CELLS = 1.0
 #: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
 DEFAULT_PERSISTENCE_S = 2.0
 
@@ -340,8 +342,9 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     d[flip] *= -1.0
     # the inlet is an inflow boundary, not a wall: an upstream deviation fades out over the first cell
     # (a reflection there sends a persistent excess of fast agents downstream and empties the inlet)
-    ramp = np.clip(f[:, 0], 0.0, 1.0)
-    d[:, 0] = np.where(d[:, 0] < 0, d[:, 0] * ramp, d[:, 0])
+    if INLET_RAMP_CELLS > 0:
+        ramp = np.clip(f[:, 0] / INLET_RAMP_CELLS, 0.0, 1.0)
+        d[:, 0] = np.where(d[:, 0] < 0, d[:, 0] * ramp, d[:, 0])
     return d, DeviationState(epoch, sign)
 
 

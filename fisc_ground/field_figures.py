@@ -53,11 +53,13 @@ def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
     pf = paper.fields if paper is not None else None
     pok = pf.samples >= cfg.min_samples if pf is not None else None
     p_extra = {"(d) swarm pressure (paper preset)": _minmax(pf.p_dispersion_pa, pok)} if pf is not None else {}
+    u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
+               if pf is not None else {})
     r_extra = {"(d) swarm density (paper preset)": _minmax(pf.rho_s_kg_m3, pok)} if pf is not None else {}
     paths["velocity_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 5
         c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
             "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
-            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok)},
+            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra},
         l, "Axial velocity normalised by the field maximum, XZ plane", out_dir / "velocity_cfd_fit_swarm.png",
         label="u / max u", wall_radius=wall)
     paths["pressure_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 7

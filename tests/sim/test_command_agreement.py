@@ -112,3 +112,16 @@ def test_kinetic_deviation_has_the_fitted_spread_persists_and_reflects(field):
     q[0, 0] = field.origin_m[0] + 0.25 * field.cell_size_m
     d, new = kinetic_deviation(field, np.repeat(q, 500, axis=0), ids, 10.0, 2.0, DeviationState.new(500))
     assert d[:, 0].min() >= -0.25 - 1e-12 and d[:, 0].max() > 0.5 and np.all(new.sign[:, 0] > 0)
+
+
+def test_max_command_speed_bounds_the_face_modes(field):
+    from fisc_agent.control import max_command_speed
+
+    rng = np.random.default_rng(11)
+    pts, vel = _random_agents(field, rng, 20_000)
+    for mode in ("staggered", "kinetic"):
+        cmd, _, _ = flight_command(field, pts, vel, np.arange(len(pts)), 3.0, FlightSettings(mode, 0.5))
+        speed = np.linalg.norm(cmd[np.all(np.isfinite(cmd), axis=1)], axis=1)
+        bound = max_command_speed(field, mode)
+        assert speed.max() <= bound + 1e-9
+        assert speed.max() > 0.7 * bound  # and is not a loose bound
