@@ -138,7 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.command == "run":
-        return _cmd_run(args)
+        try:
+            return _cmd_run(args)
+        except ValueError as exc:  # bad options, a map that fails a check (MapError), a mode the map lacks
+            print(f"fisc-sim run: error: {exc}", file=sys.stderr)
+            return 2
     if args.command == "bench":
         return _cmd_bench(args)
     if args.command == "autopilot":

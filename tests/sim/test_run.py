@@ -176,3 +176,19 @@ def test_main_job_default_and_paper_preset_figures_recomputed_from_fields_csv(tm
     assert paper["nrmse_density"] == pytest.approx(0.587, abs=0.02)
     assert res.paper is not None and metrics["flight_settings"]["mode"] == "kinetic"
     assert 0.7 <= metrics["spread_realised_over_fitted"]["median"] <= 1.1
+
+
+def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, capsys):
+    from fisc_ground.mapbuild import FitConfig, build_map
+    from fisc_ground.mapwrite import write_map
+    from fisc_ground.reference.analytic import analytic_nozzle
+    from sim.cli import main
+
+    meta, arrays = build_map(analytic_nozzle(), FitConfig(staggered=False))
+    path = tmp_path / "v1.fiscmap"
+    write_map(path, meta, arrays)
+    assert main(["run", "-q", "--map", str(path), "--mode", "kinetic", "--duration", "1", "--no-figures",
+                 "-o", str(tmp_path / "out")]) == 2
+    assert "schema-2" in capsys.readouterr().err
+    assert main(["run", "-q", "--map", str(tmp_path / "missing.fiscmap"), "-o", str(tmp_path / "o2")]) == 2
+    assert "cannot read map" in capsys.readouterr().err
