@@ -163,7 +163,8 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         extra = {"schema_version": 2,
                  "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
                  "staggered": {"max_divergence": st.max_divergence, "continuity_weight": config.continuity_weight,
-                               "weight_exponent": config.weight_exponent}}
+                               "weight_exponent": config.weight_exponent,
+                               "axial_weight": StaggeredConfig().axial_weight}}
     else:
         extra = {"schema_version": 1}
     now = datetime.now(timezone.utc)
