@@ -30,12 +30,9 @@ def _seconds_or_auto(text: str) -> float | str:
     if text == "auto":
         return text
     try:
-        value = float(text)
+        return float(text)  # the range is checked by AgentConfig
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
-    if not (value >= 0 and value < 10):
-        raise argparse.ArgumentTypeError(f"look-ahead must be in [0, 10) s, got {text}")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,17 +50,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="autopilot flavour; auto: from the HEARTBEAT's autopilot field")
     p.add_argument("--backend", choices=BACKENDS, default="pymavlink",
                    help="MAVLink client library (mavsdk needs the mavsdk package)")
-    p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="command mode")
+    p.add_argument("--mode", choices=COMMAND_MODES, default=None,
+                   help="command mode (default: the map's recommended mode; mean for a schema-1 map; with "
+                        "streamline tracking a recommended kinetic mode is flown as staggered)")
+    p.add_argument("--preset", choices=("paper",), default=None,
+                   help="paper: the paper's Algorithm 1 (mean commands, open loop, no look-ahead) whatever the map "
+                        "recommends")
     t = p.add_argument_group("streamline tracking (fisc_agent.tracking; docs/deployment.md)")
     t.add_argument("--track-gain", type=float, default=TrackingConfig.gain_1_s,
-                   help="cross-stream feedback towards the agent's own streamline [1/s]; 0: fly the field open loop")
+                   help="cross-stream feedback towards the agent's own streamline [1/s]; 0: fly the simulator's "
+                        "command function open loop")
     t.add_argument("--track-integral-gain", type=float, default=TrackingConfig.integral_gain_1_s2,
                    help="cross-stream integral gain: learns a steady velocity bias [1/s^2]")
     t.add_argument("--track-max-correction", type=float, default=TrackingConfig.max_correction_m_s,
                    help="largest feedback velocity added to the map's command [m/s]")
     t.add_argument("--lookahead", type=_seconds_or_auto, default="auto",
                    help="evaluate the field this far ahead, compensating the vehicle's velocity lag [s]; auto: "
-                        "identify the lag (and the feed-forward gain) in flight during take-off and join")
+                        "identify the lag (and the feed-forward gain) in flight during take-off and join, the "
+                        "map's recommended look-ahead until then")
     t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
                    help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
                         "with --lookahead auto the identified value replaces it")
@@ -107,14 +111,16 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
     """Build and validate the config (``ValueError``/``EndpointError`` name the bad option)."""
     parse_endpoint(a.mavlink)
     anchor = GeodeticAnchor.parse(a.geodetic_anchor) if a.geodetic_anchor else None
+    paper = a.preset == "paper"
     return AgentConfig(
         mavlink_url=a.mavlink, agent_id=a.agent_id, map_path=a.map_path, trusted_key=a.trusted_key,
-        autopilot=a.autopilot, backend=a.backend, mode=a.mode, rate_hz=a.rate,
-        tracking=TrackingConfig(gain_1_s=a.track_gain, integral_gain_1_s2=a.track_integral_gain,
+        autopilot=a.autopilot, backend=a.backend, rate_hz=a.rate,
+        mode="mean" if (paper and a.mode is None) else a.mode,
+        lookahead_s=0.0 if paper else (None if a.lookahead == "auto" else a.lookahead),
+        lookahead_auto=a.lookahead == "auto" and not paper,
+        tracking=TrackingConfig(gain_1_s=0.0 if paper else a.track_gain, integral_gain_1_s2=a.track_integral_gain,
                                 max_correction_m_s=a.track_max_correction,
-                                lookahead_s=0.0 if a.lookahead == "auto" else a.lookahead,
-                                feedforward_gain=a.feedforward_gain),
-        lookahead_auto=a.lookahead == "auto",
+                                feedforward_gain=1.0 if paper else a.feedforward_gain),
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,

@@ -31,13 +31,18 @@ class AgentConfig:
     """``px4``, ``ardupilot`` or ``auto`` (from the autopilot's HEARTBEAT)."""
     backend: str = "pymavlink"
     """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
-    mode: str = "mean"
-    """Command mode: ``mean``, ``slot`` or ``interpolated`` (DESIGN.md section 3)."""
+    mode: str | None = None
+    """Command mode (``fisc_agent.lookup.COMMAND_MODES``, DESIGN.md section 3); None: the map's
+    recommended mode (``mean`` for a schema-1 map)."""
+    lookahead_s: float | None = None
+    """Command look-ahead t_lead [s] (``fisc_agent.lookup.lookahead_point``); None: the map's
+    recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""
     tracking: TrackingConfig = TrackingConfig()
-    """Streamline tracking: position feedback on a virtual parcel, look-ahead (``fisc_agent.tracking``)."""
+    """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.tracking``);
+    ``gain_1_s = 0`` flies the simulator's command function open loop."""
     lookahead_auto: bool = True
-    """Identify the vehicle's velocity response in flight (take-off and join) and set the tracking
-    look-ahead and feed-forward gain from it (``--lookahead auto``); False: use ``tracking`` as given."""
+    """Identify the vehicle's velocity response in flight (take-off and join) and set the look-ahead and
+    feed-forward gain from it (``--lookahead auto``); False: ``lookahead_s`` as given (or the map's)."""
     rate_hz: float = 20.0
     """Setpoint rate [Hz]; PX4 needs > 2 Hz, ArduPilot's GUID_TIMEOUT needs > 1/3 Hz."""
     origin_ned_m: tuple[float, float, float] = DEFAULT_ORIGIN_NED_M
@@ -102,7 +107,10 @@ class AgentConfig:
         need(isinstance(self.agent_id, int) and self.agent_id >= 0, f"agent id must be >= 0, is {self.agent_id!r}")
         need(self.autopilot in AUTOPILOTS, f"autopilot must be one of {AUTOPILOTS}, is {self.autopilot!r}")
         need(self.backend in BACKENDS, f"backend must be one of {BACKENDS}, is {self.backend!r}")
-        need(self.mode in COMMAND_MODES, f"mode must be one of {COMMAND_MODES}, is {self.mode!r}")
+        need(self.mode is None or self.mode in COMMAND_MODES, f"mode must be one of {COMMAND_MODES}, is {self.mode!r}")
+        need(self.lookahead_s is None or (isinstance(self.lookahead_s, (int, float)) and math.isfinite(self.lookahead_s)
+                                          and self.lookahead_s >= 0),
+             f"lookahead_s must be a finite number >= 0 seconds, is {self.lookahead_s!r}")
         need(self.exit_policy in EXIT_POLICIES, f"exit policy must be one of {EXIT_POLICIES}")
         need(self.geofence in GEOFENCE_POLICIES, f"geofence must be one of {GEOFENCE_POLICIES}")
         need(2.0 < self.rate_hz <= 500.0, f"rate must be in (2, 500] Hz (PX4 needs > 2 Hz), is {self.rate_hz}")

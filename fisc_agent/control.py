@@ -15,7 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.lookup import COMMAND_MODES, CommandField
+from fisc_agent.lookup import (
+    COMMAND_MODES,
+    FACE_MODES,
+    PAPER_SETTINGS,
+    CommandField,
+    DeviationState,
+    FlightSettings,
+    flight_command,
+)
 from fisc_agent.mapfile import MapError
 
 Vec = tuple[float, float, float]
@@ -47,6 +55,7 @@ class ScalarField:
         self._slot: list[list[Vec]] = [[tuple(v) for v in cv] for cv in np.asarray(field.slot_cmd_m_s, dtype=float).tolist()]
         self._n_star: list[int] = np.asarray(field.n_star, dtype=np.int64).tolist()
         self.centers: list[Vec] = [tuple(r) for r in np.asarray(field.centers_m, dtype=float).tolist()]
+        self._dev_state: DeviationState | None = None
 
     def _cell_id(self, i: int, j: int, k: int) -> int:
         if 0 <= i < self._nx and 0 <= j < self._ny and 0 <= k < self._nz:
@@ -73,6 +82,29 @@ class ScalarField:
         if mode == "interpolated":
             return self._interpolate(x, y, z, cv)
         raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
+
+    def settings(self, mode: str | None = None, lookahead_s: float | None = None) -> FlightSettings:
+        """Flight settings: the given mode / look-ahead, the map's recommended ones where None."""
+        base = self.field.recommended or PAPER_SETTINGS
+        return FlightSettings(base.mode if mode is None else mode,
+                              base.lookahead_s if lookahead_s is None else float(lookahead_s), base.persistence_s)
+
+    def flight(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float, mode: str | None = None,
+               lookahead_s: float | None = None, cv: int | None = None) -> Vec | None:
+        """This vehicle's command: ``fisc_agent.lookup.flight_command`` (the simulator's function) for
+        one agent; the kinetic-mode state is kept here (one ``ScalarField`` per vehicle).  ``mode`` and
+        ``lookahead_s`` None: the map's recommended settings; a look-ahead identified in flight is just
+        passed in.  ``vel`` None (no velocity estimate yet) flies without look-ahead.  None outside the map."""
+        st = self.settings(mode, lookahead_s)
+        if vel is None:
+            st = FlightSettings(st.mode, 0.0, st.persistence_s)
+            vel = ZERO
+        cmd, _, self._dev_state = flight_command(
+            self.field, np.array([pos], dtype=float), np.array([vel], dtype=float), np.array([agent_id]),
+            t_s, st, self._dev_state, None if cv is None else np.array([cv]))
+        if not np.all(np.isfinite(cmd[0])):
+            return None
+        return (float(cmd[0, 0]), float(cmd[0, 1]), float(cmd[0, 2]))
 
     def _interpolate(self, x: float, y: float, z: float, cv: int) -> Vec:
         l = self._l
@@ -242,11 +274,13 @@ def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: 
     return start <= phase < start + 0.5 * stagger_s
 
 
-def check_map(field: CommandField, mode: str) -> list[str]:
+def check_map(field: CommandField, mode: str | None) -> list[str]:
     """Agent-side checks of a decoded map's commands; raises ``MapError`` naming the check.
 
-    Returns warnings (strings) that do not prevent flight.
+    ``mode`` None: the map's recommended mode.  Returns warnings (strings) that do not prevent flight.
     """
+    if mode is None:
+        mode = (field.recommended or PAPER_SETTINGS).mode
     if mode not in COMMAND_MODES:
         raise MapError(f"mode: unknown command mode {mode!r}")
     n = field.n_cv
@@ -264,6 +298,10 @@ def check_map(field: CommandField, mode: str) -> list[str]:
     n_max = field.slot_cmd_m_s.shape[1]
     if np.any(ns < 1) or np.any(ns > n_max):
         raise MapError(f"n_star: values must lie in 1..{n_max}")
+    if mode in FACE_MODES and field.face_u_m_s is None:
+        raise MapError(f"mode: {mode!r} needs a schema-2 map with the staggered face field")
+    if mode in FACE_MODES and not all(np.all(np.isfinite(f)) for f in field.face_u_m_s):
+        raise MapError("commands: non-finite face velocity")
     if mode == "slot":
         k = np.arange(n_max)[None, :] < ns[:, None]
         if not np.all(np.isfinite(field.slot_cmd_m_s[k])):
@@ -275,8 +313,21 @@ def check_map(field: CommandField, mode: str) -> list[str]:
     return warnings
 
 
-def max_command_speed(field: CommandField, mode: str) -> float:
-    """Largest commanded speed the map can ask for in ``mode`` [m/s]."""
+def max_command_speed(field: CommandField, mode: str | None) -> float:
+    """Largest commanded speed the map can ask for in ``mode`` [m/s] (None: the map's recommended mode)."""
+    if mode is None:
+        mode = (field.recommended or PAPER_SETTINGS).mode
+    if mode in FACE_MODES:
+        # each component is linear between its cube's two faces: bounded per cube by the larger face
+        i, j, k = np.floor((np.asarray(field.centers_m) - field.origin_m) / field.cell_size_m).astype(np.int64).T
+        fx, fy, fz = field.face_u_m_s
+        ax = np.maximum(np.abs(fx[i, j, k]), np.abs(fx[i + 1, j, k]))
+        ay = np.maximum(np.abs(fy[i, j, k]), np.abs(fy[i, j + 1, k]))
+        az = np.maximum(np.abs(fz[i, j, k]), np.abs(fz[i, j, k + 1]))
+        v = float(np.max(np.sqrt(ax * ax + ay * ay + az * az)))
+        if mode == "kinetic" and field.spread_m_s is not None:
+            v += float(np.max(field.spread_m_s))
+        return v
     if mode == "slot":
         v = np.asarray(field.slot_cmd_m_s)
         return float(np.nanmax(np.linalg.norm(v, axis=2)))

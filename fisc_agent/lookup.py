@@ -10,13 +10,34 @@ existing CV in a bounded neighbourhood for the "return to the map" policy.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.mapfile import CommandMap
+from fisc_agent.mapfile import FACE_ARRAYS, CommandMap
 
-COMMAND_MODES = ("mean", "slot", "interpolated")
+#: Command modes (DESIGN.md section 3).  ``mean``: the paper's Algorithm 1; ``slot``: fitted vector
+#: h(agent, j) mod N*_j; ``interpolated``: trilinear mean field; ``staggered``: the continuity-consistent
+#: face field of a schema-2 map; ``kinetic``: ``staggered`` plus a persistent per-agent deviation whose
+#: rms is the CV's fitted spread (``kinetic_deviation``).
+COMMAND_MODES = ("mean", "slot", "interpolated", "staggered", "kinetic")
+#: Modes that need the face field of a schema-2 map.
+FACE_MODES = ("staggered", "kinetic")
+POINT_MODES = ("mean", "slot", "interpolated")
+"""Modes whose command depends on the point and agent only (``control.ScalarField.command``)."""
+#: Kinetic mode: depth of the zone next to a wall face in which a deviation toward the wall is
+#: reflected [cells] (thin, so the reflection itself empties little of the wall cube).
+WALL_ZONE = 0.25
+#: Kinetic mode: a vehicle heading for a wall face at normal speed v_n reflects once the face is
+#: within v_n * BRAKE_S (if that is deeper than ``WALL_ZONE``): the lag-proportional turning
+#: distance that keeps the reflection scale-free (a 5 m/s map deviates 2.5x faster than a 2 m/s one).
+BRAKE_S = 0.25
+#: Kinetic mode: length of the inlet ramp of an upstream deviation component [cells].
+INLET_RAMP_CELLS = 1.0
+#: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
+DEFAULT_PERSISTENCE_S = 2.0
 
 
 def slot_hash(agent_id: np.ndarray | int, cv_id: np.ndarray | int) -> np.ndarray:
@@ -71,23 +92,57 @@ class CommandField:
     """(n_cv, n_max, 3) scaled fitted vectors (NaN beyond N*) [m/s]."""
     n_star: np.ndarray
     """(n_cv,) fitted agent count N*_j."""
+    spread_m_s: np.ndarray | None = None
+    """(n_cv,) scaled fitted per-agent rms deviation sqrt(mean_k ||S v_k - S v_mean||^2) [m/s]."""
+    recommended: "FlightSettings | None" = None
+    """The map's recommended flight settings (``map_flight_settings``); None for hand-built fields."""
+    face_u_m_s: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """Scaled staggered face-normal velocities (x faces (nx+1, ny, nz), y faces (nx, ny+1, nz), z
+    faces (nx, ny, nz+1)) [m/s] of a schema-2 map (``fisc_ground.staggered``); None without."""
 
     @classmethod
     def from_map(cls, cmap: CommandMap, scale: float | None = None) -> "CommandField":
         s = cmap.scale if scale is None else float(scale)
+        faces = None
+        if all(k in cmap.arrays for k in FACE_ARRAYS):
+            faces = tuple(s * np.asarray(cmap[k], dtype=float) for k in FACE_ARRAYS)
+        slots = np.asarray(cmap["fit_velocity_m_s"], dtype=float)
+        mean = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
+        d2 = np.nansum((slots - mean[:, None, :]) ** 2, axis=2)
+        spread = s * np.sqrt(d2.sum(axis=1) / np.maximum(np.asarray(cmap["n_star"]), 1))
         return cls(
             origin_m=cmap.origin_m,
+            spread_m_s=spread,
             cell_size_m=cmap.cell_size_m,
             grid_cv=np.asarray(cmap["grid_cv"]),
             centers_m=np.asarray(cmap["cv_center_m"]),
             mean_cmd_m_s=s * np.asarray(cmap["fit_mean_velocity_m_s"]),
             slot_cmd_m_s=s * np.asarray(cmap["fit_velocity_m_s"]),
             n_star=np.asarray(cmap["n_star"]),
+            face_u_m_s=faces,
+            recommended=map_flight_settings(cmap),
         )
 
     @property
     def n_cv(self) -> int:
         return int(self.centers_m.shape[0])
+
+    @functools.cached_property
+    def wall_faces(self) -> np.ndarray:
+        """(nx, ny, nz, 3, 2) bool: face (axis, lower/upper) of a CV's cell has no neighbour CV (a
+        staircase wall).  The inlet (lower x of the first slice) and the outlet (upper x of the last)
+        are not walls; cells without a CV have none."""
+        g = np.asarray(self.grid_cv) >= 0
+        pad = np.zeros(tuple(s + 2 for s in g.shape), dtype=bool)
+        pad[1:-1, 1:-1, 1:-1] = g
+        pad[0, 1:-1, 1:-1] = pad[-1, 1:-1, 1:-1] = True  # inlet and outlet: open
+        out = np.zeros(g.shape + (3, 2), dtype=bool)
+        core = (slice(1, -1),) * 3
+        for a in range(3):
+            for side, shift in ((0, -1), (1, 1)):
+                nb = np.roll(pad, -shift, axis=a)[core]
+                out[..., a, side] = g & ~nb
+        return out
 
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
@@ -136,6 +191,8 @@ class CommandField:
             out[ok] = self.slot_cmd_m_s[j, slot_index(ids, j, self.n_star[j])]
         elif mode == "interpolated":
             out[ok] = self._interpolate(pts[ok], cv[ok])
+        elif mode in FACE_MODES:
+            out[ok] = self._staggered(pts[ok])
         else:
             raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
         return out
@@ -166,3 +223,160 @@ class CommandField:
         good = wsum > 1e-12
         out[good] = acc[good] / wsum[good, None]
         return out
+
+    def _staggered(self, pts: np.ndarray) -> np.ndarray:
+        """Each component linear between the two faces of the point's cell (the MAC-grid rule)."""
+        if self.face_u_m_s is None:
+            raise ValueError("modes staggered/kinetic need a map with face velocities (schema version 2)")
+        f = (pts - self.origin_m) / self.cell_size_m
+        c = np.floor(f).astype(np.int64)
+        shape = np.asarray(self.grid_cv.shape) - 1
+        np.clip(c, 0, shape, out=c)
+        t = np.clip(f - c, 0.0, 1.0)
+        i, j, k = c[:, 0], c[:, 1], c[:, 2]
+        fx, fy, fz = self.face_u_m_s
+        out = np.empty((pts.shape[0], 3))
+        out[:, 0] = (1.0 - t[:, 0]) * fx[i, j, k] + t[:, 0] * fx[i + 1, j, k]
+        out[:, 1] = (1.0 - t[:, 1]) * fy[i, j, k] + t[:, 1] * fy[i, j + 1, k]
+        out[:, 2] = (1.0 - t[:, 2]) * fz[i, j, k] + t[:, 2] * fz[i, j, k + 1]
+        return out
+
+
+# ---- the one flight-command function (simulator, emulator and onboard agent) -------------------
+@dataclass(frozen=True)
+class FlightSettings:
+    """How an agent turns the map into velocity commands (a map's recommended flight settings)."""
+
+    mode: str = "mean"
+    """Command mode, one of ``COMMAND_MODES``."""
+    lookahead_s: float = 0.0
+    """Command look-ahead t_lead [s] (``lookahead_point``); 0 = none (the paper)."""
+    persistence_s: float = DEFAULT_PERSISTENCE_S
+    """``kinetic``: how long an agent keeps one deviation direction [s]."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in COMMAND_MODES:
+            raise ValueError(f"mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        if not (self.lookahead_s >= 0 and math.isfinite(self.lookahead_s)):
+            raise ValueError(f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
+        if not (self.persistence_s > 0 and math.isfinite(self.persistence_s)):
+            raise ValueError(f"persistence_s must be finite and > 0, got {self.persistence_s!r}")
+
+
+#: The paper's Algorithm 1: mean commands, no look-ahead (``--preset paper``; version-1 maps).
+PAPER_SETTINGS = FlightSettings("mean", 0.0)
+
+
+def map_flight_settings(cmap: CommandMap) -> FlightSettings:
+    """A map's recommended flight settings: its ``flight`` table (schema 2), else ``PAPER_SETTINGS``."""
+    flight = cmap.body.get("flight")
+    if cmap.schema_version < 2 or not isinstance(flight, dict):
+        return PAPER_SETTINGS
+    return FlightSettings(str(flight["mode"]), float(flight["lookahead_s"]), float(flight["persistence_s"]))
+
+
+@dataclass(frozen=True)
+class DeviationState:
+    """Per-agent state of the ``kinetic`` mode (explicit: passed in and returned, no clocks inside)."""
+
+    epoch: np.ndarray
+    """(m,) int64 index of the persistence interval the current direction belongs to (-1: none yet)."""
+    sign: np.ndarray
+    """(m, 3) float +-1 per axis: wall reflections of the direction within the current interval."""
+
+    @classmethod
+    def new(cls, m: int) -> "DeviationState":
+        """State of ``m`` agents that have not flown yet."""
+        return cls(np.full(m, -1, dtype=np.int64), np.ones((m, 3)))
+
+    def take(self, index: np.ndarray) -> "DeviationState":
+        """The state of the agents ``index`` (a new object)."""
+        return DeviationState(self.epoch[index].copy(), self.sign[index].copy())
+
+
+def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
+    """(m, 3) unit vectors, uniform on the sphere, a deterministic function of (agent id, epoch)."""
+    h1 = slot_hash(agent_ids, epoch).astype(np.float64) / 4294967296.0
+    h2 = slot_hash(np.asarray(agent_ids, dtype=np.int64) ^ 0x5BD1E995, epoch).astype(np.float64) / 4294967296.0
+    z = 2.0 * h1 - 1.0
+    phi = 2.0 * np.pi * h2
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
+                      persistence_s: float, state: DeviationState,
+                      velocity_m_s: np.ndarray | None = None) -> tuple[np.ndarray, DeviationState]:
+    """(m, 3) unit deviation directions at time ``t_s`` and the new state.
+
+    Each agent keeps a direction for ``persistence_s`` (intervals staggered per agent by a hashed
+    phase, so the swarm does not switch in step), drawn uniformly on the sphere from a hash of
+    (agent id, interval).  A component pointing at a staircase face without a neighbour CV (a wall)
+    is reflected while the agent is within ``WALL_ZONE`` cells of that face, or within its turning
+    distance v_n ``BRAKE_S`` when ``velocity_m_s`` is given (the zone absorbs the vehicle's lag,
+    which would otherwise carry it across): the kinetic picture of a gas whose
+    molecules bounce off the walls.  The inlet is an inflow boundary instead: an upstream (-x)
+    component fades out linearly over the first cell, so agents neither leave through the inlet
+    nor stall at it.
+    """
+    pts = np.atleast_2d(np.asarray(points_m, dtype=float))
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
+    epoch = np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+    sign = np.where((epoch != state.epoch)[:, None], 1.0, state.sign)
+    d = _unit_from_hash(ids, epoch) * sign
+    f = (pts - field.origin_m) / field.cell_size_m
+    cell = np.floor(f).astype(np.int64)
+    frac = f - cell
+    c = np.clip(cell, 0, np.asarray(field.grid_cv.shape) - 1)
+    walls = field.wall_faces[c[:, 0], c[:, 1], c[:, 2]]          # (m, 3, 2)
+    up = d >= 0
+    wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
+    zone = np.full(frac.shape, WALL_ZONE)
+    if velocity_m_s is not None and BRAKE_S > 0:
+        # a vehicle heading for a face at v_n turns once the face is within v_n * BRAKE_S
+        v = np.atleast_2d(velocity_m_s)
+        v_n = np.where(up, np.maximum(v, 0.0), np.maximum(-v, 0.0))
+        zone = np.maximum(zone, v_n * BRAKE_S / field.cell_size_m)
+    toward = np.where(up, frac >= 1.0 - zone, frac < zone)
+    flip = toward & wall_ahead
+    sign[flip] *= -1.0
+    d[flip] *= -1.0
+    # the inlet is an inflow boundary, not a wall: an upstream deviation fades out over the first cell
+    # (a reflection there sends a persistent excess of fast agents downstream and empties the inlet)
+    if INLET_RAMP_CELLS > 0:
+        ramp = np.clip(f[:, 0] / INLET_RAMP_CELLS, 0.0, 1.0)
+        d[:, 0] = np.where(d[:, 0] < 0, d[:, 0] * ramp, d[:, 0])
+    return d, DeviationState(epoch, sign)
+
+
+def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.ndarray, agent_ids: np.ndarray,
+                   t_s: float, settings: FlightSettings, state: DeviationState | None = None,
+                   cv_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, DeviationState | None]:
+    """The velocity command of every agent: the one function the simulator, the emulated swarm and
+    the onboard agent share (map frame, vectorised over agents).
+
+    ``points_m``, ``velocity_m_s`` (m, 3) positions and velocities; ``agent_ids`` (m,); ``t_s`` the time
+    (kinetic mode; any monotonic clock the caller keeps); ``state`` the kinetic state of these agents
+    (``DeviationState.new`` at first; other modes ignore it); ``cv_ids`` the agents' own CVs if known.
+    The command is looked up at ``x + u t_lead`` (own position if that point has no CV).
+    Returns ``(cmd (m, 3) NaN for agents outside the CVs, own CV ids (m,), new state)``.
+    """
+    pts = np.atleast_2d(np.asarray(points_m, dtype=float))
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    cv = field.cv_of(pts) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
+    look, look_cv = pts, cv
+    if settings.lookahead_s > 0:
+        ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
+        acv = field.cv_of(ahead)
+        keep = acv < 0
+        look = np.where(keep[:, None], pts, ahead)
+        look_cv = np.where(keep, cv, acv)
+    cmd = field.command(look, ids, settings.mode, cv_ids=look_cv)
+    if settings.mode != "kinetic":
+        return cmd, cv, state
+    st = DeviationState.new(len(pts)) if state is None else state
+    d, st = kinetic_deviation(field, pts, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
+    ok = look_cv >= 0
+    cmd[ok] += field.spread_m_s[look_cv[ok], None] * d[ok]
+    return cmd, cv, st

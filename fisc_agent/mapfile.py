@@ -29,7 +29,11 @@ import numpy as np
 MAGIC = b"FISCMAP\x00"
 CONTAINER_VERSION = 1
 SCHEMA = "fisc.command_map"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Schema versions this reader accepts.  Version 2 adds the staggered face field (``FACE_ARRAYS``),
+#: ``cv_design_density`` and the recommended flight settings (body key ``flight``); version-1 maps
+#: (no face field, flown with the paper's settings) still load.
+SUPPORTED_SCHEMA_VERSIONS = (1, 2)
 ALIGN = 64
 SEAL_KEYS = frozenset({"sha256", "signature", "public_key"})
 
@@ -49,6 +53,11 @@ REQUIRED_ARRAYS: dict[str, tuple[str, int]] = {
     "swarm_pressure_target": ("<f8", 1),
     "node_count": ("<i4", 1),
 }
+#: Arrays schema version 2 adds: the staggered (face-centred) command field, unscaled [m/s]:
+#: x faces (nx+1, ny, nz), y faces (nx, ny+1, nz), z faces (nx, ny, nz+1) (``fisc_ground.staggered``).
+FACE_ARRAYS = ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s")
+#: Keys of a schema-2 body's ``flight`` table (recommended flight settings).
+FLIGHT_KEYS = ("mode", "lookahead_s", "persistence_s")
 REQUIRED_BODY_KEYS = (
     "schema", "schema_version", "map_version", "n_cv", "grid", "n_range", "scale", "kappa",
     "agent_mass_kg", "arrays",
@@ -95,6 +104,10 @@ class CommandMap:
     @property
     def grid_shape(self) -> tuple[int, int, int]:
         return tuple(int(s) for s in self.body["grid"]["shape"])  # type: ignore[return-value]
+
+    @property
+    def schema_version(self) -> int:
+        return int(self.body["schema_version"])
 
     @property
     def scale(self) -> float:
@@ -165,9 +178,10 @@ def _check_array_entry(name: str, entry: Any, payload_len: int) -> tuple[np.dtyp
 def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
     if body.get("schema") != SCHEMA:
         raise MapError(f"schema: not a FISC command map (schema={body.get('schema')!r})")
-    if body.get("schema_version") != SCHEMA_VERSION:
+    version = body.get("schema_version")
+    if version not in SUPPORTED_SCHEMA_VERSIONS:
         raise MapError(
-            f"schema_version: map has {body.get('schema_version')!r}, this reader supports {SCHEMA_VERSION}"
+            f"schema_version: map has {version!r}, this reader supports {', '.join(map(str, SUPPORTED_SCHEMA_VERSIONS))}"
         )
     missing = [k for k in REQUIRED_BODY_KEYS if k not in body]
     if missing:
@@ -183,6 +197,32 @@ def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
             raise MapError(f"schema: array {name!r} has {arr.shape[0]} rows, header says n_cv={n_cv}")
     if tuple(arrays["grid_cv"].shape) != tuple(body["grid"]["shape"]):
         raise MapError("schema: grid_cv shape differs from grid.shape")
+    if version >= 2:
+        _check_schema_2(body, arrays)
+
+
+def _check_schema_2(body: dict, arrays: dict[str, np.ndarray]) -> None:
+    """Schema 2: face arrays of the right shapes with finite values, and a ``flight`` table."""
+    nx, ny, nz = (int(v) for v in body["grid"]["shape"])
+    want = {"face_u_x_m_s": (nx + 1, ny, nz), "face_u_y_m_s": (nx, ny + 1, nz), "face_u_z_m_s": (nx, ny, nz + 1),
+            "cv_design_density": (int(body["n_cv"]),)}
+    for name, shape in want.items():
+        if name not in arrays:
+            raise MapError(f"schema: version-2 array {name!r} is missing")
+        arr = arrays[name]
+        if arr.dtype.str != "<f8" or tuple(arr.shape) != shape:
+            raise MapError(f"schema: array {name!r} must be <f8 {shape}, is {arr.dtype.str} {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise MapError(f"schema: array {name!r} has non-finite values")
+    flight = body.get("flight")
+    if not isinstance(flight, dict) or any(k not in flight for k in FLIGHT_KEYS):
+        raise MapError(f"schema: version-2 header needs a 'flight' table with {', '.join(FLIGHT_KEYS)}")
+    if not isinstance(flight["mode"], str):
+        raise MapError("schema: flight.mode must be a string")
+    for k in ("lookahead_s", "persistence_s"):
+        v = flight[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0) or v != v or v == float("inf"):
+            raise MapError(f"schema: flight.{k} must be a finite number >= 0, is {v!r}")
 
 
 def decode_map(

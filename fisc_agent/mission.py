@@ -35,6 +35,7 @@ from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, e
                                 goto_velocity, join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.identify import ResponseRecorder, VehicleResponse
+from fisc_agent.lookup import POINT_MODES
 from fisc_agent.tracking import ParcelTracker
 
 log = logging.getLogger(__name__)
@@ -142,6 +143,7 @@ class Mission:
         self.geom: MapGeometry | None = None
         self.entry: Vec | None = None
         self.tracker = ParcelTracker(cfg.tracking)
+        self._tracked_mode = "mean"
         self.response: VehicleResponse | None = None
         """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
         self._recorder = ResponseRecorder()
@@ -157,6 +159,13 @@ class Mission:
         self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
         self.tracker.x_outlet_m = self.geom.x_outlet_m
         self.tracker.clear()  # a parcel of the old map means nothing in the new one
+        mode = sfield.settings(self.cfg.mode).mode
+        self._tracked_mode = "staggered" if mode == "kinetic" else mode
+        if mode != self._tracked_mode and self.cfg.tracking.gain_1_s > 0.0:
+            log.warning("mode kinetic: its per-agent deviations are not flown under streamline tracking; flying the "
+                        "map's staggered field (--track-gain 0 flies kinetic open loop, the simulator's way)")
+        if self.response is None:
+            self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self._lookahead_s())
         if self._last_pos is not None and self.state == State.JOIN:
             self._plan_join(self._last_pos)
         if self._last_pos is not None and self.state == State.RETURN:
@@ -365,10 +374,13 @@ class Mission:
             want_mode = "offboard"
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
-                vel = self.tracker.step(t, pos, self._field_command)
-                if vel is None:  # the parcel's CV vanished with a new map: fly the field where we are
-                    self.tracker.reset(pos, t)
-                    vel = self.sfield.command(pos[0], pos[1], pos[2], cfg.agent_id, cfg.mode, cv)
+                if cfg.tracking.gain_1_s == 0.0:  # open loop: the simulator's own command function
+                    vel = self.sfield.flight(pos, s.vel_m_s, cfg.agent_id, t, cfg.mode, self._lookahead_s(), cv)
+                else:
+                    vel = self.tracker.step(t, pos, self._field_command)
+                    if vel is None:  # the parcel's CV vanished with a new map: fly the field where we are
+                        self.tracker.reset(pos, t)
+                        vel = self._field_command(*pos)
             elif verdict == GeofenceVerdict.EXIT:
                 self.laps += 1
                 if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
@@ -399,8 +411,19 @@ class Mission:
         return MissionOutput(self.state, vel, want_mode, want_armed, takeoff, cv, self.reason)
 
     def _field_command(self, x: float, y: float, z: float) -> Vec | None:
-        """The map's command at a point in the configured mode (None outside the map's CVs)."""
-        return self.sfield.command(x, y, z, self.cfg.agent_id, self.cfg.mode)
+        """The map's command at a point in the tracked mode (None outside the map's CVs)."""
+        mode = self._tracked_mode
+        if mode in POINT_MODES:
+            return self.sfield.command(x, y, z, self.cfg.agent_id, mode)
+        return self.sfield.flight((x, y, z), None, self.cfg.agent_id, 0.0, mode, 0.0)
+
+    def _lookahead_s(self) -> float:
+        """Look-ahead in use: identified in flight (``lookahead_auto``), else given, else the map's."""
+        if self.response is not None:
+            return self.response.lookahead_s
+        if self.cfg.lookahead_s is not None:
+            return float(self.cfg.lookahead_s)
+        return self.sfield.settings().lookahead_s if self.sfield is not None else 0.0
 
     def _mode_taken(self, s: VehicleStatus) -> bool:
         """The mode we asked for was reached and has since been changed by someone else

@@ -34,8 +34,9 @@ is kept and the cross-stream part dropped; downstream of the outlet the parcel c
 last velocity.
 
 Only the agent's own position and the map are used: no inter-agent messages.  With
-``gain_1_s = 0`` this is the open-loop command at the vehicle's own position (the paper's
-Algorithm 1 when also ``lookahead_s = 0`` and ``feedforward_gain = 1``).
+``gain_1_s = 0`` the mission does not track at all: it flies the simulator's own command
+function (``fisc_agent.lookup.flight_command``) at the vehicle's position, open loop (the paper's
+Algorithm 1 with the ``mean`` mode and no look-ahead).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class TrackingConfig:
     """How an agent tracks its streamline (``AgentConfig.tracking``)."""
 
     gain_1_s: float = 1.2
-    """Cross-stream position feedback gain [1/s]; 0 flies the field open loop at the vehicle's position."""
+    """Cross-stream position feedback gain [1/s]; 0: no tracking (the mission flies the field open loop)."""
     integral_gain_1_s2: float = 0.5
     """Cross-stream integral gain [1/s^2]: learns a steady velocity bias (estimator, wind)."""
     max_correction_m_s: float = 1.5
@@ -194,11 +195,6 @@ class ParcelTracker:
         to the vehicle's own position.
         """
         cfg = self.cfg
-        if cfg.gain_1_s == 0.0:  # open loop: the field at the vehicle itself
-            v = field(*pos_m)
-            if v is None:
-                return None
-            return _scale(self._ahead(pos_m, v, field), cfg.feedforward_gain)
         if self.parcel_m is None or self._t_s is None:
             self.reset(pos_m, t_s)
         p = self.parcel_m

@@ -39,7 +39,7 @@ def run_fit(args: argparse.Namespace) -> int:
     n_min, n_max = _n_range(args.n_range)
     config = FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                        max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
-                       min_nodes=args.min_nodes, seed=args.seed)
+                       min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
     key = read_signing_key(args.sign) if args.sign else None
     with _status(f"loading reference {args.reference}"):
         field = load_reference(args.reference, pressure_kind=args.pressure_kind)
@@ -205,6 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how the file states pressure (default: detect)")
     p.add_argument("--seed", type=int, default=0, help="seed of the fit's perturbed initialisation")
     p.add_argument("--sign", type=Path, metavar="KEYFILE", help="sign with this Ed25519 key (from keygen)")
+    p.add_argument("--preset", choices=("default", "paper"), default="default",
+                   help="default: schema-2 map with the continuity-consistent staggered field, the designed "
+                        "swarm density and recommended flight settings; paper: the paper's schema-1 map")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

@@ -41,28 +41,38 @@ def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
     tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
     fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
     paths: dict[str, Path] = {}
-    tag = f"{cfg.scenario}, {cfg.mode}{', collisions' if cfg.collisions else ''}"
+    settings = getattr(result, "settings", None)
+    mode = settings.mode if settings is not None else getattr(cfg, "mode", None)
+    tag = f"{cfg.scenario}, {mode}{', collisions' if cfg.collisions else ''}"
     for t, pos in result.snapshots:  # fig. 4
         name = f"snapshot_{cfg.scenario}_{t:05.1f}s".replace(".", "_")
         paths[name] = plots.plot_swarm_snapshot(pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
     swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
+    # a companion run of the paper's preset on the same CVs (``sim.run``): a fourth panel / curve
+    paper = getattr(result, "paper", None)
+    pf = paper.fields if paper is not None else None
+    pok = pf.samples >= cfg.min_samples if pf is not None else None
+    p_extra = {"(d) swarm pressure (paper preset)": _minmax(pf.p_dispersion_pa, pok)} if pf is not None else {}
+    u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
+               if pf is not None else {})
+    r_extra = {"(d) swarm density (paper preset)": _minmax(pf.rho_s_kg_m3, pok)} if pf is not None else {}
     paths["velocity_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 5
         c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
             "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
-            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok)},
+            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra},
         l, "Axial velocity normalised by the field maximum, XZ plane", out_dir / "velocity_cfd_fit_swarm.png",
         label="u / max u", wall_radius=wall)
     paths["pressure_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 7
         c, {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
             "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
-            f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok)},
+            f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok), **p_extra},
         l, "Pressure, min-max normalised, XZ plane", out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm",
         label="(P - min) / (max - min)", wall_radius=wall)
     rho_fit = np.asarray(cmap["n_star"], dtype=float) * float(cmap.body.get("agent_mass_kg", 1.0)) / l ** 3
     paths["density_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 8
         c, {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
             "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
-            f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok)},
+            f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok), **r_extra},
         l, "Density, min-max normalised, XZ plane", out_dir / "density_cfd_fit_swarm.png",
         label="(rho - min) / (max - min)", wall_radius=wall)
     paths["density_velocity_swarm"] = plots.plot_density_with_vectors(  # fig. 9
@@ -72,6 +82,12 @@ def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
     prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
                                np.asarray(cmap["target_density_kg_m3"], dtype=float), f.u_axial_m_s,
                                f.p_dispersion_pa, f.rho_s_kg_m3, f.samples, cfg.min_samples)
+    extra = None
+    if pf is not None:
+        extra = {"swarm, paper preset": centreline_profiles(
+            c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
+            np.asarray(cmap["target_density_kg_m3"], dtype=float), pf.u_axial_m_s, pf.p_dispersion_pa,
+            pf.rho_s_kg_m3, pf.samples, cfg.min_samples).swarm}
     paths["centreline"] = plots.plot_centreline_profiles(  # fig. 10
-        prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})")
+        prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})", extra_swarm=extra)
     return paths

@@ -12,18 +12,33 @@ from typing import Any
 
 import numpy as np
 
+from fisc_agent.lookup import DEFAULT_PERSISTENCE_S, PAPER_SETTINGS, FlightSettings
 from fisc_agent.mapfile import CommandMap, decode_map, load_map
 from fisc_ground.fitting import fit_rmse, fit_velocities
 from fisc_ground.mapwrite import encode_map
 from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
-from fisc_ground.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
+from fisc_ground.staggered import (
+    DEFAULT_CONTINUITY_WEIGHT,
+    DEFAULT_WEIGHT_EXPONENT,
+    StaggeredConfig,
+    build_staggered,
+)
+from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
 
 log = logging.getLogger(__name__)
 
 DEFAULT_REFERENCE = "cd_nozzle_inviscid"
 DEFAULT_MAP_FILE = "default.fiscmap"
+
+
+#: Recommended flight settings of the maps this project builds (docs/simulation.md, "Fidelity").
+DEFAULT_FLIGHT = FlightSettings("kinetic", 0.5, DEFAULT_PERSISTENCE_S)
+#: Dispersion ratio of schema-2 maps (``FitConfig.dispersion_ratio``).
+KINETIC_DISPERSION_RATIO = 0.75
+#: ``--preset paper``: the fit settings of the paper's schema-1 map.
+PAPER_PRESET = "paper"
 
 
 @dataclass(frozen=True)
@@ -44,7 +59,12 @@ class FitConfig:
     """Pressure mapping P_target = kappa (P_cfd - min P_cfd); None chooses it from ``max_dispersion_m_s``."""
     max_dispersion_m_s: float | None = None
     """Largest rms per-agent velocity dispersion the fit may ask for, before scaling [m/s];
-    None = 0.25 x the peak target speed (``scaling.default_max_dispersion``)."""
+    None = ``dispersion_ratio`` x the peak target speed (``scaling.default_max_dispersion``)."""
+    dispersion_ratio: float | None = None
+    """Ratio of that dispersion to the peak target speed; None: ``KINETIC_DISPERSION_RATIO`` (0.75)
+    for a schema-2 map, whose kinetic mode realises the spread as a persistent deviation and needs it
+    to dominate the tracking error near the throat (docs/simulation.md); 0.25
+    (``scaling.DEFAULT_DISPERSION_RATIO``) for the paper's map."""
     agent_mass_kg: float = 1.0
     """Agent mass m_i [kg] in the fitting equations (paper: 1 kg)."""
     min_nodes: int = 1
@@ -57,6 +77,32 @@ class FitConfig:
     """Seed of the perturbed initialisation."""
     map_version: int | None = None
     """Monotonic map version; None uses the creation time in milliseconds."""
+    staggered: bool = True
+    """Build the continuity-consistent face field and write a schema-2 map (``fisc_ground.staggered``);
+    False writes the paper's schema-1 map (``--preset paper``)."""
+    continuity_weight: float = DEFAULT_CONTINUITY_WEIGHT
+    """beta of the designed swarm density (``fisc_ground.staggered.design_density``)."""
+    weight_exponent: float = DEFAULT_WEIGHT_EXPONENT
+    """p of the projection's lateral face weights (``fisc_ground.staggered.project``)."""
+    flight_mode: str = DEFAULT_FLIGHT.mode
+    """Recommended command mode written into a schema-2 map (agents use it unless told otherwise)."""
+    lookahead_s: float = DEFAULT_FLIGHT.lookahead_s
+    """Recommended command look-ahead [s] written into a schema-2 map."""
+    persistence_s: float = DEFAULT_FLIGHT.persistence_s
+    """Recommended persistence of the kinetic deviation [s] written into a schema-2 map."""
+
+    @property
+    def flight(self) -> FlightSettings:
+        """The recommended flight settings this build writes (the paper's for a schema-1 map)."""
+        if not self.staggered:
+            return PAPER_SETTINGS
+        return FlightSettings(self.flight_mode, self.lookahead_s, self.persistence_s)
+
+    def __post_init__(self) -> None:
+        FlightSettings(self.flight_mode, self.lookahead_s, self.persistence_s)  # validates
+        StaggeredConfig(self.continuity_weight, self.weight_exponent)
+
+
 
 
 def _software_version() -> str:
@@ -74,7 +120,10 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
     cell_volume = config.cell_size_m ** 3
     p = cvs.target_pressure_gauge_pa
     if config.kappa is None:
-        dispersion = (default_max_dispersion(cvs.target_velocity_m_s) if config.max_dispersion_m_s is None
+        ratio = config.dispersion_ratio
+        if ratio is None:
+            ratio = KINETIC_DISPERSION_RATIO if config.staggered else DEFAULT_DISPERSION_RATIO
+        dispersion = (default_max_dispersion(cvs.target_velocity_m_s, ratio) if config.max_dispersion_m_s is None
                       else config.max_dispersion_m_s)
         kappa = choose_kappa(p, cell_volume, config.agent_mass_kg, config.n_min, dispersion)
     else:
@@ -103,6 +152,21 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         # optional (not in REQUIRED_ARRAYS): open-volume fraction A_j dx_j / l^3 of eq. swarm_density
         "cv_open_fraction": cv_open_fraction(cvs),
     }
+    extra = {}
+    if config.staggered:
+        st = build_staggered(cvs.grid_cv, cvs.target_velocity_m_s, cvs.target_density_kg_m3,
+                             cvs.target_pressure_gauge_pa, arrays["cv_open_fraction"],
+                             StaggeredConfig(config.continuity_weight, config.weight_exponent))
+        arrays.update(face_u_x_m_s=st.face_u_x_m_s, face_u_y_m_s=st.face_u_y_m_s, face_u_z_m_s=st.face_u_z_m_s,
+                      cv_design_density=st.design_density)
+        f = config.flight
+        extra = {"schema_version": 2,
+                 "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
+                 "staggered": {"max_divergence": st.max_divergence, "continuity_weight": config.continuity_weight,
+                               "weight_exponent": config.weight_exponent,
+                               "axial_weight": StaggeredConfig().axial_weight}}
+    else:
+        extra = {"schema_version": 1}
     now = datetime.now(timezone.utc)
     meta = {
         "map_version": int(config.map_version if config.map_version is not None else time.time() * 1000),
@@ -131,6 +195,7 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                           "pressure_kind": field.pressure_kind, "n_nodes": field.n_nodes},
             "config": {k: v for k, v in asdict(config).items()},
         },
+        **extra,
     }
     return meta, arrays
 

@@ -13,6 +13,7 @@ import numpy as np
 from fisc_agent.mapfile import (
     ALIGN,
     CONTAINER_VERSION,
+    FACE_ARRAYS,
     MAGIC,
     REQUIRED_ARRAYS,
     SCHEMA,
@@ -27,6 +28,9 @@ from fisc_agent.mapfile import (
 
 def encode_map(meta: dict[str, Any], arrays: dict[str, np.ndarray], signing_key: bytes | None = None) -> bytes:
     """Serialise ``meta`` (header fields without ``arrays``) and ``arrays`` into map bytes.
+
+    The schema version is ``meta["schema_version"]`` if given, else 2 when the face field is among
+    the arrays and 1 (the paper's map) otherwise.
 
     Arrays are stored little-endian with the dtypes of ``REQUIRED_ARRAYS`` (extra arrays keep
     their own dtype).  ``signing_key``: a 32-byte Ed25519 seed; the seal then carries a signature.
@@ -43,7 +47,8 @@ def encode_map(meta: dict[str, Any], arrays: dict[str, np.ndarray], signing_key:
         table[name] = {"dtype": arr.dtype.str, "shape": list(arr.shape), "offset": offset, "nbytes": arr.nbytes}
         chunks.append(arr.tobytes())
         offset += arr.nbytes
-    body = dict(meta, schema=SCHEMA, schema_version=SCHEMA_VERSION, arrays=table)
+    version = meta.get("schema_version", SCHEMA_VERSION if all(k in arrays for k in FACE_ARRAYS) else 1)
+    body = dict(meta, schema=SCHEMA, schema_version=int(version), arrays=table)
     body_raw = canonical_json(body)
     payload = b"".join(chunks)
     sealed = b"".join([MAGIC, _U32.pack(CONTAINER_VERSION), _U64.pack(len(body_raw)), body_raw,

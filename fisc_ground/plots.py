@@ -207,16 +207,20 @@ def plot_centreline(x_m: np.ndarray, profiles: dict[str, np.ndarray], path: str 
 
 
 def plot_centreline_profiles(profiles, path: str | Path, title: str = "Centreline profiles",
-                             target_label: str = "CFD", swarm_label: str = "swarm") -> Path:
+                             target_label: str = "CFD", swarm_label: str = "swarm",
+                             extra_swarm: dict[str, dict] | None = None) -> Path:
     """Paper fig. 10: density, pressure and velocity centreline profiles, target vs swarm.
 
-    ``profiles``: a ``fisc_ground.metrics.CentrelineProfiles``.
+    ``profiles``: a ``fisc_ground.metrics.CentrelineProfiles``; ``extra_swarm``: label -> further
+    swarm profiles on the same slices (e.g. the paper preset beside the default), drawn dotted.
     """
     names = list(profiles.target)
     fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.5), squeeze=False)
     for ax, q in zip(axes[0], names):
         ax.plot(profiles.x_m, profiles.target[q], "-", marker="o", markersize=3, label=target_label)
         ax.plot(profiles.x_m, profiles.swarm[q], "--", marker="s", markersize=3, label=swarm_label)
+        for label, prof in (extra_swarm or {}).items():
+            ax.plot(profiles.x_m, prof[q], ":", marker="^", markersize=3, label=label)
         ax.set_title(q)
         ax.set_xlabel("x [m]")
         ax.set_ylabel("normalised " + q)

@@ -12,6 +12,8 @@ import math
 import sys
 from contextlib import contextmanager
 
+from fisc_agent.lookup import COMMAND_MODES
+
 
 def _agents(text: str):
     """--agents: a non-negative integer or 'fitted' (N* as fitted)."""
@@ -39,17 +41,21 @@ def _add_run(sub) -> None:
     p.add_argument("--average-window", type=float, default=None,
                    help="time-average the fields over the last S seconds (default: 100 for reservoir, "
                         "the whole run for seed)")
-    p.add_argument("--mode", choices=("mean", "slot", "interpolated"), default="mean",
-                   help="command mode (default mean = paper Algorithm 1)")
+    p.add_argument("--preset", choices=("default", "paper"), default="default",
+                   help="default: schema-2 map (continuity-consistent staggered field, designed density) flown "
+                        "with its recommended settings; paper: the paper's Algorithm 1 (schema-1 map, mean "
+                        "commands, no look-ahead)")
+    p.add_argument("--mode", choices=COMMAND_MODES, default=None,
+                   help="command mode (default: the map's recommended one; see --preset)")
     p.add_argument("--collisions", action="store_true", help="enable the collision layer")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--scale", type=float, default=None, help="override the map's speed scale S (paper: 0.1)")
     p.add_argument("--max-speed", type=float, default=None,
                    help="agent speed limit [m/s] setting S of a map fitted by the run (no --map, or a reference "
                         "spec; default 2 = the paper's speed regime); a .fiscmap keeps its S")
-    p.add_argument("--lookahead", type=float, default=0.0, metavar="S",
+    p.add_argument("--lookahead", type=float, default=None, metavar="SECONDS",
                    help="command look-ahead t_lead [s]: fly the command at x + u t_lead to compensate the plant "
-                        "lag (0.5 recommended; default 0 = the paper's Algorithm 1)")
+                        "lag (default: the map's recommended value, 0.5 s; 0 with --preset paper)")
     p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--out", default="out/run", help="output directory (default out/run)")
@@ -88,9 +94,9 @@ def _cmd_run(args) -> int:
     cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    lookahead_s=args.lookahead, out_dir=args.out, **extra)
+                    lookahead_s=args.lookahead, preset=args.preset, out_dir=args.out, **extra)
     show = not args.quiet and sys.stderr.isatty()
-    with _progress(show, f"{cfg.scenario}/{cfg.mode}") as cb:
+    with _progress(show, f"{cfg.scenario}/{cfg.preset}") as cb:
         res = run(cfg, progress=cb)
     m = res.metrics
     a = m["agents"]
@@ -132,14 +138,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if args.command == "run":
-        from fisc_agent.mapfile import MapError
-        from fisc_ground.reference.field import ReferenceError
-
         try:
             return _cmd_run(args)
-        except (MapError, ReferenceError) as exc:  # a bad --map file or reference: the reason, no traceback
+        except ValueError as exc:  # bad options, a map that fails a check (MapError), a mode the map lacks
             print(f"fisc-sim run: error: {exc}", file=sys.stderr)
-            return 1
+            return 2
     if args.command == "bench":
         return _cmd_bench(args)
     if args.command == "autopilot":

@@ -35,6 +35,7 @@ import os
 import resource
 import time
 import traceback
+from types import SimpleNamespace
 from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 from pathlib import Path
@@ -42,7 +43,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fisc_agent.config import EXIT_POLICIES
+from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
 from fisc_agent.control import MapGeometry, ScalarField, entry_point, join_waypoints
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.lookup import COMMAND_MODES, CommandField
@@ -76,12 +77,19 @@ class EmulateConfig:
     """Number of emulated vehicles N (one autopilot emulator + one agent each)."""
     duration_s: float = 60.0
     """Real (wall-clock) time flown, from the launch of the first vehicle [s]."""
-    mode: str = "mean"
-    """Command mode of the agents: mean, slot or interpolated."""
+    mode: str | None = None
+    """Command mode of the agents (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended one."""
+    lookahead_s: float | None = None
+    """Command look-ahead of the agents [s]; None: the map's recommended value."""
+    preset: str = "default"
+    """``default`` (schema-2 map, its recommended settings) or ``paper`` (schema-1 map, Algorithm 1)."""
     personality: str = "px4"
     """Autopilot emulated: ``px4`` or ``ardupilot``."""
     exit_policy: str = "loop"
     """Agent exit policy after the outlet: ``loop`` (back to the inlet, keeps feeding), ``hold``, ``land``."""
+    geofence: str = "return"
+    """Agents leaving the CVs sideways: ``return`` (fly back to the nearest CV, as the simulator's return
+    policy; the kinetic mode's deviations reach the staircase walls) or ``hold``."""
     rate_hz: float = 20.0
     """Agent setpoint (control loop) rate [Hz]."""
     position_rate_hz: float = 20.0
@@ -141,9 +149,14 @@ class EmulateConfig:
 
         need(isinstance(self.agents, int) and self.agents >= 1, f"agents must be >= 1, is {self.agents!r}")
         need(math.isfinite(self.duration_s) and self.duration_s > 0, f"duration_s must be > 0, is {self.duration_s!r}")
-        need(self.mode in COMMAND_MODES, f"mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        need(self.mode is None or self.mode in COMMAND_MODES,
+             f"mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        need(self.lookahead_s is None or (math.isfinite(self.lookahead_s) and self.lookahead_s >= 0),
+             f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
+        need(self.preset in ("default", "paper"), f"preset {self.preset!r}: choose default or paper")
         need(self.personality in PERSONALITIES, f"personality {self.personality!r}: choose px4 or ardupilot")
         need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
+        need(self.geofence in GEOFENCE_POLICIES, f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
         need(self.telemetry in TELEMETRY, f"telemetry {self.telemetry!r}: choose one of {', '.join(TELEMETRY)}")
         for name in ("rate_hz", "position_rate_hz", "physics_rate_hz", "physics_dt_s", "average_window_s",
                      "sample_interval_s", "start_spacing_m"):
@@ -157,6 +170,13 @@ class EmulateConfig:
         need(self.telemetry_rate_hz > 0, f"telemetry_rate_hz must be > 0, is {self.telemetry_rate_hz!r}")
         need(self.swarm is None or self.trusted_key is not None,
              "a Zenoh swarm needs the ground's public key (trusted_key / --trusted-key) for maps and commands")
+
+    def agent_settings(self) -> "SimpleNamespace":
+        """``mode`` and ``lookahead_s`` the agents are started with (None: the map's recommended;
+        ``paper`` preset: mean, no look-ahead unless given)."""
+        paper = self.preset == "paper"
+        return SimpleNamespace(mode=self.mode if self.mode is not None or not paper else "mean",
+                               lookahead_s=self.lookahead_s if self.lookahead_s is not None or not paper else 0.0)
 
     def workers(self) -> tuple[int, int]:
         """(emulator processes, agent processes) actually used.  Automatic: one emulator process
@@ -232,18 +252,19 @@ def launch_plan(field: CommandField, n_agents: int, transform: DeploymentTransfo
 
 
 # ------------------------------------------------------------------------------------ map
-def prepare_map(spec: str | None, out_dir: Path) -> tuple[Path, CommandMap]:
+def prepare_map(spec: str | None, out_dir: Path, preset: str = "default") -> tuple[Path, CommandMap]:
     """The map the agents load by path: an existing ``.fiscmap`` is used in place; the default
-    map (None) or a reference spec is built now and written to ``out_dir/map.fiscmap``."""
+    map (None) or a reference spec is built now (the paper's schema-1 map with ``preset`` ``paper``)
+    and written to ``out_dir/map.fiscmap``."""
     if spec is not None:
         p = Path(spec)
         if p.suffix == ".fiscmap" or (p.is_file() and read_head(p, 8, what="map or reference file") == MAGIC):
             return p, load_map(p)
-    from fisc_ground.mapbuild import DEFAULT_REFERENCE, build_map
+    from fisc_ground.mapbuild import DEFAULT_REFERENCE, FitConfig, build_map
     from fisc_ground.mapwrite import write_map
     from fisc_ground.reference.load import load_reference
 
-    meta, arrays = build_map(load_reference(spec or DEFAULT_REFERENCE))
+    meta, arrays = build_map(load_reference(spec or DEFAULT_REFERENCE), FitConfig(staggered=preset != "paper"))
     path = out_dir / MAP_FILE_NAME
     write_map(path, meta, arrays)
     return path, load_map(path)
@@ -276,8 +297,10 @@ class _AgentJob:
     start_time_s: tuple[float, ...]
     map_path: str
     personality: str
-    mode: str
+    mode: str | None
+    lookahead_s: float | None
     exit_policy: str
+    geofence: str
     rate_hz: float
     position_rate_hz: float
     telemetry: str
@@ -520,8 +543,9 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         runners = []
         for aid, port in zip(job.agent_ids, job.ports):
             cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=int(aid), map_path=job.map_path,
-                              autopilot=job.personality, mode=job.mode, rate_hz=job.rate_hz,
-                              exit_policy=job.exit_policy)
+                              autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s,
+                              rate_hz=job.rate_hz,
+                              exit_policy=job.exit_policy, geofence=job.geofence)
             link = MavlinkLink(parse_endpoint(cfg.mavlink_url), position_rate_hz=job.position_rate_hz)
             runners.append(Runner(cfg, link, cmap))
         # lean telemetry: once the autopilot is found, switch its streams other than HEARTBEAT and
@@ -637,6 +661,7 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
     """Start the emulator and agent processes, fly ``config.duration_s`` of real time, collect."""
     n = plan.start_ned_m.shape[0]
     n_emu, n_agent = config.workers()
+    settings = config.agent_settings()
     ctx = mp.get_context("spawn")
     t_setup = time.monotonic()
     procs: list = []
@@ -661,7 +686,9 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             parent, child = ctx.Pipe()
             job = _AgentJob(tuple(int(i) for i in part), tuple(int(x) for x in ports[part]),
                             tuple(float(x) for x in plan.start_time_s[part]), str(map_path), config.personality,
-                            config.mode, config.exit_policy, config.rate_hz, config.position_rate_hz,
+                            settings.mode, settings.lookahead_s, config.exit_policy, config.geofence,
+                            config.rate_hz,
+                            config.position_rate_hz,
                             config.telemetry, config.worker_log_level, config.swarm, config.zenoh_config,
                             config.zenoh_prefix, config.telemetry_rate_hz, config.trusted_key)
             p = ctx.Process(target=_agent_worker, args=(child, job), name="fisc-agents", daemon=True)
@@ -867,7 +894,8 @@ def _run_config(config: EmulateConfig, map_path: Path):
 
     return RunConfig(map=str(map_path), scenario="reservoir", agents=config.agents, duration_s=config.duration_s,
                      average_window_s=config.average_window_s, sample_interval_s=config.sample_interval_s,
-                     mode=config.mode, seed=config.seed, dt_s=1.0 / config.rate_hz, min_samples=config.min_samples,
+                     mode=config.mode, lookahead_s=config.lookahead_s, preset=config.preset,
+                     seed=config.seed, dt_s=1.0 / config.rate_hz, min_samples=config.min_samples,
                      figures=config.figures, out_dir=config.out_dir)
 
 
@@ -971,7 +999,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
 
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    map_path, cmap = prepare_map(config.map, out)
+    map_path, cmap = prepare_map(config.map, out, config.preset)
     transform = DeploymentTransform(DEFAULT_ORIGIN_NED_M, 0.0)
     cf = CommandField.from_map(cmap)
     plan = launch_plan(cf, config.agents, transform, spacing_m=config.start_spacing_m, gap_m=config.start_gap_m,
@@ -988,7 +1016,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     first_entry = entries["first_entry_s"] if entries["first_entry_s"] is not None else float(plan.arrival_time_s[0])
     rcfg = _run_config(config, map_path)
     t_win = swarm.sample_t_s[window] if window.size else np.array([0.0, 0.0])
-    rr = RunResult(config=rcfg, cmap=cmap, scale=cmap.scale, fields=fields, target_command_m_s=target_cmd,
+    rr = RunResult(config=rcfg, cmap=cmap, settings=rcfg.flight_settings(cmap), scale=cmap.scale, fields=fields, target_command_m_s=target_cmd,
                    counters=counters, alive=alive, wall_time_s=swarm.duration_s,
                    window_s=(float(np.nanmin(t_win)), float(np.nanmax(t_win))),
                    inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None,

@@ -35,10 +35,18 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "default map (written to OUT/map.fiscmap for the agents)")
     p.add_argument("--agents", type=int, required=True, help="number of vehicles N (emulator + agent pairs)")
     p.add_argument("--duration", type=float, default=60.0, help="real seconds flown from the first launch")
-    p.add_argument("--mode", choices=COMMAND_MODES, default="mean", help="agent command mode")
+    p.add_argument("--mode", choices=COMMAND_MODES, default=None,
+                   help="agent command mode (default: the map's recommended mode)")
+    p.add_argument("--lookahead", type=float, default=None, metavar="SECONDS",
+                   help="agents' command look-ahead [s] (default: the map's recommended value)")
+    p.add_argument("--preset", choices=("default", "paper"), default="default",
+                   help="paper: the paper's schema-1 map flown with Algorithm 1 (mean, no look-ahead)")
     p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="personality of the emulators")
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="loop",
                    help="after the outlet: loop (fly back to the inlet), hold or land")
+    p.add_argument("--geofence", choices=("return", "hold"), default="return",
+                   help="agents leaving the CVs sideways: return (fly back to the nearest CV, as fisc-sim run's "
+                        "return policy) or hold")
     p.add_argument("--rate", type=float, default=20.0, help="agent setpoint rate [Hz]")
     p.add_argument("--average-window", type=float, default=100.0,
                    help="time-average the fields over the last S seconds (as fisc-sim run)")
@@ -70,7 +78,8 @@ def config_from_args(args: argparse.Namespace):
     from sim.emulate import EmulateConfig
 
     return EmulateConfig(out_dir=args.out, map=args.map, agents=args.agents, duration_s=args.duration,
-                         mode=args.mode, personality=args.autopilot, exit_policy=args.exit_policy,
+                         mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
+                         geofence=args.geofence,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt,
                          emulator_workers=args.workers, agent_workers=args.workers,

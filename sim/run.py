@@ -11,12 +11,20 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import (
+    COMMAND_MODES,
+    DEFAULT_PERSISTENCE_S,
+    FACE_MODES,
+    PAPER_SETTINGS,
+    CommandField,
+    FlightSettings,
+    map_flight_settings,
+)
 from fisc_agent.mapfile import MAGIC, CommandMap, load_map
 from fisc_agent.safe_files import read_head
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
@@ -28,6 +36,8 @@ from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 log = logging.getLogger(__name__)
 
 SCENARIOS = ("reservoir", "seed")
+#: ``--preset`` values (``RunConfig.preset``).
+PRESETS = ("default", "paper")
 #: Default population target of a run (the paper's run holds about 10^3 agents; N* as fitted
 #: would hold ~6000 on the default map for the same fidelity, see docs/simulation.md).
 DEFAULT_AGENTS = 1000
@@ -61,8 +71,12 @@ class RunConfig:
     the reservoir (steady state), the whole run for seeding (a transient)."""
     sample_interval_s: float = 0.1
     """Interval between the time samples of the average [s] (a multiple of dt is used)."""
-    mode: str = "mean"
-    """Command mode: mean (paper Algorithm 1), slot or interpolated."""
+    preset: str = "default"
+    """``default``: fit a schema-2 map (staggered field, designed density) and fly its recommended
+    flight settings; ``paper``: the paper's Algorithm 1 (schema-1 map, mean commands, no look-ahead)."""
+    mode: str | None = None
+    """Command mode (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended mode (the
+    preset's)."""
     collisions: bool = False
     """Enable the paper's collision layer (sim.collisions)."""
     collision_radius_m: float = 0.1
@@ -83,15 +97,21 @@ class RunConfig:
     """Time step of Algorithm 1 [s]."""
     escape_grace_s: float = 5.0
     """Return policy: longest time outside every CV before an agent counts as escaped [s]."""
-    lookahead_s: float = 0.0
+    lookahead_s: float | None = None
     """Command look-ahead t_lead [s] (``SwarmConfig.lookahead_s``): agents fly the command at
-    x + u t_lead to compensate the plant lag; 0 = the paper's Algorithm 1."""
+    x + u t_lead to compensate the plant lag; 0 = the paper's Algorithm 1; None: the map's
+    recommended value (the preset's)."""
+    persistence_s: float = DEFAULT_PERSISTENCE_S
+    """Mode ``kinetic``: how long an agent keeps one deviation direction [s]."""
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
     snapshot_times_s: tuple[float, ...] = PAPER_SNAPSHOT_TIMES_S
     """Times of the XZ swarm snapshots (paper fig. 4) [s]; times beyond the run are skipped."""
     figures: bool = True
     """Write the PNG figures."""
+    compare_paper: bool = True
+    """``run`` (not ``simulate``) also flies the paper's preset on the same reference, for report.md and
+    the figures side by side (skipped when this run is the paper preset itself)."""
     out_dir: str = "out/run"
     """Output directory."""
 
@@ -108,10 +128,22 @@ class RunConfig:
             raise ValueError(f"scale must be > 0, got {self.scale!r}")
         if not (self.max_speed_m_s > 0 and math.isfinite(self.max_speed_m_s)):
             raise ValueError(f"max_speed_m_s must be finite and > 0, got {self.max_speed_m_s!r}")
-        if not (self.lookahead_s >= 0 and math.isfinite(self.lookahead_s)):
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset {self.preset!r}: choose one of {', '.join(PRESETS)}")
+        if self.mode is not None and self.mode not in COMMAND_MODES:
+            raise ValueError(f"mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        if self.lookahead_s is not None and not (self.lookahead_s >= 0 and math.isfinite(self.lookahead_s)):
             raise ValueError(f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
         if not self.sample_interval_s > 0:
             raise ValueError(f"sample_interval_s must be > 0, got {self.sample_interval_s!r}")
+
+    def flight_settings(self, cmap: CommandMap) -> FlightSettings:
+        """The settings flown on ``cmap``: explicit mode/look-ahead, else the preset's (paper) or the
+        map's recommended ones (``fisc_agent.lookup.map_flight_settings``)."""
+        base = PAPER_SETTINGS if self.preset == "paper" else map_flight_settings(cmap)
+        return FlightSettings(base.mode if self.mode is None else self.mode,
+                              base.lookahead_s if self.lookahead_s is None else float(self.lookahead_s),
+                              self.persistence_s)
 
     @property
     def duration(self) -> float:
@@ -136,6 +168,8 @@ class RunResult:
     """The configuration."""
     cmap: CommandMap
     """The command map flown."""
+    settings: FlightSettings
+    """The flight settings flown (mode, look-ahead, persistence)."""
     scale: float
     """The speed scale S actually used."""
     fields: SwarmFields
@@ -160,18 +194,21 @@ class RunResult:
     """metrics.json content (filled by ``sim.report.compute_metrics``)."""
     paths: dict[str, Path] = field(default_factory=dict)
     """Written outputs by name."""
+    paper: "RunResult | None" = None
+    """``run``: the companion run of the paper's preset (``RunConfig.compare_paper``), else None."""
 
 
-def load_command_map(spec: str | None, max_speed_m_s: float | None = None) -> CommandMap:
+def load_command_map(spec: str | None, max_speed_m_s: float | None = None, preset: str = "default") -> CommandMap:
     """The map of ``RunConfig.map``: default, a .fiscmap file, or a reference to fit now.
 
     ``max_speed_m_s``: speed limit that sets S of a map fitted here (the default reference, or a
     reference spec); None: the map builder's default (``FitConfig.max_speed_m_s``).  A
-    ``.fiscmap`` file is loaded as it is.
+    ``.fiscmap`` file is loaded as it is.  ``preset`` ``paper`` fits the paper's schema-1 map.
     """
     from fisc_ground.mapbuild import FitConfig
 
-    fit = FitConfig() if max_speed_m_s is None else FitConfig(max_speed_m_s=float(max_speed_m_s))
+    kw = {} if max_speed_m_s is None else {"max_speed_m_s": float(max_speed_m_s)}
+    fit = FitConfig(staggered=preset != "paper", **kw)
     if spec is None:
         from fisc_ground.mapbuild import build_default_map
 
@@ -198,9 +235,14 @@ def simulate(config: RunConfig, cmap: CommandMap,
         collider = CollisionModel(CollisionParams(radius_m=config.collision_radius_m,
                                                   v_max_m_s=float(cmap.body.get("max_speed_m_s", 5.0)) * 1.5),
                                   cf.cell_size_m)
-    swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=config.mode,
+    settings = config.flight_settings(cmap)
+    if settings.mode in FACE_MODES and cf.face_u_m_s is None:
+        raise ValueError(f"mode {settings.mode!r} needs a schema-2 map with the staggered face field; "
+                         f"this map is schema {cmap.schema_version} (refit it with fisc-ground fit)")
+    swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=settings.mode,
                                                  escape_grace_s=config.escape_grace_s,
-                                                 lookahead_s=config.lookahead_s),
+                                                 lookahead_s=settings.lookahead_s,
+                                                 persistence_s=settings.persistence_s),
                   collider=collider)
     rng = np.random.default_rng(config.seed)
     reservoir = None
@@ -237,7 +279,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
     if progress is not None:
         progress(1.0)
     return RunResult(
-        config=config, cmap=cmap, scale=scale, fields=acc.result(), target_command_m_s=target_cmd,
+        config=config, cmap=cmap, settings=settings, scale=scale, fields=acc.result(), target_command_m_s=target_cmd,
         counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
         window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
         inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
@@ -259,8 +301,17 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
     from sim import report
 
-    cmap = load_command_map(config.map, config.max_speed_m_s)
-    result = simulate(config, cmap, progress)
+    cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
+    paper = settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
+    result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)))
+    paper = None
+    if config.compare_paper and not settings_are_paper:
+        pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
+        pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
+            load_command_map(config.map, config.max_speed_m_s, "paper")
+        paper = simulate(pcfg, pmap)
+        paper.metrics = report.compute_metrics(paper)
+        result.paper = paper
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result.metrics = report.compute_metrics(result)

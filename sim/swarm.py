@@ -37,12 +37,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.lookup import COMMAND_MODES, CommandField, lookahead_point, slot_hash
+from fisc_agent.lookup import (
+    COMMAND_MODES,
+    DEFAULT_PERSISTENCE_S,
+    CommandField,
+    DeviationState,
+    FlightSettings,
+    flight_command,
+    lookahead_point,
+    slot_hash,
+)
 from sim.kernels import cell_and_slot_helpers, move_kernel, removal_kernel, return_commands_kernel
 from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
+
 
 
 @functools.lru_cache(maxsize=1)
@@ -106,6 +116,15 @@ class SwarmConfig:
     ``x + u t_lead`` (its own CV when that point is outside the CVs) instead of the CV at x,
     compensating the plant lag (~0.58 s for the default plant).  0 = the paper's Algorithm 1.
     The CV assignment (exits, escapes, the fields) always uses x itself."""
+
+    persistence_s: float = DEFAULT_PERSISTENCE_S
+    """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
+    (``fisc_agent.lookup.kinetic_deviation``)."""
+
+    @property
+    def flight_settings(self) -> FlightSettings:
+        """The settings of ``fisc_agent.lookup.flight_command`` this configuration flies."""
+        return FlightSettings(self.mode, self.lookahead_s, self.persistence_s)
 
     def __post_init__(self) -> None:
         if not (self.dt_s > 0 and np.isfinite(self.dt_s)):
@@ -261,7 +280,7 @@ class Swarm:
     # ---------------------------------------------------------------- state buffers
     def _alloc(self, cap: int) -> None:
         n = getattr(self, "n", 0)
-        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out")}
+        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign")}
         self._pos = np.zeros((cap, 3))
         self._vel = np.zeros((cap, 3))
         self._thr = np.zeros((cap, 3))
@@ -271,8 +290,10 @@ class Swarm:
         self._out = np.zeros(cap)
         self._cvbuf = np.zeros(cap, dtype=np.int64)
         self._cellbuf = np.zeros(cap, dtype=np.int64)
+        self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.lookup.DeviationState)
+        self._sign = np.ones((cap, 3))
         if old["pos"] is not None and n:
-            for k in ("pos", "vel", "thr", "ids", "out"):
+            for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign"):
                 getattr(self, "_" + k)[:n] = old[k][:n]
 
     @property
@@ -326,7 +347,7 @@ class Swarm:
             inside = cv >= 0
             out[...] = 0.0
             if inside.any():
-                out[inside] = self.field.command(self.pos_m[inside], self.ids[inside], "interpolated",
+                out[inside] = self.field.command(self.pos_m[inside], self.ids[inside], mode,
                                                  cv_ids=cv[inside]) * MAP_TO_NED
 
     # ---------------------------------------------------------------- population
@@ -340,7 +361,13 @@ class Swarm:
         ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         if k == 0:
             return ids
-        if vel_map_m_s is None:
+        if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
+            # start at the command of flight_command without look-ahead (kinetic: with its deviation)
+            st = self.config.flight_settings
+            cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
+                                       FlightSettings(st.mode, 0.0, st.persistence_s))
+            vel = np.nan_to_num(cmd)
+        elif vel_map_m_s is None:
             vel = np.nan_to_num(self.commands_map(pos, ids))
         else:
             vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
@@ -352,6 +379,8 @@ class Swarm:
         self._thr[s] = trim_thrust_accel(self._vel[s], self._co)
         self._ids[s] = ids
         self._out[s] = 0.0
+        self._epoch[s] = -1
+        self._sign[s] = 1.0
         self.n += k
         self._next_id += k
         self.counters.injected += k
@@ -365,7 +394,8 @@ class Swarm:
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        bufs = (self._pos, self._vel, self._thr, self._ids, self._out) + ((self._cmd,) if self._cmd_ready else ())
+        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign) + (
+            (self._cmd,) if self._cmd_ready else ())
         for buf in bufs:
             buf[holes] = buf[src]
         cv = cv.copy()
@@ -425,10 +455,7 @@ class Swarm:
         if n == 0:
             return
         cmd = self._cmd[:n]
-        if self.config.lookahead_s > 0:
-            self._lookahead_commands(cv, cmd)
-        elif not self._cmd_ready:
-            self._command_ned(cv, cmd)
+        self._select_commands(cv, cmd, self.t_s - self.config.dt_s, into_buffer=True)
         fused = self._kernel is not None  # numba: sim.kernels, same numbers as the numpy path
         if fused:
             self.counters.returned += self._fused_returns(cv, cmd)
@@ -455,6 +482,46 @@ class Swarm:
         self._cv = None
         self._cmd_ready = False
 
+    def _select_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float, into_buffer: bool) -> None:
+        """NED commands of the configured mode for agents with CVs ``cv`` at time ``t_s`` (rows with
+        cv = -1 are overwritten by the return policy later).  ``into_buffer``: ``cmd_ned`` is the
+        step's own buffer, which the fused lookup kernel may already have filled."""
+        if self.config.mode not in ("mean", "slot"):
+            self._flight_commands(cv, cmd_ned, t_s)
+        elif self.config.lookahead_s > 0:
+            self._lookahead_commands(cv, cmd_ned)
+        elif self._cmd_ready:
+            if not into_buffer:
+                cmd_ned[...] = self._cmd[:self.n]
+        else:
+            self._command_ned(cv, cmd_ned)
+
+    def current_commands_map(self) -> np.ndarray:
+        """(n, 3) map-frame commands the next ``step`` flies for agents inside a CV (NaN rows for
+        agents outside, which fly the return policy), without changing any state (the kinetic
+        mode's deviation state included).  For tests comparing the simulator with the agent."""
+        cv = self.assign()
+        n = self.n
+        epoch, sign = self._epoch[:n].copy(), self._sign[:n].copy()
+        cmd = np.zeros((n, 3))
+        self._select_commands(cv, cmd, self.t_s, into_buffer=False)
+        self._epoch[:n], self._sign[:n] = epoch, sign
+        out = cmd * MAP_TO_NED
+        out[cv < 0] = np.nan
+        return out
+
+    def _flight_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float) -> None:
+        """Commands of every agent from ``fisc_agent.lookup.flight_command`` (the onboard agent's
+        function, vectorised), rows outside the CVs 0 (the return policy fills them)."""
+        n = self.n
+        state = DeviationState(self._epoch[:n], self._sign[:n])
+        cmd, _, new = flight_command(self.field, self.pos_m, self.velocity_map(), self.ids, t_s,
+                                     self.config.flight_settings, state, cv_ids=cv)
+        if new is not None:
+            self._epoch[:n] = new.epoch
+            self._sign[:n] = new.sign
+        np.multiply(np.nan_to_num(cmd), MAP_TO_NED, out=cmd_ned)
+
     def _lookahead_commands(self, cv: np.ndarray, cmd_ned: np.ndarray) -> None:
         """Fill ``cmd_ned`` with the command at the look-ahead point x + u t_lead (``lookahead_point``);
         agents whose look-ahead point has no CV keep their own CV's command."""
@@ -464,11 +531,11 @@ class Swarm:
         if fallback.any():
             ahead[fallback] = cv[fallback]
             pts[fallback] = self.pos_m[fallback]
-        if self.config.mode == "interpolated":
+        if self.config.mode not in ("mean", "slot"):
             inside = ahead >= 0
             cmd_ned[...] = 0.0
             if inside.any():
-                cmd_ned[inside] = self.field.command(pts[inside], self.ids[inside], "interpolated",
+                cmd_ned[inside] = self.field.command(pts[inside], self.ids[inside], self.config.mode,
                                                      cv_ids=ahead[inside]) * MAP_TO_NED
         else:
             self._command_ned(ahead, cmd_ned)

@@ -42,7 +42,20 @@ def test_args_become_a_config():
     assert cfg.transform.yaw_deg == 90.0
 
 
+def test_mode_and_lookahead_default_to_the_map_and_preset_paper_is_algorithm_1():
+    base = ["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7"]
+    cfg = config_from_args(build_parser().parse_args(base))
+    assert cfg.mode is None and cfg.lookahead_s is None  # the map's recommended settings ...
+    assert cfg.lookahead_auto and cfg.tracking.gain_1_s > 0   # ... refined in flight, with streamline tracking
+    cfg = config_from_args(build_parser().parse_args(base + ["--lookahead", "0.4", "--mode", "kinetic"]))
+    assert cfg.lookahead_s == 0.4 and cfg.mode == "kinetic"
+    cfg = config_from_args(build_parser().parse_args(base + ["--preset", "paper"]))
+    assert cfg.mode == "mean" and cfg.lookahead_s == 0.0
+    assert not cfg.lookahead_auto and cfg.tracking.gain_1_s == 0.0    # open loop: Algorithm 1
+
+
 @pytest.mark.parametrize("args, words", [
+    (["--lookahead", "-0.5"], "lookahead_s"),
     (["--mavlink", "bogus://x:1"], "unknown scheme"),
     (["--origin", "1,2"], "--origin"),
     (["--rate", "1"], "rate"),

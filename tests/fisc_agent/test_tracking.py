@@ -16,13 +16,6 @@ def linear(x, y, z):
     return (1.0 + x, 0.0, 0.0) if 0.0 <= x < 10.0 else None
 
 
-def test_open_loop_is_the_field_at_the_vehicle():
-    tr = ParcelTracker(TrackingConfig(gain_1_s=0.0))
-    assert tr.step(0.0, (3.0, 0.2, 0.0), linear) == (4.0, 0.0, 0.0)
-    assert tr.parcel_m is None
-    assert tr.step(0.0, (11.0, 0.0, 0.0), linear) is None
-
-
 def test_cross_stream_error_is_pulled_back_and_along_stream_is_not():
     cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.0, bias_time_constant_s=0.0)
     tr = ParcelTracker(cfg)
@@ -50,7 +43,8 @@ def test_correction_and_integral_are_bounded_and_the_integral_learns_a_steady_of
 
 def test_lookahead_on_a_linear_field_adds_lag_times_acceleration_within_and_beyond_its_reach():
     for reach in (5.0, 0.2):
-        tr = ParcelTracker(TrackingConfig(gain_1_s=0.0, lookahead_s=0.5, lookahead_reach_m=reach))
+        tr = ParcelTracker(TrackingConfig(lookahead_s=0.5, lookahead_reach_m=reach, bias_time_constant_s=0.0))
+        tr.reset((1.0, 0.0, 0.0), 0.0)
         v = tr.step(0.0, (1.0, 0.0, 0.0), linear)                 # u = 2, a = u du/dx = 2
         assert v[0] == pytest.approx(2.0 + 0.5 * 2.0)
 

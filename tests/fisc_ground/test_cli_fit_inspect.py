@@ -42,8 +42,15 @@ def test_inspect_json_has_the_contract_keys(default_map):
     for key in ("n_cv", "cell_size", "scale", "kappa", "n_range", "schema_version", "sha256", "signed",
                 "fit_seconds", "fit_velocity_rmse", "fit_pressure_rmse"):
         assert key in summary, key
-    assert summary["cell_size"] == 0.5 and summary["signed"] is False and summary["schema_version"] == 1
+    assert summary["cell_size"] == 0.5 and summary["signed"] is False and summary["schema_version"] == 2
     assert summary["fit_velocity_rmse"] < 1e-6
+
+
+def test_fit_preset_paper_writes_the_schema_1_map(tmp_path):
+    out = tmp_path / "paper.fiscmap"
+    assert main(["fit", "analytic", "-o", str(out), "--preset", "paper"]) == 0
+    cmap = load_map(out)
+    assert cmap.schema_version == 1 and "face_u_x_m_s" not in cmap.arrays and "flight" not in cmap.body
 
 
 def test_signed_map_round_trip_and_refusals(tmp_path, default_map):

@@ -13,6 +13,11 @@ def test_shipped_default_map_matches_a_fresh_fit():
         assert shipped.body[key] == fresh.body[key], key
     for name in REQUIRED_ARRAYS:
         np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-12, err_msg=name)
+    # schema 2: the staggered field, the designed density and the recommended flight settings
+    assert shipped.schema_version == fresh.schema_version == 2
+    assert shipped.body["flight"] == fresh.body["flight"]
+    for name in ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s", "cv_design_density"):
+        np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-9, err_msg=name)
 
 
 def test_default_map_carries_the_open_volume_fraction():

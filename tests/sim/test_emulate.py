@@ -70,6 +70,15 @@ def test_config_rejects_bad_values():
     assert EmulateConfig(agents=50).workers() == (1, 1)
     assert EmulateConfig(agents=400).workers() == (2, 2)
     assert EmulateConfig(agents=250).workers() == (2, 1)
+    with pytest.raises(ValueError, match="geofence"):
+        EmulateConfig(geofence="fly")
+    with pytest.raises(ValueError, match="lookahead_s"):
+        EmulateConfig(lookahead_s=-1.0)
+    # agents fly the map's settings by default; the paper preset pins Algorithm 1
+    s = EmulateConfig().agent_settings()
+    assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().geofence == "return"
+    s = EmulateConfig(preset="paper").agent_settings()
+    assert (s.mode, s.lookahead_s) == ("mean", 0.0)
 
 
 def _swarm(pos_ned: np.ndarray, vel_ned: np.ndarray, t: np.ndarray) -> SwarmRun:

@@ -101,18 +101,31 @@ def test_bad_config_is_refused():
 
 def test_run_defaults_are_the_papers_population_and_speed_regime():
     """No options: ~10^3 agents (N* scaled to 1000) on the default reference fitted for a 2 m/s
-    speed limit (the paper's S = 0.1 x 22.4 m/s regime); look-ahead off (Algorithm 1)."""
+    speed limit (the paper's S = 0.1 x 22.4 m/s regime), as a schema-2 map flown with its recommended
+    settings; ``--preset paper`` flies the paper's Algorithm 1 (schema-1 map, mean, no look-ahead)."""
+    from fisc_agent.lookup import PAPER_SETTINGS, map_flight_settings
+    from fisc_ground.mapbuild import DEFAULT_FLIGHT
     from sim.run import DEFAULT_AGENTS, SIM_MAX_SPEED_M_S, load_command_map
 
     cfg = RunConfig()
-    assert cfg.agents == DEFAULT_AGENTS == 1000 and cfg.lookahead_s == 0.0
+    assert cfg.agents == DEFAULT_AGENTS == 1000 and cfg.lookahead_s is None and cfg.mode is None
     assert cfg.max_speed_m_s == SIM_MAX_SPEED_M_S == 2.0
     cmap = load_command_map(None, cfg.max_speed_m_s)
+    assert cmap.schema_version == 2
+    assert cfg.flight_settings(cmap) == map_flight_settings(cmap) == DEFAULT_FLIGHT
+    assert DEFAULT_FLIGHT.lookahead_s > 0 and DEFAULT_FLIGHT.mode != "mean"
+    paper = load_command_map(None, cfg.max_speed_m_s, preset="paper")
+    assert paper.schema_version == 1
+    assert RunConfig(preset="paper").flight_settings(paper) == PAPER_SETTINGS
+    assert RunConfig(preset="paper").flight_settings(cmap) == PAPER_SETTINGS  # whatever the map recommends
+    assert RunConfig(mode="slot", lookahead_s=0.3).flight_settings(cmap).mode == "slot"
     peak = np.nanmax(np.linalg.norm(cmap.scale * np.asarray(cmap["fit_velocity_m_s"]), axis=-1))
     assert peak == pytest.approx(2.0)
     assert load_command_map(None).scale == pytest.approx(2.5 * cmap.scale)  # map builder default: 5 m/s
     with pytest.raises(ValueError, match="lookahead_s"):
         RunConfig(lookahead_s=-1.0)
+    with pytest.raises(ValueError, match="preset"):
+        RunConfig(preset="fancy")
 
 
 def test_lookahead_reaches_the_swarm_and_cuts_the_velocity_error():
@@ -156,3 +169,51 @@ def test_cli_lookahead_max_speed_and_fitted_population_reach_the_config(tmp_path
     assert cfg["lookahead_s"] == 0.5 and cfg["max_speed_m_s"] == 3.0 and cfg["agents"] is None
     with pytest.raises(SystemExit):
         main(["run", "--agents", "many"])
+
+
+def test_main_job_default_and_paper_preset_figures_recomputed_from_fields_csv(tmp_path):
+    """The README's main job (default flags) writes fields.csv whose independently recomputed figures
+    (tests/sim/fidelity_check.py, DESIGN.md section 4, CVs with samples > 0) agree with metrics.json;
+    the default beats the paper preset on pressure and density, and the paper preset keeps the paper's
+    Algorithm-1 figures (issue 9).  Thresholds are the measured values with a small margin."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from sim.run import run
+
+    spec = importlib.util.spec_from_file_location("fidelity_check", Path(__file__).with_name("fidelity_check.py"))
+    checker = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(checker)
+    fidelity_from_csv = checker.fidelity_from_csv
+
+    res = run(RunConfig(out_dir=str(tmp_path / "run"), figures=False))
+    mine = fidelity_from_csv(str(tmp_path / "run" / "fields.csv"))
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    for q in ("velocity", "pressure", "density"):
+        assert mine[f"nrmse_{q}"] == pytest.approx(metrics[f"nrmse_{q}"], abs=0.01)
+    assert mine["nrmse_velocity"] <= 0.06
+    assert mine["nrmse_pressure"] <= 0.30 and mine["pearson_pressure"] >= 0.7
+    assert mine["nrmse_density"] <= 0.32
+    paper = metrics["paper_preset"]
+    assert paper["nrmse_velocity"] == pytest.approx(0.066, abs=0.02)
+    assert paper["nrmse_pressure"] == pytest.approx(0.806, abs=0.02)
+    assert paper["nrmse_density"] == pytest.approx(0.587, abs=0.02)
+    assert res.paper is not None and metrics["flight_settings"]["mode"] == "kinetic"
+    assert 0.7 <= metrics["spread_realised_over_fitted"]["median"] <= 1.1
+
+
+def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, capsys):
+    from fisc_ground.mapbuild import FitConfig, build_map
+    from fisc_ground.mapwrite import write_map
+    from fisc_ground.reference.analytic import analytic_nozzle
+    from sim.cli import main
+
+    meta, arrays = build_map(analytic_nozzle(), FitConfig(staggered=False))
+    path = tmp_path / "v1.fiscmap"
+    write_map(path, meta, arrays)
+    assert main(["run", "-q", "--map", str(path), "--mode", "kinetic", "--duration", "1", "--no-figures",
+                 "-o", str(tmp_path / "out")]) == 2
+    assert "schema-2" in capsys.readouterr().err
+    assert main(["run", "-q", "--map", str(tmp_path / "missing.fiscmap"), "-o", str(tmp_path / "o2")]) == 2
+    assert "cannot read map" in capsys.readouterr().err

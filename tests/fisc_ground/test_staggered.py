@@ -1,0 +1,116 @@
+"""The continuity-consistent staggered field (fisc_ground.staggered) and schema-2 maps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fisc_agent.lookup import CommandField, map_flight_settings, PAPER_SETTINGS
+from fisc_agent.mapfile import MapError, decode_map
+from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
+from fisc_ground.mapwrite import encode_map
+from fisc_ground.reference.analytic import analytic_nozzle
+from fisc_ground.staggered import design_density, project
+
+
+def _net_outflow(grid, fx, fy, fz, rho):
+    """Net outflow of rho_f u through every CV's faces, recomputed here from the face arrays."""
+    pad = np.full(tuple(s + 2 for s in grid.shape), -1)
+    pad[1:-1, 1:-1, 1:-1] = grid
+    out = np.zeros(rho.size)
+    for (i, j, k) in np.argwhere(grid >= 0):
+        c = grid[i, j, k]
+        total = 0.0
+        for a, f in enumerate((fx, fy, fz)):
+            lo = [i, j, k]
+            hi = [i, j, k]
+            hi[a] += 1
+            nb_lo = [i + 1, j + 1, k + 1]
+            nb_lo[a] -= 1
+            nb_hi = [i + 1, j + 1, k + 1]
+            nb_hi[a] += 1
+            r_lo = rho[c] if pad[tuple(nb_lo)] < 0 else 0.5 * (rho[c] + rho[pad[tuple(nb_lo)]])
+            r_hi = rho[c] if pad[tuple(nb_hi)] < 0 else 0.5 * (rho[c] + rho[pad[tuple(nb_hi)]])
+            total += r_hi * f[tuple(hi)] - r_lo * f[tuple(lo)]
+        out[c] = total
+    return out
+
+
+def test_projection_is_divergence_free_with_walls_closed():
+    cmap = build_map_from_reference("analytic", FitConfig())
+    grid = np.asarray(cmap["grid_cv"])
+    fx, fy, fz = (np.asarray(cmap[k]) for k in ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s"))
+    rho = np.asarray(cmap["cv_design_density"])
+    div = _net_outflow(grid, fx, fy, fz, rho)
+    inflow = float(np.sum(rho[grid[0][grid[0] >= 0]] * fx[0][grid[0] >= 0]))
+    assert np.max(np.abs(div)) < 1e-9 * inflow
+    # wall faces (one side without a CV, not inlet/outlet) carry nothing
+    pad = np.full(tuple(s + 2 for s in grid.shape), -1)
+    pad[1:-1, 1:-1, 1:-1] = grid
+    lo = pad[1:-1, :-1, 1:-1] >= 0
+    hi = pad[1:-1, 1:, 1:-1] >= 0
+    assert np.all(fy[lo ^ hi] == 0.0)
+    assert np.all(fy[~lo & ~hi] == 0.0)
+    # the inlet carries the CFD inflow
+    t = np.asarray(cmap["target_velocity_m_s"])
+    np.testing.assert_allclose(fx[0][grid[0] >= 0], t[grid[0][grid[0] >= 0], 0])
+    assert cmap.body["staggered"]["max_divergence"] < 1e-9
+
+
+def test_uniform_duct_keeps_the_cfd_velocity():
+    # a straight duct of full cubes: the CFD field is already continuity-consistent
+    grid = np.arange(4 * 2 * 2).reshape(4, 2, 2)
+    u = np.tile([2.0, 0.0, 0.0], (16, 1))
+    st = project(grid, u, np.ones(16), np.ones(16))
+    np.testing.assert_allclose(st.face_u_x_m_s, 2.0)
+    np.testing.assert_allclose(st.face_u_y_m_s, 0.0, atol=1e-12)
+    np.testing.assert_allclose(st.face_u_z_m_s, 0.0, atol=1e-12)
+
+
+def test_designed_density_follows_continuity_and_cfd_pattern():
+    grid = np.arange(4).reshape(4, 1, 1)
+    u = np.array([[1.0, 0, 0], [2.0, 0, 0], [2.0, 0, 0], [1.0, 0, 0]])
+    cfd = np.array([1.0, 0.0, 0.0, 1.0])  # CFD density low where the flow is fast
+    for beta in (0.0, 0.5, 1.0):
+        rho = design_density(grid, u, cfd, cfd, beta)
+        assert rho.mean() == pytest.approx(1.0)
+        assert rho[1] < rho[0] and rho[2] < rho[3]
+    # beta = 1: n u is constant along the duct (continuity at the CFD velocity)
+    rho = design_density(grid, u, np.full(4, 1.2), np.full(4, 3.0), 1.0)
+    np.testing.assert_allclose(rho * u[:, 0], rho[0] * u[0, 0])
+    with pytest.raises(ValueError, match="CV 2"):
+        design_density(grid, u, np.array([1.0, 2.0, np.nan, 1.0]), np.array([1.0, 2.0, np.nan, 1.0]), 0.5)
+
+
+def test_schema_2_map_roundtrip_and_version_1_still_loads():
+    field = analytic_nozzle()
+    meta, arrays = build_map(field, FitConfig())
+    m2 = decode_map(encode_map(meta, arrays))
+    assert m2.schema_version == 2
+    s = map_flight_settings(m2)
+    assert (s.mode, s.lookahead_s) == (m2.body["flight"]["mode"], m2.body["flight"]["lookahead_s"])
+    assert CommandField.from_map(m2).face_u_m_s is not None
+    meta1, arrays1 = build_map(field, FitConfig(staggered=False))
+    m1 = decode_map(encode_map(meta1, arrays1))
+    assert m1.schema_version == 1 and "face_u_x_m_s" not in m1.arrays
+    assert map_flight_settings(m1) == PAPER_SETTINGS
+    # the shipped map of an older build is schema 1 or 2; either loads
+    from fisc_ground.mapbuild import load_shipped_default_map
+    assert load_shipped_default_map().schema_version in (1, 2)
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda a, m: a.pop("face_u_y_m_s"), "face_u_y_m_s"),
+    (lambda a, m: a.__setitem__("face_u_x_m_s", a["face_u_x_m_s"][:-1]), "face_u_x_m_s"),
+    (lambda a, m: a.__setitem__("face_u_z_m_s", np.where(a["face_u_z_m_s"] == 0, np.nan, a["face_u_z_m_s"])),
+     "non-finite"),
+    (lambda a, m: m.pop("flight"), "flight"),
+    (lambda a, m: m["flight"].__setitem__("lookahead_s", -1.0), "flight.lookahead_s"),
+])
+def test_bad_schema_2_maps_are_refused_naming_the_problem(mutate, message):
+    meta, arrays = build_map(analytic_nozzle(), FitConfig())
+    arrays = dict(arrays)
+    meta = dict(meta, flight=dict(meta["flight"]))
+    mutate(arrays, meta)
+    with pytest.raises(MapError, match=message):
+        decode_map(encode_map(meta, arrays))
