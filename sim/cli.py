@@ -13,6 +13,7 @@ import sys
 from contextlib import contextmanager
 
 from fisc_agent.lookup import COMMAND_MODES
+from sim.plant_fit import PLANT_PRESETS
 
 
 def _agents(text: str):
@@ -41,6 +42,9 @@ def _add_run(sub) -> None:
     p.add_argument("--average-window", type=float, default=None,
                    help="time-average the fields over the last S seconds (default: 100 for reservoir, "
                         "the whole run for seed)")
+    p.add_argument("--plant", choices=tuple(PLANT_PRESETS), default="paper",
+                   help="vehicle model: the paper's quadrotor, or px4-sih (fitted to real PX4 SITL flights; "
+                        "sim.plant_fit)")
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map (continuity-consistent staggered field, designed density) flown "
                         "with its recommended settings; paper: the paper's Algorithm 1 (schema-1 map, mean "
@@ -94,7 +98,7 @@ def _cmd_run(args) -> int:
     cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    lookahead_s=args.lookahead, preset=args.preset, out_dir=args.out, **extra)
+                    lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.out, **extra)
     show = not args.quiet and sys.stderr.isatty()
     with _progress(show, f"{cfg.scenario}/{cfg.preset}") as cb:
         res = run(cfg, progress=cb)

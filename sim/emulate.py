@@ -98,6 +98,8 @@ class EmulateConfig:
     """Emulator service rate: receive, advance the physics, send due telemetry [Hz]."""
     physics_dt_s: float = 0.02
     """Physics step of the emulated vehicles [s] (the emulator's default; 0.05 = the simulator's dt)."""
+    plant: str = "paper"
+    """Vehicle model inside the emulators: a named ``sim.plant_fit.PLANT_PRESETS`` entry."""
     telemetry: str = "full"
     """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
     and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""
@@ -285,6 +287,7 @@ class _EmulatorJob:
     personality: str
     physics_rate_hz: float
     physics_dt_s: float
+    plant: str
     position_rate_hz: float
     sample_interval_s: float
     log_level: str
@@ -407,10 +410,12 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         from sim.autopilot.personalities import FlightMode
         from sim.autopilot.server import AutopilotEmulator
         from sim.autopilot.vehicle import VehicleConfig
-        from sim.plant import PlantParams, VelocityPlant
+        from sim.plant import VelocityPlant
 
         _raise_fd_limit()
-        vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s)
+        from sim.plant_fit import plant_preset
+
+        vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s, plant_params=plant_preset(job.plant))
         emus = [AutopilotEmulator("udpin:127.0.0.1:0", job.personality, start, sysid=1 + aid % 250,
                                   rate_position_hz=job.position_rate_hz, vehicle_config=vcfg)
                 for aid, start in zip(job.agent_ids, job.start_ned_m)]
@@ -420,7 +425,7 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         serve_from = np.asarray(job.start_time_s)[order] - 0.5
         # warm-up: the plant's numba kernel compiles (or loads its cache) on the first call; do
         # it now, not on the first vehicle's lift-off (a stall there reads as a stale position)
-        VelocityPlant(PlantParams(), 1).step(np.zeros((1, 3)), job.physics_dt_s)
+        VelocityPlant(vcfg.plant_params, 1).step(np.zeros((1, 3)), job.physics_dt_s)
         n = len(emus)
         sp_count = np.zeros(n, dtype=np.int64)
 
@@ -672,7 +677,7 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             parent, child = ctx.Pipe()
             job = _EmulatorJob(tuple(int(i) for i in part), tuple(tuple(map(float, p)) for p in plan.start_ned_m[part]),
                                tuple(float(t) for t in plan.start_time_s[part]), config.personality,
-                               config.physics_rate_hz, config.physics_dt_s, config.position_rate_hz,
+                               config.physics_rate_hz, config.physics_dt_s, config.plant, config.position_rate_hz,
                                config.sample_interval_s, config.worker_log_level)
             p = ctx.Process(target=_emulator_worker, args=(child, job), name="fisc-emulators", daemon=True)
             p.start()

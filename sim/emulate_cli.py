@@ -42,6 +42,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="paper: the paper's schema-1 map flown with Algorithm 1 (mean, no look-ahead)")
     p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="personality of the emulators")
+    p.add_argument("--plant", choices=("paper", "px4-sih"), default="paper",
+                   help="vehicle model inside the emulators: the paper's quadrotor, or px4-sih (fitted to real PX4 "
+                        "SITL flights; sim.plant_fit)")
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="loop",
                    help="after the outlet: loop (fly back to the inlet), hold or land")
     p.add_argument("--geofence", choices=("return", "hold"), default="return",
@@ -81,7 +84,7 @@ def config_from_args(args: argparse.Namespace):
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
                          geofence=args.geofence,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
-                         physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt,
+                         physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,
                          emulator_workers=args.workers, agent_workers=args.workers,
                          compare=not args.no_compare, figures=not args.no_figures, seed=args.seed,
                          swarm=args.swarm, zenoh_config=args.zenoh_config, zenoh_prefix=args.zenoh_prefix,

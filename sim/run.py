@@ -29,7 +29,7 @@ from fisc_agent.mapfile import MAGIC, CommandMap, load_map
 from fisc_agent.safe_files import read_head
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 from sim.collisions import CollisionModel, CollisionParams
-from sim.plant import PlantParams
+from sim.plant_fit import plant_preset
 from sim.scenarios import Reservoir, scale_for_agents, seed_positions
 from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 
@@ -112,6 +112,9 @@ class RunConfig:
     compare_paper: bool = True
     """``run`` (not ``simulate``) also flies the paper's preset on the same reference, for report.md and
     the figures side by side (skipped when this run is the paper preset itself)."""
+    plant: str = "paper"
+    """Vehicle model: a named ``sim.plant_fit.PLANT_PRESETS`` entry (``paper``: the paper's nominal
+    quadrotor; ``px4-sih``: fitted to real PX4 SITL flights)."""
     out_dir: str = "out/run"
     """Output directory."""
 
@@ -239,7 +242,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
     if settings.mode in FACE_MODES and cf.face_u_m_s is None:
         raise ValueError(f"mode {settings.mode!r} needs a schema-2 map with the staggered face field; "
                          f"this map is schema {cmap.schema_version} (refit it with fisc-ground fit)")
-    swarm = Swarm(cf, PlantParams(), SwarmConfig(dt_s=config.dt_s, mode=settings.mode,
+    swarm = Swarm(cf, plant_preset(config.plant), SwarmConfig(dt_s=config.dt_s, mode=settings.mode,
                                                  escape_grace_s=config.escape_grace_s,
                                                  lookahead_s=settings.lookahead_s,
                                                  persistence_s=settings.persistence_s),

@@ -4,7 +4,7 @@ Everything here runs the autopilots the way their READMEs say (``start.sh N``, `
 API link on udp 14540+i, ground-station link on 14550), with the run state in a temporary folder:
 
 - ``Px4Sitl`` / ``ArduPilotSitl``: context managers that start N vehicles, wait until they are
-  ready (PX4: "Ready for takeoff" in each console log; ArduPilot: its EKF reports GPS in use),
+  ready (PX4: "Ready for takeoff" in each console log; ArduPilot: its pre-arm checks pass),
   and stop them, leaving their flight logs (ULog / DataFlash) in ``run_dir``.
 - The shared PX4 folder is read-only and its ``bin/px4-<module>`` command links arrive as plain
   files that name their target (``px4``); PX4's startup scripts call those commands, so
@@ -121,7 +121,7 @@ class Px4Sitl:
 
 
 class ArduPilotSitl:
-    """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters, EKF using GPS."""
+    """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters whose pre-arm checks pass."""
 
     def __init__(self, shared_ap: Path, work: Path, n: int = 1, spacing_m: float | None = None,
                  ready_timeout_s: float = 90.0) -> None:
@@ -145,16 +145,25 @@ class ArduPilotSitl:
                                  text=True, timeout=60)
             if out.returncode != 0:
                 raise RuntimeError(f"ArduPilot SITL did not start: {out.stdout}{out.stderr}")
-            using_gps: set[int] = set()
+            # ready = ArduPilot's own pre-arm checks pass (SYS_STATUS health bit MAV_SYS_STATUS_PREARM_CHECK,
+            # streamed on request over the GCS link); its EKF is then using GPS (about 20-40 s after start)
+            ready: set[int] = set()
+            asked: dict[int, float] = {}
             end = time.monotonic() + self.ready_timeout_s
-            while len(using_gps) < self.n and time.monotonic() < end:
-                m = gcs.recv_match(type="STATUSTEXT", blocking=True, timeout=1.0)
-                if m is not None and "is using GPS" in m.text:
-                    using_gps.add(m.get_srcSystem())
-            if len(using_gps) < self.n:
+            while len(ready) < self.n and time.monotonic() < end:
+                m = gcs.recv_match(type=["HEARTBEAT", "SYS_STATUS"], blocking=True, timeout=1.0)
+                if m is None:
+                    continue
+                sysid = m.get_srcSystem()
+                if m.get_type() == "HEARTBEAT" and time.monotonic() - asked.get(sysid, -10.0) > 2.0:
+                    gcs.mav.command_long_send(sysid, 1, 511, 0, 1, 500_000, 0, 0, 0, 0, 0)  # SYS_STATUS at 2 Hz
+                    asked[sysid] = time.monotonic()
+                elif m.get_type() == "SYS_STATUS" and m.onboard_control_sensors_health & 0x10000000:
+                    ready.add(sysid)
+            if len(ready) < self.n:
                 self.__exit__(None, None, None)
-                raise RuntimeError(f"ArduPilot EKF not using GPS within {self.ready_timeout_s:.0f} s "
-                                   f"(ready: {sorted(using_gps)})")
+                raise RuntimeError(f"ArduPilot pre-arm checks not passing within {self.ready_timeout_s:.0f} s "
+                                   f"(ready: {sorted(ready)})")
         finally:
             gcs.close()
         return SitlRun(self.run_dir, self.n)

@@ -58,15 +58,19 @@ def _score(log: Path, tunnel):
     return tr, score_track(tr.t_s, tr.pos_m, tr.vel_m_s, tr.states, ref, scale, wall=wall)
 
 
-def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path, tunnel):
-    """Take-off, join, the pass and the exit hold on one real PX4, in the local frame."""
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path, tunnel, backend):
+    """Take-off, join, the pass and the exit hold on one real PX4, in the local frame, with either
+    MAVLink backend (MAVSDK: its own mavsdk_server, its offboard plugin and actions)."""
+    if backend == "mavsdk":
+        pytest.importorskip("mavsdk", reason="the optional MAVSDK backend (pip install 'fisc[mavsdk]')")
     log = tmp_path / "agent1.csv"
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=PX4_TUNED_PARAMS) as run:
         procs = Processes(tmp_path / "logs")
         try:
             agent = procs.start("agent1", cli("fisc-agent") + [
                 "--map", tunnel[0], "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "px4",
-                "--flight-log", log])
+                "--backend", backend, "--flight-log", log])
             done = poll(lambda: _held_for(log, 8.0) or not agent.alive, 150.0, 0.5)
             assert done and agent.alive, procs.report()
         finally:
@@ -79,7 +83,10 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     assert score.max_excursion_m < MAX_EXCURSION_M, score
     assert score.velocity_nrmse <= MAX_VELOCITY_NRMSE, score
     alt_dev, hold_s = tr.hold_altitude_range_m()
-    assert hold_s >= 8.0 and alt_dev < 0.5, (alt_dev, hold_s)
+    # PX4 holds its *estimated* altitude; after the pass SIH's EKF carries a vertical-velocity bias, and
+    # the hold's position loop (MPC_Z_P 1/s) then settles up to bias/P away (0.17-0.46 m in 5 runs).
+    # 0.75 m still catches a hold that sinks (ArduPilot's LOITER without RC: 2.5 m/s).
+    assert hold_s >= 8.0 and alt_dev < 0.75, (alt_dev, hold_s)
     # PX4's own log: what it received and how it flew
     assert ulog.offboard_setpoint_hz >= 4.0 and ulog.max_setpoint_gap_s < 0.5, ulog   # logger samples ~5 Hz
     flow_t = tr.t_s[tr.states == "FLOW"]

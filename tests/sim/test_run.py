@@ -216,4 +216,4 @@ def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, 
                  "-o", str(tmp_path / "out")]) == 2
     assert "schema-2" in capsys.readouterr().err
     assert main(["run", "-q", "--map", str(tmp_path / "missing.fiscmap"), "-o", str(tmp_path / "o2")]) == 2
-    assert "cannot read map" in capsys.readouterr().err
+    assert "missing.fiscmap" in capsys.readouterr().err   # the file is named
