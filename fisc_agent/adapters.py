@@ -22,8 +22,11 @@ Both: arm with MAV_CMD_COMPONENT_ARM_DISARM (param1 = 1).
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass
 from typing import Callable
+
+from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +42,8 @@ MAV_AUTOPILOT_PX4 = 12
 MAV_RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED",
                     5: "IN_PROGRESS", 6: "CANCELLED", 7: "COMMAND_LONG_ONLY", 8: "COMMAND_INT_ONLY"}
 MODE_CLASSES = ("offboard", "hold", "land")
+MAX_REFUSALS_KEPT = 64
+"""How many refused commands ``Commander.refusals`` keeps (the newest)."""
 
 PX4_MAIN_AUTO = 4
 PX4_MAIN_OFFBOARD = 6
@@ -172,8 +177,10 @@ class Commander:
         self._last_sent: dict[str, float] = {}
         self._attempts: dict[str, int] = {}
         self._takeoff_accepted = False
-        self.refusals: list[tuple[str, str]] = []
-        """(command label, MAV_RESULT name) of every refused command, oldest first."""
+        self.refusals: deque[tuple[str, str]] = deque(maxlen=MAX_REFUSALS_KEPT)
+        """(command label, MAV_RESULT name) of the latest refused commands, oldest first (bounded:
+        forged COMMAND_ACKs must not grow it; the rate-limited log counts them all)."""
+        self._refusal_log = RateLimitedLog(log)
 
     def _try(self, t: float, key: str, cmd: CommandLong) -> None:
         last = self._last_sent.get(key)
@@ -233,4 +240,5 @@ class Commander:
                      MAV_CMD_NAV_TAKEOFF: "takeoff", MAV_CMD_SET_MESSAGE_INTERVAL: "message interval"}.get(
                 command, f"command {command}")
             self.refusals.append((label, name))
-            log.warning("autopilot refused %s: MAV_RESULT_%s", label, name)
+            self._refusal_log.event(f"refused:{label}:{name}", logging.WARNING, "autopilot refused %s: MAV_RESULT_%s",
+                                    label, name)

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
+from fisc_agent.names import check_prefix, check_swarm_name
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, decode_command
 from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, DEFAULT_CHUNK_BYTES,  # noqa: F401
@@ -71,10 +72,9 @@ class Keys:
     swarm: str
     """Swarm name (one key segment)."""
 
-    def __post_init__(self) -> None:
-        for what, value in (("prefix", self.prefix), ("swarm", self.swarm)):
-            if not value or any(c in value for c in "*$?#") or (what == "swarm" and "/" in value):
-                raise ValueError(f"invalid {what} {value!r} for a Zenoh key expression")
+    def __post_init__(self) -> None:  # the one name rule of every command (fisc_agent.names)
+        check_prefix(self.prefix)
+        check_swarm_name(self.swarm)
 
     @property
     def map(self) -> str:

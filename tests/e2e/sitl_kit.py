@@ -19,7 +19,6 @@ from __future__ import annotations
 import glob
 import os
 import shutil
-import signal
 import subprocess
 import time
 from dataclasses import dataclass
@@ -28,15 +27,53 @@ from pathlib import Path
 import numpy as np
 
 from fisc_agent.flightlog import read_flight_log
+from fisc_agent.mapfile import CommandMap, load_map
 from fisc_ground.flight_score import track_from_rows
+
+from .conftest import cli, free_tcp_port, run_cli, write_zenoh_config
 
 HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_M = 47.397742, 8.545594, 489.4
 """The SITL folders' default home (both autopilots)."""
+
+MAP_ANCHOR = f"{HOME_LAT_DEG},{HOME_LON_DEG},{HOME_ALT_M + 10.0},0"
+"""``--geodetic-anchor`` of the map origin: 10 m above the shared SITL home, x axis north."""
 
 PX4_TUNED_PARAMS = {"MPC_XY_VEL_P_ACC": 3.5, "MPC_XY_VEL_I_ACC": 1.5}
 """PX4's horizontal velocity loop tuned for SIH's airframe (docs/deployment.md): with the stock
 gains (1.8 / 0.4) the loop settles at 0.80-0.85 of its setpoint against SIH's linear drag
 (SIH_KDV = 1) until the integrator catches up, identified in flight as a 0.85-0.9 s lag."""
+
+
+def ensure_ports_quiet(ports: list[int], listen_s: float = 1.0) -> None:
+    """Fail clearly if something (a stray SITL instance from an earlier run) already sends to the
+    autopilot ports: an agent would lock onto the wrong vehicle."""
+    import socket
+
+    socks = []
+    try:
+        for port in ports:
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError as exc:
+                s.close()
+                raise RuntimeError(f"udp port {port} is in use ({exc}): stop whatever holds it first") from None
+            s.setblocking(False)
+            socks.append((port, s))
+        end = time.monotonic() + listen_s
+        while time.monotonic() < end:
+            for port, s in socks:
+                try:
+                    s.recv(4096)
+                except BlockingIOError:
+                    continue
+                raise RuntimeError(f"something already sends MAVLink to udp {port} (a stray SITL instance?): "
+                                   "stop it before starting the test's autopilots")
+            time.sleep(0.05)
+    finally:
+        for _, s in socks:
+            s.close()
 
 
 def _wait(pred, timeout_s: float, period_s: float = 0.25):
@@ -103,6 +140,7 @@ class Px4Sitl:
         return p.read_text(errors="replace") if p.exists() else ""
 
     def __enter__(self) -> SitlRun:
+        ensure_ports_quiet([14540 + i for i in range(self.n)] + [14550])
         out = subprocess.run([str(self.install / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
                              text=True, timeout=60)
         if out.returncode != 0:
@@ -139,6 +177,7 @@ class ArduPilotSitl:
     def __enter__(self) -> SitlRun:
         from pymavlink import mavutil
 
+        ensure_ports_quiet([14540 + i for i in range(self.n)] + [14550])
         gcs = mavutil.mavlink_connection("udpin:127.0.0.1:14550", source_system=245)  # the GCS link
         try:
             out = subprocess.run([str(self.shared / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
@@ -298,11 +337,39 @@ class Track:
         return float(np.max(np.abs(z - z[0]))), float(self.t_s[seg[-1]] - self.t_s[seg[0]])
 
 
-def stop_process(p: subprocess.Popen, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> None:
-    if p.poll() is None:
-        p.send_signal(sig)
-        try:
-            p.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=5)
+# ---- the ground side of a fleet test ----------------------------------------------------------
+def ground(*args) -> list[str]:
+    """argv of ``fisc-ground ARGS``."""
+    return cli("fisc-ground") + [str(a) for a in args]
+
+
+def ok(out) -> str:
+    """stdout of a finished command; its output in the failure message otherwise."""
+    assert out.returncode == 0, f"{out.args}: exit {out.returncode}\n{out.stdout}\n{out.stderr}"
+    return out.stdout
+
+
+@dataclass(frozen=True)
+class SignedMapOnZenoh:
+    """A ground key, the embedded default map fitted and signed with it, and Zenoh configs on loopback."""
+
+    served: Path
+    """The map file ``fisc-ground publish`` serves."""
+    good: CommandMap
+    """That map, verified against the ground key."""
+    ground_key: Path
+    ground_pub: Path
+    hub: Path
+    """Zenoh config of the publisher (listens)."""
+    member: Path
+    """Zenoh config of everyone else (connects to the hub)."""
+
+
+def signed_map_on_zenoh(d: Path) -> SignedMapOnZenoh:
+    ok(run_cli(ground("keygen", "-o", d / "ground")))
+    served = d / "served.fiscmap"
+    ok(run_cli(ground("fit", "cd_nozzle_inviscid", "-o", served, "--sign", d / "ground.key")))
+    port = free_tcp_port()
+    hub = write_zenoh_config(d / "hub.json5", [f"tcp/127.0.0.1:{port}"], [])
+    member = write_zenoh_config(d / "member.json5", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"])
+    return SignedMapOnZenoh(served, load_map(served, d / "ground.pub"), d / "ground.key", d / "ground.pub", hub, member)

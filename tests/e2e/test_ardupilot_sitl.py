@@ -17,22 +17,13 @@ from fisc_agent.mapfile import load_map
 from fisc_ground.flight_score import DuctWall, score_track
 from fisc_ground.reference.builtin import load_builtin
 
-from .conftest import Processes, cli, free_tcp_port, poll, run_cli, write_zenoh_config
-from .sitl_kit import (HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, ArduPilotSitl, Track, dataflash_log,
-                       dataflash_modes_and_texts)
+from .conftest import Processes, cli, poll, run_cli
+from .sitl_kit import (MAP_ANCHOR, ArduPilotSitl, Track, dataflash_log, dataflash_modes_and_texts, ground, ok,
+                       signed_map_on_zenoh)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
 GUIDED, BRAKE, LOITER = 4, 17, 5
-
-
-def ok(out) -> str:
-    assert out.returncode == 0, f"{out.args}: exit {out.returncode}\n{out.stdout}\n{out.stderr}"
-    return out.stdout
-
-
-def ground(*args) -> list[str]:
-    return cli("fisc-ground") + [str(a) for a in args]
 
 
 def _exit_held(log, seconds: float) -> bool:
@@ -77,24 +68,18 @@ def test_one_arducopter_from_the_ground_through_the_duct_and_out_then_brake_hold
 
 def test_three_arducopters_over_zenoh_with_geodetic_anchors(shared_path, tmp_path):
     n, d = 3, tmp_path
-    ok(run_cli(ground("keygen", "-o", d / "ground")))
-    served = d / "m.fiscmap"
-    ok(run_cli(ground("fit", "cd_nozzle_inviscid", "-o", served, "--sign", d / "ground.key")))
-    good = load_map(served, d / "ground.pub")
-    port = free_tcp_port()
-    hub = write_zenoh_config(d / "hub.json5", [f"tcp/127.0.0.1:{port}"], [])
-    member = write_zenoh_config(d / "member.json5", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"])
+    g = signed_map_on_zenoh(d)
+    served, good, hub, member = g.served, g.good, g.hub, g.member
     logs = [d / f"agent{i}.csv" for i in range(n)]
-    anchor = f"{HOME_LAT_DEG},{HOME_LON_DEG},{HOME_ALT_M + 10.0},0"
     with ArduPilotSitl(shared_path("sitl", "ardupilot"), d, n, spacing_m=3.0) as run:
         procs = Processes(d / "logs")
         try:
             procs.start("publisher", ground("publish", served, "--swarm", "apsitl", "--zenoh-config", hub))
             for i in range(n):
                 procs.start(f"agent{i}", cli("fisc-agent") + [
-                    "--swarm", "apsitl", "--zenoh-config", member, "--trusted-key", d / "ground.pub",
+                    "--swarm", "apsitl", "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "ardupilot",
-                    "--geodetic-anchor", anchor, "--entry-stagger", 2.0, "--entry-slots", n, "--flight-log", logs[i]])
+                    "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", 2.0, "--entry-slots", n, "--flight-log", logs[i]])
 
             def status():
                 out = ok(run_cli(ground("status", "--swarm", "apsitl", "--zenoh-config", member, "--json",

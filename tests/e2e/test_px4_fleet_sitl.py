@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 
 from fisc_agent.flightlog import read_flight_log
-from fisc_agent.mapfile import load_map
 from fisc_ground.flight_score import DuctWall, score_track
 from fisc_ground.reference.builtin import load_builtin
 
-from .conftest import Processes, cli, free_tcp_port, poll, run_cli, write_zenoh_config
-from .sitl_kit import HOME_ALT_M, HOME_LAT_DEG, HOME_LON_DEG, PX4_TUNED_PARAMS, Px4Sitl, Track, px4_ulog, ulog_summary
+from .conftest import Processes, cli, poll, run_cli
+from .sitl_kit import (MAP_ANCHOR, PX4_TUNED_PARAMS, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
+                       ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -33,19 +33,8 @@ N = int(os.environ.get("FISC_SITL_FLEET", "3"))
 FLEET_HOLD = os.environ.get("FISC_SITL_FLEET_HOLD", "1") != "0"
 """``FISC_SITL_FLEET_HOLD=0`` leaves out the fleet hold/resume (a clean pass, to measure crossings)."""
 SWARM = "sitl"
-ANCHOR = f"{HOME_LAT_DEG},{HOME_LON_DEG},{HOME_ALT_M + 10.0},0"
-"""The map origin 10 m above the shared home, x axis north."""
 STAGGER_S = 2.0
 MIN_SEPARATION_M = 0.5
-
-
-def ok(out) -> str:
-    assert out.returncode == 0, f"{out.args}: exit {out.returncode}\n{out.stdout}\n{out.stderr}"
-    return out.stdout
-
-
-def ground(*args) -> list[str]:
-    return cli("fisc-ground") + [str(a) for a in args]
 
 
 def min_separation_m(tracks: list[Track], x_lo: float = 0.0, x_hi: float = 15.0) -> float:
@@ -67,14 +56,9 @@ def min_separation_m(tracks: list[Track], x_lo: float = 0.0, x_hi: float = 15.0)
 
 def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_map(shared_path, tmp_path):
     d = tmp_path
-    ok(run_cli(ground("keygen", "-o", d / "ground")))
+    g = signed_map_on_zenoh(d)
+    served, good, hub, member = g.served, g.good, g.hub, g.member
     ok(run_cli(ground("keygen", "-o", d / "stranger")))
-    served = d / "served.fiscmap"
-    ok(run_cli(ground("fit", "cd_nozzle_inviscid", "-o", served, "--sign", d / "ground.key")))
-    good = load_map(served, d / "ground.pub")
-    port = free_tcp_port()
-    hub = write_zenoh_config(d / "hub.json5", [f"tcp/127.0.0.1:{port}"], [])
-    member = write_zenoh_config(d / "member.json5", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"])
     logs = [d / f"agent{i}.csv" for i in range(N)]
 
     def status() -> dict[int, dict]:
@@ -97,9 +81,9 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
             procs.start("publisher", ground("publish", served, "--swarm", SWARM, "--zenoh-config", hub))
             for i in range(N):
                 procs.start(f"agent{i}", cli("fisc-agent") + [
-                    "--swarm", SWARM, "--zenoh-config", member, "--trusted-key", d / "ground.pub",
+                    "--swarm", SWARM, "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
-                    "--geodetic-anchor", ANCHOR, "--entry-stagger", STAGGER_S, "--entry-slots", max(N, 2),
+                    "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", STAGGER_S, "--entry-slots", max(N, 2),
                     "--flight-log", logs[i]])
             # every agent got the signed map and reports it
             seen = poll(lambda: (lambda s: s if len(s) == N and all(a["map_sha256"] == good.sha256 for a in s.values())

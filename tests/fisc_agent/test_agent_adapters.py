@@ -76,4 +76,17 @@ def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
     c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
     assert len(sent) == 4                           # accepted: not resent
     c.on_ack(MAV_CMD_COMPONENT_ARM_DISARM, 2)
-    assert c.refusals == [("arming", "DENIED")]
+    assert list(c.refusals) == [("arming", "DENIED")]
+
+
+def test_a_flood_of_refusing_acks_is_bounded_and_rate_limited(caplog):
+    """Forged COMMAND_ACKs from the autopilot's identity: the refusal list stays bounded and the log
+    gets one line per kind per 5 s, not one per ack."""
+    from fisc_agent.adapters import MAX_REFUSALS_KEPT
+
+    c = Commander(Px4Adapter(), lambda cmd: None)
+    with caplog.at_level("WARNING", logger="fisc_agent.adapters"):
+        for _ in range(5000):
+            c.on_ack(MAV_CMD_COMPONENT_ARM_DISARM, 2)
+    assert len(c.refusals) == MAX_REFUSALS_KEPT
+    assert sum("refused arming" in r.getMessage() for r in caplog.records) == 1
