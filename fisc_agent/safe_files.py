@@ -103,15 +103,26 @@ def check_regular_file(path: str | Path, *, what: str, max_bytes: int, magic: by
                        reject_sparse: bool = False, error: type[Exception] = FileInputError) -> int:
     """Run the checks without reading the body (for readers that open the file themselves);
     returns the size in bytes.  ``magic``: accepted prefixes (any one of them)."""
-    path = Path(path)
+    fd, size = _open_and_check(Path(path), what, max_bytes, magic, reject_sparse, error)
+    os.close(fd)
+    return size
+
+
+def _open_and_check(path: Path, what: str, max_bytes: int, magic: bytes | tuple[bytes, ...], reject_sparse: bool,
+                    error: type[Exception]) -> tuple[int, int]:
+    """``_open_checked`` plus the magic and sparseness checks; (fd positioned at 0, size)."""
     fd, size = _open_checked(path, what, max_bytes, error)
     try:
         _check_magic(fd, path, what, magic, error)
         if reject_sparse:
             _check_sparse(fd, size, path, what, error)
-    finally:
+    except OSError as exc:
         os.close(fd)
-    return size
+        raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd, size
 
 
 def _check_magic(fd: int, path: Path, what: str, magic: bytes | tuple[bytes, ...], error: type[Exception]) -> None:
@@ -130,11 +141,8 @@ def read_regular_file(path: str | Path, *, what: str, max_bytes: int, magic: byt
     """The whole file, after the checks of the module docstring; ``error`` is the exception
     class raised for every refusal (its message names the file and the failed check)."""
     path = Path(path)
-    fd, size = _open_checked(path, what, max_bytes, error)
+    fd, _ = _open_and_check(path, what, max_bytes, magic, reject_sparse, error)
     try:
-        _check_magic(fd, path, what, magic, error)
-        if reject_sparse:
-            _check_sparse(fd, size, path, what, error)
         data = _read_upto(fd, max_bytes + 1)
     except OSError as exc:
         raise error(f"{path}: cannot read {what} ({exc.strerror})") from None
