@@ -147,6 +147,7 @@ class Mission:
         self.response: VehicleResponse | None = None
         """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
         self._recorder = ResponseRecorder()
+        self._identify_tried = False
         self._last_pos: Vec | None = None
         if sfield is not None:
             self.set_map(sfield)
@@ -178,15 +179,14 @@ class Mission:
 
     def _identify(self) -> None:
         """Fit the velocity response once (``lookahead_auto``) and tune the tracker's feed-forward."""
-        if not self.cfg.lookahead_auto or self.response is not None:
+        if not self.cfg.lookahead_auto or self._identify_tried:
             return
+        self._identify_tried = True  # once: the final leg calls this every tick
         resp = self._recorder.fit()
         if resp is None:
             log.warning("velocity response not identified (%d samples, too little excitation); flying with "
                         "look-ahead %.2f s, feed-forward gain %.2f", len(self._recorder),
                         self.tracker.cfg.lookahead_s, self.tracker.cfg.feedforward_gain)
-            self.response = None
-            self._recorder = ResponseRecorder(0)  # do not try again
             return
         self.response = resp
         self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=resp.lookahead_s,

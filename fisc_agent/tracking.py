@@ -166,7 +166,7 @@ class ParcelTracker:
         return v
 
     def _slide(self, p: Vec, d: Vec, field: FieldFn) -> Vec:
-        """``p + d``; into a wall cube the cross-stream (y, z) part is dropped, then the whole move."""
+        """``p + d``; if that lands outside the map's CVs, only its axial part; if that does too, ``p``."""
         for step in (d, (d[0], 0.0, 0.0)):
             nxt = _add(p, step)
             if self._field_at(nxt, field) is not None:

@@ -462,3 +462,14 @@ def test_a_staged_agent_waits_for_its_window_then_enters(sfield):
     entered_at.append(next(t.t_s for t in m.transitions if t.dst == State.FLOW))
     phase = (wall0 + entered_at[0]) % 8.0
     assert 2.0 <= phase < 5.0, phase     # crossed the inlet plane after its window opened (1.5 m from staging)
+
+
+def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
+    """A vehicle that gives too little excitation (a hover-like join) is not identified; the agent
+    says so once and flies on with the given look-ahead (no warning per tick of the final leg)."""
+    cfg, m, v = make(sfield)
+    m._recorder.max_samples = 0          # nothing recorded: the fit must refuse
+    with caplog.at_level("WARNING", logger="fisc_agent.mission"):
+        run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    assert m.response is None
+    assert sum("not identified" in r.getMessage() for r in caplog.records) == 1
