@@ -25,9 +25,6 @@ from scipy.spatial import cKDTree
 
 from fisc_ground.reference.field import ReferenceField
 
-FLOW_STATES = ("FLOW",)
-
-
 @dataclass(frozen=True)
 class DuctWall:
     """Axisymmetric wall radius sampled along x (from a reference field's nodes)."""

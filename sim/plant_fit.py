@@ -14,7 +14,6 @@ then a local refinement; pure numpy, seconds).  ``PLANT_PRESETS`` holds the resu
 from __future__ import annotations
 
 import itertools
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -123,20 +122,3 @@ def flight_log_arrays(rows: list[dict[str, str]], states: tuple[str, ...] = ("JO
     sp = np.array([[float(r["sp_x_m_s"]), float(r["sp_y_m_s"])] for r in keep]).reshape(-1, 2)
     v = np.array([[float(r["vx_m_s"]), float(r["vy_m_s"])] for r in keep]).reshape(-1, 2)
     return t, sp, v
-
-
-def describe(p: PlantParams) -> dict:
-    """The fitted fields of a parameter set, JSON-ready."""
-    area = np.asarray(p.drag_area_m2, dtype=float).ravel()
-    return {"tau_v_s": float(p.tau_v_s), "tau_thrust_s": float(p.tau_thrust_s),
-            "drag_area_m2": [float(a) for a in area[:3]], "drag_feedforward_gain": float(p.drag_feedforward_gain)}
-
-
-def first_order_equivalent(p: PlantParams, dt_s: float = 0.01, seconds: float = 4.0, step_m_s: float = 2.0) -> dict:
-    """Rise time (10-90 %) and steady gain of the plant's response to a horizontal velocity step."""
-    t = np.arange(0.0, seconds, dt_s)
-    v = replay(p, t, np.tile([step_m_s, 0.0], (len(t), 1)), np.zeros(2))[:, 0]
-    final = float(v[-1])
-    t10 = float(t[np.argmax(v >= 0.1 * final)])
-    t90 = float(t[np.argmax(v >= 0.9 * final)])
-    return {"rise_time_s": t90 - t10, "steady_gain": final / step_m_s if math.isfinite(final) else math.nan}
