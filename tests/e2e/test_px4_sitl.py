@@ -98,13 +98,17 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
 
 def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct(shared_path, tmp_path, tunnel):
     """SIGKILL the agent mid-flow: no hold request, no goodbye.  PX4's own offboard-loss failsafe
-    (COM_OF_LOSS_T = 1 s, COM_OBL_RC_ACT) takes the vehicle; it must stop inside the duct or land.
+    (COM_OF_LOSS_T = 0.5 s, COM_OBL_RC_ACT) takes the vehicle; it must stop inside the duct or land.
+
+    COM_OF_LOSS_T = 0.5 s, the low end of docs/deployment.md's range: until the timeout PX4 keeps
+    flying the last setpoint straight on, and with 1 s a vehicle killed in the converging part
+    overshot the throat's wall by up to 0.31 m (CI run of stop 7).
 
     COM_OBL_RC_ACT = 5 (Hold), as docs/deployment.md says: PX4's default 0 (Position mode) needs RC;
     without one PX4 SITL logged "Matching flight task was not able to run" and the vehicle sank
     6 m and drifted 3.5 m sideways within 10 s."""
     log = tmp_path / "agent1.csv"
-    params = {**PX4_TUNED_PARAMS, "COM_OBL_RC_ACT": 5}
+    params = {**PX4_TUNED_PARAMS, "COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 0.5}
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run:
         procs = Processes(tmp_path / "logs")
         try:
@@ -138,7 +142,7 @@ def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct
     # the local frame's origin is the start point; the map origin is 10 m above it (default transform)
     x, y, z_up = lp["x"], lp["y"], -(lp["z"] + 10.0)
     t = lp["timestamp"] / 1e6
-    after = t >= t_failsafe - 1.5                                         # from the kill (COM_OF_LOSS_T 1 s) on
+    after = t >= t_failsafe - 1.0                                         # from the kill (COM_OF_LOSS_T 0.5 s) on
     _, ref, wall, _ = tunnel
     r = np.hypot(y[after], z_up[after])
     inside = (x[after] >= 0) & (x[after] <= 15)
