@@ -31,35 +31,33 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode, Personality
-from sim.plant import PlantParams, VelocityPlant, fleet_kernel, substep_count
+from sim.autopilot.vehicle_types import (
+    ACCEPTED,
+    FAILED,
+    TEMPORARILY_REJECTED,
+    UNSUPPORTED,
+    Outcome,
+    Setpoint,
+    StatusEvent,
+    VehicleConfig,
+    VehicleState,
+)
+from sim.plant import PlantParams, VelocityPlant
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
 _log = logging.getLogger(__name__)
 
-ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
-TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-DENIED = mavlink.MAV_RESULT_DENIED
-UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
-FAILED = mavlink.MAV_RESULT_FAILED
-
 _NAN3 = (math.nan, math.nan, math.nan)
 
 # modes in which a vehicle may be armed (PX4 and ArduPilot refuse LAND/RTL; BRAKE is not armable)
 _NOT_ARMABLE = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.BRAKE})
-# modes whose velocity command is "hold": zero velocity
-_HOLD_MODES = frozenset(
-    {FlightMode.LOITER, FlightMode.AUTO_READY, FlightMode.MISSION, FlightMode.BRAKE,
-     FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ACRO, FlightMode.ALTCTL, FlightMode.POSCTL}
-)  # fmt: skip
-
 
 # ArduPilot modes that take the climb rate from the RC throttle stick: with no RC (a swarm
 # vehicle) the stick reads low and the vehicle descends (real ArduCopter SITL: LOITER with no
@@ -67,118 +65,6 @@ _HOLD_MODES = frozenset(
 _AP_THROTTLE_STICK_MODES = frozenset({FlightMode.LOITER, FlightMode.ALTCTL, FlightMode.POSCTL})
 AP_NO_RC_DESCENT_M_S = 2.5
 """Descent rate of an ArduPilot throttle-stick mode with no RC [m/s] (PILOT_SPEED_DN default)."""
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """Result of a command: a MAV_RESULT code and a short human-readable reason."""
-
-    result: int
-    """MAV_RESULT_* value for COMMAND_ACK."""
-    text: str = ""
-    """Why (empty when accepted)."""
-
-    @property
-    def ok(self) -> bool:
-        """True when the command was accepted."""
-        return self.result == ACCEPTED
-
-
-@dataclass(frozen=True)
-class Setpoint:
-    """An external position/velocity target already resolved to local NED (NaN = not given)."""
-
-    position_ned_m: tuple[float, float, float] = _NAN3
-    """Target position [m] local NED; NaN per axis where the type mask ignores it."""
-    velocity_ned_m_s: tuple[float, float, float] = _NAN3
-    """Target (feed-forward) velocity [m/s] NED; NaN per axis where ignored."""
-    yaw_rad: float = math.nan
-    """Target heading [rad] (NaN: keep)."""
-    yaw_rate_rad_s: float = math.nan
-    """Target yaw rate [rad/s] (NaN: none); used only when ``yaw_rad`` is NaN."""
-
-    @property
-    def has_velocity(self) -> bool:
-        """True if any velocity axis is given."""
-        return any(math.isfinite(v) for v in self.velocity_ned_m_s)
-
-
-@dataclass(frozen=True)
-class StatusEvent:
-    """Something a real autopilot would announce with STATUSTEXT."""
-
-    t_s: float
-    """Simulated time [s]."""
-    severity: int
-    """MAV_SEVERITY_*."""
-    text: str
-    """Message (<= 50 characters is what STATUSTEXT carries in one chunk)."""
-
-
-@dataclass(frozen=True)
-class VehicleConfig:
-    """Emulator-side settings that are not autopilot parameters."""
-
-    start_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Initial position [m] local NED; D < 0 starts airborne, armed, in the hold mode."""
-    start_yaw_rad: float = 0.0
-    """Initial heading [rad]."""
-    physics_dt_s: float = 0.02
-    """Fixed physics step [s]."""
-    position_gain_1_s: float = 1.0
-    """Proportional gain of position hold / position setpoints [1/s] (PX4 MPC_XY_P ~ 0.95)."""
-    yaw_rate_max_rad_s: float = math.radians(90.0)
-    """Yaw slew limit [rad/s]."""
-    offboard_stream_window_s: float = 0.5
-    """PX4: OFFBOARD may be entered only if the last setpoint is at most this old (>= 2 Hz)."""
-    takeoff_tolerance_m: float = 0.15
-    """Takeoff counts as complete within this distance of the target altitude [m]."""
-    rtl_arrival_radius_m: float = 0.5
-    """RTL starts descending within this horizontal distance of home [m]."""
-    plant_params: PlantParams = field(default_factory=PlantParams)
-    """Parameters of the velocity plant (paper nominal quadrotor)."""
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """Immutable snapshot of the vehicle (what telemetry reports)."""
-
-    t_s: float
-    """Simulated time [s]."""
-    armed: bool
-    """Motors armed."""
-    mode: FlightMode
-    """Current flight mode."""
-    custom_mode: int
-    """``custom_mode`` word of the mode in the personality's encoding."""
-    position_ned_m: tuple[float, float, float]
-    """Position [m] local NED."""
-    velocity_ned_m_s: tuple[float, float, float]
-    """Velocity [m/s] NED."""
-    roll_rad: float
-    """Roll [rad] (from the realised thrust direction)."""
-    pitch_rad: float
-    """Pitch [rad]."""
-    yaw_rad: float
-    """Heading [rad]."""
-    yaw_rate_rad_s: float
-    """Yaw rate [rad/s]."""
-    landed_state: int
-    """MAV_LANDED_STATE_*."""
-    home_ned_m: tuple[float, float, float]
-    """Home position [m] local NED (set at start and on arming)."""
-    position_valid: bool
-    """Whether the vehicle has a position estimate."""
-    last_setpoint_t_s: float
-    """Time of the last external setpoint [s] (-inf if none)."""
-    velocity_command_ned_m_s: tuple[float, float, float]
-    """Velocity command given to the plant in the last physics step [m/s]."""
-
-    @property
-    def in_air(self) -> bool:
-        """True unless on the ground."""
-        return self.landed_state not in (mavlink.MAV_LANDED_STATE_ON_GROUND, mavlink.MAV_LANDED_STATE_UNDEFINED)
-
 
 PlantFactory = Callable[[PlantParams], VelocityPlant]
 
@@ -205,7 +91,7 @@ class Vehicle:
             raise ValueError(f"physics_dt_s must be > 0, got {self.config.physics_dt_s}")
         self.params: dict[str, float] = personality.default_params(sysid)
         self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
-        self._fast_step = None if plant_factory is not None else _fast_plant_step(self._plant, self.config.physics_dt_s)
+        self._fixed_step = self._plant.fixed_step(self.config.physics_dt_s)
         self._px4 = personality.name == "px4"
         self.t_s = float(t0_s)
         self.pos = start.copy()
@@ -568,9 +454,8 @@ class Vehicle:
                 self._auto_disarm_check()
                 self._update_yaw(dt)
                 return
-        if self._fast_step is not None and dt == self.config.physics_dt_s:
-            self._fast_step(self._plant.velocity, self._plant.thrust_accel, cmd_row)
-            self.vel = self._plant.velocity[0].copy()
+        if dt == self.config.physics_dt_s:
+            self.vel = self._fixed_step(cmd_row)[0].copy()
         else:
             self.vel = np.array(self._plant.step(cmd_row, dt)[0], dtype=float)
         self.pos += self.vel * dt
@@ -660,32 +545,3 @@ class Vehicle:
             velocity_command_ned_m_s=tuple(self.cmd.tolist()),
         )
 
-
-def _fast_plant_step(plant: VelocityPlant, dt_s: float) -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None:
-    """The one-vehicle fast path of ``plant.step(cmd, dt_s)``: ``f(vel, thrust, cmd_row)`` steps the
-    (1, 3) state arrays in place with a (1, 3) command, or None when it does not apply.
-
-    It calls the very numba kernel :func:`sim.plant.step_plant` selects for one agent with one
-    coefficient row and no wind/noise (:func:`sim.plant.fleet_kernel`), with the scalar
-    coefficients, sub-step count and sub-step length computed once here instead of on every
-    call (the argument checks and coefficient extraction of ``step_plant`` cost ~10x the kernel
-    for one agent).  Bit-identical results; None without numba, for a non-default backend, or
-    for a plant that is not one agent with shared coefficients.
-    """
-    kernel = fleet_kernel()
-    co = plant.coefficients
-    if (kernel is None or type(plant) is not VelocityPlant or plant.n_agents != 1 or co.rows != 1
-            or getattr(plant, "_backend", None) != "auto"):
-        return None
-    nsub = substep_count(dt_s, co)
-    h = dt_s / nsub
-    args = (
-        float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
-        float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
-        float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
-    )  # fmt: skip
-
-    def step(vel: np.ndarray, thrust: np.ndarray, cmd_row: np.ndarray) -> None:
-        kernel(vel, thrust, cmd_row, *args)
-
-    return step
