@@ -26,7 +26,8 @@ DENIED = mavlink.MAV_RESULT_DENIED
 UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
 FAILED = mavlink.MAV_RESULT_FAILED
 
-_NAN3 = (math.nan, math.nan, math.nan)
+NAN3 = (math.nan, math.nan, math.nan)
+"""A 3-vector not given (NaN per axis)."""
 
 
 @dataclass(frozen=True)
@@ -48,9 +49,9 @@ class Outcome:
 class Setpoint:
     """An external position/velocity target already resolved to local NED (NaN = not given)."""
 
-    position_ned_m: tuple[float, float, float] = _NAN3
+    position_ned_m: tuple[float, float, float] = NAN3
     """Target position [m] local NED; NaN per axis where the type mask ignores it."""
-    velocity_ned_m_s: tuple[float, float, float] = _NAN3
+    velocity_ned_m_s: tuple[float, float, float] = NAN3
     """Target (feed-forward) velocity [m/s] NED; NaN per axis where ignored."""
     yaw_rad: float = math.nan
     """Target heading [rad] (NaN: keep)."""
