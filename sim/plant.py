@@ -41,7 +41,7 @@ from sim.plant_params import PlantCoefficients, PlantParams
 
 __all__ = [
     "Backend", "PlantCoefficients", "PlantParams", "VelocityPlant", "constrain_thrust_accel", "desired_thrust_accel",
-    "drag_accel", "numba_available", "plant_derivatives", "step_plant", "step_single_agent", "substep_count",
+    "drag_accel", "numba_available", "plant_derivatives", "step_plant", "substep_count",
     "thrust_accel_norm", "tilt_deg", "trim_thrust_accel",
 ]
 
