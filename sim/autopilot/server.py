@@ -45,7 +45,7 @@ from sim.autopilot.streams import StreamSchedule
 from sim.autopilot.telemetry import POSITION_MESSAGES, TelemetryBuilder, default_intervals_s
 from sim.autopilot.transport import PEER_LIMIT, Transport, open_transport, parse_emulator_endpoint
 from sim.autopilot.vehicle import Vehicle
-from sim.autopilot.vehicle_types import ACCEPTED, DENIED, UNSUPPORTED, Outcome, VehicleConfig, VehicleState
+from sim.autopilot.vehicle_types import ACCEPTED, DENIED, UNSUPPORTED, Outcome, Setpoint, VehicleConfig, VehicleState
 from sim.plant import PlantParams, VelocityPlant
 
 __all__ = ["AutopilotEmulator", "DEFAULT_HOME_LLA"]
@@ -414,32 +414,28 @@ class AutopilotEmulator:
         self._ack(msg, mavlink.MAVLINK_MSG_ID_SET_MODE, out)
 
     def _on_set_position_target_local_ned(self, msg: object, now: float) -> None:
-        m = msg
-        veh = self.vehicle
+        m, veh = msg, self.vehicle
         veh.step(now)
-        sp = resolve_local_setpoint(
+        self._fly_setpoint(m, now, resolve_local_setpoint(
             m.coordinate_frame, m.type_mask, (m.x, m.y, m.z), (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
             tuple(veh.pos.tolist()), veh.yaw,
-        )  # fmt: skip
-        if sp is None:
-            _log.warning("SET_POSITION_TARGET_LOCAL_NED frame %d not supported; ignored", m.coordinate_frame)  # type: ignore[attr-defined]
-            return
-        self.stats["setpoints"] += 1
-        veh.set_setpoint(sp, now)
+        ))  # fmt: skip
 
     def _on_set_position_target_global_int(self, msg: object, now: float) -> None:
-        m = msg
-        veh = self.vehicle
+        m, veh = msg, self.vehicle
         veh.step(now)
-        sp = resolve_global_setpoint(
+        self._fly_setpoint(m, now, resolve_global_setpoint(
             m.coordinate_frame, m.type_mask, m.lat_int, m.lon_int, m.alt, (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
             self.anchor, float(veh.home[2]), tuple(veh.pos.tolist()), veh.yaw,
-        )  # fmt: skip
+        ))  # fmt: skip
+
+    def _fly_setpoint(self, msg: object, now: float, sp: Setpoint | None) -> None:
+        """Hand a resolved SET_POSITION_TARGET_* to the vehicle (None: its frame is not supported)."""
         if sp is None:
-            _log.warning("SET_POSITION_TARGET_GLOBAL_INT frame %d not supported; ignored", m.coordinate_frame)  # type: ignore[attr-defined]
+            _log.warning("%s frame %d not supported; ignored", msg.get_type(), msg.coordinate_frame)  # type: ignore[attr-defined]
             return
         self.stats["setpoints"] += 1
-        veh.set_setpoint(sp, now)
+        self.vehicle.set_setpoint(sp, now)
 
     def _on_param_request_list(self, msg: object, now: float) -> None:
         for i in range(len(self.personality.params)):
