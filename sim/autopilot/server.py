@@ -119,8 +119,11 @@ class AutopilotEmulator:
         self.personality = personality if isinstance(personality, Personality) else get_personality(personality)
         self.sysid, self.compid = int(sysid), int(compid)
         self.home_lla = tuple(float(x) for x in home_lla)
-        self.anchor = GeodeticAnchor(*self.home_lla, heading_deg=0.0)
-        """Home as the WGS-84 origin of local NED."""
+        try:
+            self.anchor = GeodeticAnchor(*self.home_lla, heading_deg=0.0)
+            """Home as the WGS-84 origin of local NED."""
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"home_lla {home_lla!r}: expected (lat, lon, alt) with |lat| <= 89 deg ({exc})") from None
         cfg = dataclasses.replace(vehicle_config or VehicleConfig(), start_ned_m=tuple(float(x) for x in start_ned))
         self._clock, self._wall = clock, wall_clock
         self._t0 = clock()

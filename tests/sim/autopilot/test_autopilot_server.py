@@ -312,6 +312,8 @@ def test_emulator_rejects_bad_arguments():
         AutopilotEmulator("udpin:127.0.0.1:0", personality="inav")
     with pytest.raises(ValueError, match="sysid"):
         AutopilotEmulator("udpin:127.0.0.1:0", sysid=0)
+    with pytest.raises(ValueError, match="home_lla"):
+        AutopilotEmulator("udpin:127.0.0.1:0", home_lla=(95.0, 0.0, 0.0))
 
 
 def test_global_int_position_target_and_nan_params(make_emulator, connect):
