@@ -4,9 +4,10 @@ Usage: python benchmarks/bench_plant.py [--agents 100000] [--repeat 50]
 
 Each timed call is ONE semi-implicit Euler sub-step (dt = max_substep_s) of every agent, in place
 (``out=`` aliasing the state), with random commands and winds that keep the actuation limits
-active for part of the fleet.  With numba, ``wind False`` runs the fleet-wide specialised kernel
-(the swarm simulator's case) and ``wind True`` the general kernel; ``--dt`` times whole swarm
-steps instead (dt 0.05 s = 5 sub-steps).  Target: >= 3e7 agent-steps/s at 1e5 agents for a whole
+active for part of the fleet.  With numba, ``wind False`` is the swarm simulator's case (the one
+kernel's specialisation without wind, fleet-wide coefficients read as scalars) and ``wind True``
+its specialisation with per-agent wind; ``--dt`` times whole swarm steps instead (dt 0.05 s = 5
+sub-steps).  Target: >= 3e7 agent-steps/s at 1e5 agents for a whole
 swarm step (``fisc-sim bench``), of which the plant is the largest part.
 """
 

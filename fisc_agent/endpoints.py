@@ -5,7 +5,7 @@ Accepted forms (``HOST`` may be empty where listening; it then means ``0.0.0.0``
     udpin:HOST:PORT   udp:HOST:PORT       listen on UDP (pymavlink; ``udp:`` is listening too)
     udpout:HOST:PORT                      send to HOST:PORT (the peer learns our address)
     udpbcast:HOST:PORT                    UDP broadcast
-    tcp:HOST:PORT     tcpin:HOST:PORT     TCP client / TCP server
+    tcp:HOST:PORT     tcpin:HOST:PORT     TCP client / TCP server (``tcpout:`` = ``tcp:``)
     udp://[HOST]:PORT                     MAVSDK: listen on HOST:PORT (``udp://:14540``)
     udpin://HOST:PORT udpout://HOST:PORT  MAVSDK >= 2 explicit directions
     tcp://HOST:PORT   tcpout://HOST:PORT  MAVSDK TCP client; ``tcpin://`` = server
@@ -26,7 +26,7 @@ DEFAULT_BAUD = 57600
 
 _PYMAVLINK_PREFIX = {
     "udpin": "udpin", "udp": "udpin", "udpout": "udpout", "udpbcast": "udpbcast",
-    "tcp": "tcp", "tcpin": "tcpin",
+    "tcp": "tcp", "tcpout": "tcp", "tcpin": "tcpin",
 }
 _MAVSDK_SCHEME = {
     "udp": "udpin", "udpin": "udpin", "udpout": "udpout",

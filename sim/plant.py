@@ -19,249 +19,46 @@ The state arrays can be owned by the caller (the swarm simulator keeps ``(N, 3)`
 calls the pure :func:`step_plant`), or by :class:`VelocityPlant`, which adds cheap
 ``append``/``keep`` for agents entering and leaving.  Parameters may differ per agent
 (heterogeneous fleets): any :class:`PlantParams` field may be an ``(N,)`` (or ``(N, 3)`` for the
-drag vectors) array.  :func:`step_single_agent` is a plain-Python scalar implementation kept as
-the test oracle.  An optional numba kernel (``backend="numba"``, used by ``"auto"`` when numba is
-importable) fuses the sub-step loop, with a faster specialisation for fleet-wide parameters
-without wind or noise (the swarm simulator's case); the numpy path computes the same numbers.
+drag vectors) array (:mod:`sim.plant_params`).
+
+The step itself is one kernel (:mod:`sim.plant_kernel`): the numpy path is its tested
+reference, and an optional numba compilation of the same arithmetic (``backend="numba"``, used
+by ``"auto"`` when numba is importable) is what runs.  :func:`sim.plant_oracle.step_single_agent`
+is a plain-Python scalar implementation written independently from the equations, kept as the
+test oracle of both.  :meth:`VelocityPlant.fixed_step` prepares repeated steps of one length
+(the autopilot emulator's one-vehicle physics step).
 """
 
 from __future__ import annotations
 
-import functools
-import logging
 import math
-from dataclasses import dataclass
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
 
-_log = logging.getLogger(__name__)
+from sim.plant_kernel import kernel_args, numba_available, numba_kernel, step_numpy
+from sim.plant_params import PlantCoefficients, PlantParams
+
+__all__ = [
+    "Backend", "PlantCoefficients", "PlantParams", "VelocityPlant", "constrain_thrust_accel", "desired_thrust_accel",
+    "drag_accel", "numba_available", "plant_derivatives", "step_plant", "substep_count",
+    "thrust_accel_norm", "tilt_deg", "trim_thrust_accel",
+]
 
 Backend = Literal["auto", "numpy", "numba"]
 
-_SCALAR_FIELDS = (
-    "mass_kg",
-    "g",
-    "tau_v_s",
-    "tau_thrust_s",
-    "thrust_to_weight",
-    "tilt_max_deg",
-    "air_density_kg_m3",
-    "drag_feedforward_gain",
-)
-_VECTOR_FIELDS = ("drag_area_m2", "drag_coeff")
-
-
-@dataclass(frozen=True, eq=False)
-class PlantParams:
-    """Parameters of the velocity plant; defaults are the paper's nominal small quadrotor.
-
-    Every physical field may be a scalar (the whole fleet) or a per-agent array: ``(N,)`` for
-    the scalar fields, ``(N, 3)`` for ``drag_area_m2`` and ``drag_coeff``.  All per-agent
-    fields of one instance must agree on N.  ``substeps`` and ``max_substep_s`` are numerical
-    settings shared by the fleet.
-    """
-
-    mass_kg: float | np.ndarray = 1.0
-    """Vehicle mass m_i [kg] (paper: 1 kg)."""
-    g: float | np.ndarray = 9.81
-    """Gravitational acceleration [m/s^2], acting along +z (down) in NED."""
-    tau_v_s: float | np.ndarray = 0.5
-    """Velocity shaping time constant tau_v [s]: desired acceleration (v_cmd - v) / tau_v."""
-    tau_thrust_s: float | np.ndarray = 0.08
-    """First-order thrust (inner attitude/motor loop) lag tau_T [s] (paper: 0.08 s)."""
-    thrust_to_weight: float | np.ndarray = 2.2
-    """Maximum thrust over weight T_max / (m g) (paper: 2.2); bounds |a_T| <= T_max / m."""
-    tilt_max_deg: float | np.ndarray = 55.0
-    """Tilt cone half-angle theta_max [deg] between the thrust vector and vertical-up (paper: 55)."""
-    air_density_kg_m3: float | np.ndarray = 1.225
-    """Air density rho [kg/m^3] (paper: 1.225)."""
-    drag_area_m2: tuple[float, float, float] | np.ndarray = (0.02, 0.02, 0.03)
-    """Per-axis drag reference areas S = [S_x, S_y, S_z] [m^2] (paper: [0.02, 0.02, 0.03])."""
-    drag_coeff: tuple[float, float, float] | np.ndarray = (1.0, 1.0, 1.2)
-    """Per-axis drag coefficients Cd = [Cd_x, Cd_y, Cd_z] [-] (paper: [1.0, 1.0, 1.2])."""
-    drag_feedforward_gain: float | np.ndarray = 0.8
-    """Gain k_ff of the drag feed-forward, the estimated drag at the commanded velocity [-].
-
-    0 disables it, 1 cancels the modelled drag exactly in steady flight.  Default 0.8, the
-    value of the paper's headwind test: it removes 80 % of the drag-induced steady-state
-    error while leaving margin for an over-estimated drag model (over-compensation makes the
-    response overshoot)."""
-    substeps: int = 1
-    """Minimum number of semi-implicit Euler sub-steps per :func:`step_plant` call."""
-    max_substep_s: float = 0.01
-    """Longest sub-step [s]; a call with ``dt`` uses ``max(substeps, ceil(dt / max_substep_s))``
-    sub-steps (0.01 s = tau_T / 8 keeps the discrete response within ~1 % of the continuous one)."""
-
-    def __post_init__(self) -> None:
-        n_agents: int | None = None
-        for name in _SCALAR_FIELDS + _VECTOR_FIELDS:
-            raw = getattr(self, name)
-            try:
-                arr = np.array(raw, dtype=np.float64)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"PlantParams.{name}: not numeric ({raw!r})") from exc
-            want_vec = name in _VECTOR_FIELDS
-            if (want_vec and arr.shape == (3,)) or (not want_vec and arr.ndim == 0):
-                value: float | np.ndarray = float(arr) if arr.ndim == 0 else _readonly(arr)
-            elif (want_vec and arr.ndim == 2 and arr.shape[1] == 3) or (not want_vec and arr.ndim == 1):
-                if n_agents is not None and arr.shape[0] != n_agents:
-                    raise ValueError(
-                        f"PlantParams.{name}: per-agent length {arr.shape[0]} differs from "
-                        f"{n_agents} of the other per-agent fields"
-                    )
-                n_agents = arr.shape[0]
-                value = _readonly(arr)
-            else:
-                expect = "(3,) or (N, 3)" if want_vec else "a scalar or (N,)"
-                raise ValueError(f"PlantParams.{name}: shape {arr.shape}, expected {expect}")
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"PlantParams.{name}: non-finite value")
-            object.__setattr__(self, name, value)
-        checks = (
-            ("mass_kg", lambda a: a > 0, "> 0"),
-            ("g", lambda a: a >= 0, ">= 0"),
-            ("tau_v_s", lambda a: a > 0, "> 0"),
-            ("tau_thrust_s", lambda a: a > 0, "> 0"),
-            ("thrust_to_weight", lambda a: a > 0, "> 0"),
-            ("tilt_max_deg", lambda a: (a > 0) & (a < 90), "in (0, 90)"),
-            ("air_density_kg_m3", lambda a: a >= 0, ">= 0"),
-            ("drag_area_m2", lambda a: a >= 0, ">= 0"),
-            ("drag_coeff", lambda a: a >= 0, ">= 0"),
-            ("drag_feedforward_gain", lambda a: a >= 0, ">= 0"),
-        )
-        for name, ok, text in checks:
-            if not np.all(ok(np.asarray(getattr(self, name)))):
-                raise ValueError(f"PlantParams.{name}: every value must be {text}")
-        if isinstance(self.substeps, bool) or int(self.substeps) != self.substeps or self.substeps < 1:
-            raise ValueError(f"PlantParams.substeps: must be an integer >= 1, got {self.substeps!r}")
-        object.__setattr__(self, "substeps", int(self.substeps))
-        if not (math.isfinite(float(self.max_substep_s)) and float(self.max_substep_s) > 0):
-            raise ValueError(f"PlantParams.max_substep_s: must be > 0, got {self.max_substep_s!r}")
-        object.__setattr__(self, "max_substep_s", float(self.max_substep_s))
-        object.__setattr__(self, "_n_agents", n_agents)
-
-    @property
-    def n_agents(self) -> int | None:
-        """N of the per-agent fields, or None when every field is fleet-wide (homogeneous)."""
-        return self._n_agents  # type: ignore[attr-defined]
-
-    @property
-    def is_homogeneous(self) -> bool:
-        """True when no field is per-agent."""
-        return self.n_agents is None
-
-    def agent(self, i: int) -> "PlantParams":
-        """The scalar parameters of agent ``i`` (for the single-agent oracle)."""
-        kw = {}
-        for name in _SCALAR_FIELDS + _VECTOR_FIELDS:
-            val = getattr(self, name)
-            if isinstance(val, np.ndarray) and (val.ndim == 1 if name in _SCALAR_FIELDS else val.ndim == 2):
-                val = val[i]
-            kw[name] = val
-        return PlantParams(**kw, substeps=self.substeps, max_substep_s=self.max_substep_s)
-
-    def coefficients(self, n_agents: int | None = None) -> "PlantCoefficients":
-        """The derived per-agent coefficient arrays the step kernels use (see PlantCoefficients)."""
-        if n_agents is not None and self.n_agents is not None and n_agents != self.n_agents:
-            raise ValueError(f"PlantParams has per-agent fields for {self.n_agents} agents, not {n_agents}")
-        m = 1 if self.n_agents is None else self.n_agents
-
-        def s(name: str) -> np.ndarray:
-            return np.broadcast_to(np.asarray(getattr(self, name), dtype=np.float64), (m,))
-
-        def v(name: str) -> np.ndarray:
-            return np.broadcast_to(np.asarray(getattr(self, name), dtype=np.float64), (m, 3))
-
-        mass, g = s("mass_kg"), s("g")
-        drag_k = 0.5 * s("air_density_kg_m3")[:, None] * v("drag_coeff") * v("drag_area_m2") / mass[:, None]
-        return PlantCoefficients(
-            inv_tau_v=1.0 / s("tau_v_s"),
-            tau_thrust_s=s("tau_thrust_s").copy(),
-            g=g.copy(),
-            drag_k=np.ascontiguousarray(drag_k),
-            ff_gain=s("drag_feedforward_gain").copy(),
-            accel_max=s("thrust_to_weight") * g,
-            tan_tilt=np.tan(np.deg2rad(s("tilt_max_deg"))),
-            substeps=self.substeps,
-            max_substep_s=self.max_substep_s,
-        )
-
-
-def _readonly(a: np.ndarray) -> np.ndarray:
-    a = np.array(a, dtype=np.float64)
-    a.flags.writeable = False
-    return a
-
-
-_PER_AGENT = ("inv_tau_v", "tau_thrust_s", "g", "drag_k", "ff_gain", "accel_max", "tan_tilt")
-
-
-@dataclass(frozen=True, eq=False)
-class PlantCoefficients:
-    """Derived coefficients, one row per agent (M = N) or one shared row (M = 1).
-
-    The swarm simulator may hold these next to its state arrays and slice/concatenate them
-    with :meth:`take` / :meth:`concat` when agents leave or enter.
-    """
-
-    inv_tau_v: np.ndarray
-    """(M,) 1 / tau_v [1/s]."""
-    tau_thrust_s: np.ndarray
-    """(M,) thrust lag tau_T [s]."""
-    g: np.ndarray
-    """(M,) gravity [m/s^2]."""
-    drag_k: np.ndarray
-    """(M, 3) rho Cd A / (2 m) per axis [1/m]: drag acceleration = -drag_k |v_air| v_air."""
-    ff_gain: np.ndarray
-    """(M,) drag feed-forward gain k_ff [-]."""
-    accel_max: np.ndarray
-    """(M,) T_max / m = thrust_to_weight * g [m/s^2]."""
-    tan_tilt: np.ndarray
-    """(M,) tan(theta_max) [-]."""
-    substeps: int
-    """Minimum sub-steps per step."""
-    max_substep_s: float
-    """Longest sub-step [s]."""
-
-    @property
-    def rows(self) -> int:
-        """M: 1 for a fleet-wide row, else the number of agents."""
-        return int(self.inv_tau_v.shape[0])
-
-    def expand(self, n_agents: int) -> "PlantCoefficients":
-        """Per-agent copy with N rows (a shared row is repeated; N rows are kept as they are)."""
-        if self.rows == n_agents:
-            return self
-        if self.rows != 1:
-            raise ValueError(f"PlantCoefficients: cannot expand {self.rows} rows to {n_agents}")
-        return self._map(lambda a: np.repeat(a, n_agents, axis=0))
-
-    def take(self, index: np.ndarray) -> "PlantCoefficients":
-        """Rows for the agents selected by ``index`` (bool mask or integer indices); shared rows stay."""
-        if self.rows == 1:
-            return self
-        return self._map(lambda a: np.ascontiguousarray(a[index]))
-
-    def concat(self, other: "PlantCoefficients", n_self: int, n_other: int) -> "PlantCoefficients":
-        """Coefficients of ``n_self`` agents followed by ``n_other`` agents."""
-        if self.rows == 1 and other.rows == 1 and all(
-            np.array_equal(getattr(self, k), getattr(other, k)) for k in _PER_AGENT
-        ):
-            return self
-        a, b = self.expand(n_self), other.expand(n_other)
-        return PlantCoefficients(
-            **{k: np.concatenate([getattr(a, k), getattr(b, k)], axis=0) for k in _PER_AGENT},
-            substeps=self.substeps,
-            max_substep_s=self.max_substep_s,
-        )
-
-    def _map(self, fn) -> "PlantCoefficients":
-        return PlantCoefficients(
-            **{k: fn(getattr(self, k)) for k in _PER_AGENT},
-            substeps=self.substeps,
-            max_substep_s=self.max_substep_s,
-        )
+def _select_kernel(backend: Backend) -> Callable | None:
+    """The compiled kernel for ``backend`` (None: the numpy path)."""
+    if backend == "numpy":
+        return None
+    if backend == "numba":
+        k = numba_kernel()
+        if k is None:
+            raise RuntimeError("backend='numba' requested but numba is not installed (pip install fisc[jit])")
+        return k
+    if backend == "auto":
+        return numba_kernel()
+    raise ValueError(f"backend must be 'auto', 'numpy' or 'numba', got {backend!r}")
 
 
 def _coeffs(params: PlantParams | PlantCoefficients, n_agents: int) -> PlantCoefficients:
@@ -451,8 +248,8 @@ def step_plant(
     the feed-forward; velocity measurement error fed back).  Inputs are not modified unless they
     are passed as ``out=(vel_out, thrust_out)`` (which may alias them: in-place stepping).
     ``backend``: "numpy", "numba" (error if unavailable) or "auto" (numba when importable).
-    With numba, a fleet-wide coefficient row and no wind/wind_ff/noise, a specialised kernel
-    (same arithmetic, vectorised across agents) is used.  Returns ``(vel, thrust_accel)``.
+    Both compute the same arithmetic in the same order (:mod:`sim.plant_kernel`).  Returns
+    ``(vel, thrust_accel)``.
     """
     vel = _as_state(vel_ned_m_s, "vel_ned_m_s")
     thr = _as_state(thrust_accel_ned_m_s2, "thrust_accel_ned_m_s2")
@@ -483,277 +280,10 @@ def step_plant(
     h = dt_s / nsub
     kernel = _select_kernel(backend)
     if kernel is None:
-        _step_numpy(vel_out, thr_out, cmd, wind, wind_ff, noise, co, h, nsub)
-    elif co.rows == 1 and wind is None and wind_ff is None and noise is None:
-        fleet_kernel()(
-            vel_out, thr_out, cmd, float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
-            float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
-            float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
-        )  # fmt: skip
+        step_numpy(vel_out, thr_out, cmd, wind, wind_ff, noise, co, h, nsub)
     else:
-        z = np.zeros((1, 3))
-        kernel(
-            vel_out, thr_out, cmd,
-            z if wind is None else wind, z if wind_ff is None else wind_ff, z if noise is None else noise,
-            np.ascontiguousarray(co.inv_tau_v), np.ascontiguousarray(co.tau_thrust_s),
-            np.ascontiguousarray(co.g), np.ascontiguousarray(co.drag_k),
-            np.ascontiguousarray(co.ff_gain), np.ascontiguousarray(co.accel_max),
-            np.ascontiguousarray(co.tan_tilt), h, nsub,
-        )  # fmt: skip
+        kernel(vel_out, thr_out, cmd, wind, wind_ff, noise, *kernel_args(co, h), h, nsub)
     return vel_out, thr_out
-
-
-def _step_numpy(v, a, cmd, wind, wind_ff, noise, co: PlantCoefficients, h: float, nsub: int) -> None:
-    """In-place numpy sub-stepping of (v, a); the reference for the numba kernel."""
-    kd = co.drag_k
-    g = co.g
-    # Constant over the step (zero-order hold): feed-forward + gravity bias and shaping reference.
-    air_c = cmd if wind_ff is None else cmd - wind_ff
-    bias = np.abs(air_c) * air_c
-    bias *= co.ff_gain[:, None] * kd
-    bias = np.broadcast_to(bias, v.shape).copy()
-    bias[:, 2] -= g
-    ref = cmd if noise is None else cmd - noise
-    itv = co.inv_tau_v[:, None]
-    beta = (h / (co.tau_thrust_s + h))[:, None]
-    amax = co.accel_max
-    amax2 = amax * amax
-    tan2 = co.tan_tilt * co.tan_tilt
-    d = np.empty_like(v)
-    x = np.empty_like(v)
-    for _ in range(nsub):
-        # desired thrust acceleration and actuation limits (in place in d)
-        np.subtract(ref, v, out=d)
-        d *= itv
-        d += bias
-        up = np.clip(-d[:, 2], 0.0, amax)
-        up2 = up * up
-        hn2 = d[:, 0] * d[:, 0]
-        hn2 += d[:, 1] * d[:, 1]
-        hmax2 = np.minimum(up2 * tan2, np.maximum(amax2 - up2, 0.0))
-        over = hn2 > hmax2
-        if over.any():
-            scale = np.sqrt(np.divide(hmax2, hn2, out=np.ones_like(hn2), where=over))
-            d[:, 0] *= scale
-            d[:, 1] *= scale
-        np.negative(up, out=d[:, 2])
-        # thrust lag (backward Euler): a += beta (a_c - a)
-        d -= a
-        d *= beta
-        a += d
-        # velocity with the new thrust and the drag at the old velocity
-        if wind is None:
-            np.abs(v, out=x)
-            x *= v
-        else:
-            np.subtract(v, wind, out=d)
-            np.abs(d, out=x)
-            x *= d
-        x *= kd
-        np.subtract(a, x, out=x)
-        x[:, 2] += g
-        x *= h
-        v += x
-
-
-@functools.lru_cache(maxsize=1)
-def _numba_kernel():
-    """The fused numba kernel, compiled on first use; None when numba is not importable."""
-    try:
-        import numba
-    except ImportError:
-        _log.info("numba not available; the plant uses its numpy path")
-        return None
-
-    @numba.njit(cache=True, nogil=True, error_model="numpy")
-    def kernel(v, a, cmd, wind, wind_ff, noise, itv, tau_t, g, kd, ff, amax, tant, h, nsub):
-        n = v.shape[0]
-        per_agent = itv.shape[0] > 1
-        for i in range(n):
-            c = i if per_agent else 0
-            ic = i if cmd.shape[0] > 1 else 0
-            iw = i if wind.shape[0] > 1 else 0
-            jf = i if wind_ff.shape[0] > 1 else 0
-            jn = i if noise.shape[0] > 1 else 0
-            kd0, kd1, kd2 = kd[c, 0], kd[c, 1], kd[c, 2]
-            gi, itvi, am, tt, ffi = g[c], itv[c], amax[c], tant[c], ff[c]
-            am2, tt2 = am * am, tt * tt
-            beta = h / (tau_t[c] + h)
-            c0, c1, c2 = cmd[ic, 0], cmd[ic, 1], cmd[ic, 2]
-            x0, x1, x2 = c0 - wind_ff[jf, 0], c1 - wind_ff[jf, 1], c2 - wind_ff[jf, 2]
-            b0 = abs(x0) * x0 * (ffi * kd0)
-            b1 = abs(x1) * x1 * (ffi * kd1)
-            b2 = abs(x2) * x2 * (ffi * kd2) - gi
-            r0, r1, r2 = c0 - noise[jn, 0], c1 - noise[jn, 1], c2 - noise[jn, 2]
-            w0, w1, w2 = wind[iw, 0], wind[iw, 1], wind[iw, 2]
-            v0, v1, v2 = v[i, 0], v[i, 1], v[i, 2]
-            a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
-            for _ in range(nsub):
-                d0 = (r0 - v0) * itvi + b0
-                d1 = (r1 - v1) * itvi + b1
-                d2 = (r2 - v2) * itvi + b2
-                up = min(max(-d2, 0.0), am)
-                hn2 = d0 * d0 + d1 * d1
-                hmax2 = min(up * up * tt2, max(am2 - up * up, 0.0))
-                if hn2 > hmax2:
-                    s = math.sqrt(hmax2 / hn2)
-                    d0 *= s
-                    d1 *= s
-                a0 += (d0 - a0) * beta
-                a1 += (d1 - a1) * beta
-                a2 += (-up - a2) * beta
-                y0, y1, y2 = v0 - w0, v1 - w1, v2 - w2
-                v0 += (a0 - abs(y0) * y0 * kd0) * h
-                v1 += (a1 - abs(y1) * y1 * kd1) * h
-                v2 += (a2 - abs(y2) * y2 * kd2 + gi) * h
-            v[i, 0], v[i, 1], v[i, 2] = v0, v1, v2
-            a[i, 0], a[i, 1], a[i, 2] = a0, a1, a2
-
-    return kernel
-
-
-#: Agents per block of the fleet-wide kernel: the block's state (a few (B,) arrays) stays in L1
-#: while the sub-steps loop over it, and the innermost loop over the block's agents vectorises.
-_FLEET_BLOCK = 256
-
-
-@functools.lru_cache(maxsize=1)
-def fleet_kernel():
-    """The fleet-wide specialisation of :func:`_numba_kernel`, compiled on first use; None
-    without numba.
-
-    Used when every agent shares one coefficient row and there is no wind, wind feed-forward or
-    feedback noise (the swarm simulator's case).  Same arithmetic, in the same order, as the
-    general kernel with zero wind/noise, but with scalar coefficients and the loops interchanged
-    per block of agents (sub-steps outside, agents inside, branch-free limits), so that the
-    compiler vectorises across agents instead of following one agent's dependency chain.
-    """
-    try:
-        import numba
-    except ImportError:
-        return None
-
-    @numba.njit(cache=True, nogil=True, error_model="numpy")
-    def kernel(v, a, cmd, itvi, beta, gi, kd0, kd1, kd2, ffi, am, tt, h, nsub):
-        n = v.shape[0]
-        bs = _FLEET_BLOCK
-        am2, tt2 = am * am, tt * tt
-        fk0, fk1, fk2 = ffi * kd0, ffi * kd1, ffi * kd2
-        bc = cmd.shape[0] > 1
-        r0 = np.empty(bs)
-        r1 = np.empty(bs)
-        r2 = np.empty(bs)
-        b0 = np.empty(bs)
-        b1 = np.empty(bs)
-        b2 = np.empty(bs)
-        v0 = np.empty(bs)
-        v1 = np.empty(bs)
-        v2 = np.empty(bs)
-        a0 = np.empty(bs)
-        a1 = np.empty(bs)
-        a2 = np.empty(bs)
-        for start in range(0, n, bs):
-            m = min(bs, n - start)
-            for j in range(m):
-                i = start + j
-                ic = i if bc else 0
-                c0, c1, c2 = cmd[ic, 0], cmd[ic, 1], cmd[ic, 2]
-                r0[j], r1[j], r2[j] = c0, c1, c2
-                b0[j] = abs(c0) * c0 * fk0
-                b1[j] = abs(c1) * c1 * fk1
-                b2[j] = abs(c2) * c2 * fk2 - gi
-                v0[j], v1[j], v2[j] = v[i, 0], v[i, 1], v[i, 2]
-                a0[j], a1[j], a2[j] = a[i, 0], a[i, 1], a[i, 2]
-            for _ in range(nsub):
-                for j in range(m):
-                    x0, x1, x2 = v0[j], v1[j], v2[j]
-                    d0 = (r0[j] - x0) * itvi + b0[j]
-                    d1 = (r1[j] - x1) * itvi + b1[j]
-                    d2 = (r2[j] - x2) * itvi + b2[j]
-                    up = min(max(-d2, 0.0), am)
-                    hn2 = d0 * d0 + d1 * d1
-                    hmax2 = min(up * up * tt2, max(am2 - up * up, 0.0))
-                    s = math.sqrt(hmax2 / hn2) if hn2 > hmax2 else 1.0
-                    y0 = a0[j] + (d0 * s - a0[j]) * beta
-                    y1 = a1[j] + (d1 * s - a1[j]) * beta
-                    y2 = a2[j] + (-up - a2[j]) * beta
-                    a0[j], a1[j], a2[j] = y0, y1, y2
-                    v0[j] = x0 + (y0 - abs(x0) * x0 * kd0) * h
-                    v1[j] = x1 + (y1 - abs(x1) * x1 * kd1) * h
-                    v2[j] = x2 + (y2 - abs(x2) * x2 * kd2 + gi) * h
-            for j in range(m):
-                i = start + j
-                v[i, 0], v[i, 1], v[i, 2] = v0[j], v1[j], v2[j]
-                a[i, 0], a[i, 1], a[i, 2] = a0[j], a1[j], a2[j]
-
-    return kernel
-
-
-def numba_available() -> bool:
-    """True when the optional numba kernel can be used."""
-    return _numba_kernel() is not None
-
-
-def _select_kernel(backend: Backend):
-    if backend == "numpy":
-        return None
-    if backend == "numba":
-        k = _numba_kernel()
-        if k is None:
-            raise RuntimeError("backend='numba' requested but numba is not installed (pip install fisc[jit])")
-        return k
-    if backend == "auto":
-        return _numba_kernel()
-    raise ValueError(f"backend must be 'auto', 'numpy' or 'numba', got {backend!r}")
-
-
-def step_single_agent(
-    vel_ned_m_s: tuple[float, float, float],
-    thrust_accel_ned_m_s2: tuple[float, float, float],
-    cmd_ned_m_s: tuple[float, float, float],
-    dt_s: float,
-    params: PlantParams,
-    wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    wind_ff_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    feedback_noise_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0),
-) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-    """Scalar reference implementation for one agent (plain Python floats, loops over axes).
-
-    Written directly from the paper's equations and the sub-step order of :func:`step_plant`,
-    independently of the vectorised code; the test oracle.  ``params`` must be homogeneous.
-    """
-    if not params.is_homogeneous:
-        raise ValueError("step_single_agent needs scalar PlantParams; use params.agent(i)")
-    m, g = params.mass_kg, params.g
-    k = [0.5 * params.air_density_kg_m3 * params.drag_coeff[j] * params.drag_area_m2[j] / m for j in range(3)]
-    amax = params.thrust_to_weight * g
-    tan_t = math.tan(math.radians(params.tilt_max_deg))
-    n = substep_count(dt_s, params)
-    h = dt_s / n
-    v = [float(x) for x in vel_ned_m_s]
-    a = [float(x) for x in thrust_accel_ned_m_s2]
-    gvec = (0.0, 0.0, g)
-    for _ in range(n):
-        # desired thrust: shaping - gravity compensation - k_ff * drag(v_cmd - w_ff)/m
-        ad = [0.0, 0.0, 0.0]
-        for j in range(3):
-            air_c = cmd_ned_m_s[j] - wind_ff_ned_m_s[j]
-            drag_c = -k[j] * abs(air_c) * air_c
-            meas = v[j] + feedback_noise_ned_m_s[j]
-            ad[j] = (cmd_ned_m_s[j] - meas) / params.tau_v_s - gvec[j] - params.drag_feedforward_gain * drag_c
-        # limits: vertical first, then the horizontal within cone and remaining thrust
-        up = min(max(-ad[2], 0.0), amax)
-        h_norm = math.sqrt(ad[0] ** 2 + ad[1] ** 2)
-        h_max = min(up * tan_t, math.sqrt(max(amax**2 - up**2, 0.0)))
-        s = h_max / h_norm if h_norm > h_max else 1.0
-        ac = [ad[0] * s, ad[1] * s, -up]
-        # semi-implicit Euler: thrust lag (backward Euler), then velocity with new thrust
-        drag = [-k[j] * abs(v[j] - wind_ned_m_s[j]) * (v[j] - wind_ned_m_s[j]) for j in range(3)]
-        for j in range(3):
-            a[j] = (a[j] + h / params.tau_thrust_s * ac[j]) / (1.0 + h / params.tau_thrust_s)
-        for j in range(3):
-            v[j] = v[j] + h * (a[j] + gvec[j] + drag[j])
-    return (v[0], v[1], v[2]), (a[0], a[1], a[2])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -857,6 +387,35 @@ class VelocityPlant:
             out=(self._vel, self._thr), backend=self._backend,
         )  # fmt: skip
         return self._vel
+
+    def fixed_step(self, dt_s: float) -> Callable[[np.ndarray], np.ndarray]:
+        """A stepper for many steps of one length: ``f(v_cmd)`` does exactly what
+        ``self.step(v_cmd, dt_s)`` does (same kernel, same numbers) and returns the (N, 3) velocity.
+
+        The argument checks, the sub-step count and the coefficient extraction are done once
+        here instead of on every call (for one agent they cost ~10x the kernel).  The fast path
+        takes a C-contiguous float64 (N, 3) or (1, 3) command on the compiled backend; anything
+        else (or a plant whose agents changed since) goes through :meth:`step`, which checks
+        its arguments."""
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise ValueError(f"dt_s must be > 0 and finite, got {dt_s!r}")
+        co = self._co
+        kernel = _select_kernel(self._backend)
+        if kernel is None:
+            return lambda v_cmd_ned_m_s: self.step(v_cmd_ned_m_s, dt_s)
+        nsub = substep_count(dt_s, co)
+        h = dt_s / nsub
+        args = (*kernel_args(co, h), h, nsub)
+
+        def step(v_cmd_ned_m_s: np.ndarray) -> np.ndarray:
+            cmd = v_cmd_ned_m_s
+            if (self._co is not co or type(cmd) is not np.ndarray or cmd.dtype != np.float64 or cmd.ndim != 2
+                    or cmd.shape[1] != 3 or cmd.shape[0] not in (1, self._vel.shape[0]) or not cmd.flags.c_contiguous):
+                return self.step(cmd, dt_s)
+            kernel(self._vel, self._thr, cmd, None, None, None, *args)
+            return self._vel
+
+        return step
 
     # population ------------------------------------------------------------------------------
     def append(

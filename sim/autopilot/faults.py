@@ -69,21 +69,21 @@ class FaultInjector:
         self.dropped_out = 0
         """Outgoing messages dropped so far."""
 
+    def _lost(self) -> bool:
+        p = self.config.loss_probability
+        return p > 0.0 and self._rng.random() < p
+
     def drop_incoming(self) -> bool:
         """True if the next incoming message is lost."""
-        p = self.config.loss_probability
-        if p > 0.0 and self._rng.random() < p:
-            self.dropped_in += 1
-            return True
-        return False
+        lost = self._lost()
+        self.dropped_in += lost
+        return lost
 
     def drop_outgoing(self) -> bool:
         """True if the next outgoing message is lost."""
-        p = self.config.loss_probability
-        if p > 0.0 and self._rng.random() < p:
-            self.dropped_out += 1
-            return True
-        return False
+        lost = self._lost()
+        self.dropped_out += lost
+        return lost
 
     @property
     def latency_s(self) -> float:

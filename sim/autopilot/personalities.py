@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Mapping
 
+from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 __all__ = [
@@ -70,11 +71,14 @@ _PILOT_MODES = frozenset(
     {FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ACRO, FlightMode.ALTCTL, FlightMode.POSCTL}
 )
 
-# PX4 main / sub modes (px4_custom_mode.h)
-PX4_MAIN_MANUAL, PX4_MAIN_ALTCTL, PX4_MAIN_POSCTL, PX4_MAIN_AUTO = 1, 2, 3, 4
-PX4_MAIN_ACRO, PX4_MAIN_OFFBOARD, PX4_MAIN_STABILIZED = 5, 6, 7
-PX4_SUB_READY, PX4_SUB_TAKEOFF, PX4_SUB_LOITER, PX4_SUB_MISSION = 1, 2, 3, 4
-PX4_SUB_RTL, PX4_SUB_LAND = 5, 6
+# PX4 main / sub modes (px4_custom_mode.h, as pymavlink.mavutil carries them)
+PX4_MAIN_MANUAL, PX4_MAIN_ALTCTL = mavutil.PX4_CUSTOM_MAIN_MODE_MANUAL, mavutil.PX4_CUSTOM_MAIN_MODE_ALTCTL
+PX4_MAIN_POSCTL, PX4_MAIN_AUTO = mavutil.PX4_CUSTOM_MAIN_MODE_POSCTL, mavutil.PX4_CUSTOM_MAIN_MODE_AUTO
+PX4_MAIN_ACRO, PX4_MAIN_OFFBOARD = mavutil.PX4_CUSTOM_MAIN_MODE_ACRO, mavutil.PX4_CUSTOM_MAIN_MODE_OFFBOARD
+PX4_MAIN_STABILIZED = mavutil.PX4_CUSTOM_MAIN_MODE_STABILIZED
+PX4_SUB_READY, PX4_SUB_TAKEOFF = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_READY, mavutil.PX4_CUSTOM_SUB_MODE_AUTO_TAKEOFF
+PX4_SUB_LOITER, PX4_SUB_MISSION = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LOITER, mavutil.PX4_CUSTOM_SUB_MODE_AUTO_MISSION
+PX4_SUB_RTL, PX4_SUB_LAND = mavutil.PX4_CUSTOM_SUB_MODE_AUTO_RTL, mavutil.PX4_CUSTOM_SUB_MODE_AUTO_LAND
 
 
 def px4_custom_mode(main_mode: int, sub_mode: int = 0) -> int:
@@ -102,24 +106,21 @@ _PX4_MODES: dict[FlightMode, tuple[int, int]] = {
     FlightMode.STABILIZED: (PX4_MAIN_STABILIZED, 0),
 }
 
-# ArduPilot Copter mode numbers (ArduCopter/mode.h)
-_ARDUPILOT_MODES: dict[FlightMode, int] = {
-    FlightMode.STABILIZED: 0,
-    FlightMode.ACRO: 1,
-    FlightMode.ALTCTL: 2,
-    FlightMode.MISSION: 3,
-    FlightMode.GUIDED: 4,
-    FlightMode.LOITER: 5,
-    FlightMode.RTL: 6,
-    FlightMode.LAND: 9,
-    FlightMode.POSCTL: 16,
-    FlightMode.BRAKE: 17,
+# ArduPilot Copter mode numbers (ArduCopter/mode.h; the ardupilotmega dialect's COPTER_MODE enum)
+_ARDUPILOT_MODE_NAMES: dict[FlightMode, str] = {
+    FlightMode.STABILIZED: "STABILIZE",
+    FlightMode.ACRO: "ACRO",
+    FlightMode.ALTCTL: "ALT_HOLD",
+    FlightMode.MISSION: "AUTO",
+    FlightMode.GUIDED: "GUIDED",
+    FlightMode.LOITER: "LOITER",
+    FlightMode.RTL: "RTL",
+    FlightMode.LAND: "LAND",
+    FlightMode.POSCTL: "POSHOLD",
+    FlightMode.BRAKE: "BRAKE",
 }
-
-_ARDUPILOT_NAMES = {
-    0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER", 6: "RTL",
-    9: "LAND", 16: "POSHOLD", 17: "BRAKE",
-}
+_ARDUPILOT_MODES: dict[FlightMode, int] = {m: getattr(mavlink, f"COPTER_MODE_{n}") for m, n in _ARDUPILOT_MODE_NAMES.items()}
+_ARDUPILOT_NAMES = {_ARDUPILOT_MODES[m]: n for m, n in _ARDUPILOT_MODE_NAMES.items()}
 _PX4_NAMES = {
     FlightMode.MANUAL: "MANUAL", FlightMode.ALTCTL: "ALTCTL", FlightMode.POSCTL: "POSCTL",
     FlightMode.AUTO_READY: "AUTO.READY", FlightMode.TAKEOFF: "AUTO.TAKEOFF",

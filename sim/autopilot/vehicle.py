@@ -31,154 +31,33 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode, Personality
-from sim.plant import PlantParams, VelocityPlant, fleet_kernel, substep_count
+from sim.autopilot.rules import FailsafeAction, PersonalityRules
+from sim.autopilot.vehicle_types import (
+    ACCEPTED,
+    NAN3,
+    FAILED,
+    TEMPORARILY_REJECTED,
+    UNSUPPORTED,
+    Outcome,
+    Setpoint,
+    StatusEvent,
+    VehicleConfig,
+    VehicleState,
+)
+from sim.plant import PlantParams, VelocityPlant
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
 _log = logging.getLogger(__name__)
 
-ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
-TEMPORARILY_REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-DENIED = mavlink.MAV_RESULT_DENIED
-UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
-FAILED = mavlink.MAV_RESULT_FAILED
-
-_NAN3 = (math.nan, math.nan, math.nan)
-
 # modes in which a vehicle may be armed (PX4 and ArduPilot refuse LAND/RTL; BRAKE is not armable)
 _NOT_ARMABLE = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.BRAKE})
-# modes whose velocity command is "hold": zero velocity
-_HOLD_MODES = frozenset(
-    {FlightMode.LOITER, FlightMode.AUTO_READY, FlightMode.MISSION, FlightMode.BRAKE,
-     FlightMode.MANUAL, FlightMode.STABILIZED, FlightMode.ACRO, FlightMode.ALTCTL, FlightMode.POSCTL}
-)  # fmt: skip
-
-
-# ArduPilot modes that take the climb rate from the RC throttle stick: with no RC (a swarm
-# vehicle) the stick reads low and the vehicle descends (real ArduCopter SITL: LOITER with no
-# RC descended and hit the ground at 2.47 m/s).  PX4's AUTO.LOITER holds altitude by itself.
-_AP_THROTTLE_STICK_MODES = frozenset({FlightMode.LOITER, FlightMode.ALTCTL, FlightMode.POSCTL})
-AP_NO_RC_DESCENT_M_S = 2.5
-"""Descent rate of an ArduPilot throttle-stick mode with no RC [m/s] (PILOT_SPEED_DN default)."""
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """Result of a command: a MAV_RESULT code and a short human-readable reason."""
-
-    result: int
-    """MAV_RESULT_* value for COMMAND_ACK."""
-    text: str = ""
-    """Why (empty when accepted)."""
-
-    @property
-    def ok(self) -> bool:
-        """True when the command was accepted."""
-        return self.result == ACCEPTED
-
-
-@dataclass(frozen=True)
-class Setpoint:
-    """An external position/velocity target already resolved to local NED (NaN = not given)."""
-
-    position_ned_m: tuple[float, float, float] = _NAN3
-    """Target position [m] local NED; NaN per axis where the type mask ignores it."""
-    velocity_ned_m_s: tuple[float, float, float] = _NAN3
-    """Target (feed-forward) velocity [m/s] NED; NaN per axis where ignored."""
-    yaw_rad: float = math.nan
-    """Target heading [rad] (NaN: keep)."""
-    yaw_rate_rad_s: float = math.nan
-    """Target yaw rate [rad/s] (NaN: none); used only when ``yaw_rad`` is NaN."""
-
-    @property
-    def has_velocity(self) -> bool:
-        """True if any velocity axis is given."""
-        return any(math.isfinite(v) for v in self.velocity_ned_m_s)
-
-
-@dataclass(frozen=True)
-class StatusEvent:
-    """Something a real autopilot would announce with STATUSTEXT."""
-
-    t_s: float
-    """Simulated time [s]."""
-    severity: int
-    """MAV_SEVERITY_*."""
-    text: str
-    """Message (<= 50 characters is what STATUSTEXT carries in one chunk)."""
-
-
-@dataclass(frozen=True)
-class VehicleConfig:
-    """Emulator-side settings that are not autopilot parameters."""
-
-    start_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Initial position [m] local NED; D < 0 starts airborne, armed, in the hold mode."""
-    start_yaw_rad: float = 0.0
-    """Initial heading [rad]."""
-    physics_dt_s: float = 0.02
-    """Fixed physics step [s]."""
-    position_gain_1_s: float = 1.0
-    """Proportional gain of position hold / position setpoints [1/s] (PX4 MPC_XY_P ~ 0.95)."""
-    yaw_rate_max_rad_s: float = math.radians(90.0)
-    """Yaw slew limit [rad/s]."""
-    offboard_stream_window_s: float = 0.5
-    """PX4: OFFBOARD may be entered only if the last setpoint is at most this old (>= 2 Hz)."""
-    takeoff_tolerance_m: float = 0.15
-    """Takeoff counts as complete within this distance of the target altitude [m]."""
-    rtl_arrival_radius_m: float = 0.5
-    """RTL starts descending within this horizontal distance of home [m]."""
-    plant_params: PlantParams = field(default_factory=PlantParams)
-    """Parameters of the velocity plant (paper nominal quadrotor)."""
-
-
-@dataclass(frozen=True)
-class VehicleState:
-    """Immutable snapshot of the vehicle (what telemetry reports)."""
-
-    t_s: float
-    """Simulated time [s]."""
-    armed: bool
-    """Motors armed."""
-    mode: FlightMode
-    """Current flight mode."""
-    custom_mode: int
-    """``custom_mode`` word of the mode in the personality's encoding."""
-    position_ned_m: tuple[float, float, float]
-    """Position [m] local NED."""
-    velocity_ned_m_s: tuple[float, float, float]
-    """Velocity [m/s] NED."""
-    roll_rad: float
-    """Roll [rad] (from the realised thrust direction)."""
-    pitch_rad: float
-    """Pitch [rad]."""
-    yaw_rad: float
-    """Heading [rad]."""
-    yaw_rate_rad_s: float
-    """Yaw rate [rad/s]."""
-    landed_state: int
-    """MAV_LANDED_STATE_*."""
-    home_ned_m: tuple[float, float, float]
-    """Home position [m] local NED (set at start and on arming)."""
-    position_valid: bool
-    """Whether the vehicle has a position estimate."""
-    last_setpoint_t_s: float
-    """Time of the last external setpoint [s] (-inf if none)."""
-    velocity_command_ned_m_s: tuple[float, float, float]
-    """Velocity command given to the plant in the last physics step [m/s]."""
-
-    @property
-    def in_air(self) -> bool:
-        """True unless on the ground."""
-        return self.landed_state not in (mavlink.MAV_LANDED_STATE_ON_GROUND, mavlink.MAV_LANDED_STATE_UNDEFINED)
-
 
 PlantFactory = Callable[[PlantParams], VelocityPlant]
 
@@ -205,8 +84,9 @@ class Vehicle:
             raise ValueError(f"physics_dt_s must be > 0, got {self.config.physics_dt_s}")
         self.params: dict[str, float] = personality.default_params(sysid)
         self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
-        self._fast_step = None if plant_factory is not None else _fast_plant_step(self._plant, self.config.physics_dt_s)
+        self._fixed_step = self._plant.fixed_step(self.config.physics_dt_s)
         self._px4 = personality.name == "px4"
+        self._rules = PersonalityRules(self._px4, self.params)
         self.t_s = float(t0_s)
         self.pos = start.copy()
         self.vel = np.zeros(3)
@@ -253,35 +133,12 @@ class Vehicle:
         self._events.append(StatusEvent(self.t_s, severity, text))
         _log.info("vehicle t=%.2f: %s", self.t_s, text)
 
-    def _p(self, name: str) -> float:
-        return self.params[name]
-
     @property
     def _is_px4(self) -> bool:
         return self._px4
 
     def _reject(self) -> int:
-        """Result code the personality uses for "not now" (PX4 TEMPORARILY_REJECTED, ArduPilot FAILED)."""
-        return TEMPORARILY_REJECTED if self._is_px4 else FAILED
-
-    # ------------------------------------------------------------------ derived limits
-    def _limits(self) -> tuple[float, float, float]:
-        """(horizontal max, climb max, descent max) [m/s] of commands."""
-        if self._is_px4:
-            return self._p("MPC_XY_VEL_MAX"), self._p("MPC_Z_VEL_MAX_UP"), self._p("MPC_Z_VEL_MAX_DN")
-        return 0.01 * self._p("WPNAV_SPEED"), 0.01 * self._p("WPNAV_SPEED_UP"), 0.01 * self._p("WPNAV_SPEED_DN")
-
-    def _takeoff_speed(self) -> float:
-        return self._p("MPC_TKO_SPEED") if self._is_px4 else 0.01 * self._p("WPNAV_SPEED_UP")
-
-    def _land_speed(self) -> float:
-        return self._p("MPC_LAND_SPEED") if self._is_px4 else 0.01 * self._p("LAND_SPEED")
-
-    def _cruise_speed(self) -> float:
-        return self._p("MPC_XY_CRUISE") if self._is_px4 else 0.01 * self._p("WPNAV_SPEED")
-
-    def _rtl_alt(self) -> float:
-        return self._p("RTL_RETURN_ALT") if self._is_px4 else 0.01 * self._p("RTL_ALT")
+        return self._rules.reject_code
 
     # ------------------------------------------------------------------ commands
     def set_position_valid(self, valid: bool, t_s: float) -> None:
@@ -356,14 +213,14 @@ class Vehicle:
         self.mode = mode
         self._takeoff_target_d = None
         if mode == FlightMode.TAKEOFF:
-            alt = self._p("MIS_TAKEOFF_ALT") if takeoff_alt_m is None else takeoff_alt_m
+            alt = self.params["MIS_TAKEOFF_ALT"] if takeoff_alt_m is None else takeoff_alt_m
             self._takeoff_target_d = self.home[2] - alt
         elif mode == FlightMode.GUIDED:
             self._setpoint = None
             self._guided_vel_t = -math.inf
         elif mode == FlightMode.RTL:
             self._rtl_phase = "climb"
-            self._rtl_target_d = min(float(self.pos[2]), self.home[2] - self._rtl_alt())
+            self._rtl_target_d = min(float(self.pos[2]), self.home[2] - self._rules.rtl_altitude_m())
         self._event(f"Mode {self.mode_name}")
 
     def takeoff(self, t_s: float, altitude_m: float | None = None) -> Outcome:
@@ -425,40 +282,21 @@ class Vehicle:
     # ------------------------------------------------------------------ failsafes
     def _check_failsafes(self) -> None:
         t = self.t_s
-        if self.mode == FlightMode.OFFBOARD and t - self._setpoint_t > self._p("COM_OF_LOSS_T"):
-            self._offboard_loss_action()
+        rules = self._rules
+        if self.mode == FlightMode.OFFBOARD and t - self._setpoint_t > rules.offboard_loss_timeout_s():
+            self._failsafe("Failsafe: offboard setpoints lost", rules.offboard_loss_action())
         if self._gcs_last_t is not None and not self._gcs_failsafe_active and self.armed and not self.landed:
-            if self._is_px4:
-                action, timeout = int(self._p("NAV_DLL_ACT")), self._p("COM_DL_LOSS_T")
-            else:
-                action, timeout = int(self._p("FS_GCS_ENABLE")), self._p("FS_GCS_TIMEOUT")
+            action, timeout = rules.gcs_loss()
             if action != 0 and t - self._gcs_last_t > timeout:
                 self._gcs_failsafe_active = True
-                self._gcs_loss_action(action)
+                self._failsafe("Failsafe: GCS link lost", rules.gcs_loss_action(action))
 
-    def _offboard_loss_action(self) -> None:
-        act = int(self._p("COM_OBL_RC_ACT"))
-        self._event("Failsafe: offboard setpoints lost", mavlink.MAV_SEVERITY_WARNING)
-        if act == 3:
-            self._enter_mode(FlightMode.RTL)
-        elif act == 4:
-            self._enter_mode(FlightMode.LAND)
-        elif act in (6, 7):
-            self._enter_mode(FlightMode.LOITER)
+    def _failsafe(self, why: str, action: FailsafeAction) -> None:
+        self._event(why, mavlink.MAV_SEVERITY_WARNING)
+        if action.mode is not None:
+            self._enter_mode(action.mode)
+        if action.disarm:
             self._disarm("Failsafe: disarmed")
-        else:  # 0 Position, 1 Altitude, 2 Manual: no RC here -> Hold; 5 Hold
-            self._enter_mode(FlightMode.LOITER)
-
-    def _gcs_loss_action(self, action: int) -> None:
-        self._event("Failsafe: GCS link lost", mavlink.MAV_SEVERITY_WARNING)
-        if self._is_px4:
-            table = {1: FlightMode.LOITER, 2: FlightMode.RTL, 3: FlightMode.LAND}
-            if action in (5, 6):
-                self._disarm("Failsafe: disarmed")
-                return
-            self._enter_mode(table.get(action, FlightMode.LOITER))
-        else:
-            self._enter_mode(FlightMode.LAND if action == 5 else FlightMode.RTL)
 
     # ------------------------------------------------------------------ physics
     def step(self, t_s: float) -> None:
@@ -477,7 +315,7 @@ class Vehicle:
         k = self.config.position_gain_1_s
         if self._takeoff_target_d is not None and mode in (FlightMode.TAKEOFF, FlightMode.GUIDED):
             err = float(self.pos[2]) - self._takeoff_target_d  # > 0 below the target
-            up = -min(max(k * err, -self._land_speed()), self._takeoff_speed())
+            up = -min(max(k * err, -self._rules.land_speed_m_s()), self._rules.takeoff_speed_m_s())
             if abs(err) <= self.config.takeoff_tolerance_m:
                 self._takeoff_target_d = None
                 if mode == FlightMode.TAKEOFF:
@@ -491,17 +329,18 @@ class Vehicle:
             if sp is None:
                 return [0.0, 0.0, 0.0]
             v = sp.velocity_ned_m_s
-            if mode == FlightMode.GUIDED and self.t_s - self._guided_vel_t > self._p("GUID_TIMEOUT"):
-                v = _NAN3  # ArduPilot: stale velocity target -> stop
+            if mode == FlightMode.GUIDED and self.t_s - self._guided_vel_t > self.params["GUID_TIMEOUT"]:
+                v = NAN3  # ArduPilot: stale velocity target -> stop
             isfinite = math.isfinite
             return [
                 (vj if isfinite(vj) else 0.0) + (k * (pj - xj) if isfinite(pj) else 0.0)
                 for vj, pj, xj in zip(v, sp.position_ned_m, self.pos.tolist())
             ]
         if mode == FlightMode.LAND:
-            return [0.0, 0.0, self._land_speed()]
-        if not self._is_px4 and mode in _AP_THROTTLE_STICK_MODES:
-            return [0.0, 0.0, AP_NO_RC_DESCENT_M_S]  # the throttle stick at zero: no RC, it sinks
+            return [0.0, 0.0, self._rules.land_speed_m_s()]
+        sink = self._rules.no_rc_descent_m_s(mode)
+        if sink is not None:
+            return [0.0, 0.0, sink]  # the throttle stick at zero: no RC, it sinks
         if mode == FlightMode.RTL:
             return self._rtl_command().tolist()
         return [0.0, 0.0, 0.0]  # hold modes (and TAKEOFF after completion): zero velocity
@@ -511,13 +350,13 @@ class Vehicle:
         cmd = np.zeros(3)
         d_err = self.pos[2] - self._rtl_target_d
         if self._rtl_phase == "climb":
-            cmd[2] = -min(self._takeoff_speed(), k * d_err)
+            cmd[2] = -min(self._rules.takeoff_speed_m_s(), k * d_err)
             if d_err <= self.config.takeoff_tolerance_m:
                 self._rtl_phase = "return"
         elif self._rtl_phase == "return":
             delta = self.home[:2] - self.pos[:2]
             dist = float(np.hypot(*delta))
-            speed = min(self._cruise_speed(), k * dist)
+            speed = min(self._rules.cruise_speed_m_s(), k * dist)
             if dist > 1e-9:
                 cmd[:2] = delta / dist * speed
             cmd[2] = -k * d_err
@@ -525,12 +364,12 @@ class Vehicle:
                 self._rtl_phase = "land"
         else:
             cmd[:2] = k * (self.home[:2] - self.pos[:2])
-            cmd[2] = self._land_speed()
+            cmd[2] = self._rules.land_speed_m_s()
         return cmd
 
     def _limit(self, cmd: list[float]) -> list[float]:
         """Clamp a 3-float command in place to the horizontal / climb / descent limits."""
-        xy_max, up_max, dn_max = self._limits()
+        xy_max, up_max, dn_max = self._rules.command_limits_m_s()
         c0, c1 = cmd[0], cmd[1]
         if not c0 * c0 + c1 * c1 <= 0.98 * xy_max * xy_max:  # else clearly inside: skip np.hypot
             h = float(np.hypot(c0, c1))
@@ -568,9 +407,8 @@ class Vehicle:
                 self._auto_disarm_check()
                 self._update_yaw(dt)
                 return
-        if self._fast_step is not None and dt == self.config.physics_dt_s:
-            self._fast_step(self._plant.velocity, self._plant.thrust_accel, cmd_row)
-            self.vel = self._plant.velocity[0].copy()
+        if dt == self.config.physics_dt_s:
+            self.vel = self._fixed_step(cmd_row)[0].copy()
         else:
             self.vel = np.array(self._plant.step(cmd_row, dt)[0], dtype=float)
         self.pos += self.vel * dt
@@ -598,10 +436,7 @@ class Vehicle:
     def _auto_disarm_check(self) -> None:
         """Disarm a vehicle sitting on the ground (PX4 COM_DISARM_LAND / COM_DISARM_PRFLT,
         ArduPilot DISARM_DELAY; a negative / zero delay disables it)."""
-        if self._is_px4:
-            delay = self._p("COM_DISARM_LAND") if self._ever_airborne else self._p("COM_DISARM_PRFLT")
-        else:
-            delay = self._p("DISARM_DELAY") if self._p("DISARM_DELAY") > 0 else -1.0
+        delay = self._rules.auto_disarm_delay_s(self._ever_airborne)
         if delay >= 0 and self.t_s - self._landed_since >= delay - 1e-9:
             self._disarm("Auto-disarmed: landed")
 
@@ -660,32 +495,3 @@ class Vehicle:
             velocity_command_ned_m_s=tuple(self.cmd.tolist()),
         )
 
-
-def _fast_plant_step(plant: VelocityPlant, dt_s: float) -> Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None:
-    """The one-vehicle fast path of ``plant.step(cmd, dt_s)``: ``f(vel, thrust, cmd_row)`` steps the
-    (1, 3) state arrays in place with a (1, 3) command, or None when it does not apply.
-
-    It calls the very numba kernel :func:`sim.plant.step_plant` selects for one agent with one
-    coefficient row and no wind/noise (:func:`sim.plant.fleet_kernel`), with the scalar
-    coefficients, sub-step count and sub-step length computed once here instead of on every
-    call (the argument checks and coefficient extraction of ``step_plant`` cost ~10x the kernel
-    for one agent).  Bit-identical results; None without numba, for a non-default backend, or
-    for a plant that is not one agent with shared coefficients.
-    """
-    kernel = fleet_kernel()
-    co = plant.coefficients
-    if (kernel is None or type(plant) is not VelocityPlant or plant.n_agents != 1 or co.rows != 1
-            or getattr(plant, "_backend", None) != "auto"):
-        return None
-    nsub = substep_count(dt_s, co)
-    h = dt_s / nsub
-    args = (
-        float(co.inv_tau_v[0]), float(h / (co.tau_thrust_s[0] + h)), float(co.g[0]),
-        float(co.drag_k[0, 0]), float(co.drag_k[0, 1]), float(co.drag_k[0, 2]), float(co.ff_gain[0]),
-        float(co.accel_max[0]), float(co.tan_tilt[0]), h, nsub,
-    )  # fmt: skip
-
-    def step(vel: np.ndarray, thrust: np.ndarray, cmd_row: np.ndarray) -> None:
-        kernel(vel, thrust, cmd_row, *args)
-
-    return step

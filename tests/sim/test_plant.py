@@ -21,12 +21,13 @@ from sim.plant import (
     numba_available,
     plant_derivatives,
     step_plant,
-    step_single_agent,
     substep_count,
     thrust_accel_norm,
     tilt_deg,
     trim_thrust_accel,
 )
+from sim.plant_kernel import BLOCK
+from sim.plant_oracle import step_single_agent
 
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
 G = 9.81
@@ -179,38 +180,27 @@ def test_numba_and_numpy_kernels_agree():
 
 
 @pytest.mark.skipif(not numba_available(), reason="numba missing")
-@pytest.mark.parametrize("n", [1, 255, 1000])
-def test_fleet_wide_numba_kernel_equals_the_general_kernel(n, monkeypatch):
-    """Fleet-wide params without wind/noise take the specialised kernel; it computes exactly what
-    the general kernel computes with explicit zero wind (blocks of 256 agents, partial last block)."""
-    import sim.plant as plant_mod
-
-    calls = []
-    fleet = plant_mod.fleet_kernel()
-
-    def counting():
-        calls.append(1)
-        return fleet
-
-    monkeypatch.setattr(plant_mod, "fleet_kernel", counting)
-    p = PlantParams()
-    _, vel, thr, cmd, _ = random_state(n, seed=12)
+@pytest.mark.parametrize("n", [1, BLOCK - 1, BLOCK, 1000])
+def test_compiled_kernel_reproduces_the_numpy_reference_bit_for_bit(n):
+    """One kernel, the numpy path its reference: fleet-wide and per-agent rows, with and without
+    wind/feed-forward/noise, per-agent and broadcast commands, whole and partial blocks of agents,
+    the actuation limits active for part of the fleet: the same numbers, to the last bit."""
+    rng, vel, thr, cmd, wind = random_state(n, seed=12)
     cmd[::3] *= 4.0  # drive part of the fleet into the tilt / thrust limits
-    zero = np.zeros(3)
-    for c in (cmd, cmd[0]):  # per-agent and broadcast (3,) command
-        fast = step_plant(vel, thr, c, 0.05, p, backend="numba")
-        general = step_plant(vel, thr, c, 0.05, p, zero, zero, zero, backend="numba")
-        reference = step_plant(vel, thr, c, 0.05, p, backend="numpy")
-        np.testing.assert_allclose(fast[0], general[0], rtol=0, atol=1e-12)
-        np.testing.assert_allclose(fast[1], general[1], rtol=0, atol=1e-12)
-        np.testing.assert_allclose(fast[0], reference[0], rtol=0, atol=1e-11)
-        np.testing.assert_allclose(fast[1], reference[1], rtol=0, atol=1e-11)
-    assert len(calls) == 2
+    wind_ff, noise = rng.normal(0.0, 2.0, (n, 3)), rng.normal(0.0, 0.5, (n, 3))
+    for p in (PlantParams(), hetero_params(n)):
+        for c in (cmd, cmd[0]):
+            for extra in ((), (wind,), (wind, wind_ff, noise), (wind[0], None, noise[0])):
+                ref = step_plant(vel, thr, c, 0.05, p, *extra, backend="numpy")
+                got = step_plant(vel, thr, c, 0.05, p, *extra, backend="numba")
+                np.testing.assert_array_equal(got[0], ref[0])
+                np.testing.assert_array_equal(got[1], ref[1])
     v, a = vel.copy(), thr.copy()
-    step_plant(v, a, cmd, 0.05, p, out=(v, a), backend="numba")  # in place
-    np.testing.assert_allclose(v, step_plant(vel, thr, cmd, 0.05, p, zero, backend="numba")[0], rtol=0, atol=1e-12)
+    step_plant(v, a, cmd, 0.05, PlantParams(), out=(v, a), backend="numba")  # in place
+    zero = np.zeros(3)
+    np.testing.assert_array_equal(v, step_plant(vel, thr, cmd, 0.05, PlantParams(), zero, zero, zero, backend="numba")[0])
     i = n - 1
-    r = step_single_agent(vel[i], thr[i], cmd[i], 0.05, p)
+    r = step_single_agent(vel[i], thr[i], cmd[i], 0.05, PlantParams())
     np.testing.assert_allclose(v[i], r[0], atol=1e-11)
     np.testing.assert_allclose(a[i], r[1], atol=1e-11)
 

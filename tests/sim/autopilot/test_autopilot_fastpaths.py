@@ -1,46 +1,66 @@
 """The emulator's per-vehicle fast paths give exactly what the general code gives.
 
-* one-vehicle plant step (``vehicle._fast_plant_step``) == ``VelocityPlant.step``, bit for bit;
-* a Vehicle on the fast path == the same Vehicle on the general plant path (``plant_factory``);
-* MAVLink framing (``server._pack``) == pymavlink's ``msg.pack``, byte for byte;
+* the plant's prepared fixed-length step (``VelocityPlant.fixed_step``) == ``VelocityPlant.step``, bit for bit;
+* a Vehicle on the prepared step == the same Vehicle on ``VelocityPlant.step`` (``plant_factory``);
+* MAVLink framing (``framing.Encoder``, pymavlink's public ``MAVLink.send``) gives valid MAVLink 2
+  frames, checked field by field from the raw bytes, over a real UDP socket too;
 * the lazily built ``AutopilotEmulator.state`` follows commands and physics.
 """
 
 from __future__ import annotations
 
 import math
+import socket
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import ARDUPILOT, PX4, FlightMode
-from sim.autopilot.server import AutopilotEmulator, _pack
-from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig, _fast_plant_step
+from sim.autopilot.framing import Encoder, new_parser
+from sim.autopilot.server import AutopilotEmulator
+from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
 from sim.plant import PlantParams, VelocityPlant, numba_available
 
-needs_numba = pytest.mark.skipif(not numba_available(), reason="the fast plant path uses the numba kernel")
+BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
 
 
-@needs_numba
-@pytest.mark.parametrize("dt_s", [0.02, 0.05, 0.013])
-def test_fast_plant_step_is_bit_identical_to_velocity_plant_step(dt_s):
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize(("n", "dt_s"), [(1, 0.02), (1, 0.05), (1, 0.013), (3, 0.02)])
+def test_fixed_step_is_bit_identical_to_velocity_plant_step(backend, n, dt_s):
     params = PlantParams()
-    ref, fast = VelocityPlant(params, 1), VelocityPlant(params, 1)
-    step = _fast_plant_step(fast, dt_s)
-    assert step is not None
+    ref, fast = VelocityPlant(params, n, backend=backend), VelocityPlant(params, n, backend=backend)
+    step = fast.fixed_step(dt_s)
     rng = np.random.default_rng(3)
     for k in range(300):
-        cmd = rng.uniform(-12.0, 12.0, size=(1, 3)) if k % 7 else np.zeros((1, 3))
+        cmd = rng.uniform(-12.0, 12.0, size=(n, 3)) if k % 7 else np.zeros((1, 3))
         ref.step(cmd, dt_s)
-        step(fast.velocity, fast.thrust_accel, cmd)
+        assert step(cmd) is fast.velocity
         assert np.array_equal(fast.velocity, ref.velocity)
         assert np.array_equal(fast.thrust_accel, ref.thrust_accel)
+    ref.step(cmd[0], dt_s)  # a (3,) command takes the checked path, with the same numbers
+    step(cmd[0])
+    assert np.array_equal(fast.velocity, ref.velocity)
 
 
-def test_fast_plant_step_declines_what_it_does_not_cover():
-    assert _fast_plant_step(VelocityPlant(PlantParams(), 2), 0.02) is None  # not one vehicle
-    assert _fast_plant_step(VelocityPlant(PlantParams(), 1, backend="numpy"), 0.02) is None
+def test_fixed_step_follows_a_changed_population_and_rejects_bad_input():
+    plant = VelocityPlant(PlantParams(), 1)
+    step = plant.fixed_step(0.02)
+    plant.append(np.array([[1.0, 0.0, 0.0]]))
+    ref = VelocityPlant(PlantParams(), 2, velocity_ned_m_s=plant.velocity.copy(), thrust_accel_ned_m_s2=plant.thrust_accel.copy())
+    cmd = np.array([[2.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    assert np.array_equal(step(cmd), ref.step(cmd, 0.02))
+    with pytest.raises(ValueError, match="cmd_ned_m_s"):
+        step(np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="dt_s"):
+        plant.fixed_step(0.0)
+
+
+class _CheckedStepPlant(VelocityPlant):
+    """A plant whose fixed step is plain ``step`` (the general path)."""
+
+    def fixed_step(self, dt_s):
+        return lambda cmd: self.step(cmd, dt_s)
 
 
 def _fly(vehicle: Vehicle, personality_is_px4: bool) -> list:
@@ -79,12 +99,10 @@ def _fly(vehicle: Vehicle, personality_is_px4: bool) -> list:
     return out
 
 
-@needs_numba
 @pytest.mark.parametrize("personality", [PX4, ARDUPILOT], ids=["px4", "ardupilot"])
-def test_vehicle_on_the_fast_path_flies_exactly_like_the_general_plant_path(personality):
+def test_vehicle_on_the_fixed_step_flies_exactly_like_the_general_plant_path(personality):
     fast = Vehicle(personality, VehicleConfig())
-    general = Vehicle(personality, VehicleConfig(), plant_factory=lambda p: VelocityPlant(p, 1))
-    assert fast._fast_step is not None and general._fast_step is None
+    general = Vehicle(personality, VehicleConfig(), plant_factory=lambda p: _CheckedStepPlant(p, 1))
     a, b = _fly(fast, personality is PX4), _fly(general, personality is PX4)
     assert a == b
     assert any(s.velocity_ned_m_s != (0.0, 0.0, 0.0) for s in a[:-1] if hasattr(s, "velocity_ned_m_s"))
@@ -102,15 +120,57 @@ def _messages(m: mavlink.MAVLink, i: int) -> list:
     ]
 
 
-def test_pack_gives_pymavlinks_bytes():
-    ours, theirs = mavlink.MAVLink(None, srcSystem=7, srcComponent=1), mavlink.MAVLink(None, srcSystem=7, srcComponent=1)
+def _check_v2_frame(buf: bytes, seq: int, sysid: int, compid: int) -> int:
+    """Check one raw MAVLink 2 frame field by field (header, length, CRC); returns its message id."""
+    assert buf[0] == 0xFD  # MAVLink 2 start byte
+    length = buf[1]
+    assert len(buf) == 10 + length + 2  # header, payload, CRC (unsigned: no signature)
+    assert buf[2] == 0 and buf[3] == 0  # incompat/compat flags: not signed
+    assert (buf[4], buf[5], buf[6]) == (seq, sysid, compid)
+    msg_id = buf[7] | buf[8] << 8 | buf[9] << 16
+    payload = buf[10 : 10 + length]
+    assert length == 1 or payload[-1] != 0  # MAVLink 2 truncates trailing zero bytes (keeps one)
+    crc = mavlink.x25crc(buf[1 : 10 + length] + bytes([mavlink.mavlink_map[msg_id].crc_extra])).crc
+    assert buf[-2:] == crc.to_bytes(2, "little")
+    return msg_id
+
+
+def _fields(msg) -> dict:
+    return {k: list(v) if isinstance(v, (list, tuple)) else v for k, v in msg.to_dict().items()}
+
+
+def test_encoder_gives_mavlink2_frames_that_decode_from_raw_bytes():
+    enc = Encoder(7, 1)
+    parser = new_parser()
+    seq = 0
     for i in range(300):  # sequence numbers wrap
-        ours.seq = theirs.seq = i % 256
-        for a, b in zip(_messages(ours, i), _messages(theirs, i)):
-            assert _pack(a, ours) == b.pack(theirs)
-    parser = mavlink.MAVLink(None)
-    msgs = parser.parse_buffer(_pack(_messages(ours, 5)[1], ours))
-    assert [m.get_type() for m in msgs] == ["LOCAL_POSITION_NED"] and msgs[0].x == 7.5
+        for msg in _messages(enc.mav, i):
+            buf = enc.frame(msg)
+            assert _check_v2_frame(buf, seq % 256, 7, 1) == msg.get_msgId()
+            seq += 1
+            (back,) = parser.parse_buffer(buf)
+            assert back.get_type() == msg.get_type() and back.get_srcSystem() == 7
+            assert _fields(back) == _fields(msg)
+    (lp,) = parser.parse_buffer(enc.frame(_messages(enc.mav, 5)[1]))
+    assert lp.get_type() == "LOCAL_POSITION_NED" and lp.x == 7.5
+
+
+def test_emulator_datagrams_are_mavlink2_frames_of_its_system():
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    sink.settimeout(2.0)
+    em = AutopilotEmulator(f"udpout:127.0.0.1:{sink.getsockname()[1]}", "px4", (0.0, 0.0, -5.0), sysid=42).start()
+    try:
+        seqs, ids = [], set()
+        while len(seqs) < 40:
+            buf = sink.recv(65535)
+            seqs.append(buf[4])
+            ids.add(_check_v2_frame(buf, buf[4], 42, mavlink.MAV_COMP_ID_AUTOPILOT1))
+    finally:
+        em.stop()
+        sink.close()
+    assert all((b - a) % 256 == 1 for a, b in zip(seqs, seqs[1:]))  # one frame per datagram, none skipped
+    assert {mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT} <= ids
 
 
 def test_emulator_state_follows_commands_and_physics():

@@ -9,13 +9,10 @@ import pytest
 from pymavlink import mavutil
 
 from autopilot_testkit import POS_ONLY_MASK, POS_VEL_MASK, Client, free_tcp_port
-from sim.autopilot.server import (
-    AutopilotEmulator,
-    geodetic_to_ned,
-    ned_to_geodetic,
-    parse_endpoint,
-    resolve_local_setpoint,
-)
+from fisc_agent.frames import GeodeticAnchor
+from sim.autopilot.server import AutopilotEmulator
+from sim.autopilot.setpoints import resolve_local_setpoint
+from sim.autopilot.transport import parse_emulator_endpoint as parse_endpoint
 
 ML = mavutil.mavlink
 PX4_OFFBOARD = 6 << 16
@@ -32,6 +29,7 @@ PX4_LOITER = (4 << 16) | (3 << 24)
         ("udpin://0.0.0.0:14540", "udpin", "0.0.0.0", 14540),
         ("tcpin:0.0.0.0:5760", "tcpin", "0.0.0.0", 5760),
         ("tcp:localhost:5760", "tcp", "localhost", 5760),
+        ("tcpout:localhost:5760", "tcp", "localhost", 5760),
     ],
 )
 def test_parse_endpoint(url, kind, host, port):
@@ -39,18 +37,22 @@ def test_parse_endpoint(url, kind, host, port):
     assert (ep.kind, ep.host, ep.port) == (kind, host, port)
 
 
-@pytest.mark.parametrize("url", ["serial:/dev/ttyUSB0", "udpin:0.0.0.0", "udpout:host:x", "udpout:127.0.0.1:0"])
+@pytest.mark.parametrize(
+    "url", ["serial:/dev/ttyUSB0", "udpin:0.0.0.0", "udpout:host:x", "udpout:127.0.0.1:0", "/dev/ttyACM0:57600",
+            "udpbcast:255.255.255.255:14550"],
+)
 def test_parse_endpoint_errors(url):
     with pytest.raises(ValueError, match="endpoint"):
         parse_endpoint(url)
 
 
-def test_flat_earth_round_trip():
-    origin = (47.397742, 8.545594, 488.0)
-    lat, lon, alt = ned_to_geodetic((100.0, -50.0, -10.0), origin)
-    assert lat > origin[0] and lon < origin[1] and alt == pytest.approx(498.0)
-    assert geodetic_to_ned(lat, lon, alt, origin) == pytest.approx((100.0, -50.0, -10.0), abs=1e-6)
-    assert (lat - origin[0]) * 111_320 == pytest.approx(100.0, rel=0.01)
+def test_emulator_geodesy_is_the_agents_wgs84_anchor():
+    em = AutopilotEmulator("udpin:127.0.0.1:0", home_lla=(47.397742, 8.545594, 488.0))
+    assert em.anchor == GeodeticAnchor(47.397742, 8.545594, 488.0, 0.0)
+    lat, lon, alt = em.anchor.ned_to_geodetic(100.0, -50.0, -10.0)
+    assert lat > 47.397742 and lon < 8.545594 and alt == pytest.approx(498.0)
+    # one degree of latitude at 47.4 deg N is 111,180 m on WGS-84 (the old sphere said 111,319 m)
+    assert (lat - 47.397742) * 111_180.0 == pytest.approx(100.0, rel=2e-4)
 
 
 def test_setpoint_type_mask_and_frames():
@@ -310,6 +312,8 @@ def test_emulator_rejects_bad_arguments():
         AutopilotEmulator("udpin:127.0.0.1:0", personality="inav")
     with pytest.raises(ValueError, match="sysid"):
         AutopilotEmulator("udpin:127.0.0.1:0", sysid=0)
+    with pytest.raises(ValueError, match="home_lla"):
+        AutopilotEmulator("udpin:127.0.0.1:0", home_lla=(95.0, 0.0, 0.0))
 
 
 def test_global_int_position_target_and_nan_params(make_emulator, connect):
@@ -318,7 +322,7 @@ def test_global_int_position_target_and_nan_params(make_emulator, connect):
     nan = float("nan")
     ack = c.command(ML.MAV_CMD_DO_SET_MODE, ML.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, nan, nan, nan, nan, nan)
     assert ack.result == ML.MAV_RESULT_ACCEPTED  # NaN for unused params, as MAVSDK sends
-    lat, lon, _ = ned_to_geodetic((3.0, 0.0, 0.0), em.home_lla)
+    lat, lon, _ = em.anchor.ned_to_geodetic(3.0, 0.0, 0.0)
     pos_only = 0b0000_1101_1111_1000
     for _ in range(3):
         c.mav.set_position_target_global_int_send(
