@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 
+from fisc_agent.cli_common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, add_logging_args, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
@@ -23,7 +24,7 @@ from fisc_agent.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
-EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
+EXIT_FAILED, EXIT_INVALID = EXIT_FAILURE, EXIT_USAGE  # the shared table (fisc_agent.cli_common)
 
 
 def _seconds_or_auto(text: str) -> float | str:
@@ -101,8 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hold-grace", type=float, default=2.0, help="zero-velocity hold before hold mode [s]")
     p.add_argument("--link-timeout", type=float, default=3.0, help="HEARTBEAT age that means link lost [s]")
     p.add_argument("--source-system", type=int, default=None, help="our MAVLink system id (omitted: the vehicle's)", metavar="ID")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                   help="logging threshold (state transitions are logged at INFO)")
+    add_logging_args(p)  # -v/-q/--log-level (state transitions are logged at INFO)
     p.add_argument("--max-duration", type=float, default=None, help="stop after this many seconds")
     return p
 
@@ -203,7 +203,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         if not args.map_path and not args.swarm:
             raise ValueError("give --map FILE, or --swarm NAME to receive the map over Zenoh")

@@ -1,7 +1,8 @@
 """``fisc-ground``: fit, sign, inspect, plot and distribute FISC command maps.
 
-Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes:
-0 success, 1 a failed check or bad input (the message says which), 2 usage errors.
+Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes
+(``fisc_agent.cli_common``): 0 success, 1 runtime failure or a missing optional package, 2 bad
+usage or invalid input (a failed map check, a bad reference file: the message says which).
 """
 
 from __future__ import annotations
@@ -11,6 +12,9 @@ import json
 import logging
 import sys
 from pathlib import Path
+
+from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
+                                   missing_dependency_message, setup_logging, sig3)
 
 log = logging.getLogger("fisc_ground")
 
@@ -48,9 +52,9 @@ def run_fit(args: argparse.Namespace) -> int:
         meta, arrays = build_map(field, config)
     sha = write_map(args.output, meta, arrays, key)
     fit = meta["fit"]
-    print(f"wrote {args.output}: {meta['n_cv']} CVs, S={meta['scale']:.4g}, kappa={meta['kappa']:.4g}, "
-          f"fit {fit['seconds'] * 1e3:.1f} ms, velocity RMSE {fit['velocity_rmse']:.2e} m/s, "
-          f"pressure RMSE {fit['pressure_rmse']:.2e}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
+    print(f"wrote {args.output}: {meta['n_cv']} CVs, S={sig3(meta['scale'])}, kappa={sig3(meta['kappa'])}, "
+          f"fit {sig3(fit['seconds'] * 1e3)} ms, velocity RMSE {sig3(fit['velocity_rmse'])} m/s, "
+          f"pressure RMSE {sig3(fit['pressure_rmse'])}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
     return 0
 
 
@@ -73,9 +77,9 @@ def run_score_flight(args: argparse.Namespace) -> int:
             print(json.dumps({"log": str(path), **score.as_dict()}))
         else:
             print(f"{path}: {'crossed' if score.crossed else 'did not cross'}"
-                  f"{' (held)' if score.held else ''}, max excursion {score.max_excursion_m:+.2f} m, "
-                  f"velocity nRMSE {score.velocity_nrmse:.3f} ({score.n_samples} samples, peak flown "
-                  f"{score.peak_flown_m_s:.2f} of {score.peak_target_m_s:.2f} m/s), crossing {score.crossing_time_s:.1f} s")
+                  f"{' (held)' if score.held else ''}, max excursion {sig3(score.max_excursion_m)} m, "
+                  f"velocity nRMSE {sig3(score.velocity_nrmse)} ({score.n_samples} samples, peak flown "
+                  f"{sig3(score.peak_flown_m_s)} of {sig3(score.peak_target_m_s)} m/s), crossing {sig3(score.crossing_time_s)} s")
     return 0
 
 
@@ -181,8 +185,8 @@ class _status:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0])
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0], epilog=EXIT_CODES_EPILOG)
+    add_logging_args(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("fit", help="fit a command map from a CFD reference field",
@@ -212,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",
                        description="Verify a map (structure, schema version, sha256, signature) and summarise it. "
-                                   "Any failed check exits 1 with the reason.")
+                                   "Any failed check exits 2 with the reason.")
     p.add_argument("map", metavar="MAP", type=Path)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--compact", action="store_true", help="with --json: one line")
@@ -249,22 +253,27 @@ def build_parser() -> argparse.ArgumentParser:
         log.debug("zenoh commands unavailable: %s", exc)
     else:
         add_parsers(sub)
+    for p in sub.choices.values():  # the logging options also after the command's name
+        add_logging_args(p, subcommand=True)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2) if args.verbose else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args)
     from fisc_agent.mapfile import MapError
-    from fisc_ground.reference.field import ReferenceError
 
     try:
         return int(args.func(args) or 0)
-    except (MapError, ReferenceError, FileExistsError, FileNotFoundError, ValueError) as exc:
+    except (MapError, FileExistsError, FileNotFoundError, ValueError) as exc:  # ReferenceError is a ValueError
         print(f"fisc-ground {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_USAGE
+    except ModuleNotFoundError as exc:
+        if missing_extra(exc) is None:
+            raise
+        print(missing_dependency_message(f"fisc-ground {args.command}", exc), file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":
