@@ -81,7 +81,8 @@ def _bar(total: int):
         fill = int(width * done / max(total, 1))
         tty = sys.stderr.isatty()
         end = "\n" if done == total or not tty else ""
-        print(f"{'\r' if tty else ''}sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} runs", end=end,
+        start = "\r" if tty else ""
+        print(f"{start}sweep [{'#' * fill}{'.' * (width - fill)}] {done}/{total} runs", end=end,
               file=sys.stderr, flush=True)
 
     return update
