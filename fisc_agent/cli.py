@@ -37,6 +37,7 @@ def _seconds_or_auto(text: str) -> float | str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fisc-agent`` argument parser."""
     p = argparse.ArgumentParser(
         prog="fisc-agent", description=__doc__.split("\n\n")[0],
         epilog="Exit codes: 0 mission done or stopped by SIGINT/SIGTERM (vehicle left holding), 1 mission "
@@ -202,6 +203,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-agent`` entry point: parse, validate, fly; returns the exit code."""
     args = build_parser().parse_args(argv)
     setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:

@@ -36,6 +36,7 @@ def _scale(text: str) -> float | None:
 
 
 def run_fit(args: argparse.Namespace) -> int:
+    """``fisc-ground fit``: reference -> partition -> fit -> written (optionally signed) map."""
     from fisc_ground.mapbuild import FitConfig, build_map
     from fisc_ground.mapwrite import read_signing_key, write_map
     from fisc_ground.reference.load import load_reference
@@ -59,6 +60,7 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def run_score_flight(args: argparse.Namespace) -> int:
+    """``fisc-ground score-flight``: score each flight log against the map's CFD reference."""
     from fisc_agent.flightlog import read_flight_log
     from fisc_agent.mapfile import load_map
     from fisc_ground.flight_score import DuctWall, score_track, track_from_rows
@@ -118,6 +120,7 @@ def _unique(a):
 
 
 def run_inspect(args: argparse.Namespace) -> int:
+    """``fisc-ground inspect``: verify a map and print its summary (text or JSON)."""
     from fisc_agent.mapfile import load_map
 
     cmap = load_map(args.map, trusted_key=args.trusted_key)
@@ -144,6 +147,7 @@ def run_inspect(args: argparse.Namespace) -> int:
 
 
 def run_keygen(args: argparse.Namespace) -> int:
+    """``fisc-ground keygen``: write an Ed25519 key pair."""
     from fisc_ground.mapwrite import generate_keypair
 
     key_path, pub_path = generate_keypair(args.output)
@@ -152,6 +156,7 @@ def run_keygen(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
+    """``fisc-ground plot``: write the map's CFD-vs-fit figures."""
     from fisc_agent.mapfile import load_map
     from fisc_ground.plots import plot_map_figures
 
@@ -185,6 +190,7 @@ class _status:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fisc-ground`` argument parser with every sub-command."""
     parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0], epilog=EXIT_CODES_EPILOG)
     add_logging_args(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -259,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-ground`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args)

@@ -74,10 +74,12 @@ class TelemetryListener:
             self.latest[t.agent_id] = (t, now)
 
     def snapshot(self) -> dict[int, tuple[tc.Telemetry, float]]:
+        """Latest telemetry and its receive time per agent id (a copy)."""
         with self._lock:
             return dict(self.latest)
 
     def close(self) -> None:
+        """Undeclare the subscriber."""
         self._sub.undeclare()
 
 

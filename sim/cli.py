@@ -121,6 +121,7 @@ def _cmd_bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fisc-sim`` argument parser with every sub-command."""
     parser = argparse.ArgumentParser(prog="fisc-sim", description="FISC headless swarm simulator",
                                      epilog=EXIT_CODES_EPILOG)
     add_logging_args(parser)
@@ -145,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-sim`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
