@@ -35,16 +35,23 @@ def _scale(text: str) -> float | None:
     return value
 
 
+def fit_config_from_args(args: argparse.Namespace):
+    """The ``fisc_ground.mapbuild.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
+    from fisc_ground.mapbuild import FitConfig
+
+    n_min, n_max = _n_range(args.n_range)
+    return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
+                     max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
+                     min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
+
+
 def run_fit(args: argparse.Namespace) -> int:
     """``fisc-ground fit``: reference -> partition -> fit -> written (optionally signed) map."""
-    from fisc_ground.mapbuild import FitConfig, build_map
+    from fisc_ground.mapbuild import build_map
     from fisc_ground.mapwrite import read_signing_key, write_map
     from fisc_ground.reference.load import load_reference
 
-    n_min, n_max = _n_range(args.n_range)
-    config = FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
-                       max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
-                       min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
+    config = fit_config_from_args(args)
     key = read_signing_key(args.sign) if args.sign else None
     with _status(f"loading reference {args.reference}"):
         field = load_reference(args.reference, pressure_kind=args.pressure_kind)

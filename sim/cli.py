@@ -88,18 +88,25 @@ def _progress(enabled: bool, label: str):
         yield lambda frac: prog.update(task, completed=frac)
 
 
-def _cmd_run(args) -> int:
-    from sim.run import RunConfig, run
+def run_config_from_args(args: argparse.Namespace):
+    """The ``sim.run.RunConfig`` of parsed ``fisc-sim run`` arguments (``ValueError`` names a bad option)."""
+    from sim.run import RunConfig
 
     extra = {}
     if args.agents is not None:
         extra["agents"] = None if args.agents == "fitted" else args.agents
     if args.max_speed is not None:
         extra["max_speed_m_s"] = args.max_speed
-    cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
-                    average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
-                    seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output, **extra)
+    return RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
+                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
+                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
+                     lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output, **extra)
+
+
+def _cmd_run(args) -> int:
+    from sim.run import run
+
+    cfg = run_config_from_args(args)
     show = not args.quiet and sys.stderr.isatty()
     with _progress(show, f"{cfg.scenario}/{cfg.preset}") as cb:
         res = run(cfg, progress=cb)
