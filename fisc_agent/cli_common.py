@@ -105,9 +105,12 @@ def missing_extra(exc: ModuleNotFoundError) -> str | None:
     return EXTRA_OF_MODULE.get(name)
 
 
-def missing_dependency_message(prog: str, exc: ModuleNotFoundError) -> str:
-    """``prog: needs the optional package X: pip install 'fisc[EXTRA]'`` (exc re-raised by callers
-    when no extra installs the module)."""
+def missing_dependency_message(prog: str, exc: ModuleNotFoundError, umbrella: str | None = None) -> str:
+    """``prog: error: ... needs the optional package X ...: pip install 'fisc[EXTRA]'`` (callers re-raise
+    ``exc`` when no extra installs the module).  ``umbrella``: an extra that contains ``ground`` and
+    ``jit`` (``sim``), named instead of them so one install brings everything the command needs."""
     extra = missing_extra(exc)
+    if umbrella is not None and extra in ("ground", "jit"):
+        extra = umbrella
     return (f"{prog}: error: this command needs the optional package {exc.name!r}, "
             f"not installed here: pip install 'fisc[{extra}]'")

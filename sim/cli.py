@@ -162,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as exc:
         if missing_extra(exc) is None:
             raise
-        print(missing_dependency_message(f"fisc-sim {args.command}", exc), file=sys.stderr)
+        print(missing_dependency_message(f"fisc-sim {args.command}", exc, umbrella="sim"), file=sys.stderr)
         return EXIT_FAILURE
 
 

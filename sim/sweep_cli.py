@@ -44,6 +44,14 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         print("fisc-sim sweep: error: --workers must be >= 1", file=sys.stderr)
         return EXIT_USAGE
+    if args.parquet:  # fail before the runs, not after them
+        try:
+            import pandas  # noqa: F401
+            import pyarrow  # noqa: F401
+        except ImportError as exc:
+            print(f"fisc-sim sweep: error: --parquet needs pandas and pyarrow ({exc.name} is missing): "
+                  "pip install pandas pyarrow", file=sys.stderr)
+            return EXIT_FAILURE
     n = len(spec.points())
     show = not getattr(args, "quiet", 0)
     settings = {"scheduler": args.scheduler or ("serial" if args.serial else "LocalCluster")}

@@ -50,12 +50,16 @@ def test_lean_install_has_only_the_agent_dependencies(lean_venv):
     assert importlib.util.find_spec("scipy") is not None
 
 
-def test_lean_install_names_the_extra_for_ground_commands(lean_venv, tmp_path):
+def test_lean_install_names_the_extra_for_ground_and_sim_commands(lean_venv, tmp_path):
     out = subprocess.run([lean_venv / "bin" / "fisc-ground", "fit", "cd_nozzle_inviscid", "-o", tmp_path / "m.fiscmap"],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 1, out.stderr
     assert "pip install 'fisc[ground]'" in out.stderr and "Traceback" not in out.stderr, out.stderr
     assert not (tmp_path / "m.fiscmap").exists()
+    out = subprocess.run([lean_venv / "bin" / "fisc-sim", "run", "--duration", "1", "-o", tmp_path / "run"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and "pip install 'fisc[sim]'" in out.stderr and "Traceback" not in out.stderr, \
+        out.stderr
 
 
 def _tunnel_map(path: Path) -> Path:

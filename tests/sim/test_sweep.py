@@ -88,9 +88,19 @@ def test_two_worker_local_cluster_gives_the_serial_numbers(spec_file, tmp_path):
     spec = load_spec(spec_file)
     serial = run_serial(spec)
     seen = []
-    with local_cluster(2) as cluster, Client(cluster) as client:
-        assert len(client.scheduler_info()["workers"]) == 2
-        rows = run_distributed(spec, client, progress=lambda done, total: seen.append((done, total)))
+    with local_cluster(2) as cluster:
+        with Client(cluster) as client:
+            assert len(client.scheduler_info()["workers"]) == 2
+            rows = run_distributed(spec, client, progress=lambda done, total: seen.append((done, total)))
+        # the CLI on "any cluster": --scheduler ADDRESS of a running scheduler
+        from sim.cli import main
+
+        assert main(["sweep", str(spec_file), "-o", str(tmp_path / "cli"), "--scheduler", cluster.scheduler_address,
+                     "-q", "--no-figures"]) == 0
+    with open(tmp_path / "cli" / "results.csv") as fh:
+        via_cli = list(csv.DictReader(fh))
+    assert [float(r["nrmse_velocity"]) for r in via_cli] == pytest.approx([r["nrmse_velocity"] for r in serial],
+                                                                           rel=1e-12)
     assert seen[-1] == (8, 8)
     assert [r["index"] for r in rows] == list(range(8))
     assert all(math.isfinite(r["nrmse_velocity"]) and r["injected"] == 120 for r in rows)
