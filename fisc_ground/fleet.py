@@ -188,7 +188,7 @@ def run_cmd(args: Any) -> int:
     print(json.dumps({"command": cmd.name, "seq": cmd.seq, "swarm": cmd.swarm,
                       "target": "all" if cmd.target_id == ALL_AGENTS else cmd.target_id,
                       "subscribers_matched": res.matched, "acked": list(res.acked)}))
-    return 0 if res.matched else 3
+    return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.cli_common)
 
 
 def run_status(args: Any) -> int:
