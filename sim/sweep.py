@@ -60,7 +60,7 @@ class SweepPoint:
     labels: tuple[tuple[str, Any], ...]
     """(dimension, value) per grid dimension; inline-table values show their ``label``."""
     run: dict[str, Any]
-    """``sim.run.RunConfig`` fields (``map`` resolved; figures off)."""
+    """``sim.run.RunConfig`` fields (``map`` resolved; figures off: the sweep draws its own)."""
     fit: dict[str, Any]
     """``fisc_ground.mapbuild.FitConfig`` overrides of a map fitted for this run."""
 
@@ -100,7 +100,6 @@ class SweepSpec:
             if isinstance(run.get("map"), str):
                 run["map"] = _resolve_map(run["map"], self.path)
             run["figures"] = False
-            run.setdefault("compare_paper", False)
             out.append(SweepPoint(i, tuple(labels), run, fit))
         return out
 
@@ -166,6 +165,8 @@ def parse_spec(data: dict[str, Any], path: Path | None = None) -> SweepSpec:
         try:
             run_config(p)
             FitConfig(**p.fit)
+            if p.fit and str(p.run.get("map") or "").endswith(".fiscmap"):
+                raise ValueError(f"fit settings {p.fit} cannot apply to a ready-made map {p.run['map']}")
         except (TypeError, ValueError) as exc:
             raise SweepSpecError(f"{where}: grid point {dict(p.labels)}: {exc}") from None
     return spec
@@ -192,26 +193,24 @@ def run_config(point: SweepPoint):
 def point_map(point: SweepPoint):
     """The command map a point flies: ``sim.run.load_command_map`` with the point's fit settings,
     or a ``FILE.py:FUNCTION`` reference fitted with them."""
-    from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
+    from fisc_ground.mapbuild import DEFAULT_REFERENCE, FitConfig, build_map, build_map_from_reference
     from sim.run import load_command_map
 
     cfg = run_config(point)
     spec = cfg.map
+    # as sim.run.load_command_map fits: the run's speed limit, schema 1 for the paper preset
+    fit = FitConfig(**{"max_speed_m_s": cfg.max_speed_m_s, "staggered": cfg.preset != "paper", **point.fit})
     if spec is not None and ".py:" in spec:
         from fisc_agent.mapfile import decode_map
         from fisc_ground.mapwrite import encode_map
 
         file, func = spec.rsplit(":", 1)
         field = _load_function(file, func)()
-        fit = FitConfig(**{"max_speed_m_s": cfg.max_speed_m_s, "staggered": cfg.preset != "paper", **point.fit})
         meta, arrays = build_map(field, fit)
         return decode_map(encode_map(meta, arrays), source=spec)
     if not point.fit:
         return load_command_map(spec, cfg.max_speed_m_s, cfg.preset)
-    if spec is not None and (spec.endswith(".fiscmap")):
-        raise ValueError(f"{spec}: fit settings {point.fit} cannot apply to a ready-made map")
-    fit = FitConfig(**{"max_speed_m_s": cfg.max_speed_m_s, "staggered": cfg.preset != "paper", **point.fit})
-    return build_map_from_reference(spec or "cd_nozzle_inviscid", fit)
+    return build_map_from_reference(spec or DEFAULT_REFERENCE, fit)
 
 
 def _load_function(file: str, func: str):

@@ -128,3 +128,10 @@ def test_cli_sweep_writes_table_and_figures(spec_file, tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("[grid]\nmode = ['warp']\n")
     assert main(["sweep", str(bad), "-o", str(out)]) == 2
+
+
+def test_fit_settings_on_a_ready_made_map_are_refused(tmp_path):
+    import tomllib
+
+    with pytest.raises(SweepSpecError, match="ready-made map"):
+        parse_spec(tomllib.loads('[base]\nmap = "x.fiscmap"\n[grid.fit]\ncell_size_m = [0.5]'))
