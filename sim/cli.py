@@ -7,7 +7,6 @@ MAVLink autopilot emulator) and ``emulate`` (sim.emulate_cli, a swarm of emulate
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import sys
 from contextlib import contextmanager

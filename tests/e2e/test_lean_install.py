@@ -8,6 +8,7 @@ Needs the package registry (or pip's cache) for numpy, pymavlink, eclipse-zenoh 
 from __future__ import annotations
 
 import importlib.util
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -33,9 +34,16 @@ def _sh(argv: list, timeout_s: float = 600.0) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def lean_venv(tmp_path_factory) -> Path:
     """A fresh venv with the project installed from this worktree without any extra."""
-    venv = tmp_path_factory.mktemp("lean") / "venv"
+    root = tmp_path_factory.mktemp("lean")
+    src = root / "src"  # a clean copy: an in-tree build would leave build/ (and stale modules) in the worktree
+    src.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO / name, src / name)
+    for name in ("fisc_agent", "fisc_ground", "sim", "field_maps"):
+        shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    venv = root / "venv"
     _sh([sys.executable, "-m", "venv", venv])
-    _sh([venv / "bin" / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check", REPO], timeout_s=900)
+    _sh([venv / "bin" / "python", "-m", "pip", "install", "-q", "--disable-pip-version-check", src], timeout_s=900)
     return venv
 
 
