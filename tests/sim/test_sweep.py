@@ -135,3 +135,19 @@ def test_fit_settings_on_a_ready_made_map_are_refused(tmp_path):
 
     with pytest.raises(SweepSpecError, match="ready-made map"):
         parse_spec(tomllib.loads('[base]\nmap = "x.fiscmap"\n[grid.fit]\ncell_size_m = [0.5]'))
+
+
+def test_parquet_needs_pandas_and_pyarrow_or_is_written(spec_file, tmp_path, capsys):
+    import importlib.util
+
+    from sim.cli import main
+
+    have = all(importlib.util.find_spec(m) is not None for m in ("pandas", "pyarrow"))
+    spec = tmp_path / "one.toml"
+    spec.write_text('[base]\nscenario = "seed"\nduration_s = 0.5\nagents = 20\n[grid]\nseed = [0]\n')
+    rc = main(["sweep", str(spec), "-o", str(tmp_path / "pq"), "--serial", "-q", "--no-figures", "--parquet"])
+    if have:
+        assert rc == 0 and (tmp_path / "pq" / "results.parquet").stat().st_size > 0
+    else:
+        assert rc == 1 and "pip install pandas pyarrow" in capsys.readouterr().err
+        assert not (tmp_path / "pq").exists()  # refused before any run
