@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 
+from fisc_agent.cli_common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, add_logging_args, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
@@ -23,7 +24,7 @@ from fisc_agent.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
-EXIT_OK, EXIT_FAILED, EXIT_INVALID = 0, 1, 2
+EXIT_FAILED, EXIT_INVALID = EXIT_FAILURE, EXIT_USAGE  # the shared table (fisc_agent.cli_common)
 
 
 def _seconds_or_auto(text: str) -> float | str:
@@ -36,6 +37,7 @@ def _seconds_or_auto(text: str) -> float | str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fisc-agent`` argument parser."""
     p = argparse.ArgumentParser(
         prog="fisc-agent", description=__doc__.split("\n\n")[0],
         epilog="Exit codes: 0 mission done or stopped by SIGINT/SIGTERM (vehicle left holding), 1 mission "
@@ -46,9 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="autopilot endpoint: udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT, udp://:14540, "
                         "serial:///dev/ttyUSB0:921600, /dev/ttyACM0:57600")
     p.add_argument("--id", dest="agent_id", type=int, required=True, help="agent id N (slot and entry point)")
-    p.add_argument("--autopilot", choices=AUTOPILOTS, default="auto",
+    p.add_argument("--autopilot", choices=AUTOPILOTS, default=AgentConfig.autopilot,
                    help="autopilot flavour; auto: from the HEARTBEAT's autopilot field")
-    p.add_argument("--backend", choices=BACKENDS, default="pymavlink",
+    p.add_argument("--backend", choices=BACKENDS, default=AgentConfig.backend,
                    help="MAVLink client library (mavsdk needs the mavsdk package)")
     p.add_argument("--mode", choices=COMMAND_MODES, default=None,
                    help="command mode (default: the map's recommended mode; mean for a schema-1 map; with "
@@ -71,14 +73,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
                    help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
                         "with --lookahead auto the identified value replaces it")
-    p.add_argument("--entry-stagger", type=float, default=0.0,
+    p.add_argument("--entry-stagger", type=float, default=AgentConfig.entry_stagger_s,
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
                         "length on the UNIX clock (agent i: window i mod slots); 0: no stagger [s]")
-    p.add_argument("--entry-slots", type=int, default=8, help="windows per entry-stagger cycle")
+    p.add_argument("--entry-slots", type=int, default=AgentConfig.entry_slots, help="windows per entry-stagger cycle")
     p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flightlog)")
-    p.add_argument("--rate", type=float, default=20.0, help="setpoint rate [Hz]")
-    p.add_argument("--origin", default="0,0,-10", help="local NED of the map origin N,E,D [m]")
-    p.add_argument("--yaw", type=float, default=0.0, help="map x-axis direction, clockwise from North [deg]")
+    p.add_argument("--rate", type=float, default=AgentConfig.rate_hz, help="setpoint rate [Hz]")
+    p.add_argument("--origin", default=",".join(f"{c:g}" for c in AgentConfig.origin_ned_m), help="local NED of the map origin N,E,D [m]")
+    p.add_argument("--yaw", type=float, default=AgentConfig.yaw_deg, help="map x-axis direction, clockwise from North [deg]")
     p.add_argument("--geodetic-anchor", help="map origin LAT,LON,ALT_AMSL,HEADING (uses GLOBAL_POSITION_INT)")
     p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
     z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
@@ -87,22 +89,21 @@ def build_parser() -> argparse.ArgumentParser:
     z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
     z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")
-    p.add_argument("--max-speed", type=float, default=5.0, help="speed clamp [m/s]")
-    p.add_argument("--max-accel", type=float, default=3.0, help="acceleration clamp [m/s^2]")
-    p.add_argument("--join-speed", type=float, default=2.0, help="speed flying to the inlet [m/s]")
-    p.add_argument("--return-speed", type=float, default=1.0, help="speed returning to the map [m/s]")
-    p.add_argument("--climb-speed", type=float, default=1.0, help="climb rate of a setpoint takeoff (PX4, or an interrupted ArduPilot takeoff) [m/s]")
-    p.add_argument("--takeoff-alt", type=float, default=2.5, help="takeoff height above start [m]")
-    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="hold",
+    p.add_argument("--max-speed", type=float, default=AgentConfig.max_speed_m_s, help="speed clamp [m/s]")
+    p.add_argument("--max-accel", type=float, default=AgentConfig.max_accel_m_s2, help="acceleration clamp [m/s^2]")
+    p.add_argument("--join-speed", type=float, default=AgentConfig.join_speed_m_s, help="speed flying to the inlet [m/s]")
+    p.add_argument("--return-speed", type=float, default=AgentConfig.return_speed_m_s, help="speed returning to the map [m/s]")
+    p.add_argument("--climb-speed", type=float, default=AgentConfig.climb_speed_m_s, help="climb rate of a setpoint takeoff (PX4, or an interrupted ArduPilot takeoff) [m/s]")
+    p.add_argument("--takeoff-alt", type=float, default=AgentConfig.takeoff_alt_m, help="takeoff height above start [m]")
+    p.add_argument("--exit-policy", choices=EXIT_POLICIES, default=AgentConfig.exit_policy,
                    help="after the outlet: hold position, land, or loop back to the inlet")
-    p.add_argument("--laps", type=int, default=0, help="with --exit-policy loop: passes before holding (0: no limit)")
-    p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default="hold", help="outside the map while flowing")
-    p.add_argument("--stale-timeout", type=float, default=0.5, help="position age that triggers a hold [s]")
-    p.add_argument("--hold-grace", type=float, default=2.0, help="zero-velocity hold before hold mode [s]")
-    p.add_argument("--link-timeout", type=float, default=3.0, help="HEARTBEAT age that means link lost [s]")
-    p.add_argument("--source-system", type=int, default=None, help="our MAVLink system id (omitted: the vehicle's)", metavar="ID")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                   help="logging threshold (state transitions are logged at INFO)")
+    p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
+    p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default=AgentConfig.geofence, help="outside the map while flowing")
+    p.add_argument("--stale-timeout", type=float, default=AgentConfig.stale_timeout_s, help="position age that triggers a hold [s]")
+    p.add_argument("--hold-grace", type=float, default=AgentConfig.hold_grace_s, help="zero-velocity hold before hold mode [s]")
+    p.add_argument("--link-timeout", type=float, default=AgentConfig.link_timeout_s, help="HEARTBEAT age that means link lost [s]")
+    p.add_argument("--source-system", type=int, default=AgentConfig.source_system, help="our MAVLink system id (omitted: the vehicle's)", metavar="ID")
+    add_logging_args(p)  # -v/-q/--log-level (state transitions are logged at INFO)
     p.add_argument("--max-duration", type=float, default=None, help="stop after this many seconds")
     return p
 
@@ -202,8 +203,9 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-agent`` entry point: parse, validate, fly; returns the exit code."""
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         if not args.map_path and not args.swarm:
             raise ValueError("give --map FILE, or --swarm NAME to receive the map over Zenoh")

@@ -141,4 +141,5 @@ class AgentConfig:
 
     @property
     def period_s(self) -> float:
+        """Control period 1 / rate_hz [s]."""
         return 1.0 / self.rate_hz

@@ -174,6 +174,7 @@ def goto_velocity(pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0
 
 
 def distance(a: Vec, b: Vec) -> float:
+    """Euclidean distance between two 3-vectors [m]."""
     return math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)
 
 
@@ -199,6 +200,7 @@ class MapGeometry:
 
     @classmethod
     def from_field(cls, field: CommandField) -> "MapGeometry":
+        """Inlet/outlet planes, axis, inlet radius and bounding box of a command field's CVs."""
         c = np.asarray(field.centers_m, dtype=float)
         h = 0.5 * float(field.cell_size_m)
         first = c[np.asarray(field.centers_m)[:, 0] <= c[:, 0].min() + 1e-9]
@@ -210,6 +212,7 @@ class MapGeometry:
                    cell_size_m=float(field.cell_size_m))
 
     def in_box(self, p: Vec, margin_m: float = 0.0) -> bool:
+        """True when ``p`` lies in the CVs' bounding box grown by ``margin_m``."""
         return all(self.lo_m[i] - margin_m <= p[i] <= self.hi_m[i] + margin_m for i in range(3))
 
 

@@ -18,6 +18,7 @@ from enum import Enum
 
 
 class PositionHealth(str, Enum):
+    """Freshness of the position estimate, as the failsafes see it."""
     OK = "ok"
     STALE = "stale"
     """Hold with zero-velocity setpoints."""
@@ -26,6 +27,7 @@ class PositionHealth(str, Enum):
 
 
 class GeofenceVerdict(str, Enum):
+    """Where a flowing agent is relative to the map, and what the geofence policy does about it."""
     INSIDE = "inside"
     EXIT = "exit"
     """Downstream of the outlet plane: the pass through the tunnel is complete."""

@@ -58,6 +58,7 @@ class FleetCommand:
     """True when the command carried a signature that verified against a trusted key."""
 
     def applies_to(self, agent_id: int) -> bool:
+        """True when the command targets every agent or ``agent_id``."""
         return self.target_id == ALL_AGENTS or self.target_id == int(agent_id)
 
 
@@ -148,6 +149,7 @@ class CommandGate:
         self.last_seq = 0
 
     def check(self, cmd: FleetCommand, now_unix_s: float) -> FleetCommand:
+        """Accept ``cmd`` (returned) or raise ``CommandError`` naming the failed check (swarm, target, replay, age)."""
         if cmd.swarm != self.swarm:
             raise CommandError(f"swarm: command is for swarm {cmd.swarm!r}, this agent flies in {self.swarm!r}")
         if not cmd.applies_to(self.agent_id):

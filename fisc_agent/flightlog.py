@@ -46,6 +46,7 @@ class FlightLog:
             self._last_flush_s = s.time_s
 
     def close(self) -> None:
+        """Flush and close the file."""
         self._fh.close()
 
 

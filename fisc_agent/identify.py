@@ -60,6 +60,7 @@ class VehicleResponse:
         return min(1.5, max(1.0, 1.0 / self.gain))
 
     def as_dict(self) -> dict:
+        """JSON-ready fields plus the derived look-ahead and feed-forward gain."""
         return {**asdict(self), "lookahead_s": self.lookahead_s, "feedforward_gain": self.feedforward_gain}
 
 
@@ -120,6 +121,7 @@ class ResponseRecorder:
         self._rows: list[tuple[float, float, float, float, float]] = []
 
     def add(self, t_s: float, sp_xy_m_s: tuple[float, float], vel_xy_m_s: tuple[float, float]) -> None:
+        """Record one tick's horizontal setpoint and velocity (ignored beyond ``max_samples``)."""
         if len(self._rows) < self.max_samples:
             self._rows.append((t_s, sp_xy_m_s[0], sp_xy_m_s[1], vel_xy_m_s[0], vel_xy_m_s[1]))
 
@@ -127,6 +129,7 @@ class ResponseRecorder:
         return len(self._rows)
 
     def fit(self) -> VehicleResponse | None:
+        """The identified response, or None with fewer than ``MIN_SAMPLES`` rows."""
         if len(self._rows) < MIN_SAMPLES:
             return None
         a = np.asarray(self._rows)

@@ -102,6 +102,7 @@ class CommandField:
 
     @classmethod
     def from_map(cls, cmap: CommandMap, scale: float | None = None) -> "CommandField":
+        """The lookup field of a verified map, commands scaled by ``scale`` (default: the map's S)."""
         s = cmap.scale if scale is None else float(scale)
         faces = None
         if all(k in cmap.arrays for k in FACE_ARRAYS):
@@ -125,6 +126,7 @@ class CommandField:
 
     @property
     def n_cv(self) -> int:
+        """Number of control volumes."""
         return int(self.centers_m.shape[0])
 
     @functools.cached_property

@@ -270,6 +270,7 @@ class MapAssembler:
 
     @property
     def max_bytes(self) -> int:
+        """Largest map accepted [bytes]."""
         return self.limits.max_map_bytes
 
     # ---- queries -----------------------------------------------------------------------

@@ -87,34 +87,42 @@ class CommandMap:
 
     @property
     def n_cv(self) -> int:
+        """Number of control volumes."""
         return int(self.body["n_cv"])
 
     @property
     def map_version(self) -> int:
+        """Monotonic map version (newer maps replace older ones)."""
         return int(self.body["map_version"])
 
     @property
     def cell_size_m(self) -> float:
+        """CV edge length l [m]."""
         return float(self.body["grid"]["cell_size_m"])
 
     @property
     def origin_m(self) -> np.ndarray:
+        """Grid origin (3,) in the map frame [m]."""
         return np.asarray(self.body["grid"]["origin_m"], dtype=float)
 
     @property
     def grid_shape(self) -> tuple[int, int, int]:
+        """Grid shape (nx, ny, nz)."""
         return tuple(int(s) for s in self.body["grid"]["shape"])  # type: ignore[return-value]
 
     @property
     def schema_version(self) -> int:
+        """Map schema version (1 or 2)."""
         return int(self.body["schema_version"])
 
     @property
     def scale(self) -> float:
+        """Speed scale S of the commands."""
         return float(self.body["scale"])
 
     @property
     def n_max(self) -> int:
+        """Largest candidate agent count N of the fit."""
         return int(self.body["n_range"][1])
 
     def __getitem__(self, name: str) -> np.ndarray:

@@ -64,6 +64,7 @@ class GateVerdict(str, Enum):
 
     @property
     def accepted(self) -> bool:
+        """True when the fix is used (accepted, or re-anchored after a gap)."""
         return self in (GateVerdict.ACCEPTED, GateVerdict.REANCHORED)
 
 

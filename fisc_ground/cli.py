@@ -1,7 +1,8 @@
 """``fisc-ground``: fit, sign, inspect, plot and distribute FISC command maps.
 
-Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes:
-0 success, 1 a failed check or bad input (the message says which), 2 usage errors.
+Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes
+(``fisc_agent.cli_common``): 0 success, 1 runtime failure or a missing optional package, 2 bad
+usage or invalid input (a failed map check, a bad reference file: the message says which).
 """
 
 from __future__ import annotations
@@ -11,6 +12,9 @@ import json
 import logging
 import sys
 from pathlib import Path
+
+from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
+                                   missing_dependency_message, setup_logging, sig3)
 
 log = logging.getLogger("fisc_ground")
 
@@ -31,15 +35,23 @@ def _scale(text: str) -> float | None:
     return value
 
 
+def fit_config_from_args(args: argparse.Namespace):
+    """The ``fisc_ground.mapbuild.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
+    from fisc_ground.mapbuild import FitConfig
+
+    n_min, n_max = _n_range(args.n_range)
+    return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
+                     max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
+                     min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
+
+
 def run_fit(args: argparse.Namespace) -> int:
-    from fisc_ground.mapbuild import FitConfig, build_map
+    """``fisc-ground fit``: reference -> partition -> fit -> written (optionally signed) map."""
+    from fisc_ground.mapbuild import build_map
     from fisc_ground.mapwrite import read_signing_key, write_map
     from fisc_ground.reference.load import load_reference
 
-    n_min, n_max = _n_range(args.n_range)
-    config = FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
-                       max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
-                       min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
+    config = fit_config_from_args(args)
     key = read_signing_key(args.sign) if args.sign else None
     with _status(f"loading reference {args.reference}"):
         field = load_reference(args.reference, pressure_kind=args.pressure_kind)
@@ -48,13 +60,14 @@ def run_fit(args: argparse.Namespace) -> int:
         meta, arrays = build_map(field, config)
     sha = write_map(args.output, meta, arrays, key)
     fit = meta["fit"]
-    print(f"wrote {args.output}: {meta['n_cv']} CVs, S={meta['scale']:.4g}, kappa={meta['kappa']:.4g}, "
-          f"fit {fit['seconds'] * 1e3:.1f} ms, velocity RMSE {fit['velocity_rmse']:.2e} m/s, "
-          f"pressure RMSE {fit['pressure_rmse']:.2e}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
+    print(f"wrote {args.output}: {meta['n_cv']} CVs, S={sig3(meta['scale'])}, kappa={sig3(meta['kappa'])}, "
+          f"fit {sig3(fit['seconds'] * 1e3)} ms, velocity RMSE {sig3(fit['velocity_rmse'])} m/s, "
+          f"pressure RMSE {sig3(fit['pressure_rmse'])}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
     return 0
 
 
 def run_score_flight(args: argparse.Namespace) -> int:
+    """``fisc-ground score-flight``: score each flight log against the map's CFD reference."""
     from fisc_agent.flightlog import read_flight_log
     from fisc_agent.mapfile import load_map
     from fisc_ground.flight_score import DuctWall, score_track, track_from_rows
@@ -73,9 +86,9 @@ def run_score_flight(args: argparse.Namespace) -> int:
             print(json.dumps({"log": str(path), **score.as_dict()}))
         else:
             print(f"{path}: {'crossed' if score.crossed else 'did not cross'}"
-                  f"{' (held)' if score.held else ''}, max excursion {score.max_excursion_m:+.2f} m, "
-                  f"velocity nRMSE {score.velocity_nrmse:.3f} ({score.n_samples} samples, peak flown "
-                  f"{score.peak_flown_m_s:.2f} of {score.peak_target_m_s:.2f} m/s), crossing {score.crossing_time_s:.1f} s")
+                  f"{' (held)' if score.held else ''}, max excursion {sig3(score.max_excursion_m)} m, "
+                  f"velocity nRMSE {sig3(score.velocity_nrmse)} ({score.n_samples} samples, peak flown "
+                  f"{sig3(score.peak_flown_m_s)} of {sig3(score.peak_target_m_s)} m/s), crossing {sig3(score.crossing_time_s)} s")
     return 0
 
 
@@ -114,6 +127,7 @@ def _unique(a):
 
 
 def run_inspect(args: argparse.Namespace) -> int:
+    """``fisc-ground inspect``: verify a map and print its summary (text or JSON)."""
     from fisc_agent.mapfile import load_map
 
     cmap = load_map(args.map, trusted_key=args.trusted_key)
@@ -140,6 +154,7 @@ def run_inspect(args: argparse.Namespace) -> int:
 
 
 def run_keygen(args: argparse.Namespace) -> int:
+    """``fisc-ground keygen``: write an Ed25519 key pair."""
     from fisc_ground.mapwrite import generate_keypair
 
     key_path, pub_path = generate_keypair(args.output)
@@ -148,6 +163,7 @@ def run_keygen(args: argparse.Namespace) -> int:
 
 
 def run_plot(args: argparse.Namespace) -> int:
+    """``fisc-ground plot``: write the map's CFD-vs-fit figures."""
     from fisc_agent.mapfile import load_map
     from fisc_ground.plots import plot_map_figures
 
@@ -181,8 +197,9 @@ class _status:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0])
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
+    """The ``fisc-ground`` argument parser with every sub-command."""
+    parser = argparse.ArgumentParser(prog="fisc-ground", description=__doc__.splitlines()[0], epilog=EXIT_CODES_EPILOG)
+    add_logging_args(parser)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("fit", help="fit a command map from a CFD reference field",
@@ -212,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",
                        description="Verify a map (structure, schema version, sha256, signature) and summarise it. "
-                                   "Any failed check exits 1 with the reason.")
+                                   "Any failed check exits 2 with the reason.")
     p.add_argument("map", metavar="MAP", type=Path)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--compact", action="store_true", help="with --json: one line")
@@ -249,22 +266,28 @@ def build_parser() -> argparse.ArgumentParser:
         log.debug("zenoh commands unavailable: %s", exc)
     else:
         add_parsers(sub)
+    for p in sub.choices.values():  # the logging options also after the command's name
+        add_logging_args(p, subcommand=True)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-ground`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2) if args.verbose else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args)
     from fisc_agent.mapfile import MapError
-    from fisc_ground.reference.field import ReferenceError
 
     try:
         return int(args.func(args) or 0)
-    except (MapError, ReferenceError, FileExistsError, FileNotFoundError, ValueError) as exc:
+    except (MapError, FileExistsError, FileNotFoundError, ValueError) as exc:  # ReferenceError is a ValueError
         print(f"fisc-ground {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_USAGE
+    except ModuleNotFoundError as exc:
+        if missing_extra(exc) is None:
+            raise
+        print(missing_dependency_message(f"fisc-ground {args.command}", exc), file=sys.stderr)
+        return EXIT_FAILURE
 
 
 if __name__ == "__main__":

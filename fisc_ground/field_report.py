@@ -102,6 +102,7 @@ def swarm_columns(result: Any) -> dict[str, np.ndarray]:
 
 def fidelity_for_columns(cols: dict[str, np.ndarray], pressure: np.ndarray, min_samples: int,
                  density: np.ndarray | None = None) -> dict:
+    """Fidelity metrics (DESIGN.md section 4) of per-CV columns with the given swarm pressure (and density)."""
     return fidelity_metrics(np.stack([cols["cv_x"], cols["cv_y"], cols["cv_z"]], axis=1),
                             cols["target_u_axial"], cols["target_pressure"], cols["target_density"],
                             cols["swarm_u_axial"], pressure, cols["swarm_density"] if density is None else density,

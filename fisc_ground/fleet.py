@@ -74,10 +74,12 @@ class TelemetryListener:
             self.latest[t.agent_id] = (t, now)
 
     def snapshot(self) -> dict[int, tuple[tc.Telemetry, float]]:
+        """Latest telemetry and its receive time per agent id (a copy)."""
         with self._lock:
             return dict(self.latest)
 
     def close(self) -> None:
+        """Undeclare the subscriber."""
         self._sub.undeclare()
 
 
@@ -186,7 +188,7 @@ def run_cmd(args: Any) -> int:
     print(json.dumps({"command": cmd.name, "seq": cmd.seq, "swarm": cmd.swarm,
                       "target": "all" if cmd.target_id == ALL_AGENTS else cmd.target_id,
                       "subscribers_matched": res.matched, "acked": list(res.acked)}))
-    return 0 if res.matched else 3
+    return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.cli_common)
 
 
 def run_status(args: Any) -> int:

@@ -36,6 +36,7 @@ class DuctWall:
 
     @classmethod
     def from_reference(cls, ref: ReferenceField, dx_m: float = 0.1) -> "DuctWall":
+        """The wall radius per axial bin of ``dx_m``: the largest radius of the reference's nodes there."""
         p = ref.points_m
         r = np.hypot(p[:, 1], p[:, 2])
         x0, x1 = float(p[:, 0].min()), float(p[:, 0].max())
@@ -49,6 +50,7 @@ class DuctWall:
         return cls(x_m=xs[ok], radius_m=rmax[ok] + 0.5 * spacing)
 
     def radius_at(self, x_m: np.ndarray) -> np.ndarray:
+        """Wall radius at axial positions ``x_m`` [m] (linear between bins)."""
         return np.interp(x_m, self.x_m, self.radius_m)
 
 
@@ -81,6 +83,7 @@ class FlightScore:
     """Largest target (S x CFD axial velocity) along the track [m/s]."""
 
     def as_dict(self) -> dict:
+        """JSON-ready fields (non-finite floats as None)."""
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in asdict(self).items()}
 
 

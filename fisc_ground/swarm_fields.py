@@ -154,6 +154,7 @@ class SwarmFields:
 
     @property
     def n_cv(self) -> int:
+        """Number of control volumes."""
         return int(self.count.shape[0])
 
     def as_arrays(self) -> dict[str, np.ndarray]:

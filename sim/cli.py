@@ -7,11 +7,12 @@ MAVLink autopilot emulator) and ``emulate`` (sim.emulate_cli, a swarm of emulate
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import sys
 from contextlib import contextmanager
 
+from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, add_output_arg,
+                                   missing_dependency_message, missing_extra, setup_logging, sig3)
 from fisc_agent.lookup import COMMAND_MODES
 from sim.plant_fit import PLANT_PRESETS
 
@@ -62,8 +63,7 @@ def _add_run(sub) -> None:
                         "lag (default: the map's recommended value, 0.5 s; 0 with --preset paper)")
     p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("-o", "--out", default="out/run", help="output directory (default out/run)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_output_arg(p, aliases=("--out",), default="out/run", help="output directory (default out/run)")
 
 
 def _add_bench(sub) -> None:
@@ -87,26 +87,33 @@ def _progress(enabled: bool, label: str):
         yield lambda frac: prog.update(task, completed=frac)
 
 
-def _cmd_run(args) -> int:
-    from sim.run import RunConfig, run
+def run_config_from_args(args: argparse.Namespace):
+    """The ``sim.run.RunConfig`` of parsed ``fisc-sim run`` arguments (``ValueError`` names a bad option)."""
+    from sim.run import RunConfig
 
     extra = {}
     if args.agents is not None:
         extra["agents"] = None if args.agents == "fitted" else args.agents
     if args.max_speed is not None:
         extra["max_speed_m_s"] = args.max_speed
-    cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
-                    average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
-                    seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.out, **extra)
+    return RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
+                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
+                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
+                     lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output, **extra)
+
+
+def _cmd_run(args) -> int:
+    from sim.run import run
+
+    cfg = run_config_from_args(args)
     show = not args.quiet and sys.stderr.isatty()
     with _progress(show, f"{cfg.scenario}/{cfg.preset}") as cb:
         res = run(cfg, progress=cb)
     m = res.metrics
     a = m["agents"]
-    print(f"wrote {args.out}: nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "
-          f"density {m['nrmse_density']}; agents injected {a['injected']} exited {a['exited']} "
-          f"escaped {a['escaped']} alive {a['alive']}; {m['wall_time_s']:.2f} s wall")
+    print(f"wrote {args.output}: nRMSE velocity {sig3(m['nrmse_velocity'])}, pressure {sig3(m['nrmse_pressure'])}, "
+          f"density {sig3(m['nrmse_density'])}; agents injected {a['injected']} exited {a['exited']} "
+          f"escaped {a['escaped']} alive {a['alive']}; {sig3(m['wall_time_s'])} s wall")
     return 0
 
 
@@ -120,8 +127,10 @@ def _cmd_bench(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="fisc-sim", description="FISC headless swarm simulator")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    """The ``fisc-sim`` argument parser with every sub-command."""
+    parser = argparse.ArgumentParser(prog="fisc-sim", description="FISC headless swarm simulator",
+                                     epilog=EXIT_CODES_EPILOG)
+    add_logging_args(parser)
     sub = parser.add_subparsers(dest="command", required=True)
     _add_run(sub)
     _add_bench(sub)
@@ -133,20 +142,36 @@ def build_parser() -> argparse.ArgumentParser:
     from sim import emulate_cli
 
     emulate_cli.add_parser(sub)
+    from sim import sweep_cli  # `fisc-sim sweep`: run grids on dask (sim/sweep_cli.py)
+
+    sweep_cli.add_parser(sub)
+    for p in sub.choices.values():  # the logging options also after the command's name
+        if "--log-level" not in p._option_string_actions:
+            add_logging_args(p, subcommand=True)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fisc-sim`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return _dispatch(parser, args)
+    except ModuleNotFoundError as exc:
+        if missing_extra(exc) is None:
+            raise
+        print(missing_dependency_message(f"fisc-sim {args.command}", exc, umbrella="sim"), file=sys.stderr)
+        return EXIT_FAILURE
+
+
+def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "run":
         try:
             return _cmd_run(args)
         except ValueError as exc:  # bad options, a map that fails a check (MapError), a mode the map lacks
             print(f"fisc-sim run: error: {exc}", file=sys.stderr)
-            return 2
+            return EXIT_USAGE
     if args.command == "bench":
         return _cmd_bench(args)
     if args.command == "autopilot":
@@ -157,8 +182,12 @@ def main(argv: list[str] | None = None) -> int:
         from sim import emulate_cli
 
         return int(emulate_cli.run(args) or 0)
+    if args.command == "sweep":
+        from sim import sweep_cli
+
+        return sweep_cli.run(args)
     parser.error(f"unknown command {args.command}")
-    return 2
+    return EXIT_USAGE
 
 
 if __name__ == "__main__":

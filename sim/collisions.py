@@ -80,6 +80,7 @@ class CollisionStats:
     """Approaching pairs answered as mutual perpendicular."""
 
     def as_dict(self) -> dict:
+        """Collision counts by type."""
         return {"contacts": self.contacts, "one_way": self.one_way, "head_on": self.head_on,
                 "perpendicular": self.perpendicular}
 

@@ -13,11 +13,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from fisc_agent.cli_common import EXIT_OK, EXIT_USAGE, add_output_arg, sig3
 from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.names import prefix_arg, swarm_name_arg
-
-EXIT_OK, EXIT_ERROR = 0, 1
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -71,8 +70,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
                    "commands (required with --swarm)")
-    p.add_argument("-o", "--out", required=True, help="output directory")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_output_arg(p, aliases=("--out",), required=True, help="output directory")
     return p
 
 
@@ -80,7 +78,7 @@ def config_from_args(args: argparse.Namespace):
     """The ``EmulateConfig`` of parsed arguments (``ValueError`` names a bad option)."""
     from sim.emulate import EmulateConfig
 
-    return EmulateConfig(out_dir=args.out, map=args.map, agents=args.agents, duration_s=args.duration,
+    return EmulateConfig(out_dir=args.output, map=args.map, agents=args.agents, duration_s=args.duration,
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
                          geofence=args.geofence,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
@@ -99,11 +97,11 @@ def run(args: argparse.Namespace) -> int:
         cfg = config_from_args(args)
     except ValueError as exc:
         print(f"fisc-sim emulate: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+        return EXIT_USAGE
     from fisc_agent.mapfile import MapError
     from fisc_ground.reference.field import ReferenceError
 
-    show = not args.quiet and sys.stderr.isatty()
+    show = not getattr(args, "quiet", 0) and sys.stderr.isatty()
     try:
         if show:
             from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -116,11 +114,11 @@ def run(args: argparse.Namespace) -> int:
             res = emulate(cfg)
     except (MapError, ReferenceError) as exc:  # a bad --map file or reference: the reason, no traceback
         print(f"fisc-sim emulate: {exc}", file=sys.stderr)
-        return EXIT_ERROR
+        return EXIT_USAGE
     m, rt, en = res.run_result.metrics, res.realtime, res.entries
-    print(f"wrote {args.out}: {en['vehicles_entered']}/{cfg.agents} vehicles entered the tunnel "
-          f"({en['entries_total']} entries); nRMSE velocity {m['nrmse_velocity']}, pressure {m['nrmse_pressure']}, "
-          f"density {m['nrmse_density']}; real time {'kept' if rt['keeps_real_time'] else 'NOT kept'} "
-          f"(setpoints {rt['setpoint_rate_mean_hz']:.1f} Hz at the autopilots, "
-          f"{1e3 * rt['cpu_per_agent']:.2f} ms CPU per vehicle-second)")
+    print(f"wrote {args.output}: {en['vehicles_entered']}/{cfg.agents} vehicles entered the tunnel "
+          f"({en['entries_total']} entries); nRMSE velocity {sig3(m['nrmse_velocity'])}, pressure "
+          f"{sig3(m['nrmse_pressure'])}, density {sig3(m['nrmse_density'])}; real time "
+          f"{'kept' if rt['keeps_real_time'] else 'NOT kept'} (setpoints {sig3(rt['setpoint_rate_mean_hz'])} Hz at the "
+          f"autopilots, {sig3(1e3 * rt['cpu_per_agent'])} ms CPU per vehicle-second)")
     return EXIT_OK

@@ -52,4 +52,5 @@ class ReferenceField:
 
     @property
     def n_nodes(self) -> int:
+        """Number of reference nodes."""
         return int(self.points_m.shape[0])

@@ -14,6 +14,7 @@ import sys
 import threading
 from typing import Sequence
 
+from fisc_agent.cli_common import EXIT_CODES_EPILOG, EXIT_USAGE, add_logging_args, setup_logging
 from sim.autopilot.faults import parse_dropout
 from sim.autopilot.server import DEFAULT_HOME_LLA, AutopilotEmulator
 
@@ -72,8 +73,7 @@ def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
                    help="no position messages (and no position estimate) from START for DURATION seconds "
                         "after start; repeatable")
     p.add_argument("--seed", type=int, default=0, help="seed of the packet-loss random stream (default 0)")
-    p.add_argument("--log-level", default=None, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                   help="logging level (default: INFO stand-alone, else the fisc-sim setting)")
+    add_logging_args(p, subcommand=True)
     p.set_defaults(func=run)
     return p
 
@@ -91,12 +91,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     """Serve until SIGINT/SIGTERM; returns the exit code (0 clean, 2 bad endpoint/options)."""
-    level = getattr(logging, args.log_level) if args.log_level else None
-    if not logging.getLogger().handlers:
-        logging.basicConfig(level=level or logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-                            stream=sys.stderr)
-    elif level is not None:
-        logging.getLogger().setLevel(level)
+    setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         emulator = AutopilotEmulator(
             args.mavlink, args.personality, tuple(args.start), sysid=args.sysid, home_lla=tuple(args.home),
@@ -106,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         emulator.open()
     except (ValueError, OSError) as exc:
         _log.error("autopilot: %s", exc)
-        return 2
+        return EXIT_USAGE
     stop = threading.Event()
 
     def _handle(signum: int, _frame: object) -> None:
@@ -128,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Stand-alone entry point (``python -m sim.autopilot.cli``)."""
-    parser = configure_parser(argparse.ArgumentParser(prog="fisc-sim autopilot"))
+    parser = configure_parser(argparse.ArgumentParser(prog="fisc-sim autopilot", epilog=EXIT_CODES_EPILOG))
     return run(parser.parse_args(argv))
 
 

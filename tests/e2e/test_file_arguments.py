@@ -153,7 +153,7 @@ def test_fit_refuses_a_sparse_2gb_csv_and_vtu_at_once(tmp_path):
     for path in (csv, vtu):
         rc, wall, rss_mb, out = run_watched([*cli("fisc-ground"), "fit", path, "-o", tmp_path / "m.fiscmap"])
         print(f"\nfit on a sparse 2 GB {path.suffix}: exit {rc}, {wall:.2f} s, peak RSS {rss_mb:.0f} MB")
-        assert rc == 1, out
+        assert rc == 2, out  # invalid input (fisc_agent.cli_common)
         assert str(path) in out and ("sparse" in out or "NUL byte" in out), out
         assert "ReadError: \n" not in out and "header only" not in out
         assert rss_mb < MAX_RSS_MB
@@ -163,7 +163,7 @@ def test_a_zero_filled_csv_that_is_not_sparse_is_refused_by_its_head(tmp_path):
     path = tmp_path / "zeros.csv"
     path.write_bytes(b"\0" * (1 << 20))
     rc, _, _, out = run_watched([*cli("fisc-ground"), "fit", path, "-o", tmp_path / "m.fiscmap"])
-    assert rc == 1 and "NUL byte at offset 0" in out, out
+    assert rc == 2 and "NUL byte at offset 0" in out, out
 
 
 def test_inspect_checks_size_and_magic_before_reading_a_2gb_file(tmp_path):
@@ -178,5 +178,5 @@ def test_inspect_checks_size_and_magic_before_reading_a_2gb_file(tmp_path):
     for path, expect in ((big, "size: FISC map is 1.86 GiB, larger than the 1 GiB limit"), (wrong, "magic: not a FISC map")):
         rc, wall, rss_mb, out = run_watched([*cli("fisc-ground"), "inspect", path])
         print(f"\ninspect {path.name}: exit {rc}, {wall:.2f} s, peak RSS {rss_mb:.0f} MB")
-        assert rc == 1 and expect in out, out
+        assert rc == 2 and expect in out, out
         assert rss_mb < MAX_RSS_MB

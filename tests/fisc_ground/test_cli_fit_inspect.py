@@ -62,21 +62,21 @@ def test_signed_map_round_trip_and_refusals(tmp_path, default_map):
     assert ok.returncode == 0 and json.loads(ok.stdout)["signed"] is True
 
     stranger = fisc_ground("inspect", str(signed), "--trusted-key", str(tmp_path / "stranger.pub"))
-    assert stranger.returncode == 1 and "not trusted" in stranger.stderr
+    assert stranger.returncode == 2 and "not trusted" in stranger.stderr
     unsigned = fisc_ground("inspect", str(default_map), "--trusted-key", str(tmp_path / "ground.pub"))
-    assert unsigned.returncode == 1 and "unsigned" in unsigned.stderr
+    assert unsigned.returncode == 2 and "unsigned" in unsigned.stderr
 
     data = bytearray(signed.read_bytes())
     flipped = tmp_path / "flipped.fiscmap"
     data[len(data) // 2] ^= 1
     flipped.write_bytes(bytes(data))
     res = fisc_ground("inspect", str(flipped))
-    assert res.returncode == 1 and "sha256" in res.stderr
+    assert res.returncode == 2 and "sha256" in res.stderr
 
     truncated = tmp_path / "truncated.fiscmap"
     truncated.write_bytes(signed.read_bytes()[:-100])
     res = fisc_ground("inspect", str(truncated))
-    assert res.returncode == 1 and "truncated" in res.stderr
+    assert res.returncode == 2 and "truncated" in res.stderr
 
 
 def test_bad_reference_exits_nonzero_and_writes_nothing(tmp_path):
@@ -86,14 +86,14 @@ def test_bad_reference_exits_nonzero_and_writes_nothing(tmp_path):
                    "2, 0.1, 0.0, 0.0, abc, 3.0, 0.0, 0.0\n")
     out = tmp_path / "m.fiscmap"
     res = fisc_ground("fit", str(bad), "-o", str(out))
-    assert res.returncode == 1
+    assert res.returncode == 2
     assert "bad.csv" in res.stderr and "line 3" in res.stderr
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bad.csv"]
 
 
 def test_unknown_builtin_lists_the_known_names(tmp_path):
     res = fisc_ground("fit", "no_such_case", "-o", str(tmp_path / "m.fiscmap"))
-    assert res.returncode == 1 and "cd_nozzle_inviscid" in res.stderr
+    assert res.returncode == 2 and "cd_nozzle_inviscid" in res.stderr
 
 
 def test_rans_builtin_keeps_reversed_flow_cvs(tmp_path):
