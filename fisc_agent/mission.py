@@ -59,6 +59,57 @@ class State(str, Enum):
     DONE = "DONE"
 
 
+class HoldCause(str, Enum):
+    """Why the mission holds (``Mission.hold_cause``); the value is the hold's default reason text."""
+
+    LINK_LOST = "link lost"
+    POSITION_STALE = "position stale"
+    GEOFENCE = "geofence: outside the map"
+    EXIT = "exit: holding after the outlet"
+    FLEET = "fleet hold"
+    FLEET_ON_GROUND = "fleet hold (on the ground)"
+    PILOT_OVERRIDE = "pilot override"
+
+
+class Cause(str, Enum):
+    """Why the mission entered a state other than HOLD; the value is the default reason text."""
+
+    START = "start"
+    AUTOPILOT_FOUND = "position and autopilot heartbeat received"
+    ARMED = "armed in offboard/guided"
+    ARM_FAILED = "failed: not armed in offboard/guided"
+    TAKING_OVER = "already flying: taking over"
+    TAKEOFF_DONE = "takeoff height reached"
+    ENTERED_MAP = "entered the map"
+    BACK_IN_MAP = "back in the map"
+    LAP_DONE = "lap done: back to the inlet"
+    PASSED_OUTLET = "passed the outlet"
+    GEOFENCE_RETURN = "geofence: outside the map, returning to the nearest CV"
+    EXIT_LAND = "exit: landing"
+    LANDED = "landed and disarmed"
+    DISARMED_IN_FLIGHT = "disarmed in flight (landed or killed by the autopilot/pilot)"
+    FLEET_LAND = "fleet land"
+    FLEET_LAND_DISARMED = "fleet land while disarmed"
+    FLEET_RESUME = "fleet resume"
+    POSITION_BACK = "position fix back"
+
+
+class Reason(str):
+    """Why the mission is in its state: the human text (a ``str``: logged, written to the flight
+    log and the status as before) with its typed ``cause``, which is what code decides on."""
+
+    cause: Cause | HoldCause
+    """The typed cause."""
+
+    def __new__(cls, cause: Cause | HoldCause, text: str | None = None) -> Reason:
+        obj = super().__new__(cls, cause.value if text is None else text)
+        obj.cause = cause
+        return obj
+
+    def __getnewargs__(self) -> tuple:  # pickling (emulator workers send reasons across processes)
+        return (self.cause, str(self))
+
+
 FLYING = frozenset({State.TAKEOFF, State.JOIN, State.FLOW, State.RETURN, State.EXIT})
 """States in which the agent commands the vehicle in offboard/guided."""
 
@@ -102,16 +153,22 @@ class MissionOutput(NamedTuple):
     """ArduPilot: takeoff height above home to command; None otherwise."""
     cv_id: int
     """CV of the vehicle, -1 outside the map (or no position/map)."""
-    reason: str
+    reason: Reason
     """Why the mission is in this state (last transition's reason)."""
 
 
 @dataclass(frozen=True)
 class Transition:
+    """One logged state change."""
+
     t_s: float
+    """Time of the change [s]."""
     src: State
+    """State left."""
     dst: State
-    reason: str
+    """State entered."""
+    reason: Reason
+    """Why."""
 
 
 class Mission:
@@ -120,7 +177,7 @@ class Mission:
     def __init__(self, cfg: AgentConfig, sfield: ScalarField | None = None) -> None:
         self.cfg = cfg
         self.state = State.WAIT_POSITION
-        self.reason = "start"
+        self.reason = Reason(Cause.START)
         self.transitions: list[Transition] = []
         self.laps = 0
         self._pending: list[str] = []
@@ -203,7 +260,23 @@ class Mission:
         self._pending.append(name)
 
     # ---- transitions ---------------------------------------------------------------------
-    def _go(self, t: float, dst: State, reason: str) -> None:
+    @property
+    def hands_off(self) -> bool:
+        """Someone else (pilot, autopilot failsafe) took the vehicle: no modes, no setpoints until a resume."""
+        return self._hands_off
+
+    @property
+    def hold_cause(self) -> HoldCause | None:
+        """Why the mission holds; None outside HOLD."""
+        cause = self.reason.cause
+        return cause if self.state == State.HOLD and isinstance(cause, HoldCause) else None
+
+    @property
+    def failed(self) -> bool:
+        """The mission ended without flying (could not arm in offboard/guided)."""
+        return self.state == State.DONE and self.reason.cause == Cause.ARM_FAILED
+
+    def _go(self, t: float, dst: State, reason: Reason) -> None:
         if dst == self.state and reason == self.reason:
             return
         self.transitions.append(Transition(t, self.state, dst, reason))
@@ -214,7 +287,7 @@ class Mission:
                 self.tracker.reset(self._last_pos, t)  # a new parcel where the vehicle (re-)enters the flow
         self.state, self.reason, self._t_state = dst, reason, t
 
-    def _hold(self, t: float, reason: str, latched: bool, armed: bool, hands_off: bool = False) -> None:
+    def _hold(self, t: float, reason: Reason, latched: bool, armed: bool, hands_off: bool = False) -> None:
         if self.state != State.HOLD:
             self._resume_state = self.state
             self._hold_escalated = False
@@ -235,7 +308,7 @@ class Mission:
         assert self.sfield is not None
         self._target = self.sfield.centers[self.sfield.nearest_cv(*pos)]
 
-    def _enter(self, t: float, dst: State, reason: str, pos: Vec | None) -> None:
+    def _enter(self, t: float, dst: State, reason: Reason, pos: Vec | None) -> None:
         if dst == State.JOIN and pos is not None:
             self._plan_join(pos)
         elif dst == State.RETURN and pos is not None:
@@ -266,27 +339,27 @@ class Mission:
             self.tracker.observe(t, pos, s.vel_m_s)
         if self.state in FLYING or self.state == State.HOLD:
             if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
-                self._go(t, State.DONE, "disarmed in flight (landed or killed by the autopilot/pilot)")
+                self._go(t, State.DONE, Reason(Cause.DISARMED_IN_FLIGHT))
             elif not lk:
-                if self.state != State.HOLD or self.reason != "link lost":
+                if self.hold_cause != HoldCause.LINK_LOST:
                     log.warning("link lost: no autopilot HEARTBEAT for %.1f s; the autopilot's offboard-loss "
                                 "failsafe is in charge", s.heartbeat_age_s)
-                    self._hold(t, "link lost", latched=True, armed=s.armed or self._hold_armed)
+                    self._hold(t, Reason(HoldCause.LINK_LOST), latched=True, armed=s.armed or self._hold_armed)
                     self._hold_escalated = True
             elif ph != PositionHealth.OK:
                 if self.state != State.HOLD:
-                    self._hold(t, "position stale", latched=False, armed=s.armed)
+                    self._hold(t, Reason(HoldCause.POSITION_STALE), latched=False, armed=s.armed)
                 if ph == PositionHealth.LOST and not self._hold_escalated and not self._hands_off:
                     self._hold_escalated = True
                     self._hold_latched = True
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
             elif self._mode_taken(s):  # checked before the auto-resume: never resume into a failsafe's mode
-                self._hold(t, f"pilot override: mode changed to {s.mode} outside the agent, hands off",
+                self._hold(t, Reason(HoldCause.PILOT_OVERRIDE, f"pilot override: mode changed to {s.mode} outside the agent, hands off"),
                            latched=True, armed=s.armed, hands_off=True)
-            elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
+            elif self.hold_cause == HoldCause.POSITION_STALE and not self._hold_latched:
                 self._auto_resume(t, pos)
         elif self.state == State.LAND and lk and s.armed and self._mode_taken(s):
-            self._hold(t, f"pilot override: mode changed to {s.mode} while landing, hands off",
+            self._hold(t, Reason(HoldCause.PILOT_OVERRIDE, f"pilot override: mode changed to {s.mode} while landing, hands off"),
                        latched=True, armed=True, hands_off=True)
 
         st = self.state
@@ -300,19 +373,19 @@ class Mission:
         if st == State.WAIT_POSITION:
             if lk and s.autopilot and ph == PositionHealth.OK and self.sfield is not None and pos is not None:
                 if s.armed:
-                    self._enter(t, State.FLOW if cv >= 0 else State.JOIN, "already flying: taking over", pos)
+                    self._enter(t, State.FLOW if cv >= 0 else State.JOIN, Reason(Cause.TAKING_OVER), pos)
                 else:
                     self._home = pos
-                    self._go(t, State.ARM, f"position and {s.autopilot} heartbeat received")
+                    self._go(t, State.ARM, Reason(Cause.AUTOPILOT_FOUND, f"position and {s.autopilot} heartbeat received"))
         st = self.state
         if st == State.ARM:
             vel = None if by_command else ZERO
             want_mode, want_armed = "offboard", True
             if s.armed and s.mode == "offboard":
                 self._climb_by_velocity = False
-                self._go(t, State.TAKEOFF, "armed in offboard/guided")
+                self._go(t, State.TAKEOFF, Reason(Cause.ARMED))
             elif t - self._t_state > cfg.command_timeout_s:
-                self._go(t, State.DONE, f"failed: not armed in offboard/guided after {cfg.command_timeout_s:.0f} s")
+                self._go(t, State.DONE, Reason(Cause.ARM_FAILED, f"{Cause.ARM_FAILED.value} after {cfg.command_timeout_s:.0f} s"))
         elif st == State.TAKEOFF:
             want_mode, want_armed = "offboard", True
             home = self._home if self._home is not None else pos
@@ -325,7 +398,7 @@ class Mission:
                 vel = (vx, vy, min(cfg.climb_speed_m_s, max(0.2, 1.5 * (target_z - pos[2]))))
                 done = pos[2] >= target_z - 0.1
             if done:
-                self._enter(t, State.JOIN, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached", pos)
+                self._enter(t, State.JOIN, Reason(Cause.TAKEOFF_DONE, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached"), pos)
         elif st == State.JOIN:
             want_mode = "offboard"
             last = len(self._waypoints) - 1
@@ -343,7 +416,7 @@ class Mission:
             if waiting:
                 vel = goto_velocity(pos, self._waypoints[last - 1], cfg.join_speed_m_s)
             elif self._wp_index == last and cv >= 0:
-                self._go(t, State.FLOW, f"entered the map at CV {cv}")
+                self._go(t, State.FLOW, Reason(Cause.ENTERED_MAP, f"entered the map at CV {cv}"))
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._waypoints[self._wp_index], cfg.join_speed_m_s)
@@ -355,7 +428,7 @@ class Mission:
         elif st == State.RETURN:
             want_mode = "offboard"
             if cv >= 0:
-                self._go(t, State.FLOW, f"back in the map at CV {cv}")
+                self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}"))
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
@@ -364,10 +437,10 @@ class Mission:
             vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
             if distance(pos, self._target) < cfg.waypoint_radius_m:
                 if cfg.exit_policy == "land":
-                    self._go(t, State.LAND, "exit: landing")
+                    self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
                     st = State.LAND
                 else:
-                    self._hold(t, "exit: holding after the outlet", latched=True, armed=s.armed)
+                    self._hold(t, Reason(HoldCause.EXIT), latched=True, armed=s.armed)
                     self._hold_escalated = True
                     st = State.HOLD
         if st == State.FLOW:
@@ -384,16 +457,16 @@ class Mission:
             elif verdict == GeofenceVerdict.EXIT:
                 self.laps += 1
                 if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
-                    self._enter(t, State.JOIN, f"lap {self.laps} done: back to the inlet", pos)
+                    self._enter(t, State.JOIN, Reason(Cause.LAP_DONE, f"lap {self.laps} done: back to the inlet"), pos)
                 else:
-                    self._enter(t, State.EXIT, f"passed the outlet (lap {self.laps})", pos)
+                    self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)
                 vel = goto_velocity(pos, self._waypoints[0] if self.state == State.JOIN else self._target,
                                     cfg.join_speed_m_s)
             elif verdict == GeofenceVerdict.RETURN:
-                self._enter(t, State.RETURN, "geofence: outside the map, returning to the nearest CV", pos)
+                self._enter(t, State.RETURN, Reason(Cause.GEOFENCE_RETURN), pos)
                 vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
             else:
-                self._hold(t, "geofence: outside the map", latched=True, armed=s.armed)
+                self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 st = State.HOLD
                 vel = None
         if self.state == State.HOLD:
@@ -401,7 +474,7 @@ class Mission:
         elif self.state == State.LAND:
             vel, want_mode = None, "land"
             if not s.armed:
-                self._go(t, State.DONE, "landed and disarmed")
+                self._go(t, State.DONE, Reason(Cause.LANDED))
         if self.state == State.DONE:
             vel, want_mode, want_armed, takeoff = None, None, None, None
         if want_mode != self._last_want:
@@ -443,21 +516,21 @@ class Mission:
         return ZERO, "offboard", None, None
 
     def _auto_resume(self, t: float, pos: Vec | None) -> None:
-        self._enter(t, self._resume_state, "position fix back", pos)
+        self._enter(t, self._resume_state, Reason(Cause.POSITION_BACK), pos)
 
     def _fleet(self, t: float, name: str, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
         log.info("fleet command %r in state %s", name, self.state.value)
         if name == "hold":
             if self.state in FLYING or self.state == State.HOLD:
-                self._hold(t, "fleet hold", latched=True, armed=s.armed or self._hold_armed)
+                self._hold(t, Reason(HoldCause.FLEET), latched=True, armed=s.armed or self._hold_armed)
             elif self.state in (State.WAIT_POSITION, State.ARM):
-                self._hold(t, "fleet hold (on the ground)", latched=True, armed=s.armed)
+                self._hold(t, Reason(HoldCause.FLEET_ON_GROUND), latched=True, armed=s.armed)
                 self._resume_state = State.WAIT_POSITION
         elif name == "land":
             if s.armed and self.state != State.DONE:
-                self._go(t, State.LAND, "fleet land")
+                self._go(t, State.LAND, Reason(Cause.FLEET_LAND))
             elif self.state != State.DONE:
-                self._go(t, State.DONE, "fleet land while disarmed")
+                self._go(t, State.DONE, Reason(Cause.FLEET_LAND_DISARMED))
         elif name == "resume":
             if self.state != State.HOLD:
                 return
@@ -465,11 +538,11 @@ class Mission:
                 log.warning("fleet resume refused: position is %s", ph.value)
                 return
             nxt = self._resume_state
-            if self.reason.startswith("geofence"):
+            if self.hold_cause == HoldCause.GEOFENCE:
                 nxt = State.RETURN
-            elif self.reason.startswith("exit"):
+            elif self.hold_cause == HoldCause.EXIT:
                 nxt = State.JOIN
             elif nxt == State.FLOW and self.sfield is not None and pos is not None and self.sfield.cv_of(*pos) < 0:
                 nxt = State.RETURN
             self._hands_off = False
-            self._enter(t, nxt, "fleet resume", pos)
+            self._enter(t, nxt, Reason(Cause.FLEET_RESUME), pos)

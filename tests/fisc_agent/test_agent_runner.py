@@ -167,7 +167,7 @@ def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
 def test_offer_map_refuses_a_map_that_fails_agent_checks():
     import numpy as np
     from agent_testkit import tunnel_arrays
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     cfg, clock, link, r = make(mode="slot")
     meta, arrays = tunnel_arrays()
