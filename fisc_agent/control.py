@@ -23,23 +23,13 @@ from fisc_agent.lookup import (
     DeviationState,
     FlightSettings,
     flight_command,
+    slot_hash_int,
 )
 from fisc_agent.mapfile import MapError, MapErrorKind
 
 Vec = tuple[float, float, float]
 ZERO: Vec = (0.0, 0.0, 0.0)
-_MASK32 = 0xFFFFFFFF
 GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
-
-
-def slot_hash_scalar(agent_id: int, cv_id: int) -> int:
-    """Scalar ``lookup.slot_hash`` (same 32-bit mix, Python integers)."""
-    a, j = int(agent_id) & _MASK32, int(cv_id) & _MASK32
-    h = ((a * 0x9E3779B1) ^ (j * 0x85EBCA77 + 0x27D4EB2F)) & _MASK32
-    h ^= h >> 15
-    h = (h * 0x2C1B3C6D) & _MASK32
-    h ^= h >> 12
-    return h
 
 
 class ScalarField:
@@ -78,7 +68,7 @@ class ScalarField:
         if mode == "mean":
             return self._mean[cv]
         if mode == "slot":
-            return self._slot[cv][slot_hash_scalar(agent_id, cv) % self._n_star[cv]]
+            return self._slot[cv][slot_hash_int(agent_id, cv) % self._n_star[cv]]
         if mode == "interpolated":
             return self._interpolate(x, y, z, cv)
         raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
