@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 from enum import Enum
 from typing import NamedTuple
 
+from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
                                 goto_velocity, join_waypoints)
@@ -131,7 +132,7 @@ class VehicleStatus(NamedTuple):
     """``px4``, ``ardupilot`` or None while unknown."""
     armed: bool
     """Armed flag from the HEARTBEAT."""
-    mode: str
+    mode: ModeClass
     """Autopilot mode class: ``offboard`` (PX4 OFFBOARD / ArduPilot GUIDED), ``hold``, ``land``,
     ``other`` or ``unknown``."""
     wall_time_s: float = 0.0
@@ -145,7 +146,7 @@ class MissionOutput(NamedTuple):
     """State after this step."""
     velocity_m_s: Vec | None
     """Map-frame velocity setpoint to stream (unclamped); None = stream nothing."""
-    want_mode: str | None
+    want_mode: ModeClass | None
     """``offboard``, ``hold``, ``land`` or None (leave the mode alone)."""
     want_armed: bool | None
     """True to arm; None = leave alone."""
@@ -188,7 +189,7 @@ class Mission:
         self._wp_index = 0
         self._entry_cleared = False
         self._target: Vec | None = None
-        self._last_want: str | None = None
+        self._last_want: ModeClass | None = None
         self._want_seen = False
         # hold bookkeeping
         self._resume_state = State.WAIT_POSITION
@@ -365,7 +366,7 @@ class Mission:
         st = self.state
 
         vel: Vec | None = None
-        want_mode: str | None = None
+        want_mode: ModeClass | None = None
         want_armed: bool | None = None
         takeoff: float | None = None
         by_command = s.autopilot == "ardupilot"
@@ -380,14 +381,14 @@ class Mission:
         st = self.state
         if st == State.ARM:
             vel = None if by_command else ZERO
-            want_mode, want_armed = "offboard", True
-            if s.armed and s.mode == "offboard":
+            want_mode, want_armed = ModeClass.OFFBOARD, True
+            if s.armed and s.mode == ModeClass.OFFBOARD:
                 self._climb_by_velocity = False
                 self._go(t, State.TAKEOFF, Reason(Cause.ARMED))
             elif t - self._t_state > cfg.command_timeout_s:
                 self._go(t, State.DONE, Reason(Cause.ARM_FAILED, f"{Cause.ARM_FAILED.value} after {cfg.command_timeout_s:.0f} s"))
         elif st == State.TAKEOFF:
-            want_mode, want_armed = "offboard", True
+            want_mode, want_armed = ModeClass.OFFBOARD, True
             home = self._home if self._home is not None else pos
             target_z = home[2] + cfg.takeoff_alt_m
             if by_command and not self._climb_by_velocity:
@@ -400,7 +401,7 @@ class Mission:
             if done:
                 self._enter(t, State.JOIN, Reason(Cause.TAKEOFF_DONE, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached"), pos)
         elif st == State.JOIN:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             last = len(self._waypoints) - 1
             while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
                 self._wp_index += 1
@@ -426,14 +427,14 @@ class Mission:
                     crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
                     vel = (max(vel[0], crawl), vel[1], vel[2])
         elif st == State.RETURN:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             if cv >= 0:
                 self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}"))
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
         elif st == State.EXIT:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
             if distance(pos, self._target) < cfg.waypoint_radius_m:
                 if cfg.exit_policy == "land":
@@ -444,7 +445,7 @@ class Mission:
                     self._hold_escalated = True
                     st = State.HOLD
         if st == State.FLOW:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
                 if cfg.tracking.gain_1_s == 0.0:  # open loop: the simulator's own command function
@@ -472,7 +473,7 @@ class Mission:
         if self.state == State.HOLD:
             vel, want_mode, want_armed, takeoff = self._hold_output(t)
         elif self.state == State.LAND:
-            vel, want_mode = None, "land"
+            vel, want_mode = None, ModeClass.LAND
             if not s.armed:
                 self._go(t, State.DONE, Reason(Cause.LANDED))
         if self.state == State.DONE:
@@ -502,9 +503,9 @@ class Mission:
         """The mode we asked for was reached and has since been changed by someone else
         (the pilot's switch or an autopilot failsafe): do not fight it."""
         return (self._want_seen and self._last_want is not None and not self._hands_off
-                and s.mode not in (self._last_want, "unknown"))
+                and s.mode not in (self._last_want, ModeClass.UNKNOWN))
 
-    def _hold_output(self, t: float) -> tuple[Vec | None, str | None, bool | None, float | None]:
+    def _hold_output(self, t: float) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
         if self._hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and t - self._t_state >= self.cfg.hold_grace_s:
@@ -512,8 +513,8 @@ class Mission:
             self._hold_latched = True
             log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
-            return None, "hold", None, None
-        return ZERO, "offboard", None, None
+            return None, ModeClass.HOLD, None, None
+        return ZERO, ModeClass.OFFBOARD, None, None
 
     def _auto_resume(self, t: float, pos: Vec | None) -> None:
         self._enter(t, self._resume_state, Reason(Cause.POSITION_BACK), pos)

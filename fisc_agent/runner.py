@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fisc_agent.adapters import Adapter, Commander, adapter_for
+from fisc_agent.adapters import Adapter, Commander, ModeClass, adapter_for
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
 from fisc_agent.link import PositionSample, VehicleLink
@@ -108,7 +108,7 @@ class TickRecord:
     """Adapter in use (``px4`` / ``ardupilot``)."""
     armed: bool
     """Armed flag from the HEARTBEAT."""
-    mode: str
+    mode: ModeClass
     """Autopilot mode class."""
     laps: int
     """Completed passes."""
@@ -254,7 +254,8 @@ class Runner:
         else:
             name = seen
         self.adapter = adapter_for(name)
-        self.commander = Commander(self.adapter, self.link.send_command, self.cfg.command_retry_s)
+        self.link.use_adapter(self.adapter)
+        self.commander = Commander(self.adapter, self.link, self.cfg.command_retry_s)
         log.info("using the %s adapter", name)
 
     def _gated(self, sample: PositionSample | None) -> PositionSample | None:
@@ -286,13 +287,12 @@ class Runner:
         link = self.link
         link.poll()
         self._ensure_adapter()
-        for command, result in link.pop_acks():
+        for result in link.pop_results():
             if self.commander is not None:
-                self.commander.on_ack(command, result)
+                self.commander.on_result(result)
         # ages are >= 0: a message received during this tick's poll is newer than ``now``
         hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
-        mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
-                if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
+        mode = link.mode if self.adapter is not None else ModeClass.UNKNOWN
         sample = self._gated(link.latest_position())
         tf = self.transform
         if sample is not None:
@@ -381,15 +381,14 @@ class Runner:
             if flying and self.adapter is not None:
                 log.info("shutdown: zero-velocity hold, then the autopilot's hold mode")
                 t_end = self.clock() + settle_s
-                cmd = self.adapter.set_mode("hold")
                 while True:
                     link.send_velocity_ned(0.0, 0.0, 0.0)
-                    link.send_command(cmd)
+                    link.hold()
                     link.poll()
-                    if self.adapter.classify_mode(link.base_mode, link.custom_mode) == "hold" or self.clock() >= t_end:
+                    if link.mode == ModeClass.HOLD or self.clock() >= t_end:
                         break
                     self.sleep(0.05)
-                if self.adapter.classify_mode(link.base_mode, link.custom_mode) != "hold":
+                if link.mode != ModeClass.HOLD:
                     log.warning("shutdown: hold mode not confirmed; the autopilot's offboard-loss failsafe applies")
         finally:
             link.close()
