@@ -115,3 +115,29 @@ class EmulatorProbe:
         from sim.autopilot.faults import FaultConfig, FaultInjector
 
         self.em.faults = FaultInjector(FaultConfig(loss_probability=1.0 if on else 0.0))
+
+
+class RecordingVehicle:
+    """``VehicleCommands`` that records the intents it is asked for."""
+
+    def __init__(self):
+        self.sent = []           # ("arm",), ("set_mode", ModeClass), ("takeoff", alt_m)
+
+    def arm(self):
+        self.sent.append(("arm",))
+
+    def set_mode(self, mode):
+        self.sent.append(("set_mode", mode))
+
+    def takeoff(self, alt_m):
+        self.sent.append(("takeoff", alt_m))
+
+    def hold(self):
+        from fisc_agent.adapters import ModeClass
+
+        self.set_mode(ModeClass.HOLD)
+
+    def land(self):
+        from fisc_agent.adapters import ModeClass
+
+        self.set_mode(ModeClass.LAND)

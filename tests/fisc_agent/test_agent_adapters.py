@@ -2,6 +2,7 @@
 
 import pytest
 
+from agent_testkit import RecordingVehicle
 from fisc_agent.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
                                  MAV_CMD_SET_MESSAGE_INTERVAL, ArduPilotAdapter, CommandKind, CommandResult, Commander,
                                  ModeClass, Px4Adapter, adapter_for, autopilot_from_heartbeat, command_result,
@@ -50,28 +51,6 @@ def test_ardupilot_mode_encoding():
     assert isinstance(adapter_for("px4"), Px4Adapter) and isinstance(adapter_for("ardupilot"), ArduPilotAdapter)
     with pytest.raises(ValueError):
         adapter_for("inav")
-
-
-class RecordingVehicle:
-    """``VehicleCommands`` that records the intents it is asked for."""
-
-    def __init__(self):
-        self.sent = []
-
-    def arm(self):
-        self.sent.append(("arm",))
-
-    def set_mode(self, mode):
-        self.sent.append(("set_mode", mode))
-
-    def takeoff(self, alt_m):
-        self.sent.append(("takeoff", alt_m))
-
-    def hold(self):
-        self.set_mode(ModeClass.HOLD)
-
-    def land(self):
-        self.set_mode(ModeClass.LAND)
 
 
 def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():

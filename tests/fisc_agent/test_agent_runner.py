@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from agent_testkit import tunnel_map_bytes
+from agent_testkit import RecordingVehicle, tunnel_map_bytes
 from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig
 from fisc_agent.link import PositionSample, PositionSource, SetpointSink
@@ -25,10 +25,12 @@ class Clock:
         self.t += dt
 
 
-class MemoryLink:
+class MemoryLink(RecordingVehicle):
     """A PX4 that obeys commands at once; kinematic vehicle in local NED on the shared clock."""
 
     def __init__(self, clock, pos_ned=(0.0, 0.0, 0.0)):
+        super().__init__()
+        self.commands = self.sent    # the intents asked for
         self.clock = clock
         self.autopilot = "px4"
         self.armed = False
@@ -38,7 +40,6 @@ class MemoryLink:
         self.pos = list(pos_ned)
         self.vel = [0.0, 0.0, 0.0]
         self.setpoints = []          # (t, vn, ve, vd)
-        self.commands = []           # intents: ("arm",), ("set_mode", ModeClass), ("takeoff", alt_m)
         self.heartbeats_sent = 0
         self.closed = False
         self.freeze_position = False
@@ -79,21 +80,12 @@ class MemoryLink:
         self.adapter = adapter
 
     def arm(self):
-        self.commands.append(("arm",))
+        super().arm()
         self.armed = True
 
     def set_mode(self, mode):
-        self.commands.append(("set_mode", mode))
+        super().set_mode(mode)
         self.vehicle_mode = mode
-
-    def takeoff(self, alt_m):
-        self.commands.append(("takeoff", alt_m))
-
-    def hold(self):
-        self.set_mode(ModeClass.HOLD)
-
-    def land(self):
-        self.set_mode(ModeClass.LAND)
 
     def send_heartbeat(self):
         self.heartbeats_sent += 1

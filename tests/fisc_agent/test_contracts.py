@@ -111,3 +111,13 @@ def test_the_version_1_map_gives_the_same_commands():
                                                                                   [4.6875, 0.0, 0.0625]])
     np.testing.assert_allclose(field.command(pts[:2], np.array([3, 4]), "mean"), [[1.40625, -0.0625, 0.0],
                                                                                   [4.6875, 0.0, 0.0625]])
+
+
+def test_enums_at_the_seams_match_the_wire_tables():
+    """Mission states and map-refusal kinds are the names the telemetry codes carry."""
+    from fisc_agent import telemetry_codec as tc
+    from fisc_agent.mapfile import MapErrorKind
+    from fisc_agent.mission import State
+
+    assert {s.value for s in State} <= set(tc.STATES)
+    assert set(tc.REJECT_REASONS[1:]) <= {k.value for k in MapErrorKind}
