@@ -130,7 +130,8 @@ class CommandLong:
 
 
 _KIND_OF_COMMAND = {MAV_CMD_COMPONENT_ARM_DISARM: CommandKind.ARM, MAV_CMD_DO_SET_MODE: CommandKind.SET_MODE,
-                    MAV_CMD_NAV_TAKEOFF: CommandKind.TAKEOFF, MAV_CMD_SET_MESSAGE_INTERVAL: CommandKind.MESSAGE_INTERVAL}
+                    MAV_CMD_NAV_TAKEOFF: CommandKind.TAKEOFF,
+                    MAV_CMD_SET_MESSAGE_INTERVAL: CommandKind.MESSAGE_INTERVAL}
 
 
 def mav_result_name(result: int) -> str:

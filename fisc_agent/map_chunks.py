@@ -222,10 +222,12 @@ class _Assembly:
                 self.hasher.update(nxt)
         elif head.offset > end:
             if head.offset in self.ahead:
-                raise MapError(MapErrorKind.CHUNKS, f"two chunks claim offset {head.offset} (corrupted or forged chunks)")
+                raise MapError(MapErrorKind.CHUNKS,
+                               f"two chunks claim offset {head.offset} (corrupted or forged chunks)")
             self.ahead[head.offset] = bytes(data)
         else:
-            raise MapError(MapErrorKind.CHUNKS, f"chunk {head.index} at offset {head.offset} overlaps bytes already received "
+            raise MapError(MapErrorKind.CHUNKS,
+                           f"chunk {head.index} at offset {head.offset} overlaps bytes already received "
                            "(corrupted or forged chunks)")
         self.have.add(head.index)
         charged = len(data) + CHUNK_OVERHEAD_BYTES
@@ -366,10 +368,12 @@ class MapAssembler:
         self.done.add(sha)
         if asm.ahead or len(asm.buf) != head.total_bytes:
             self.done.discard(sha)
-            raise MapError(MapErrorKind.CHUNKS, "chunk sizes do not add up to the map size (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "chunk sizes do not add up to the map size (corrupted or forged chunks)")
         if asm.hasher.digest() != sha:
             self.done.discard(sha)  # a later query may bring good chunks
-            raise MapError(MapErrorKind.CHUNKS, "reassembled map does not match its sha256 (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "reassembled map does not match its sha256 (corrupted or forged chunks)")
         return head, asm.buf
 
     def verify(self, head: ChunkHeader, blob: bytearray) -> None:
@@ -377,7 +381,8 @@ class MapAssembler:
         raise ``MapError`` (``feed`` already did this incrementally)."""
         if hashlib.sha256(blob).digest() != head.sha256:
             self.done.discard(head.sha256)
-            raise MapError(MapErrorKind.CHUNKS, "reassembled map does not match its sha256 (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "reassembled map does not match its sha256 (corrupted or forged chunks)")
 
     def accept(self, map_version: int, sha256: bytes | None = None) -> None:
         """A map of this version (and sha256) was installed: drop everything not newer.  Chunks

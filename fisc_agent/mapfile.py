@@ -232,7 +232,8 @@ def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
         raise MapError(MapErrorKind.SCHEMA, f"not a FISC command map (schema={body.get('schema')!r})")
     version = body.get("schema_version")
     if version not in SUPPORTED_SCHEMA_VERSIONS:
-        raise MapError(MapErrorKind.SCHEMA_VERSION, f"map has {version!r}, this reader supports {', '.join(map(str, SUPPORTED_SCHEMA_VERSIONS))}"
+        raise MapError(MapErrorKind.SCHEMA_VERSION,
+                       f"map has {version!r}, this reader supports {', '.join(map(str, SUPPORTED_SCHEMA_VERSIONS))}"
         )
     missing = [k for k in REQUIRED_BODY_KEYS if k not in body]
     if missing:
@@ -243,7 +244,8 @@ def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
             raise MapError(MapErrorKind.SCHEMA, f"array {name!r} is missing")
         arr = arrays[name]
         if arr.dtype.str != dtype or arr.ndim != rank:
-            raise MapError(MapErrorKind.SCHEMA, f"array {name!r} must be {dtype} of rank {rank}, is {arr.dtype.str} {arr.shape}")
+            raise MapError(MapErrorKind.SCHEMA,
+                           f"array {name!r} must be {dtype} of rank {rank}, is {arr.dtype.str} {arr.shape}")
         if name != "grid_cv" and arr.shape[0] != n_cv:
             raise MapError(MapErrorKind.SCHEMA, f"array {name!r} has {arr.shape[0]} rows, header says n_cv={n_cv}")
     if tuple(arrays["grid_cv"].shape) != tuple(body["grid"]["shape"]):
@@ -339,7 +341,8 @@ def encode_map(meta: dict[str, Any], arrays: dict[str, np.ndarray], signing_key:
     the arrays and 1 (the paper's map) otherwise.
 
     The inverse of ``decode_map``.  Arrays are stored little-endian with the dtypes of
-    ``REQUIRED_ARRAYS`` (extra arrays keep their own dtype).  ``signing_key``: a 32-byte Ed25519 seed; the seal then carries a signature.
+    ``REQUIRED_ARRAYS`` (extra arrays keep their own dtype).  ``signing_key``: a 32-byte Ed25519
+    seed; the seal then carries a signature.
     """
     table: dict[str, dict[str, Any]] = {}
     chunks: list[bytes] = []

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import NamedTuple
 
 from fisc_agent.adapters import ModeClass
@@ -41,7 +41,25 @@ from fisc_agent.tracking import ParcelTracker
 
 log = logging.getLogger(__name__)
 
-FLEET_COMMANDS = ("hold", "resume", "land")
+
+
+class MissionCommand(StrEnum):
+    """A fleet command the mission obeys: hold, resume, land (the value is its name on the wire)."""
+
+    HOLD = "hold"
+    RESUME = "resume"
+    LAND = "land"
+
+    @classmethod
+    def parse(cls, name: str) -> MissionCommand:
+        """The command called ``name``; ``ValueError`` naming the choices otherwise."""
+        try:
+            return cls(name)
+        except ValueError:
+            raise ValueError(f"unknown fleet command {name!r}; choose one of "
+                             f"{', '.join(c.value for c in cls)}") from None
+
+
 AIRBORNE_ABOVE_HOME_M = 0.2
 """Height above home from which a vehicle counts as airborne (an interrupted takeoff then
 finishes with climb setpoints: ArduPilot refuses a takeoff command once flying)."""
@@ -181,7 +199,7 @@ class Mission:
         self.reason = Reason(Cause.START)
         self.transitions: list[Transition] = []
         self.laps = 0
-        self._pending: list[str] = []
+        self._pending: list[MissionCommand] = []
         self._t_state = 0.0
         self._home: Vec | None = None
         self._climb_by_velocity = False
@@ -254,11 +272,9 @@ class Mission:
                  resp.lag_s, resp.dead_time_s, resp.gain, resp.rise_time_s, resp.max_accel_m_s2, resp.lookahead_s,
                  resp.feedforward_gain)
 
-    def command(self, name: str) -> None:
+    def command(self, name: MissionCommand | str) -> None:
         """Queue a fleet command (``hold``, ``resume``, ``land``); applied at the next step."""
-        if name not in FLEET_COMMANDS:
-            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
-        self._pending.append(name)
+        self._pending.append(MissionCommand.parse(name))
 
     # ---- transitions ---------------------------------------------------------------------
     @property
@@ -355,12 +371,14 @@ class Mission:
                     self._hold_latched = True
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
             elif self._mode_taken(s):  # checked before the auto-resume: never resume into a failsafe's mode
-                self._hold(t, Reason(HoldCause.PILOT_OVERRIDE, f"pilot override: mode changed to {s.mode} outside the agent, hands off"),
+                self._hold(t, Reason(HoldCause.PILOT_OVERRIDE,
+                                     f"pilot override: mode changed to {s.mode} outside the agent, hands off"),
                            latched=True, armed=s.armed, hands_off=True)
             elif self.hold_cause == HoldCause.POSITION_STALE and not self._hold_latched:
                 self._auto_resume(t, pos)
         elif self.state == State.LAND and lk and s.armed and self._mode_taken(s):
-            self._hold(t, Reason(HoldCause.PILOT_OVERRIDE, f"pilot override: mode changed to {s.mode} while landing, hands off"),
+            self._hold(t, Reason(HoldCause.PILOT_OVERRIDE,
+                                 f"pilot override: mode changed to {s.mode} while landing, hands off"),
                        latched=True, armed=True, hands_off=True)
 
         st = self.state
@@ -377,7 +395,8 @@ class Mission:
                     self._enter(t, State.FLOW if cv >= 0 else State.JOIN, Reason(Cause.TAKING_OVER), pos)
                 else:
                     self._home = pos
-                    self._go(t, State.ARM, Reason(Cause.AUTOPILOT_FOUND, f"position and {s.autopilot} heartbeat received"))
+                    self._go(t, State.ARM, Reason(Cause.AUTOPILOT_FOUND,
+                                                  f"position and {s.autopilot} heartbeat received"))
         st = self.state
         if st == State.ARM:
             vel = None if by_command else ZERO
@@ -386,7 +405,8 @@ class Mission:
                 self._climb_by_velocity = False
                 self._go(t, State.TAKEOFF, Reason(Cause.ARMED))
             elif t - self._t_state > cfg.command_timeout_s:
-                self._go(t, State.DONE, Reason(Cause.ARM_FAILED, f"{Cause.ARM_FAILED.value} after {cfg.command_timeout_s:.0f} s"))
+                self._go(t, State.DONE, Reason(Cause.ARM_FAILED,
+                                               f"{Cause.ARM_FAILED.value} after {cfg.command_timeout_s:.0f} s"))
         elif st == State.TAKEOFF:
             want_mode, want_armed = ModeClass.OFFBOARD, True
             home = self._home if self._home is not None else pos
@@ -399,7 +419,8 @@ class Mission:
                 vel = (vx, vy, min(cfg.climb_speed_m_s, max(0.2, 1.5 * (target_z - pos[2]))))
                 done = pos[2] >= target_z - 0.1
             if done:
-                self._enter(t, State.JOIN, Reason(Cause.TAKEOFF_DONE, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached"), pos)
+                self._enter(t, State.JOIN, Reason(Cause.TAKEOFF_DONE,
+                                                  f"takeoff height {cfg.takeoff_alt_m:.1f} m reached"), pos)
         elif st == State.JOIN:
             want_mode = ModeClass.OFFBOARD
             last = len(self._waypoints) - 1
@@ -519,20 +540,20 @@ class Mission:
     def _auto_resume(self, t: float, pos: Vec | None) -> None:
         self._enter(t, self._resume_state, Reason(Cause.POSITION_BACK), pos)
 
-    def _fleet(self, t: float, name: str, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
-        log.info("fleet command %r in state %s", name, self.state.value)
-        if name == "hold":
+    def _fleet(self, t: float, name: MissionCommand, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        log.info("fleet command %s in state %s", name.value, self.state.value)
+        if name == MissionCommand.HOLD:
             if self.state in FLYING or self.state == State.HOLD:
                 self._hold(t, Reason(HoldCause.FLEET), latched=True, armed=s.armed or self._hold_armed)
             elif self.state in (State.WAIT_POSITION, State.ARM):
                 self._hold(t, Reason(HoldCause.FLEET_ON_GROUND), latched=True, armed=s.armed)
                 self._resume_state = State.WAIT_POSITION
-        elif name == "land":
+        elif name == MissionCommand.LAND:
             if s.armed and self.state != State.DONE:
                 self._go(t, State.LAND, Reason(Cause.FLEET_LAND))
             elif self.state != State.DONE:
                 self._go(t, State.DONE, Reason(Cause.FLEET_LAND_DISARMED))
-        elif name == "resume":
+        elif name == MissionCommand.RESUME:
             if self.state != State.HOLD:
                 return
             if ph != PositionHealth.OK:

@@ -25,7 +25,7 @@ from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity
 from fisc_agent.link import PositionSample, VehicleLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
-from fisc_agent.mission import FLEET_COMMANDS, FLYING, Mission, MissionOutput, State, VehicleStatus
+from fisc_agent.mission import FLYING, Mission, MissionCommand, MissionOutput, State, VehicleStatus
 from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.ratelimit import RateLimitedLog
 
@@ -135,7 +135,7 @@ class Runner:
         self.cmap: CommandMap | None = None
         self._lock = threading.Lock()
         self._pending_map: tuple[CommandMap, ScalarField] | None = None
-        self._pending_cmds: list[str] = []
+        self._pending_cmds: list[MissionCommand] = []
         self._last_tick: TickRecord | None = None
         self._last_sp: Vec = ZERO
         self._last_sp_t = 0.0
@@ -202,12 +202,11 @@ class Runner:
             return False
         return True
 
-    def fleet_command(self, name: str) -> None:
+    def fleet_command(self, name: MissionCommand | str) -> None:
         """Queue ``hold``, ``resume`` or ``land`` for the next tick."""
-        if name not in FLEET_COMMANDS:
-            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
+        cmd = MissionCommand.parse(name)
         with self._lock:
-            self._pending_cmds.append(name)
+            self._pending_cmds.append(cmd)
 
     def snapshot(self) -> AgentSnapshot | None:
         """The latest telemetry snapshot (None before the first tick)."""
@@ -224,7 +223,7 @@ class Runner:
             parcel_map_m=k.parcel_map_m)
 
     # ---- the tick ------------------------------------------------------------------------
-    def _apply_pending(self) -> list[str]:
+    def _apply_pending(self) -> list[MissionCommand]:
         with self._lock:
             pending, self._pending_map = self._pending_map, None
             cmds, self._pending_cmds = self._pending_cmds, []

@@ -449,7 +449,8 @@ class AgentZenohLink:
                 self._on_map_payload(payload)
             except Exception as exc:  # never let one message kill the thread; counted and shown
                 with self._lock:
-                    self._reject(MapError(MapErrorKind.OTHER, f"map message could not be processed ({exc!r})", source=self.keys.map))
+                    self._reject(MapError(MapErrorKind.OTHER,
+                                          f"map message could not be processed ({exc!r})", source=self.keys.map))
 
     def _on_map_payload(self, payload: bytes) -> None:
         now = self.clock()
@@ -493,7 +494,8 @@ class AgentZenohLink:
                                "(replayed or rolled back)", source=self.keys.map)
             else:
                 self.stats.maps_incomplete += 1
-                exc = MapError(MapErrorKind.CHUNKS, f"{what} dropped unfinished ({drop.reason.value})", source=self.keys.map)
+                exc = MapError(MapErrorKind.CHUNKS,
+                               f"{what} dropped unfinished ({drop.reason.value})", source=self.keys.map)
             self._reject(exc, key=f"map:{drop.reason.value}")
 
     def _work_loop(self) -> None:
@@ -526,7 +528,8 @@ class AgentZenohLink:
                 if cmap.sha256 != current.sha256:
                     self.stats.maps_ignored_old += 1
                     self._reject(MapError(MapErrorKind.OLD_VERSION, f"map {cmap.sha256[:12]} has map_version "
-                                          f"{cmap.map_version}, not newer than {current.map_version} in use", source=self.keys.map))
+                                          f"{cmap.map_version}, not newer than {current.map_version} in use",
+                                          source=self.keys.map))
                 return
         if not cmap.signed:
             log.warning("*** UNSIGNED map %s (map_version %d) offered to the agent ***", cmap.sha256[:12],
