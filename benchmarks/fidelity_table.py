@@ -48,7 +48,7 @@ def command_map(ref: str, preset: str):
         return load_command_map(ref, MAX_SPEED_M_S, preset)
     from fisc_agent.mapfile import decode_map
     from fisc_ground.mapbuild import FitConfig, build_map
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
     from fisc_ground.reference.analytic import analytic_nozzle
 
     field = analytic_nozzle(duct_b_radius_m, length_m=12.0, inlet_velocity_m_s=3.0, name="duct_b")
