@@ -34,7 +34,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-from fisc_agent.adapters import Px4Adapter  # noqa: E402
+from fisc_agent.adapters import ModeClass  # noqa: E402
 from fisc_agent.config import AgentConfig  # noqa: E402
 from fisc_agent.control import ScalarField, clamp_velocity  # noqa: E402
 from fisc_agent.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
@@ -65,7 +65,7 @@ class BenchLink:
         self.clock = clock
         self.autopilot = "px4"
         self.armed = True
-        self.base_mode, self.custom_mode = 1 | 128, Px4Adapter.px4_custom_mode(6)
+        self.mode = ModeClass.OFFBOARD
         self.last_heartbeat_t = clock()
         self.mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=191)
         self.sent_t: list[float] = []
@@ -89,13 +89,28 @@ class BenchLink:
         self.nbytes = len(msg.pack(self.mav))
         self.sent_t.append(self.clock())
 
-    def send_command(self, cmd):
+    def use_adapter(self, adapter):
+        pass
+
+    def arm(self):
+        pass
+
+    def set_mode(self, mode):
+        pass
+
+    def takeoff(self, alt_m):
+        pass
+
+    def hold(self):
+        pass
+
+    def land(self):
         pass
 
     def send_heartbeat(self):
         pass
 
-    def pop_acks(self):
+    def pop_results(self):
         return []
 
     def close(self):

@@ -52,7 +52,7 @@ def configs(port: int):
 
 
 def make_map(n_cv_target: int, n_max: int, version: int, key: bytes) -> bytes:
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     nx = max(1, int(round((n_cv_target / 16) ** (1 / 3) * 4)))
     ny = nz = max(1, int(round(np.sqrt(n_cv_target / nx))))

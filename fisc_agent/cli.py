@@ -12,19 +12,17 @@ import signal
 import sys
 import threading
 
-from fisc_agent.cli_common import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, add_logging_args, setup_logging
+from fisc_agent.cli_common import ExitCode, add_logging_args, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.mapfile import MapError, load_map
 from fisc_agent.names import prefix_arg, swarm_name_arg
-from fisc_agent.mission import State
 from fisc_agent.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
-EXIT_FAILED, EXIT_INVALID = EXIT_FAILURE, EXIT_USAGE  # the shared table (fisc_agent.cli_common)
 
 
 def _seconds_or_auto(text: str) -> float | str:
@@ -152,7 +150,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         cmap = load_map(cfg.map_path, cfg.trusted_key) if cfg.map_path else None
     except MapError as exc:
         log.error("invalid map, refusing to start: %s", exc)
-        return EXIT_INVALID
+        return ExitCode.USAGE
     if cmap is not None and cmap.signed:
         log.info("map %s signed by %s", cfg.map_path, cmap.public_key)
     elif cmap is not None:
@@ -163,7 +161,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         flog = FlightLog(flight_log) if flight_log else None
     except OSError as exc:
         log.error("cannot write the flight log: %s", exc)
-        return EXIT_INVALID
+        return ExitCode.USAGE
     link = make_link(cfg)
     try:
         runner = Runner(cfg, link, cmap, on_tick=flog.write if flog else None)
@@ -172,7 +170,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         if flog:
             flog.close()
         log.error("invalid map, refusing to start: %s", exc)
-        return EXIT_INVALID
+        return ExitCode.USAGE
     log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz", cfg.agent_id, cfg.mavlink_url,
              cmap.sha256[:12] if cmap else "(none yet)", cfg.mode, cfg.rate_hz)
     zlink = None
@@ -187,7 +185,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
                                        zenoh_args.allow_unsigned, zenoh_args.telemetry_rate, zenoh_args.zenoh_prefix)
             except (MapError, ValueError, FileNotFoundError) as exc:
                 log.error("cannot start the Zenoh link: %s", exc)
-                return EXIT_INVALID
+                return ExitCode.USAGE
         final = runner.run(stop, max_duration_s=max_duration_s)
     finally:
         if zlink is not None:
@@ -195,11 +193,11 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         runner.shutdown()
         if flog is not None:
             flog.close()
-    if final == State.DONE and runner.mission.reason.startswith("failed"):
+    if runner.mission.failed:
         log.error("mission failed: %s", runner.mission.reason)
-        return EXIT_FAILED
+        return ExitCode.FAILURE
     log.info("fisc-agent stopped in %s (%s)", final.value, runner.mission.reason)
-    return EXIT_OK
+    return ExitCode.OK
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(args)
     except (ValueError, EndpointError, MapError) as exc:
         log.error("%s", exc)
-        return EXIT_INVALID
+        return ExitCode.USAGE
     stop = threading.Event()
 
     def _on_signal(signum, _frame):

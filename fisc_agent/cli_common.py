@@ -20,13 +20,21 @@ from __future__ import annotations
 import argparse
 import logging
 import math
+from enum import IntEnum
 
-EXIT_OK = 0
-"""Success."""
-EXIT_FAILURE = 1
-"""Runtime failure."""
-EXIT_USAGE = 2
-"""Bad usage or invalid input (argparse's own code for usage errors)."""
+
+class ExitCode(IntEnum):
+    """The one exit-code table of the three command lines."""
+
+    OK = 0
+    """Success (a ``fisc-agent`` mission finished, or was stopped by SIGINT/SIGTERM)."""
+    FAILURE = 1
+    """Runtime failure (e.g. ``Mission.failed``: could not arm)."""
+    USAGE = 2
+    """Bad usage or invalid input: options, map, reference file, endpoint (argparse's own code)."""
+
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = ExitCode.OK, ExitCode.FAILURE, ExitCode.USAGE
 
 EXIT_CODES_EPILOG = "Exit codes: 0 ok, 1 runtime failure, 2 bad usage or invalid input."
 """One line for every parser's epilog."""

@@ -23,23 +23,13 @@ from fisc_agent.lookup import (
     DeviationState,
     FlightSettings,
     flight_command,
+    slot_hash_int,
 )
-from fisc_agent.mapfile import MapError
+from fisc_agent.mapfile import MapError, MapErrorKind
 
 Vec = tuple[float, float, float]
 ZERO: Vec = (0.0, 0.0, 0.0)
-_MASK32 = 0xFFFFFFFF
 GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
-
-
-def slot_hash_scalar(agent_id: int, cv_id: int) -> int:
-    """Scalar ``lookup.slot_hash`` (same 32-bit mix, Python integers)."""
-    a, j = int(agent_id) & _MASK32, int(cv_id) & _MASK32
-    h = ((a * 0x9E3779B1) ^ (j * 0x85EBCA77 + 0x27D4EB2F)) & _MASK32
-    h ^= h >> 15
-    h = (h * 0x2C1B3C6D) & _MASK32
-    h ^= h >> 12
-    return h
 
 
 class ScalarField:
@@ -78,7 +68,7 @@ class ScalarField:
         if mode == "mean":
             return self._mean[cv]
         if mode == "slot":
-            return self._slot[cv][slot_hash_scalar(agent_id, cv) % self._n_star[cv]]
+            return self._slot[cv][slot_hash_int(agent_id, cv) % self._n_star[cv]]
         if mode == "interpolated":
             return self._interpolate(x, y, z, cv)
         raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
@@ -285,30 +275,30 @@ def check_map(field: CommandField, mode: str | None) -> list[str]:
     if mode is None:
         mode = (field.recommended or PAPER_SETTINGS).mode
     if mode not in COMMAND_MODES:
-        raise MapError(f"mode: unknown command mode {mode!r}")
+        raise MapError(MapErrorKind.MODE, f"unknown command mode {mode!r}")
     n = field.n_cv
     if n < 1:
-        raise MapError("n_cv: the map has no control volumes")
+        raise MapError(MapErrorKind.N_CV, "the map has no control volumes")
     if not (math.isfinite(field.cell_size_m) and field.cell_size_m > 0):
-        raise MapError(f"grid: cell_size_m must be positive, is {field.cell_size_m}")
+        raise MapError(MapErrorKind.GRID, f"cell_size_m must be positive, is {field.cell_size_m}")
     g = np.asarray(field.grid_cv)
     if g.size and (g.min() < -1 or g.max() >= n):
-        raise MapError("grid_cv: CV ids out of range")
+        raise MapError(MapErrorKind.GRID_CV, "CV ids out of range")
     bad = np.flatnonzero(~np.all(np.isfinite(field.mean_cmd_m_s), axis=1))
     if bad.size:
-        raise MapError(f"commands: non-finite mean command in CV {int(bad[0])}")
+        raise MapError(MapErrorKind.COMMANDS, f"non-finite mean command in CV {int(bad[0])}")
     ns = np.asarray(field.n_star)
     n_max = field.slot_cmd_m_s.shape[1]
     if np.any(ns < 1) or np.any(ns > n_max):
-        raise MapError(f"n_star: values must lie in 1..{n_max}")
+        raise MapError(MapErrorKind.N_STAR, f"values must lie in 1..{n_max}")
     if mode in FACE_MODES and field.face_u_m_s is None:
-        raise MapError(f"mode: {mode!r} needs a schema-2 map with the staggered face field")
+        raise MapError(MapErrorKind.MODE, f"{mode!r} needs a schema-2 map with the staggered face field")
     if mode in FACE_MODES and not all(np.all(np.isfinite(f)) for f in field.face_u_m_s):
-        raise MapError("commands: non-finite face velocity")
+        raise MapError(MapErrorKind.COMMANDS, "non-finite face velocity")
     if mode == "slot":
         k = np.arange(n_max)[None, :] < ns[:, None]
         if not np.all(np.isfinite(field.slot_cmd_m_s[k])):
-            raise MapError("commands: non-finite fitted slot vector within N*")
+            raise MapError(MapErrorKind.COMMANDS, "non-finite fitted slot vector within N*")
     warnings = []
     ids = g[g >= 0]
     if ids.size and np.unique(ids).size != n:

@@ -2,6 +2,10 @@
 
 ``PositionSource`` / ``SetpointSink`` / ``VehicleLink`` are the Protocols the runner uses; the
 pymavlink ``MavlinkLink`` implements them (``mavsdk_backend.MavsdkLink`` is the alternative).
+A link takes commands at the level of intent (``arm``, ``set_mode``, ``takeoff``, ``hold``,
+``land``: ``adapters.VehicleCommands``) and reports the vehicle's mode as a ``ModeClass``; this
+one encodes intents as COMMAND_LONGs through the autopilot's adapter (``use_adapter``) and turns
+COMMAND_ACKs into ``CommandResult``s.
 The link is non-blocking: ``poll()`` drains whatever arrived and updates the vehicle state; the
 control loop never waits on the network.
 
@@ -29,7 +33,21 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Protocol, runtime_checkable
 
-from fisc_agent.adapters import (MAV_CMD_SET_MESSAGE_INTERVAL, CommandLong, autopilot_from_heartbeat, is_armed)
+from pymavlink.dialects.v20.ardupilotmega import (MAV_AUTOPILOT_INVALID, MAV_CMD_SET_MESSAGE_INTERVAL,
+                                                  MAV_FRAME_LOCAL_NED, MAV_STATE_ACTIVE, MAV_TYPE_ONBOARD_CONTROLLER,
+                                                  MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                                                  MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                                                  POSITION_TARGET_TYPEMASK_AX_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_AY_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_AZ_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_X_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_Y_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_YAW_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
+                                                  POSITION_TARGET_TYPEMASK_Z_IGNORE)
+
+from fisc_agent.adapters import (Adapter, CommandLong, CommandResult, ModeClass, VehicleCommands, arm_command,
+                                 autopilot_from_heartbeat, command_result, is_armed)
 from fisc_agent.endpoints import Endpoint, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor
 from fisc_agent.mavlink_input import AutopilotTracker, HeartbeatVerdict, parse_datagram
@@ -39,14 +57,11 @@ from fisc_agent.ratelimit import RateLimitedLog
 log = logging.getLogger(__name__)
 
 #: SET_POSITION_TARGET_LOCAL_NED type mask: use vx, vy, vz only; ignore position,
-#: acceleration, yaw and yaw rate (POSITION_TARGET_TYPEMASK_* in common.xml).
-TYPEMASK_VELOCITY_ONLY = (1 | 2 | 4) | (64 | 128 | 256) | 1024 | 2048  # = 0b0000110111000111 = 3527
-MAV_FRAME_LOCAL_NED = 1
-MSG_ID_LOCAL_POSITION_NED = 32
-MSG_ID_GLOBAL_POSITION_INT = 33
-MAV_TYPE_ONBOARD_CONTROLLER = 18
-MAV_AUTOPILOT_INVALID = 8
-MAV_STATE_ACTIVE = 4
+#: acceleration, yaw and yaw rate (= 3527).
+TYPEMASK_VELOCITY_ONLY = (POSITION_TARGET_TYPEMASK_X_IGNORE | POSITION_TARGET_TYPEMASK_Y_IGNORE
+                          | POSITION_TARGET_TYPEMASK_Z_IGNORE | POSITION_TARGET_TYPEMASK_AX_IGNORE
+                          | POSITION_TARGET_TYPEMASK_AY_IGNORE | POSITION_TARGET_TYPEMASK_AZ_IGNORE
+                          | POSITION_TARGET_TYPEMASK_YAW_IGNORE | POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
 MAX_MESSAGES_PER_POLL = 2000
 POLL_BUDGET_S = 0.01
 """At most this long per ``poll`` (a flood of datagrams must not stretch a control tick)."""
@@ -81,20 +96,34 @@ class SetpointSink(Protocol):
         """Send one velocity-only setpoint in MAV_FRAME_LOCAL_NED [m/s]."""
 
 
-class VehicleLink(PositionSource, SetpointSink, Protocol):
+class VehicleLink(PositionSource, SetpointSink, VehicleCommands, Protocol):
     """Everything the runner needs from a link to one autopilot."""
 
     autopilot: str | None
+    """``px4`` / ``ardupilot`` as the autopilot announces itself; None while unknown."""
     armed: bool
-    base_mode: int
-    custom_mode: int
+    """Armed flag of the vehicle."""
     last_heartbeat_t: float | None
+    """Local monotonic time of the newest sign of life [s]; None: never."""
 
-    def poll(self) -> int: ...
-    def send_command(self, cmd: CommandLong) -> None: ...
-    def send_heartbeat(self) -> None: ...
-    def pop_acks(self) -> list[tuple[int, int]]: ...
-    def close(self) -> None: ...
+    @property
+    def mode(self) -> ModeClass:
+        """The vehicle's mode class (``UNKNOWN`` before the first HEARTBEAT or ``use_adapter``)."""
+
+    def use_adapter(self, adapter: Adapter) -> None:
+        """The autopilot flavour to encode intents and decode modes with (chosen by the runner)."""
+
+    def poll(self) -> int:
+        """Handle whatever arrived (non-blocking); returns how many messages."""
+
+    def pop_results(self) -> list[CommandResult]:
+        """The autopilot's answers to commands since the last call, oldest first."""
+
+    def send_heartbeat(self) -> None:
+        """Our own HEARTBEAT (a no-op where the library sends its own)."""
+
+    def close(self) -> None:
+        """Release the connection."""
 
 
 def _import_mavutil():
@@ -190,6 +219,8 @@ class MavlinkLink:
             self.conn = mavutil.mavlink_connection(self.endpoint.device, **kwargs)
             self.mav = self.conn.mav
         self.autopilot: str | None = None
+        self.adapter: Adapter | None = None
+        """Encodes intents and decodes modes (``use_adapter``)."""
         self.target_system: int | None = None
         self.target_component: int = 1
         self.armed = False
@@ -302,7 +333,7 @@ class MavlinkLink:
         self.heartbeats += 1
 
     def _request_position_stream(self) -> None:
-        msg_id = MSG_ID_GLOBAL_POSITION_INT if self.anchor is not None else MSG_ID_LOCAL_POSITION_NED
+        msg_id = MAVLINK_MSG_ID_GLOBAL_POSITION_INT if self.anchor is not None else MAVLINK_MSG_ID_LOCAL_POSITION_NED
         interval_us = 1e6 / self.position_rate_hz
         self.send_command(CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), interval_us, 0, 0, 0, 0, 0),
                                       "position message interval"))
@@ -310,9 +341,19 @@ class MavlinkLink:
     def latest_position(self) -> PositionSample | None:
         return self._position
 
-    def pop_acks(self) -> list[tuple[int, int]]:
+    def pop_results(self) -> list[CommandResult]:
+        """The COMMAND_ACKs received since the last call, as ``CommandResult``s."""
         acks, self._acks = self._acks, []
-        return acks
+        return [command_result(command, result) for command, result in acks]
+
+    @property
+    def mode(self) -> ModeClass:
+        if self.adapter is None or self.last_heartbeat_t is None:
+            return ModeClass.UNKNOWN
+        return self.adapter.classify_mode(self.base_mode, self.custom_mode)
+
+    def use_adapter(self, adapter: Adapter) -> None:
+        self.adapter = adapter
 
     # ---- send ----------------------------------------------------------------------------
     def velocity_setpoint_message(self, vn: float, ve: float, vd: float):
@@ -326,7 +367,31 @@ class MavlinkLink:
         self.mav.send(self.velocity_setpoint_message(vn, ve, vd))
         self.setpoints_sent += 1
 
+    # ---- intents (adapters.VehicleCommands) as COMMAND_LONGs --------------------------------
+    def _adapter(self) -> Adapter:
+        if self.adapter is None:
+            raise RuntimeError("MavlinkLink: no adapter yet (use_adapter) to encode a mode or takeoff command")
+        return self.adapter
+
+    def arm(self) -> None:
+        self.send_command(arm_command())
+
+    def set_mode(self, mode: ModeClass) -> None:
+        self.send_command(self._adapter().set_mode(mode))
+
+    def takeoff(self, alt_m: float) -> None:
+        cmd = self._adapter().takeoff(alt_m)
+        if cmd is not None:  # PX4: the takeoff is a climb in OFFBOARD, there is no command to send
+            self.send_command(cmd)
+
+    def hold(self) -> None:
+        self.set_mode(ModeClass.HOLD)
+
+    def land(self) -> None:
+        self.set_mode(ModeClass.LAND)
+
     def send_command(self, cmd: CommandLong) -> None:
+        """Send one COMMAND_LONG to the autopilot (its answer comes back through ``pop_results``)."""
         p = cmd.params
         self.mav.command_long_send(self.target_system or 1, self.target_component, cmd.command, 0,
                                    p[0], p[1], p[2], p[3], p[4], p[5], p[6])

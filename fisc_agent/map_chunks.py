@@ -36,7 +36,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, replace
 from enum import Enum
 
-from fisc_agent.mapfile import MapError
+from fisc_agent.mapfile import MapError, MapErrorKind
 
 DEFAULT_CHUNK_BYTES = 1 << 20
 DEFAULT_MAX_MAP_BYTES = 1 << 30
@@ -92,17 +92,17 @@ def parse_chunk(msg: bytes | memoryview) -> tuple[ChunkHeader, memoryview]:
     """Split a transport message into header and data; ``MapError`` if malformed."""
     view = memoryview(msg)
     if len(view) < CHUNK_HEADER.size:
-        raise MapError(f"chunks: message of {len(view)} bytes is shorter than the chunk header")
+        raise MapError(MapErrorKind.CHUNKS, f"message of {len(view)} bytes is shorter than the chunk header")
     magic, version, kind, _, map_version, sha, total, index, count, offset = CHUNK_HEADER.unpack_from(view)
     if magic != CHUNK_MAGIC:
-        raise MapError("chunks: bad magic (not a FISC map chunk)")
+        raise MapError(MapErrorKind.CHUNKS, "bad magic (not a FISC map chunk)")
     if version != CHUNK_VERSION:
-        raise MapError(f"chunks: chunk format {version} is not supported")
+        raise MapError(MapErrorKind.CHUNKS, f"chunk format {version} is not supported")
     if kind not in (KIND_CHUNK, KIND_ANNOUNCE):
-        raise MapError(f"chunks: unknown message kind {kind}")
+        raise MapError(MapErrorKind.CHUNKS, f"unknown message kind {kind}")
     data = view[CHUNK_HEADER.size:]
     if kind == KIND_CHUNK and (index >= count or offset + len(data) > total or (count > 1 and len(data) == 0)):
-        raise MapError(f"chunks: chunk {index}/{count} at offset {offset} does not fit a {total}-byte map")
+        raise MapError(MapErrorKind.CHUNKS, f"chunk {index}/{count} at offset {offset} does not fit a {total}-byte map")
     return ChunkHeader(kind, map_version, sha, total, index, count, offset), data
 
 
@@ -222,10 +222,12 @@ class _Assembly:
                 self.hasher.update(nxt)
         elif head.offset > end:
             if head.offset in self.ahead:
-                raise MapError(f"chunks: two chunks claim offset {head.offset} (corrupted or forged chunks)")
+                raise MapError(MapErrorKind.CHUNKS,
+                               f"two chunks claim offset {head.offset} (corrupted or forged chunks)")
             self.ahead[head.offset] = bytes(data)
         else:
-            raise MapError(f"chunks: chunk {head.index} at offset {head.offset} overlaps bytes already received "
+            raise MapError(MapErrorKind.CHUNKS,
+                           f"chunk {head.index} at offset {head.offset} overlaps bytes already received "
                            "(corrupted or forged chunks)")
         self.have.add(head.index)
         charged = len(data) + CHUNK_OVERHEAD_BYTES
@@ -334,7 +336,7 @@ class MapAssembler:
         if head.total_bytes > self.limits.max_map_bytes or head.total_bytes > self.limits.budget_bytes:
             self.refused.add(sha, "too_large")
             limit = min(self.limits.max_map_bytes, self.limits.budget_bytes)
-            raise MapError(f"chunks: map of {head.total_bytes} bytes exceeds the {limit}-byte limit")
+            raise MapError(MapErrorKind.CHUNKS, f"map of {head.total_bytes} bytes exceeds the {limit}-byte limit")
         asm = self.pending.get(sha)
         if asm is None:
             if len(self.pending) >= self.limits.max_pending:
@@ -346,7 +348,7 @@ class MapAssembler:
             asm = self.pending[sha] = _Assembly(head, now_s)
         elif (asm.head.total_bytes, asm.head.count, asm.head.map_version) != (head.total_bytes, head.count,
                                                                               head.map_version):
-            raise MapError("chunks: chunk disagrees with earlier chunks of the same map")
+            raise MapError(MapErrorKind.CHUNKS, "chunk disagrees with earlier chunks of the same map")
         asm.last_chunk_s = now_s
         try:
             charged = asm.add(head, data)
@@ -367,10 +369,12 @@ class MapAssembler:
         self.done.add(sha)
         if asm.ahead or len(asm.buf) != head.total_bytes:
             self.done.discard(sha)
-            raise MapError("chunks: chunk sizes do not add up to the map size (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "chunk sizes do not add up to the map size (corrupted or forged chunks)")
         if asm.hasher.digest() != sha:
             self.done.discard(sha)  # a later query may bring good chunks
-            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "reassembled map does not match its sha256 (corrupted or forged chunks)")
         return head, asm.buf
 
     def verify(self, head: ChunkHeader, blob: bytearray) -> None:
@@ -378,7 +382,8 @@ class MapAssembler:
         raise ``MapError`` (``feed`` already did this incrementally)."""
         if hashlib.sha256(blob).digest() != head.sha256:
             self.done.discard(head.sha256)
-            raise MapError("chunks: reassembled map does not match its sha256 (corrupted or forged chunks)")
+            raise MapError(MapErrorKind.CHUNKS,
+                           "reassembled map does not match its sha256 (corrupted or forged chunks)")
 
     def accept(self, map_version: int, sha256: bytes | None = None) -> None:
         """A map of this version (and sha256) was installed: drop everything not newer.  Chunks

@@ -7,15 +7,14 @@ the agent stays lean without it.
 
 Mapping onto the runner's interface (one code path with the pymavlink link):
 
-- telemetry callbacks (position_velocity_ned or position, armed, flight_mode) update the same
-  state fields ``MavlinkLink`` has; the flight mode is re-encoded as a PX4 HEARTBEAT
-  ``custom_mode`` so ``adapters.Px4Adapter.classify_mode`` reads it unchanged;
+- telemetry callbacks (position_velocity_ned or position, armed, flight_mode) update the
+  position, ``armed`` and ``mode`` (MAVSDK's ``FlightMode`` as a ``ModeClass``);
 - ``send_velocity_ned`` -> ``offboard.set_velocity_ned`` (yaw held at the current heading);
-- ``send_command`` translates the adapter's COMMAND_LONGs: DO_SET_MODE OFFBOARD ->
-  ``offboard.start()``, AUTO.LOITER -> ``action.hold()``, AUTO.LAND -> ``action.land()``,
-  ARM -> ``action.arm()``, SET_MESSAGE_INTERVAL -> ``telemetry.set_rate_position_velocity_ned``.
-  The blocking MAVSDK calls run on a worker thread; their results come back as COMMAND_ACKs
-  (``pop_acks``) so the ``Commander`` logs refusals exactly as with pymavlink.
+- intents are MAVSDK's own actions: ``arm`` -> ``action.arm()``, ``set_mode(OFFBOARD)`` ->
+  ``offboard.start()``, ``hold`` -> ``action.hold()``, ``land`` -> ``action.land()``,
+  ``takeoff`` -> ``action.set_takeoff_altitude`` + ``action.takeoff()``.  The blocking calls run
+  on a worker thread; each outcome comes back as a ``CommandResult`` (``pop_results``) so the
+  ``Commander`` retries and logs refusals as with pymavlink.
 """
 
 from __future__ import annotations
@@ -26,21 +25,15 @@ import threading
 import time
 from typing import Callable
 
-from fisc_agent.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_SET_MESSAGE_INTERVAL,
-                                 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MAV_MODE_FLAG_SAFETY_ARMED, PX4_MAIN_AUTO,
-                                 PX4_MAIN_OFFBOARD, PX4_SUB_AUTO_LAND, PX4_SUB_AUTO_LOITER, CommandLong, Px4Adapter)
+from fisc_agent.adapters import Adapter, CommandKind, CommandResult, ModeClass
 from fisc_agent.endpoints import Endpoint, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor
 from fisc_agent.link import PositionSample
 
 log = logging.getLogger(__name__)
 
-MAV_RESULT_ACCEPTED, MAV_RESULT_DENIED, MAV_RESULT_UNSUPPORTED = 0, 2, 3
-
-#: MAVSDK telemetry FlightMode name -> PX4 (main, sub) mode.
-_PX4_MODE_OF = {"OFFBOARD": (6, 0), "HOLD": (4, 3), "LAND": (4, 6), "TAKEOFF": (4, 2), "READY": (4, 1),
-                "MISSION": (4, 4), "RETURN_TO_LAUNCH": (4, 5), "MANUAL": (1, 0), "ALTCTL": (2, 0),
-                "POSCTL": (3, 0), "ACRO": (5, 0), "STABILIZED": (7, 0)}
+#: MAVSDK telemetry FlightMode name -> mode class (every other flight mode is OTHER).
+MODE_CLASS_OF = {"OFFBOARD": ModeClass.OFFBOARD, "HOLD": ModeClass.HOLD, "LAND": ModeClass.LAND}
 
 
 def mavsdk_url(ep: Endpoint) -> str:
@@ -64,12 +57,11 @@ class MavsdkLink:
         self.anchor, self.clock = anchor, clock
         self.autopilot: str | None = None
         self.armed = False
-        self.base_mode = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        self.custom_mode = 0
         self.last_heartbeat_t: float | None = None
+        self._mode = ModeClass.UNKNOWN
         self._position: PositionSample | None = None
         self._heading_deg = 0.0
-        self._acks: list[tuple[int, int]] = []
+        self._results: list[CommandResult] = []
         self._lock = threading.Lock()
         self._jobs: queue.Queue = queue.Queue()
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
@@ -79,11 +71,13 @@ class MavsdkLink:
         self._system = self._mavsdk.first_autopilot(connect_timeout_s)
         if self._system is None:
             raise ConnectionError(f"MAVSDK: no autopilot on {url} within {connect_timeout_s:.0f} s")
+        from mavsdk.exceptions import MavsdkError
         from mavsdk.plugins.action import Action
         from mavsdk.plugins.offboard import Offboard, VelocityNedYaw
         from mavsdk.plugins.telemetry import Telemetry
 
         self._VelocityNedYaw = VelocityNedYaw
+        self._error_type = MavsdkError
         self._telemetry, self._action, self._offboard = Telemetry(self._system), Action(self._system), Offboard(self._system)
         self.autopilot = "px4" if self._system.autopilot_type().name == "PX4" else None
         if self.autopilot is None:
@@ -121,16 +115,22 @@ class MavsdkLink:
 
     def _on_armed(self, armed, _ud=None) -> None:
         self.armed = bool(armed)
-        flags = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        self.base_mode = flags
         self._alive()
 
     def _on_mode(self, mode, _ud=None) -> None:
-        main, sub = _PX4_MODE_OF.get(getattr(mode, "name", str(mode)), (0, 0))
-        self.custom_mode = Px4Adapter.px4_custom_mode(main, sub)
+        self._mode = MODE_CLASS_OF.get(getattr(mode, "name", str(mode)), ModeClass.OTHER)
         self._alive()
 
     # ---- VehicleLink --------------------------------------------------------------------
+    @property
+    def mode(self) -> ModeClass:
+        return self._mode if self.last_heartbeat_t is not None else ModeClass.UNKNOWN
+
+    def use_adapter(self, adapter: Adapter) -> None:
+        """MAVSDK encodes the commands itself; only PX4's semantics are supported."""
+        if adapter.name != "px4":
+            log.warning("MAVSDK backend: the %s adapter was chosen; MAVSDK's actions follow PX4", adapter.name)
+
     def poll(self) -> int:
         if self._system.is_connected() and self.last_heartbeat_t is not None:
             self.last_heartbeat_t = max(self.last_heartbeat_t, self.clock() - 0.5)
@@ -142,16 +142,36 @@ class MavsdkLink:
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         self._offboard.set_velocity_ned(self._VelocityNedYaw(vn, ve, vd, self._heading_deg))
 
-    def send_command(self, cmd: CommandLong) -> None:
-        self._jobs.put(cmd)
+    def arm(self) -> None:
+        self._jobs.put((CommandKind.ARM, self._action.arm))
+
+    def set_mode(self, mode: ModeClass) -> None:
+        action = {ModeClass.OFFBOARD: self._offboard.start, ModeClass.HOLD: self._action.hold,
+                  ModeClass.LAND: self._action.land}.get(ModeClass(mode))
+        if action is None:
+            raise ValueError(f"MAVSDK backend: cannot request mode {mode!r}; choose offboard, hold or land")
+        self._jobs.put((CommandKind.SET_MODE, action))
+
+    def takeoff(self, alt_m: float) -> None:
+        def _takeoff() -> None:
+            self._action.set_takeoff_altitude(float(alt_m))
+            self._action.takeoff()
+
+        self._jobs.put((CommandKind.TAKEOFF, _takeoff))
+
+    def hold(self) -> None:
+        self.set_mode(ModeClass.HOLD)
+
+    def land(self) -> None:
+        self.set_mode(ModeClass.LAND)
 
     def send_heartbeat(self) -> None:
         """MAVSDK sends its own heartbeats."""
 
-    def pop_acks(self) -> list[tuple[int, int]]:
+    def pop_results(self) -> list[CommandResult]:
         with self._lock:
-            acks, self._acks = self._acks, []
-        return acks
+            results, self._results = self._results, []
+        return results
 
     def close(self) -> None:
         self._jobs.put(None)
@@ -159,34 +179,21 @@ class MavsdkLink:
         self._mavsdk.destroy()
 
     # ---- blocking MAVSDK calls on the worker -------------------------------------------
-    def _call(self, cmd: CommandLong):
-        p = cmd.params
-        if cmd.command == MAV_CMD_COMPONENT_ARM_DISARM:
-            return self._action.arm() if p[0] > 0.5 else self._action.disarm()
-        if cmd.command == MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self._telemetry.set_rate_position_velocity_ned(1e6 / max(p[1], 1.0))
-        if cmd.command == MAV_CMD_DO_SET_MODE:
-            main, sub = int(p[1]), int(p[2])
-            if main == PX4_MAIN_OFFBOARD:
-                return self._offboard.start()
-            if (main, sub) == (PX4_MAIN_AUTO, PX4_SUB_AUTO_LOITER):
-                return self._action.hold()
-            if (main, sub) == (PX4_MAIN_AUTO, PX4_SUB_AUTO_LAND):
-                return self._action.land()
-        raise NotImplementedError(cmd.label)
-
     def _work(self) -> None:
         while True:
-            cmd = self._jobs.get()
-            if cmd is None:
+            job = self._jobs.get()
+            if job is None:
                 return
+            kind, call = job
             try:
-                self._call(cmd)
-                result = MAV_RESULT_ACCEPTED
-            except NotImplementedError:
-                result = MAV_RESULT_UNSUPPORTED
-            except Exception as exc:  # MAVSDK raises ActionError/OffboardError/TelemetryError
-                log.warning("MAVSDK %s failed: %s", cmd.label, exc)
-                result = MAV_RESULT_DENIED
+                call()
+                res = CommandResult(kind, True, "SUCCESS")
+            except self._error_type as exc:  # ActionError / OffboardError carry MAVSDK's result
+                log.warning("MAVSDK %s failed: %s", kind.value, exc)
+                result = getattr(exc, "result", None)
+                res = CommandResult(kind, False, getattr(result, "name", type(exc).__name__))
+            except Exception as exc:  # a bug must not stop the worker (later commands would be lost): log it whole
+                log.exception("MAVSDK %s raised", kind.value)
+                res = CommandResult(kind, False, type(exc).__name__)
             with self._lock:
-                self._acks.append((cmd.command, result))
+                self._results.append(res)

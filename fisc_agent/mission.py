@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import NamedTuple
 
+from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
                                 goto_velocity, join_waypoints)
@@ -40,7 +41,25 @@ from fisc_agent.tracking import ParcelTracker
 
 log = logging.getLogger(__name__)
 
-FLEET_COMMANDS = ("hold", "resume", "land")
+
+
+class MissionCommand(StrEnum):
+    """A fleet command the mission obeys: hold, resume, land (the value is its name on the wire)."""
+
+    HOLD = "hold"
+    RESUME = "resume"
+    LAND = "land"
+
+    @classmethod
+    def parse(cls, name: str) -> MissionCommand:
+        """The command called ``name``; ``ValueError`` naming the choices otherwise."""
+        try:
+            return cls(name)
+        except ValueError:
+            raise ValueError(f"unknown fleet command {name!r}; choose one of "
+                             f"{', '.join(c.value for c in cls)}") from None
+
+
 AIRBORNE_ABOVE_HOME_M = 0.2
 """Height above home from which a vehicle counts as airborne (an interrupted takeoff then
 finishes with climb setpoints: ArduPilot refuses a takeoff command once flying)."""
@@ -57,6 +76,57 @@ class State(str, Enum):
     HOLD = "HOLD"
     LAND = "LAND"
     DONE = "DONE"
+
+
+class HoldCause(str, Enum):
+    """Why the mission holds (``Mission.hold_cause``); the value is the hold's default reason text."""
+
+    LINK_LOST = "link lost"
+    POSITION_STALE = "position stale"
+    GEOFENCE = "geofence: outside the map"
+    EXIT = "exit: holding after the outlet"
+    FLEET = "fleet hold"
+    FLEET_ON_GROUND = "fleet hold (on the ground)"
+    PILOT_OVERRIDE = "pilot override"
+
+
+class Cause(str, Enum):
+    """Why the mission entered a state other than HOLD; the value is the default reason text."""
+
+    START = "start"
+    AUTOPILOT_FOUND = "position and autopilot heartbeat received"
+    ARMED = "armed in offboard/guided"
+    ARM_FAILED = "failed: not armed in offboard/guided"
+    TAKING_OVER = "already flying: taking over"
+    TAKEOFF_DONE = "takeoff height reached"
+    ENTERED_MAP = "entered the map"
+    BACK_IN_MAP = "back in the map"
+    LAP_DONE = "lap done: back to the inlet"
+    PASSED_OUTLET = "passed the outlet"
+    GEOFENCE_RETURN = "geofence: outside the map, returning to the nearest CV"
+    EXIT_LAND = "exit: landing"
+    LANDED = "landed and disarmed"
+    DISARMED_IN_FLIGHT = "disarmed in flight (landed or killed by the autopilot/pilot)"
+    FLEET_LAND = "fleet land"
+    FLEET_LAND_DISARMED = "fleet land while disarmed"
+    FLEET_RESUME = "fleet resume"
+    POSITION_BACK = "position fix back"
+
+
+class Reason(str):
+    """Why the mission is in its state: the human text (a ``str``: logged, written to the flight
+    log and the status as before) with its typed ``cause``, which is what code decides on."""
+
+    cause: Cause | HoldCause
+    """The typed cause."""
+
+    def __new__(cls, cause: Cause | HoldCause, text: str | None = None) -> Reason:
+        obj = super().__new__(cls, cause.value if text is None else text)
+        obj.cause = cause
+        return obj
+
+    def __getnewargs__(self) -> tuple:  # pickling (emulator workers send reasons across processes)
+        return (self.cause, str(self))
 
 
 FLYING = frozenset({State.TAKEOFF, State.JOIN, State.FLOW, State.RETURN, State.EXIT})
@@ -80,7 +150,7 @@ class VehicleStatus(NamedTuple):
     """``px4``, ``ardupilot`` or None while unknown."""
     armed: bool
     """Armed flag from the HEARTBEAT."""
-    mode: str
+    mode: ModeClass
     """Autopilot mode class: ``offboard`` (PX4 OFFBOARD / ArduPilot GUIDED), ``hold``, ``land``,
     ``other`` or ``unknown``."""
     wall_time_s: float = 0.0
@@ -94,7 +164,7 @@ class MissionOutput(NamedTuple):
     """State after this step."""
     velocity_m_s: Vec | None
     """Map-frame velocity setpoint to stream (unclamped); None = stream nothing."""
-    want_mode: str | None
+    want_mode: ModeClass | None
     """``offboard``, ``hold``, ``land`` or None (leave the mode alone)."""
     want_armed: bool | None
     """True to arm; None = leave alone."""
@@ -102,16 +172,22 @@ class MissionOutput(NamedTuple):
     """ArduPilot: takeoff height above home to command; None otherwise."""
     cv_id: int
     """CV of the vehicle, -1 outside the map (or no position/map)."""
-    reason: str
+    reason: Reason
     """Why the mission is in this state (last transition's reason)."""
 
 
 @dataclass(frozen=True)
 class Transition:
+    """One logged state change."""
+
     t_s: float
+    """Time of the change [s]."""
     src: State
+    """State left."""
     dst: State
-    reason: str
+    """State entered."""
+    reason: Reason
+    """Why."""
 
 
 class Mission:
@@ -120,10 +196,10 @@ class Mission:
     def __init__(self, cfg: AgentConfig, sfield: ScalarField | None = None) -> None:
         self.cfg = cfg
         self.state = State.WAIT_POSITION
-        self.reason = "start"
+        self.reason = Reason(Cause.START)
         self.transitions: list[Transition] = []
         self.laps = 0
-        self._pending: list[str] = []
+        self._pending: list[MissionCommand] = []
         self._t_state = 0.0
         self._home: Vec | None = None
         self._climb_by_velocity = False
@@ -131,7 +207,7 @@ class Mission:
         self._wp_index = 0
         self._entry_cleared = False
         self._target: Vec | None = None
-        self._last_want: str | None = None
+        self._last_want: ModeClass | None = None
         self._want_seen = False
         # hold bookkeeping
         self._resume_state = State.WAIT_POSITION
@@ -196,14 +272,28 @@ class Mission:
                  resp.lag_s, resp.dead_time_s, resp.gain, resp.rise_time_s, resp.max_accel_m_s2, resp.lookahead_s,
                  resp.feedforward_gain)
 
-    def command(self, name: str) -> None:
+    def command(self, name: MissionCommand | str) -> None:
         """Queue a fleet command (``hold``, ``resume``, ``land``); applied at the next step."""
-        if name not in FLEET_COMMANDS:
-            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
-        self._pending.append(name)
+        self._pending.append(MissionCommand.parse(name))
 
     # ---- transitions ---------------------------------------------------------------------
-    def _go(self, t: float, dst: State, reason: str) -> None:
+    @property
+    def hands_off(self) -> bool:
+        """Someone else (pilot, autopilot failsafe) took the vehicle: no modes, no setpoints until a resume."""
+        return self._hands_off
+
+    @property
+    def hold_cause(self) -> HoldCause | None:
+        """Why the mission holds; None outside HOLD."""
+        cause = self.reason.cause
+        return cause if self.state == State.HOLD and isinstance(cause, HoldCause) else None
+
+    @property
+    def failed(self) -> bool:
+        """The mission ended without flying (could not arm in offboard/guided)."""
+        return self.state == State.DONE and self.reason.cause == Cause.ARM_FAILED
+
+    def _go(self, t: float, dst: State, reason: Reason) -> None:
         if dst == self.state and reason == self.reason:
             return
         self.transitions.append(Transition(t, self.state, dst, reason))
@@ -214,7 +304,7 @@ class Mission:
                 self.tracker.reset(self._last_pos, t)  # a new parcel where the vehicle (re-)enters the flow
         self.state, self.reason, self._t_state = dst, reason, t
 
-    def _hold(self, t: float, reason: str, latched: bool, armed: bool, hands_off: bool = False) -> None:
+    def _hold(self, t: float, reason: Reason, latched: bool, armed: bool, hands_off: bool = False) -> None:
         if self.state != State.HOLD:
             self._resume_state = self.state
             self._hold_escalated = False
@@ -235,7 +325,7 @@ class Mission:
         assert self.sfield is not None
         self._target = self.sfield.centers[self.sfield.nearest_cv(*pos)]
 
-    def _enter(self, t: float, dst: State, reason: str, pos: Vec | None) -> None:
+    def _enter(self, t: float, dst: State, reason: Reason, pos: Vec | None) -> None:
         if dst == State.JOIN and pos is not None:
             self._plan_join(pos)
         elif dst == State.RETURN and pos is not None:
@@ -266,33 +356,35 @@ class Mission:
             self.tracker.observe(t, pos, s.vel_m_s)
         if self.state in FLYING or self.state == State.HOLD:
             if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
-                self._go(t, State.DONE, "disarmed in flight (landed or killed by the autopilot/pilot)")
+                self._go(t, State.DONE, Reason(Cause.DISARMED_IN_FLIGHT))
             elif not lk:
-                if self.state != State.HOLD or self.reason != "link lost":
+                if self.hold_cause != HoldCause.LINK_LOST:
                     log.warning("link lost: no autopilot HEARTBEAT for %.1f s; the autopilot's offboard-loss "
                                 "failsafe is in charge", s.heartbeat_age_s)
-                    self._hold(t, "link lost", latched=True, armed=s.armed or self._hold_armed)
+                    self._hold(t, Reason(HoldCause.LINK_LOST), latched=True, armed=s.armed or self._hold_armed)
                     self._hold_escalated = True
             elif ph != PositionHealth.OK:
                 if self.state != State.HOLD:
-                    self._hold(t, "position stale", latched=False, armed=s.armed)
+                    self._hold(t, Reason(HoldCause.POSITION_STALE), latched=False, armed=s.armed)
                 if ph == PositionHealth.LOST and not self._hold_escalated and not self._hands_off:
                     self._hold_escalated = True
                     self._hold_latched = True
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
             elif self._mode_taken(s):  # checked before the auto-resume: never resume into a failsafe's mode
-                self._hold(t, f"pilot override: mode changed to {s.mode} outside the agent, hands off",
+                self._hold(t, Reason(HoldCause.PILOT_OVERRIDE,
+                                     f"pilot override: mode changed to {s.mode} outside the agent, hands off"),
                            latched=True, armed=s.armed, hands_off=True)
-            elif self.state == State.HOLD and self.reason == "position stale" and not self._hold_latched:
+            elif self.hold_cause == HoldCause.POSITION_STALE and not self._hold_latched:
                 self._auto_resume(t, pos)
         elif self.state == State.LAND and lk and s.armed and self._mode_taken(s):
-            self._hold(t, f"pilot override: mode changed to {s.mode} while landing, hands off",
+            self._hold(t, Reason(HoldCause.PILOT_OVERRIDE,
+                                 f"pilot override: mode changed to {s.mode} while landing, hands off"),
                        latched=True, armed=True, hands_off=True)
 
         st = self.state
 
         vel: Vec | None = None
-        want_mode: str | None = None
+        want_mode: ModeClass | None = None
         want_armed: bool | None = None
         takeoff: float | None = None
         by_command = s.autopilot == "ardupilot"
@@ -300,21 +392,23 @@ class Mission:
         if st == State.WAIT_POSITION:
             if lk and s.autopilot and ph == PositionHealth.OK and self.sfield is not None and pos is not None:
                 if s.armed:
-                    self._enter(t, State.FLOW if cv >= 0 else State.JOIN, "already flying: taking over", pos)
+                    self._enter(t, State.FLOW if cv >= 0 else State.JOIN, Reason(Cause.TAKING_OVER), pos)
                 else:
                     self._home = pos
-                    self._go(t, State.ARM, f"position and {s.autopilot} heartbeat received")
+                    self._go(t, State.ARM, Reason(Cause.AUTOPILOT_FOUND,
+                                                  f"position and {s.autopilot} heartbeat received"))
         st = self.state
         if st == State.ARM:
             vel = None if by_command else ZERO
-            want_mode, want_armed = "offboard", True
-            if s.armed and s.mode == "offboard":
+            want_mode, want_armed = ModeClass.OFFBOARD, True
+            if s.armed and s.mode == ModeClass.OFFBOARD:
                 self._climb_by_velocity = False
-                self._go(t, State.TAKEOFF, "armed in offboard/guided")
+                self._go(t, State.TAKEOFF, Reason(Cause.ARMED))
             elif t - self._t_state > cfg.command_timeout_s:
-                self._go(t, State.DONE, f"failed: not armed in offboard/guided after {cfg.command_timeout_s:.0f} s")
+                self._go(t, State.DONE, Reason(Cause.ARM_FAILED,
+                                               f"{Cause.ARM_FAILED.value} after {cfg.command_timeout_s:.0f} s"))
         elif st == State.TAKEOFF:
-            want_mode, want_armed = "offboard", True
+            want_mode, want_armed = ModeClass.OFFBOARD, True
             home = self._home if self._home is not None else pos
             target_z = home[2] + cfg.takeoff_alt_m
             if by_command and not self._climb_by_velocity:
@@ -325,9 +419,10 @@ class Mission:
                 vel = (vx, vy, min(cfg.climb_speed_m_s, max(0.2, 1.5 * (target_z - pos[2]))))
                 done = pos[2] >= target_z - 0.1
             if done:
-                self._enter(t, State.JOIN, f"takeoff height {cfg.takeoff_alt_m:.1f} m reached", pos)
+                self._enter(t, State.JOIN, Reason(Cause.TAKEOFF_DONE,
+                                                  f"takeoff height {cfg.takeoff_alt_m:.1f} m reached"), pos)
         elif st == State.JOIN:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             last = len(self._waypoints) - 1
             while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
                 self._wp_index += 1
@@ -343,7 +438,7 @@ class Mission:
             if waiting:
                 vel = goto_velocity(pos, self._waypoints[last - 1], cfg.join_speed_m_s)
             elif self._wp_index == last and cv >= 0:
-                self._go(t, State.FLOW, f"entered the map at CV {cv}")
+                self._go(t, State.FLOW, Reason(Cause.ENTERED_MAP, f"entered the map at CV {cv}"))
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._waypoints[self._wp_index], cfg.join_speed_m_s)
@@ -353,25 +448,25 @@ class Mission:
                     crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
                     vel = (max(vel[0], crawl), vel[1], vel[2])
         elif st == State.RETURN:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             if cv >= 0:
-                self._go(t, State.FLOW, f"back in the map at CV {cv}")
+                self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}"))
                 st = State.FLOW
             else:
                 vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
         elif st == State.EXIT:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
             if distance(pos, self._target) < cfg.waypoint_radius_m:
                 if cfg.exit_policy == "land":
-                    self._go(t, State.LAND, "exit: landing")
+                    self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
                     st = State.LAND
                 else:
-                    self._hold(t, "exit: holding after the outlet", latched=True, armed=s.armed)
+                    self._hold(t, Reason(HoldCause.EXIT), latched=True, armed=s.armed)
                     self._hold_escalated = True
                     st = State.HOLD
         if st == State.FLOW:
-            want_mode = "offboard"
+            want_mode = ModeClass.OFFBOARD
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
                 if cfg.tracking.gain_1_s == 0.0:  # open loop: the simulator's own command function
@@ -384,24 +479,24 @@ class Mission:
             elif verdict == GeofenceVerdict.EXIT:
                 self.laps += 1
                 if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
-                    self._enter(t, State.JOIN, f"lap {self.laps} done: back to the inlet", pos)
+                    self._enter(t, State.JOIN, Reason(Cause.LAP_DONE, f"lap {self.laps} done: back to the inlet"), pos)
                 else:
-                    self._enter(t, State.EXIT, f"passed the outlet (lap {self.laps})", pos)
+                    self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)
                 vel = goto_velocity(pos, self._waypoints[0] if self.state == State.JOIN else self._target,
                                     cfg.join_speed_m_s)
             elif verdict == GeofenceVerdict.RETURN:
-                self._enter(t, State.RETURN, "geofence: outside the map, returning to the nearest CV", pos)
+                self._enter(t, State.RETURN, Reason(Cause.GEOFENCE_RETURN), pos)
                 vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
             else:
-                self._hold(t, "geofence: outside the map", latched=True, armed=s.armed)
+                self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 st = State.HOLD
                 vel = None
         if self.state == State.HOLD:
             vel, want_mode, want_armed, takeoff = self._hold_output(t)
         elif self.state == State.LAND:
-            vel, want_mode = None, "land"
+            vel, want_mode = None, ModeClass.LAND
             if not s.armed:
-                self._go(t, State.DONE, "landed and disarmed")
+                self._go(t, State.DONE, Reason(Cause.LANDED))
         if self.state == State.DONE:
             vel, want_mode, want_armed, takeoff = None, None, None, None
         if want_mode != self._last_want:
@@ -429,9 +524,9 @@ class Mission:
         """The mode we asked for was reached and has since been changed by someone else
         (the pilot's switch or an autopilot failsafe): do not fight it."""
         return (self._want_seen and self._last_want is not None and not self._hands_off
-                and s.mode not in (self._last_want, "unknown"))
+                and s.mode not in (self._last_want, ModeClass.UNKNOWN))
 
-    def _hold_output(self, t: float) -> tuple[Vec | None, str | None, bool | None, float | None]:
+    def _hold_output(self, t: float) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
         if self._hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and t - self._t_state >= self.cfg.hold_grace_s:
@@ -439,37 +534,37 @@ class Mission:
             self._hold_latched = True
             log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
-            return None, "hold", None, None
-        return ZERO, "offboard", None, None
+            return None, ModeClass.HOLD, None, None
+        return ZERO, ModeClass.OFFBOARD, None, None
 
     def _auto_resume(self, t: float, pos: Vec | None) -> None:
-        self._enter(t, self._resume_state, "position fix back", pos)
+        self._enter(t, self._resume_state, Reason(Cause.POSITION_BACK), pos)
 
-    def _fleet(self, t: float, name: str, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
-        log.info("fleet command %r in state %s", name, self.state.value)
-        if name == "hold":
+    def _fleet(self, t: float, name: MissionCommand, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        log.info("fleet command %s in state %s", name.value, self.state.value)
+        if name == MissionCommand.HOLD:
             if self.state in FLYING or self.state == State.HOLD:
-                self._hold(t, "fleet hold", latched=True, armed=s.armed or self._hold_armed)
+                self._hold(t, Reason(HoldCause.FLEET), latched=True, armed=s.armed or self._hold_armed)
             elif self.state in (State.WAIT_POSITION, State.ARM):
-                self._hold(t, "fleet hold (on the ground)", latched=True, armed=s.armed)
+                self._hold(t, Reason(HoldCause.FLEET_ON_GROUND), latched=True, armed=s.armed)
                 self._resume_state = State.WAIT_POSITION
-        elif name == "land":
+        elif name == MissionCommand.LAND:
             if s.armed and self.state != State.DONE:
-                self._go(t, State.LAND, "fleet land")
+                self._go(t, State.LAND, Reason(Cause.FLEET_LAND))
             elif self.state != State.DONE:
-                self._go(t, State.DONE, "fleet land while disarmed")
-        elif name == "resume":
+                self._go(t, State.DONE, Reason(Cause.FLEET_LAND_DISARMED))
+        elif name == MissionCommand.RESUME:
             if self.state != State.HOLD:
                 return
             if ph != PositionHealth.OK:
                 log.warning("fleet resume refused: position is %s", ph.value)
                 return
             nxt = self._resume_state
-            if self.reason.startswith("geofence"):
+            if self.hold_cause == HoldCause.GEOFENCE:
                 nxt = State.RETURN
-            elif self.reason.startswith("exit"):
+            elif self.hold_cause == HoldCause.EXIT:
                 nxt = State.JOIN
             elif nxt == State.FLOW and self.sfield is not None and pos is not None and self.sfield.cv_of(*pos) < 0:
                 nxt = State.RETURN
             self._hands_off = False
-            self._enter(t, nxt, "fleet resume", pos)
+            self._enter(t, nxt, Reason(Cause.FLEET_RESUME), pos)

@@ -19,13 +19,13 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fisc_agent.adapters import Adapter, Commander, adapter_for
+from fisc_agent.adapters import Adapter, Commander, ModeClass, adapter_for
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
 from fisc_agent.link import PositionSample, VehicleLink
 from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import CommandMap, MapError
-from fisc_agent.mission import FLEET_COMMANDS, FLYING, Mission, MissionOutput, State, VehicleStatus
+from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
+from fisc_agent.mission import FLYING, Mission, MissionCommand, MissionOutput, State, VehicleStatus
 from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.ratelimit import RateLimitedLog
 
@@ -79,6 +79,43 @@ class AgentSnapshot:
     """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
 
 
+@dataclass(frozen=True, slots=True)
+class TickRecord:
+    """What one tick saw and did (replaced whole every tick, so reading it is atomic); ``snapshot()``
+    turns it into the telemetry snapshot on demand."""
+
+    now_s: float
+    """Monotonic time of the tick [s]."""
+    wall_time_s: float
+    """UNIX time of the tick [s]."""
+    out: MissionOutput
+    """The mission's output this tick."""
+    position_map_m: Vec | None
+    """Gated position, map frame [m]."""
+    velocity_map_m_s: Vec | None
+    """Measured velocity, map frame [m/s]."""
+    setpoint_map_m_s: Vec | None
+    """Clamped setpoint sent, map frame [m/s] (None: none sent)."""
+    cmap: CommandMap | None
+    """Map in use."""
+    link_ok: bool
+    """Autopilot HEARTBEATs are arriving."""
+    heartbeat_age_s: float
+    """Age of the newest HEARTBEAT [s]."""
+    position_age_s: float
+    """Age of the newest accepted fix [s]."""
+    autopilot: str | None
+    """Adapter in use (``px4`` / ``ardupilot``)."""
+    armed: bool
+    """Armed flag from the HEARTBEAT."""
+    mode: ModeClass
+    """Autopilot mode class."""
+    laps: int
+    """Completed passes."""
+    parcel_map_m: Vec | None
+    """Streamline-tracking parcel in FLOW, map frame [m]."""
+
+
 class Runner:
     """Wires a ``VehicleLink``, a ``Mission`` and the control core together."""
 
@@ -98,8 +135,8 @@ class Runner:
         self.cmap: CommandMap | None = None
         self._lock = threading.Lock()
         self._pending_map: tuple[CommandMap, ScalarField] | None = None
-        self._pending_cmds: list[str] = []
-        self._snap_raw: tuple | None = None
+        self._pending_cmds: list[MissionCommand] = []
+        self._last_tick: TickRecord | None = None
         self._last_sp: Vec = ZERO
         self._last_sp_t = 0.0
         self._stream_start: float | None = None
@@ -114,7 +151,7 @@ class Runner:
         self.overruns = 0
         if cmap is not None:
             if not self.offer_map(cmap):
-                raise MapError("map was refused")
+                raise MapError(MapErrorKind.OTHER, "map was refused (see the log)")
             self._apply_pending()
 
     # ---- thread-safe API ---------------------------------------------------------------
@@ -165,28 +202,28 @@ class Runner:
             return False
         return True
 
-    def fleet_command(self, name: str) -> None:
+    def fleet_command(self, name: MissionCommand | str) -> None:
         """Queue ``hold``, ``resume`` or ``land`` for the next tick."""
-        if name not in FLEET_COMMANDS:
-            raise ValueError(f"unknown fleet command {name!r}; choose one of {', '.join(FLEET_COMMANDS)}")
+        cmd = MissionCommand.parse(name)
         with self._lock:
-            self._pending_cmds.append(name)
+            self._pending_cmds.append(cmd)
 
     def snapshot(self) -> AgentSnapshot | None:
         """The latest telemetry snapshot (None before the first tick)."""
-        raw = self._snap_raw
-        if raw is None:
+        k = self._last_tick
+        if k is None:
             return None
-        now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps, parcel = raw
+        cmap = k.cmap
         return AgentSnapshot(
-            time_s=now, wall_time_s=wall, agent_id=self.cfg.agent_id, state=out.state.value, reason=out.reason,
-            position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
-            map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
-            link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age, autopilot=autopilot, armed=armed,
-            mode=mode, laps=laps, parcel_map_m=parcel)
+            time_s=k.now_s, wall_time_s=k.wall_time_s, agent_id=self.cfg.agent_id, state=k.out.state.value,
+            reason=k.out.reason, position_map_m=k.position_map_m, velocity_map_m_s=k.velocity_map_m_s,
+            setpoint_map_m_s=k.setpoint_map_m_s, cv_id=k.out.cv_id, map_sha256=cmap.sha256 if cmap else None,
+            map_version=cmap.map_version if cmap else None, link_ok=k.link_ok, heartbeat_age_s=k.heartbeat_age_s,
+            position_age_s=k.position_age_s, autopilot=k.autopilot, armed=k.armed, mode=k.mode, laps=k.laps,
+            parcel_map_m=k.parcel_map_m)
 
     # ---- the tick ------------------------------------------------------------------------
-    def _apply_pending(self) -> list[str]:
+    def _apply_pending(self) -> list[MissionCommand]:
         with self._lock:
             pending, self._pending_map = self._pending_map, None
             cmds, self._pending_cmds = self._pending_cmds, []
@@ -216,7 +253,8 @@ class Runner:
         else:
             name = seen
         self.adapter = adapter_for(name)
-        self.commander = Commander(self.adapter, self.link.send_command, self.cfg.command_retry_s)
+        self.link.use_adapter(self.adapter)
+        self.commander = Commander(self.adapter, self.link, self.cfg.command_retry_s)
         log.info("using the %s adapter", name)
 
     def _gated(self, sample: PositionSample | None) -> PositionSample | None:
@@ -248,13 +286,12 @@ class Runner:
         link = self.link
         link.poll()
         self._ensure_adapter()
-        for command, result in link.pop_acks():
+        for result in link.pop_results():
             if self.commander is not None:
-                self.commander.on_ack(command, result)
+                self.commander.on_result(result)
         # ages are >= 0: a message received during this tick's poll is newer than ``now``
         hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
-        mode = (self.adapter.classify_mode(link.base_mode, link.custom_mode)
-                if self.adapter is not None and link.last_heartbeat_t is not None else "unknown")
+        mode = link.mode if self.adapter is not None else ModeClass.UNKNOWN
         sample = self._gated(link.latest_position())
         tf = self.transform
         if sample is not None:
@@ -295,10 +332,11 @@ class Runner:
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
             link.send_heartbeat()
             self._last_hb_sent = now
-        # the snapshot is assembled on demand from this immutable tuple (replaced whole: atomic)
-        self._snap_raw = (now, self.wall_clock(), out, pos, vel, sp, self.cmap, link_ok, hb_age, pos_age,
-                          self.adapter.name if self.adapter else None, link.armed, mode, self.mission.laps,
-                          self.mission.tracker.parcel_m if out.state == State.FLOW else None)
+        self._last_tick = TickRecord(
+            now_s=now, wall_time_s=self.wall_clock(), out=out, position_map_m=pos, velocity_map_m_s=vel,
+            setpoint_map_m_s=sp, cmap=self.cmap, link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
+            autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
+            laps=self.mission.laps, parcel_map_m=self.mission.tracker.parcel_m if out.state == State.FLOW else None)
         self.ticks += 1
         if self.on_tick is not None:
             self.on_tick(self.snapshot())
@@ -338,19 +376,18 @@ class Runner:
         try:
             link.poll()
             state = self.mission.state
-            flying = link.armed and (state in FLYING or (state == State.HOLD and not self.mission._hands_off))
+            flying = link.armed and (state in FLYING or (state == State.HOLD and not self.mission.hands_off))
             if flying and self.adapter is not None:
                 log.info("shutdown: zero-velocity hold, then the autopilot's hold mode")
                 t_end = self.clock() + settle_s
-                cmd = self.adapter.set_mode("hold")
                 while True:
                     link.send_velocity_ned(0.0, 0.0, 0.0)
-                    link.send_command(cmd)
+                    link.hold()
                     link.poll()
-                    if self.adapter.classify_mode(link.base_mode, link.custom_mode) == "hold" or self.clock() >= t_end:
+                    if link.mode == ModeClass.HOLD or self.clock() >= t_end:
                         break
                     self.sleep(0.05)
-                if self.adapter.classify_mode(link.base_mode, link.custom_mode) != "hold":
+                if link.mode != ModeClass.HOLD:
                     log.warning("shutdown: hold mode not confirmed; the autopilot's offboard-loss failsafe applies")
         finally:
             link.close()

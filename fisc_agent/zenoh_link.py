@@ -45,7 +45,7 @@ from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, d
 from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, DEFAULT_CHUNK_BYTES,  # noqa: F401
                                    DEFAULT_MAX_MAP_BYTES, KIND_ANNOUNCE, KIND_CHUNK, AssemblyDrop, AssemblyLimits,
                                    ChunkHeader, DropReason, MapAssembler, announce_message, parse_chunk, split_map)
-from fisc_agent.mapfile import CommandMap, MapError, decode_map
+from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind, decode_map
 from fisc_agent.ratelimit import RateLimitedLog
 
 log = logging.getLogger(__name__)
@@ -161,12 +161,10 @@ def _command_check(exc: Exception) -> str:
 
 
 def reject_code(exc: Exception) -> str:
-    """The ``REJECT_REASONS`` name of a map refusal: the check named in the ``MapError`` text
-    (``"<source>: <check>: <detail>"``), ``other`` if none is recognised."""
-    for part in str(exc).split(": "):
-        if part.strip() in tc.REJECT_REASONS[1:]:
-            return part.strip()
-    return "other"
+    """The ``REJECT_REASONS`` name of a map refusal: a ``MapError``'s kind where the telemetry
+    has a code for it, ``other`` for the rest (and for any other exception)."""
+    kind = exc.kind.value if isinstance(exc, MapError) else MapErrorKind.OTHER.value
+    return kind if kind in tc.REJECT_REASONS[1:] else MapErrorKind.OTHER.value
 
 
 def verify_map_bytes(blob: bytes | bytearray, trusted_keys: list[bytes] | None, allow_unsigned: bool,
@@ -175,14 +173,14 @@ def verify_map_bytes(blob: bytes | bytearray, trusted_keys: list[bytes] | None, 
     if allow_unsigned:
         cmap = decode_map(memoryview(blob), None, source=source)
         if cmap.signed and trusted_keys and bytes.fromhex(cmap.public_key or "") not in trusted_keys:
-            raise MapError(f"{source}: signature: signed by a key that is not trusted")
+            raise MapError(MapErrorKind.SIGNATURE, "signed by a key that is not trusted", source=source)
     else:
         if not trusted_keys:
-            raise MapError(f"{source}: signature: no trusted key configured")
+            raise MapError(MapErrorKind.SIGNATURE, "no trusted key configured", source=source)
         cmap = decode_map(memoryview(blob), trusted_keys, source=source)
     if claimed_version is not None and cmap.map_version != claimed_version:
-        raise MapError(f"{source}: version_mismatch: chunks claim map_version {claimed_version}, "
-                       f"the map says {cmap.map_version}")
+        raise MapError(MapErrorKind.VERSION_MISMATCH, f"chunks claim map_version {claimed_version}, "
+                       f"the map says {cmap.map_version}", source=source)
     for arr in cmap.arrays.values():
         arr.flags.writeable = False
     return cmap
@@ -451,7 +449,8 @@ class AgentZenohLink:
                 self._on_map_payload(payload)
             except Exception as exc:  # never let one message kill the thread; counted and shown
                 with self._lock:
-                    self._reject(MapError(f"{self.keys.map}: other: map message could not be processed ({exc!r})"))
+                    self._reject(MapError(MapErrorKind.OTHER,
+                                          f"map message could not be processed ({exc!r})", source=self.keys.map))
 
     def _on_map_payload(self, payload: bytes) -> None:
         now = self.clock()
@@ -491,11 +490,12 @@ class AgentZenohLink:
             if drop.reason == DropReason.OLD_VERSION:
                 self.stats.maps_ignored_old += 1
                 floor = self._assembler.floor_version
-                exc = MapError(f"{self.keys.map}: old_version: {what} is not newer than map_version {floor} in use "
-                               "(replayed or rolled back)")
+                exc = MapError(MapErrorKind.OLD_VERSION, f"{what} is not newer than map_version {floor} in use "
+                               "(replayed or rolled back)", source=self.keys.map)
             else:
                 self.stats.maps_incomplete += 1
-                exc = MapError(f"{self.keys.map}: chunks: {what} dropped unfinished ({drop.reason.value})")
+                exc = MapError(MapErrorKind.CHUNKS,
+                               f"{what} dropped unfinished ({drop.reason.value})", source=self.keys.map)
             self._reject(exc, key=f"map:{drop.reason.value}")
 
     def _work_loop(self) -> None:
@@ -527,16 +527,17 @@ class AgentZenohLink:
             if current is not None and cmap.map_version <= current.map_version:
                 if cmap.sha256 != current.sha256:
                     self.stats.maps_ignored_old += 1
-                    self._reject(MapError(f"{self.keys.map}: old_version: map {cmap.sha256[:12]} has map_version "
-                                          f"{cmap.map_version}, not newer than {current.map_version} in use"))
+                    self._reject(MapError(MapErrorKind.OLD_VERSION, f"map {cmap.sha256[:12]} has map_version "
+                                          f"{cmap.map_version}, not newer than {current.map_version} in use",
+                                          source=self.keys.map))
                 return
         if not cmap.signed:
             log.warning("*** UNSIGNED map %s (map_version %d) offered to the agent ***", cmap.sha256[:12],
                         cmap.map_version)
         if self.on_map(cmap) is False:  # the runner's own checks refused it
             with self._lock:
-                self._reject(MapError(f"{self.keys.map}: other: map {cmap.sha256[:12]} refused by the agent's "
-                                      "checks (see its log)"))
+                self._reject(MapError(MapErrorKind.OTHER, f"map {cmap.sha256[:12]} refused by the agent's "
+                                      "checks (see its log)", source=self.keys.map))
             return
         with self._lock:
             self.current = cmap

@@ -13,9 +13,8 @@ from typing import Any
 import numpy as np
 
 from fisc_agent.lookup import DEFAULT_PERSISTENCE_S, PAPER_SETTINGS, FlightSettings
-from fisc_agent.mapfile import CommandMap, decode_map, load_map
+from fisc_agent.mapfile import CommandMap, decode_map, encode_map, load_map
 from fisc_ground.fitting import fit_rmse, fit_velocities
-from fisc_ground.mapwrite import encode_map
 from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference

@@ -1,8 +1,8 @@
-"""Writing, signing and key generation for FISC command maps (format: ``fisc_agent.mapfile``)."""
+"""Atomic writing of FISC command maps, and the ground's Ed25519 keys (key generation, signing
+keys).  The map format itself, encoder and decoder, is ``fisc_agent.mapfile``."""
 
 from __future__ import annotations
 
-import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -10,59 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from fisc_agent.mapfile import (
-    ALIGN,
-    CONTAINER_VERSION,
-    FACE_ARRAYS,
-    MAGIC,
-    REQUIRED_ARRAYS,
-    SCHEMA,
-    SCHEMA_VERSION,
-    _U32,
-    _U64,
-    canonical_json,
-    decode_map,
-    read_hex_key,
-)
-
-
-def encode_map(meta: dict[str, Any], arrays: dict[str, np.ndarray], signing_key: bytes | None = None) -> bytes:
-    """Serialise ``meta`` (header fields without ``arrays``) and ``arrays`` into map bytes.
-
-    The schema version is ``meta["schema_version"]`` if given, else 2 when the face field is among
-    the arrays and 1 (the paper's map) otherwise.
-
-    Arrays are stored little-endian with the dtypes of ``REQUIRED_ARRAYS`` (extra arrays keep
-    their own dtype).  ``signing_key``: a 32-byte Ed25519 seed; the seal then carries a signature.
-    """
-    table: dict[str, dict[str, Any]] = {}
-    chunks: list[bytes] = []
-    offset = 0
-    for name in sorted(arrays):
-        want = REQUIRED_ARRAYS.get(name, (np.asarray(arrays[name]).dtype.newbyteorder("<").str, None))[0]
-        arr = np.ascontiguousarray(arrays[name], dtype=np.dtype(want))
-        pad = (-offset) % ALIGN
-        chunks.append(b"\0" * pad)
-        offset += pad
-        table[name] = {"dtype": arr.dtype.str, "shape": list(arr.shape), "offset": offset, "nbytes": arr.nbytes}
-        chunks.append(arr.tobytes())
-        offset += arr.nbytes
-    version = meta.get("schema_version", SCHEMA_VERSION if all(k in arrays for k in FACE_ARRAYS) else 1)
-    body = dict(meta, schema=SCHEMA, schema_version=int(version), arrays=table)
-    body_raw = canonical_json(body)
-    payload = b"".join(chunks)
-    sealed = b"".join([MAGIC, _U32.pack(CONTAINER_VERSION), _U64.pack(len(body_raw)), body_raw,
-                       _U64.pack(len(payload)), payload])
-    digest = hashlib.sha256(sealed).digest()
-    seal: dict[str, Any] = {"sha256": digest.hex(), "signature": None, "public_key": None}
-    if signing_key is not None:
-        from nacl.signing import SigningKey
-
-        key = SigningKey(signing_key)
-        seal["signature"] = key.sign(digest).signature.hex()
-        seal["public_key"] = key.verify_key.encode().hex()
-    seal_raw = canonical_json(seal)
-    return sealed + _U64.pack(len(seal_raw)) + seal_raw
+from fisc_agent.mapfile import decode_map, encode_map, read_hex_key
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

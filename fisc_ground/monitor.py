@@ -517,7 +517,7 @@ def verify_monitor_map(blob: bytes | bytearray, trusted_keys: list[bytes] | None
                        claimed_version: int | None = None, source: str = "<zenoh>") -> CommandMap:
     """The monitor's rule for a map: with trusted keys, signed by one of them; without, any valid
     signature; an unsigned map only with ``allow_unsigned`` (``MapError`` names the refusal)."""
-    from fisc_agent.mapfile import MapError
+    from fisc_agent.mapfile import MapError, MapErrorKind
     from fisc_agent.zenoh_link import verify_map_bytes
 
     if trusted_keys:
@@ -525,7 +525,8 @@ def verify_monitor_map(blob: bytes | bytearray, trusted_keys: list[bytes] | None
                                 source=source)
     cmap = verify_map_bytes(blob, None, allow_unsigned=True, claimed_version=claimed_version, source=source)
     if not cmap.signed and not allow_unsigned:
-        raise MapError(f"{source}: signature: the map is unsigned (refused; --allow-unsigned accepts it in a lab)")
+        raise MapError(MapErrorKind.SIGNATURE, "the map is unsigned (refused; --allow-unsigned accepts it in a lab)",
+                       source=source)
     return cmap
 
 
@@ -604,7 +605,7 @@ def run_monitor(args: Any) -> int:
     from rich.console import Console
     from rich.live import Live
 
-    from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, read_public_key
+    from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, MapFileError, read_public_key
     from fisc_agent.safe_files import read_regular_file
     from fisc_ground.recording import Recorder
     from fisc_ground.zenoh_config import open_ground_session
@@ -614,7 +615,7 @@ def run_monitor(args: Any) -> int:
     roster = args.roster if args.roster is None or isinstance(args.roster, AgentRoster) else AgentRoster.parse(args.roster)
     if args.map:  # read before opening the session: a bad file fails fast
         map_file_blob = read_regular_file(args.map, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC,
-                                          error=MapError)
+                                          error=MapFileError)
         map_file = verify_monitor_map(map_file_blob, trusted, args.allow_unsigned, source=str(args.map))
     console = Console(stderr=False)
     session = open_ground_session(args.zenoh_config)

@@ -14,7 +14,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from fisc_agent.mapfile import CommandMap, MapError, decode_map
+from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind, MapFileError, decode_map
 from fisc_agent.zenoh_link import (DEFAULT_CHUNK_BYTES, DEFAULT_PREFIX, Keys, announce_message, parse_chunk,
                                   split_map)
 
@@ -52,8 +52,8 @@ class MapServer:
                         cmap.sha256[:12])
         with self._lock:
             if self.current is not None and cmap.map_version <= self.current.map_version:
-                raise MapError(f"{source}: map_version {cmap.map_version} is not newer than the served "
-                               f"{self.current.map_version}")
+                raise MapError(MapErrorKind.OLD_VERSION, f"map_version {cmap.map_version} is not newer than the "
+                               f"served {self.current.map_version}", source=source)
             chunks = split_map(bytes(blob), cmap.map_version, self.chunk_bytes)
             self.current, self._chunks = cmap, chunks
             head, _ = parse_chunk(chunks[0])
@@ -69,7 +69,7 @@ class MapServer:
         from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES
         from fisc_agent.safe_files import read_regular_file
 
-        data = read_regular_file(path, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC, error=MapError)
+        data = read_regular_file(path, what="FISC map", max_bytes=MAX_MAP_FILE_BYTES, magic=MAGIC, error=MapFileError)
         return self.serve(data, source=str(path))
 
     def _on_query(self, query: Any) -> None:

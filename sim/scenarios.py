@@ -152,7 +152,7 @@ def synthetic_tunnel_map(nx: int = 12, radius_cells: float = 2.0, cell_size_m: f
     gauge pressure from Bernoulli, density constant with a tiny Bernoulli dip.
     """
     from fisc_agent.mapfile import decode_map
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     l = float(cell_size_m)
     r = int(np.ceil(radius_cells))

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from fisc_ground.mapwrite import encode_map, generate_keypair
+from fisc_agent.mapfile import encode_map
+from fisc_ground.mapwrite import generate_keypair
 
 from .conftest import child_env, cli, free_tcp_port, free_udp_port, write_zenoh_config
 

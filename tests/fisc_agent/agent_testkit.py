@@ -51,7 +51,7 @@ def tunnel_arrays(length_m: float = 3.0, radius_m: float = 1.0, cell_m: float = 
 
 
 def tunnel_map_bytes(signing_key: bytes | None = None, map_version: int = 1, **kw) -> bytes:
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     meta, arrays = tunnel_arrays(**kw)
     meta["map_version"] = map_version
@@ -115,3 +115,29 @@ class EmulatorProbe:
         from sim.autopilot.faults import FaultConfig, FaultInjector
 
         self.em.faults = FaultInjector(FaultConfig(loss_probability=1.0 if on else 0.0))
+
+
+class RecordingVehicle:
+    """``VehicleCommands`` that records the intents it is asked for."""
+
+    def __init__(self):
+        self.sent = []           # ("arm",), ("set_mode", ModeClass), ("takeoff", alt_m)
+
+    def arm(self):
+        self.sent.append(("arm",))
+
+    def set_mode(self, mode):
+        self.sent.append(("set_mode", mode))
+
+    def takeoff(self, alt_m):
+        self.sent.append(("takeoff", alt_m))
+
+    def hold(self):
+        from fisc_agent.adapters import ModeClass
+
+        self.set_mode(ModeClass.HOLD)
+
+    def land(self):
+        from fisc_agent.adapters import ModeClass
+
+        self.set_mode(ModeClass.LAND)

@@ -2,9 +2,16 @@
 
 import pytest
 
+from agent_testkit import RecordingVehicle
 from fisc_agent.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
-                                 ArduPilotAdapter, Commander, Px4Adapter, adapter_for, autopilot_from_heartbeat,
+                                 MAV_CMD_SET_MESSAGE_INTERVAL, ArduPilotAdapter, CommandKind, CommandResult, Commander,
+                                 ModeClass, Px4Adapter, adapter_for, autopilot_from_heartbeat, command_result,
                                  is_armed)
+
+
+def test_mavlink_numbers_from_the_dialect_are_the_standard_ones():
+    assert (MAV_CMD_NAV_TAKEOFF, MAV_CMD_DO_SET_MODE, MAV_CMD_COMPONENT_ARM_DISARM,
+            MAV_CMD_SET_MESSAGE_INTERVAL) == (22, 176, 400, 511)
 
 
 def test_autopilot_identification_from_heartbeat():
@@ -47,36 +54,49 @@ def test_ardupilot_mode_encoding():
 
 
 def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():
-    sent = []
-    c = Commander(Px4Adapter(), sent.append, retry_s=1.0)
+    v = RecordingVehicle()
+    sent = v.sent
+    c = Commander(Px4Adapter(), v, retry_s=1.0)
     c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2)
     assert sent == []                               # stream not running long enough yet
     c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2)
-    assert [s.command for s in sent] == [MAV_CMD_DO_SET_MODE]
+    assert sent == [("set_mode", ModeClass.OFFBOARD)]
     c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7)
     assert len(sent) == 1                           # not before retry_s
     c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3)
     assert len(sent) == 2                           # retried
     c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4)
-    assert sent[-1].command == MAV_CMD_COMPONENT_ARM_DISARM and sent[-1].params[0] == 1.0
+    assert sent[-1] == ("arm",)
     c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5)
     assert len(sent) == 3                           # satisfied: nothing more
+    c.reconcile(9.0, "offboard", True, 2.5, armed=True, mode="offboard", stream_s=9.0)
+    assert len(sent) == 3                           # PX4 takes off by climbing in OFFBOARD: no takeoff request
 
 
 def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
-    sent = []
-    c = Commander(ArduPilotAdapter(), sent.append, retry_s=1.0)
+    v = RecordingVehicle()
+    sent = v.sent
+    c = Commander(ArduPilotAdapter(), v, retry_s=1.0)
     c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0)
     c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0)
     c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
-    assert [s.command for s in sent] == [MAV_CMD_DO_SET_MODE, MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_NAV_TAKEOFF]
+    assert sent == [("set_mode", ModeClass.OFFBOARD), ("arm",), ("takeoff", 2.0)]
     c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
     assert len(sent) == 4                           # no ack yet: takeoff resent
-    c.on_ack(MAV_CMD_NAV_TAKEOFF, 0)
+    c.on_result(command_result(MAV_CMD_NAV_TAKEOFF, 0))
     c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
     assert len(sent) == 4                           # accepted: not resent
-    c.on_ack(MAV_CMD_COMPONENT_ARM_DISARM, 2)
+    c.on_result(command_result(MAV_CMD_COMPONENT_ARM_DISARM, 2))
     assert list(c.refusals) == [("arming", "DENIED")]
+
+
+def test_command_acks_become_typed_results():
+    assert command_result(MAV_CMD_NAV_TAKEOFF, 5) == CommandResult(CommandKind.TAKEOFF, True, "IN_PROGRESS")
+    assert command_result(MAV_CMD_DO_SET_MODE, 4) == CommandResult(CommandKind.SET_MODE, False, "FAILED")
+    assert command_result(MAV_CMD_SET_MESSAGE_INTERVAL, 3) == CommandResult(CommandKind.MESSAGE_INTERVAL, False,
+                                                                             "UNSUPPORTED")
+    assert command_result(31000, 1) == CommandResult(CommandKind.OTHER, False, "TEMPORARILY_REJECTED")
+    assert command_result(MAV_CMD_COMPONENT_ARM_DISARM, 250).result == "250"   # unknown MAV_RESULT: its number
 
 
 def test_a_flood_of_refusing_acks_is_bounded_and_rate_limited(caplog):
@@ -84,9 +104,9 @@ def test_a_flood_of_refusing_acks_is_bounded_and_rate_limited(caplog):
     gets one line per kind per 5 s, not one per ack."""
     from fisc_agent.adapters import MAX_REFUSALS_KEPT
 
-    c = Commander(Px4Adapter(), lambda cmd: None)
+    c = Commander(Px4Adapter(), RecordingVehicle())
     with caplog.at_level("WARNING", logger="fisc_agent.adapters"):
         for _ in range(5000):
-            c.on_ack(MAV_CMD_COMPONENT_ARM_DISARM, 2)
+            c.on_result(command_result(MAV_CMD_COMPONENT_ARM_DISARM, 2))
     assert len(c.refusals) == MAX_REFUSALS_KEPT
     assert sum("refused arming" in r.getMessage() for r in caplog.records) == 1

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
-                                goto_velocity, join_waypoints, max_command_speed, slot_hash_scalar)
-from fisc_agent.lookup import CommandField, slot_hash
+                                goto_velocity, join_waypoints, max_command_speed)
+from fisc_agent.lookup import CommandField, slot_hash, slot_hash_int
 from fisc_agent.mapfile import MapError
 
 
@@ -21,12 +21,12 @@ def sfield(field):
     return ScalarField(field)
 
 
-def test_slot_hash_scalar_equals_vectorised():
+def test_slot_hash_int_equals_vectorised():
     rng = np.random.default_rng(0)
     a = rng.integers(0, 2**32, size=500)
     j = rng.integers(0, 5000, size=500)
     expect = slot_hash(a, j)
-    assert [slot_hash_scalar(int(x), int(y)) for x, y in zip(a, j)] == expect.tolist()
+    assert [slot_hash_int(int(x), int(y)) for x, y in zip(a, j)] == expect.tolist()
 
 
 @pytest.mark.parametrize("mode", ["mean", "slot", "interpolated"])

@@ -256,3 +256,57 @@ def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
         _check_flight(f, tunnel_map)
     finally:
         emu.stop()
+
+
+def _wait_for(pred, timeout_s, what, poll=None):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if poll is not None:
+            poll()
+        if pred():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timeout waiting for {what}")
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_link_intents_move_the_emulated_px4(backend):
+    """The VehicleLink's intents on both backends against the emulator over UDP: arm, hold, land
+    change the vehicle's state and come back as accepted CommandResults (MAVSDK: its own actions)."""
+    from fisc_agent.adapters import CommandKind, ModeClass, Px4Adapter
+
+    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
+    url = f"udpout:127.0.0.1:{emu.local_address[1]}"
+    if backend == "mavsdk":
+        pytest.importorskip("mavsdk")
+        from fisc_agent.mavsdk_backend import MavsdkLink
+
+        link = MavsdkLink(url)
+    else:
+        link = MavlinkLink(url)
+    results = []
+
+    def poll():
+        link.poll()
+        results.extend(link.pop_results())
+        link.send_heartbeat()
+
+    try:
+        _wait_for(lambda: link.last_heartbeat_t is not None and link.autopilot == "px4", 10, "the autopilot", poll)
+        link.use_adapter(Px4Adapter())
+        _wait_for(lambda: link.mode != ModeClass.UNKNOWN, 5, "a mode", poll)
+        assert not link.armed
+        link.arm()
+        _wait_for(lambda: link.armed, 5, "armed", poll)
+        link.land()
+        _wait_for(lambda: link.mode == ModeClass.LAND, 5, "LAND mode", poll)
+        link.hold()
+        _wait_for(lambda: link.mode == ModeClass.HOLD, 5, "hold mode", poll)
+        assert emu.state.mode.value == "loiter"
+        _wait_for(lambda: sum(r.kind == CommandKind.SET_MODE for r in results) >= 2, 5, "mode results", poll)
+        ours = [r for r in results if r.kind in (CommandKind.ARM, CommandKind.SET_MODE)]
+        assert [r.kind for r in ours] == [CommandKind.ARM, CommandKind.SET_MODE, CommandKind.SET_MODE]
+        assert all(r.accepted for r in ours), ours
+    finally:
+        link.close()
+        emu.stop()

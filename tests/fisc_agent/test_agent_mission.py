@@ -1,13 +1,15 @@
 """Mission state machine on a simulated clock with a kinematic vehicle that obeys instantly."""
 
+import json
 import math
+import pickle
 
 import pytest
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity
 from fisc_agent.lookup import CommandField
-from fisc_agent.mission import Mission, State, VehicleStatus
+from fisc_agent.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.tracking import TrackingConfig
 
 DT = 0.05
@@ -193,6 +195,7 @@ def test_geofence_hold(sfield):
     v.pos[1] = 2.5                                   # pushed out through the side
     outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
     assert m.reason.startswith("geofence") and outs[-1].velocity_m_s == (0.0, 0.0, 0.0)
+    assert m.hold_cause == HoldCause.GEOFENCE and outs[-1].reason.cause == HoldCause.GEOFENCE
     outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
     m.command("resume")                              # resume from a geofence hold flies back
     run(m, v, cfg, lambda m, v, o: m.state == State.RETURN, max_s=v.t + 1)
@@ -278,7 +281,15 @@ def test_arming_timeout_fails_the_mission(sfield):
     cfg, m, v = make(sfield, command_timeout_s=2.0)
     v.apply = lambda out, cfg: setattr(v, "t", v.t + DT)   # autopilot ignores everything
     run(m, v, cfg, lambda m, v, o: m.state == State.DONE)
-    assert m.reason.startswith("failed")
+    assert m.reason.startswith("failed") and m.reason.cause == Cause.ARM_FAILED and m.failed
+
+
+def test_reasons_are_text_with_a_typed_cause_that_survives_pickling():
+    r = Reason(HoldCause.PILOT_OVERRIDE, "pilot override: mode changed to other outside the agent, hands off")
+    back = pickle.loads(pickle.dumps(r))
+    assert back == r and back.cause == HoldCause.PILOT_OVERRIDE and isinstance(back, Reason)
+    assert Reason(Cause.LANDED) == "landed and disarmed" and Reason(Cause.LANDED).cause == Cause.LANDED
+    assert json.loads(json.dumps({"reason": r}))["reason"] == str(r)  # status JSON keeps the text
 
 
 def test_disarm_in_flight_ends_the_mission(sfield):

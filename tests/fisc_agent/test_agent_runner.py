@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from agent_testkit import tunnel_map_bytes
-from fisc_agent.adapters import MAV_CMD_DO_SET_MODE, Px4Adapter
+from agent_testkit import RecordingVehicle, tunnel_map_bytes
+from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig
 from fisc_agent.link import PositionSample, PositionSource, SetpointSink
 from fisc_agent.mapfile import MapError, decode_map
@@ -25,19 +25,21 @@ class Clock:
         self.t += dt
 
 
-class MemoryLink:
+class MemoryLink(RecordingVehicle):
     """A PX4 that obeys commands at once; kinematic vehicle in local NED on the shared clock."""
 
     def __init__(self, clock, pos_ned=(0.0, 0.0, 0.0)):
+        super().__init__()
+        self.commands = self.sent    # the intents asked for
         self.clock = clock
         self.autopilot = "px4"
         self.armed = False
-        self.base_mode, self.custom_mode = 1, Px4Adapter.px4_custom_mode(3)
+        self.vehicle_mode = ModeClass.OTHER   # POSCTL
+        self.adapter = None
         self.last_heartbeat_t = None
         self.pos = list(pos_ned)
         self.vel = [0.0, 0.0, 0.0]
         self.setpoints = []          # (t, vn, ve, vd)
-        self.commands = []
         self.heartbeats_sent = 0
         self.closed = False
         self.freeze_position = False
@@ -47,10 +49,10 @@ class MemoryLink:
     def poll(self):
         now = self.clock()
         dt, self._t = now - self._t, now
-        mode = Px4Adapter().classify_mode(self.base_mode, self.custom_mode)
-        if mode == "offboard" and self.armed and self.setpoints:
+        mode = self.vehicle_mode
+        if mode == ModeClass.OFFBOARD and self.armed and self.setpoints:
             self.vel = list(self.setpoints[-1][1:])
-        elif mode == "land" and self.armed:
+        elif mode == ModeClass.LAND and self.armed:
             self.vel = [0.0, 0.0, 1.0]
             if self.pos[2] >= 0.0:
                 self.armed = False
@@ -70,17 +72,25 @@ class MemoryLink:
     def send_velocity_ned(self, vn, ve, vd):
         self.setpoints.append((self.clock(), vn, ve, vd))
 
-    def send_command(self, cmd):
-        self.commands.append(cmd)
-        if cmd.command == MAV_CMD_DO_SET_MODE:
-            self.custom_mode = Px4Adapter.px4_custom_mode(int(cmd.params[1]), int(cmd.params[2]))
-        elif cmd.command == 400:
-            self.armed = True
+    @property
+    def mode(self):
+        return self.vehicle_mode if self.adapter is not None and self.last_heartbeat_t is not None else ModeClass.UNKNOWN
+
+    def use_adapter(self, adapter):
+        self.adapter = adapter
+
+    def arm(self):
+        super().arm()
+        self.armed = True
+
+    def set_mode(self, mode):
+        super().set_mode(mode)
+        self.vehicle_mode = mode
 
     def send_heartbeat(self):
         self.heartbeats_sent += 1
 
-    def pop_acks(self):
+    def pop_results(self):
         return []
 
     def close(self):
@@ -127,8 +137,8 @@ def test_full_pass_every_setpoint_is_clamped_and_velocity_only_transformed():
             assert dv <= cfg.max_accel_m_s2 * (t - prev[0]) + 1e-9
         prev = (t, vn, ve, vd)
     # PX4: the stream ran for >= 1 s before OFFBOARD was requested
-    first_offboard = next(c for c in link.commands if c.command == MAV_CMD_DO_SET_MODE)
-    assert first_offboard.params[1] == 6.0
+    first_mode = next(c for c in link.commands if c[0] == "set_mode")
+    assert first_mode == ("set_mode", ModeClass.OFFBOARD) and r.adapter.name == "px4"
     assert link.setpoints[0][0] <= 100.0 + 0.1
     assert link.heartbeats_sent >= 10
 
@@ -167,7 +177,7 @@ def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
 def test_offer_map_refuses_a_map_that_fails_agent_checks():
     import numpy as np
     from agent_testkit import tunnel_arrays
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     cfg, clock, link, r = make(mode="slot")
     meta, arrays = tunnel_arrays()
@@ -190,7 +200,7 @@ def test_fleet_commands_reach_the_mission():
     r.fleet_command("land")
     r.step()
     assert r.mission.state == State.LAND
-    assert link.commands[-1].params[1:3] == (4.0, 6.0)    # AUTO.LAND requested
+    assert link.commands[-1] == ("set_mode", ModeClass.LAND)
     with pytest.raises(ValueError):
         r.fleet_command("selfdestruct")
 
@@ -201,7 +211,7 @@ def test_stale_position_streams_zero_then_requests_hold_mode():
     link.freeze_position = True
     tick_until(r, clock, lambda: r.mission.state == State.HOLD, max_s=2)
     tick_until(r, clock, lambda: link.setpoints[-1][1:] == (0.0, 0.0, 0.0), max_s=2)  # ramps down (accel clamp)
-    tick_until(r, clock, lambda: Px4Adapter().classify_mode(link.base_mode, link.custom_mode) == "hold", max_s=3)
+    tick_until(r, clock, lambda: link.mode == ModeClass.HOLD, max_s=3)
     assert r.snapshot().position_age_s > cfg.stale_timeout_s + cfg.hold_grace_s
 
 
@@ -220,7 +230,7 @@ def test_shutdown_holds_a_flying_vehicle_and_closes():
     tick_until(r, clock, lambda: r.mission.state == State.FLOW)
     r.shutdown()
     assert link.setpoints[-1][1:] == (0.0, 0.0, 0.0)
-    assert Px4Adapter().classify_mode(link.base_mode, link.custom_mode) == "hold"
+    assert link.mode == ModeClass.HOLD and link.commands[-1] == ("set_mode", ModeClass.HOLD)
     assert link.closed
 
 

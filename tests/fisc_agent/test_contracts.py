@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.control import slot_hash_scalar
-from fisc_agent.lookup import CommandField, slot_hash, slot_index
+from fisc_agent.lookup import CommandField, slot_hash, slot_hash_int, slot_index
 from fisc_agent.mapfile import load_map
 from sim.kernels import cell_and_slot_helpers
 
@@ -50,10 +49,37 @@ def test_slot_hash_fixed_vectors_in_every_copy(pair):
     h, slots = SLOT_VECTORS[pair]
     assert _reference_mix(a, j) == h
     assert int(slot_hash(a, j)) == h                                  # onboard, vectorised
-    assert slot_hash_scalar(a, j) == h                                # onboard, scalar hot path
+    assert slot_hash_int(a, j) == h                                   # onboard, scalar hot path
     assert [int(slot_index(a, j, n)) for n in range(2, 11)] == slots
     _, slot_of = cell_and_slot_helpers()                              # simulator kernels (numba)
     assert [int(slot_of(a, j, n)) for n in range(2, 11)] == slots
+
+
+def test_numba_slot_twin_equals_the_pure_hash_on_1e5_inputs():
+    """``sim.kernels``' jitted slot index is a twin of ``lookup.slot_mix``: equal on 10^5 inputs
+    spanning the whole 32-bit id range (and ids beyond it, reduced the same way)."""
+    rng = np.random.default_rng(11)
+    n = 100_000
+    a = rng.integers(0, 2**40, size=n, dtype=np.int64)
+    j = rng.integers(0, 2**33, size=n, dtype=np.int64)
+    n_star = rng.integers(1, 11, size=n, dtype=np.int64)
+    expect = slot_index(a, j, n_star)
+    _, slot_of = cell_and_slot_helpers()
+    got = _slot_of_many(slot_of, a, j, n_star)
+    np.testing.assert_array_equal(got, expect)
+
+
+def _slot_of_many(slot_of, a, j, n_star):
+    import numba
+
+    @numba.njit(cache=False)
+    def many(a, j, n_star):
+        out = np.empty(a.size, dtype=np.int64)
+        for i in range(a.size):
+            out[i] = slot_of(a[i], j[i], n_star[i])
+        return out
+
+    return many(a, j, n_star)
 
 
 def test_slot_hash_vectorised_over_arrays_matches_the_vectors():
@@ -85,3 +111,13 @@ def test_the_version_1_map_gives_the_same_commands():
                                                                                   [4.6875, 0.0, 0.0625]])
     np.testing.assert_allclose(field.command(pts[:2], np.array([3, 4]), "mean"), [[1.40625, -0.0625, 0.0],
                                                                                   [4.6875, 0.0, 0.0625]])
+
+
+def test_enums_at_the_seams_match_the_wire_tables():
+    """Mission states and map-refusal kinds are the names the telemetry codes carry."""
+    from fisc_agent import telemetry_codec as tc
+    from fisc_agent.mapfile import MapErrorKind
+    from fisc_agent.mission import State
+
+    assert {s.value for s in State} <= set(tc.STATES)
+    assert set(tc.REJECT_REASONS[1:]) <= {k.value for k in MapErrorKind}

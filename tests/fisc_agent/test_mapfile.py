@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fisc_agent.mapfile import MapError, decode_map, load_map
-from fisc_ground.mapwrite import encode_map, generate_keypair, read_signing_key, write_map
+from fisc_agent.mapfile import MapError, MapErrorKind, decode_map, encode_map, load_map
+from fisc_ground.mapwrite import generate_keypair, read_signing_key, write_map
 
 
 def tiny_map_parts(n_cv: int = 3, n_max: int = 4) -> tuple[dict, dict]:
@@ -101,6 +101,17 @@ def test_flipped_payload_byte_fails_the_hash():
     data[len(data) // 2] ^= 0x40
     with pytest.raises(MapError, match="sha256|header|schema"):
         decode_map(bytes(data))
+
+
+def test_refusals_carry_their_kind_and_source():
+    data = encode_map(*tiny_map_parts())
+    cases = ((b"NOTAMAP\0" + data[8:], MapErrorKind.MAGIC), (data[:5], MapErrorKind.TRUNCATED),
+             (data + b"x", MapErrorKind.TRAILING), (data[:8] + b"\x09" + data[9:], MapErrorKind.CONTAINER))
+    for blob, kind in cases:
+        with pytest.raises(MapError) as info:
+            decode_map(blob, source="m.fiscmap")
+        assert info.value.kind == kind and info.value.source == "m.fiscmap"
+        assert str(info.value).startswith(f"m.fiscmap: {kind.value}: ")
 
 
 def test_truncated_map_is_refused_naming_truncation():

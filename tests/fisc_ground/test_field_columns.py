@@ -29,9 +29,8 @@ import numpy as np
 import pytest
 
 from fisc_agent import telemetry_codec as tc
-from fisc_agent.mapfile import decode_map
+from fisc_agent.mapfile import decode_map, encode_map
 from fisc_ground.field_report import FIELD_COLUMNS
-from fisc_ground.mapwrite import encode_map
 from fisc_ground.monitor import TelemetryAggregator
 from fisc_ground.recording import Recorder, replay
 

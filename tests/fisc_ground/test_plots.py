@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 from matplotlib import image as mpimg
 
-from fisc_agent.mapfile import decode_map
-from fisc_ground.mapwrite import encode_map
+from fisc_agent.mapfile import decode_map, encode_map
 from fisc_ground.metrics import centreline_profiles
 from fisc_ground.plots import (
     design_tunnel_wall,

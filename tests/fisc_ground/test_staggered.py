@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.lookup import CommandField, map_flight_settings, PAPER_SETTINGS
-from fisc_agent.mapfile import MapError, decode_map
+from fisc_agent.mapfile import MapError, decode_map, encode_map
 from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
-from fisc_ground.mapwrite import encode_map
 from fisc_ground.reference.analytic import analytic_nozzle
 from fisc_ground.staggered import design_density, project
 

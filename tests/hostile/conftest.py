@@ -137,7 +137,7 @@ def tunnel_map(version: int, seed: bytes | None) -> bytes:
     """The built-in default tunnel (15 m, 741 CVs) as map bytes of ``map_version`` ``version``."""
     import field_maps
     from fisc_agent.mapfile import load_map
-    from fisc_ground.mapwrite import encode_map
+    from fisc_agent.mapfile import encode_map
 
     cm = load_map(Path(field_maps.__file__).parent / "default.fiscmap")
     meta = {k: v for k, v in cm.body.items() if k not in ("schema", "schema_version", "arrays")}

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import zenoh  # a dependency: missing means broken, not skipped
 
-from fisc_ground.mapwrite import encode_map, generate_keypair, read_signing_key
+from fisc_agent.mapfile import encode_map
+from fisc_ground.mapwrite import generate_keypair, read_signing_key
 
 
 def free_port() -> int:

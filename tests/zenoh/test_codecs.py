@@ -13,7 +13,7 @@ from nacl.signing import SigningKey
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import (ALL_AGENTS, CommandError, CommandGate, FleetCommand, decode_command,
                                        encode_command)
-from fisc_agent.mapfile import MapError
+from fisc_agent.mapfile import MapError, MapErrorKind
 from fisc_agent.zenoh_link import (CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, reject_code,
                                    split_map)
 
@@ -151,9 +151,12 @@ def test_assembler_refuses_forged_chunks_and_ignores_old_versions():
 
 
 def test_reject_codes_name_the_failed_check():
-    assert reject_code(MapError("fisc/a/map: sha256: content hash does not match")) == "sha256"
-    assert reject_code(MapError("fisc/a/map: signature: signed by a key that is not trusted")) == "signature"
-    assert reject_code(MapError("weird")) == "other"
+    assert reject_code(MapError(MapErrorKind.SHA256, "content hash does not match", "fisc/a/map")) == "sha256"
+    assert reject_code(MapError(MapErrorKind.SIGNATURE, "signed by a key that is not trusted")) == "signature"
+    # the kind decides, never the text: a detail that mentions another check does not fool it
+    assert reject_code(MapError(MapErrorKind.SCHEMA, "sha256: signature: looks like other checks")) == "schema"
+    assert reject_code(MapError(MapErrorKind.N_STAR, "values must lie in 1..10")) == "other"  # no telemetry code
+    assert reject_code(ValueError("signature: not a MapError")) == "other"
 
 
 def test_start_at_times_are_utc_and_commands_are_stamped_increasing():

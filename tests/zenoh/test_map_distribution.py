@@ -6,8 +6,8 @@ import threading
 
 import pytest
 
+from fisc_agent.mapfile import encode_map
 from fisc_agent.zenoh_link import KIND_ANNOUNCE, KIND_CHUNK, AgentZenohLink, parse_chunk
-from fisc_ground.mapwrite import encode_map
 from fisc_ground.zenoh_publish import MapServer
 
 from .conftest import map_parts, wait_for
