@@ -86,12 +86,14 @@ class PositionSample:
 
 @runtime_checkable
 class PositionSource(Protocol):
+    """Where the runner reads the vehicle's position from."""
     def latest_position(self) -> PositionSample | None:
         """The newest fix, or None if none arrived yet."""
 
 
 @runtime_checkable
 class SetpointSink(Protocol):
+    """Where the runner streams its velocity setpoints to."""
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         """Send one velocity-only setpoint in MAV_FRAME_LOCAL_NED [m/s]."""
 
@@ -162,6 +164,7 @@ class UdpTransport:
 
     @property
     def local_address(self) -> tuple[str, int]:
+        """The (host, port) this socket is bound to."""
         return self.sock.getsockname()
 
     def recv(self) -> tuple[bytes, tuple[str, int]] | None:
@@ -174,6 +177,7 @@ class UdpTransport:
             return None
 
     def write(self, buf: bytes) -> None:
+        """Send ``buf`` to the autopilot's address (dropped until the autopilot has been heard)."""
         if self.peer is None:
             return
         try:
@@ -182,6 +186,7 @@ class UdpTransport:
             log.debug("MAVLink send to %s:%d failed: %s", *self.peer, exc)
 
     def close(self) -> None:
+        """Close the socket."""
         self.sock.close()
 
 
@@ -339,6 +344,7 @@ class MavlinkLink:
                                       "position message interval"))
 
     def latest_position(self) -> PositionSample | None:
+        """The newest gated position fix, or None if none arrived yet."""
         return self._position
 
     def pop_results(self) -> list[CommandResult]:
@@ -348,11 +354,13 @@ class MavlinkLink:
 
     @property
     def mode(self) -> ModeClass:
+        """The vehicle's mode class from its last HEARTBEAT (``UNKNOWN`` before one, or before ``use_adapter``)."""
         if self.adapter is None or self.last_heartbeat_t is None:
             return ModeClass.UNKNOWN
         return self.adapter.classify_mode(self.base_mode, self.custom_mode)
 
     def use_adapter(self, adapter: Adapter) -> None:
+        """The autopilot flavour (PX4 or ArduPilot) that encodes intents and decodes modes."""
         self.adapter = adapter
 
     # ---- send ----------------------------------------------------------------------------
@@ -364,6 +372,7 @@ class MavlinkLink:
             0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
+        """Send one velocity-only SET_POSITION_TARGET_LOCAL_NED [m/s]."""
         self.mav.send(self.velocity_setpoint_message(vn, ve, vd))
         self.setpoints_sent += 1
 
@@ -374,20 +383,25 @@ class MavlinkLink:
         return self.adapter
 
     def arm(self) -> None:
+        """Request arming (COMMAND_LONG MAV_CMD_COMPONENT_ARM_DISARM)."""
         self.send_command(arm_command())
 
     def set_mode(self, mode: ModeClass) -> None:
+        """Request ``mode`` in the adapter's encoding (PX4 custom mode or ArduPilot mode number)."""
         self.send_command(self._adapter().set_mode(mode))
 
     def takeoff(self, alt_m: float) -> None:
+        """Request a take-off to ``alt_m`` metres (PX4: none to send, the climb is flown in OFFBOARD)."""
         cmd = self._adapter().takeoff(alt_m)
         if cmd is not None:  # PX4: the takeoff is a climb in OFFBOARD, there is no command to send
             self.send_command(cmd)
 
     def hold(self) -> None:
+        """Request the adapter's hold mode."""
         self.set_mode(ModeClass.HOLD)
 
     def land(self) -> None:
+        """Request the autopilot's land mode."""
         self.set_mode(ModeClass.LAND)
 
     def send_command(self, cmd: CommandLong) -> None:
@@ -397,9 +411,11 @@ class MavlinkLink:
                                    p[0], p[1], p[2], p[3], p[4], p[5], p[6])
 
     def send_heartbeat(self) -> None:
+        """Send our HEARTBEAT as an onboard controller."""
         self.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
 
     def close(self) -> None:
+        """Release the UDP socket or the pymavlink connection."""
         if self.udp is not None:
             self.udp.close()
         else:

@@ -124,6 +124,7 @@ class MavsdkLink:
     # ---- VehicleLink --------------------------------------------------------------------
     @property
     def mode(self) -> ModeClass:
+        """The vehicle's mode class from MAVSDK's flight mode (``UNKNOWN`` before the first one)."""
         return self._mode if self.last_heartbeat_t is not None else ModeClass.UNKNOWN
 
     def use_adapter(self, adapter: Adapter) -> None:
@@ -132,20 +133,25 @@ class MavsdkLink:
             log.warning("MAVSDK backend: the %s adapter was chosen; MAVSDK's actions follow PX4", adapter.name)
 
     def poll(self) -> int:
+        """Refresh link liveness from MAVSDK's connection state; MAVSDK's own threads deliver messages, so 0."""
         if self._system.is_connected() and self.last_heartbeat_t is not None:
             self.last_heartbeat_t = max(self.last_heartbeat_t, self.clock() - 0.5)
         return 0
 
     def latest_position(self) -> PositionSample | None:
+        """The newest position from MAVSDK's telemetry plugin, or None if none arrived yet."""
         return self._position
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
+        """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held."""
         self._offboard.set_velocity_ned(self._VelocityNedYaw(vn, ve, vd, self._heading_deg))
 
     def arm(self) -> None:
+        """Queue MAVSDK's ``action.arm``; its answer arrives through ``pop_results``."""
         self._jobs.put((CommandKind.ARM, self._action.arm))
 
     def set_mode(self, mode: ModeClass) -> None:
+        """Queue the MAVSDK action for ``mode`` (``offboard.start``, ``action.hold``, ``action.land``)."""
         action = {ModeClass.OFFBOARD: self._offboard.start, ModeClass.HOLD: self._action.hold,
                   ModeClass.LAND: self._action.land}.get(ModeClass(mode))
         if action is None:
@@ -153,6 +159,7 @@ class MavsdkLink:
         self._jobs.put((CommandKind.SET_MODE, action))
 
     def takeoff(self, alt_m: float) -> None:
+        """Queue MAVSDK's ``action.takeoff`` to ``alt_m`` metres."""
         def _takeoff() -> None:
             self._action.set_takeoff_altitude(float(alt_m))
             self._action.takeoff()
@@ -160,20 +167,24 @@ class MavsdkLink:
         self._jobs.put((CommandKind.TAKEOFF, _takeoff))
 
     def hold(self) -> None:
+        """Queue MAVSDK's ``action.hold``."""
         self.set_mode(ModeClass.HOLD)
 
     def land(self) -> None:
+        """Queue MAVSDK's ``action.land``."""
         self.set_mode(ModeClass.LAND)
 
     def send_heartbeat(self) -> None:
         """MAVSDK sends its own heartbeats."""
 
     def pop_results(self) -> list[CommandResult]:
+        """The outcomes of MAVSDK actions since the last call, oldest first."""
         with self._lock:
             results, self._results = self._results, []
         return results
 
     def close(self) -> None:
+        """Stop the action worker and MAVSDK's server."""
         self._jobs.put(None)
         self._worker.join(timeout=2)
         self._mavsdk.destroy()

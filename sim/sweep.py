@@ -202,7 +202,7 @@ def point_map(point: SweepPoint):
     fit = FitConfig(**{"max_speed_m_s": cfg.max_speed_m_s, "staggered": cfg.preset != "paper", **point.fit})
     if spec is not None and ".py:" in spec:
         from fisc_agent.mapfile import decode_map
-        from fisc_ground.mapwrite import encode_map
+        from fisc_agent.mapfile import encode_map
 
         file, func = spec.rsplit(":", 1)
         field = _load_function(file, func)()
