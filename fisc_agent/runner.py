@@ -75,8 +75,36 @@ class AgentSnapshot:
     """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
     laps: int
     """Completed passes through the tunnel."""
+    failsafe: bool
+    """A failsafe holds the vehicle (``failsafe_active``: link lost, position stale or lost,
+    geofence, mode taken by the pilot or an autopilot failsafe); telemetry flag ``failsafe``."""
+    outside_map: bool
+    """Outside the map's CVs where the mission expects to be inside (``outside_map``); telemetry
+    flag ``outside_map``."""
     parcel_map_m: Vec | None = None
     """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
+
+
+FAILSAFE_HOLD_REASONS = ("link lost", "position stale", "geofence", "pilot override")
+"""Beginnings of the mission reasons of a HOLD that a failsafe caused (not a fleet or exit hold)."""
+
+
+def failsafe_active(state: str, reason: str) -> bool:
+    """True while a failsafe holds or returns the vehicle: a HOLD for a lost link, a stale or
+    lost position, the geofence or a mode taken from the agent, or the geofence's RETURN."""
+    if state == State.HOLD.value:
+        return reason.startswith(FAILSAFE_HOLD_REASONS)
+    return state == State.RETURN.value and reason.startswith("geofence")
+
+
+def outside_map(state: str, reason: str, cv_id: int, position_known: bool) -> bool:
+    """True when the vehicle is outside the map's CVs (``cv_id`` -1 at a known position) in a
+    state that belongs inside: FLOW, the geofence's RETURN, or a geofence HOLD (joining from
+    the staging area and leaving past the outlet are outside by design)."""
+    if not position_known or cv_id >= 0:
+        return False
+    return state in (State.FLOW.value, State.RETURN.value) or (state == State.HOLD.value
+                                                               and reason.startswith("geofence"))
 
 
 class Runner:
@@ -178,12 +206,15 @@ class Runner:
         if raw is None:
             return None
         now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps, parcel = raw
+        state = out.state.value
         return AgentSnapshot(
-            time_s=now, wall_time_s=wall, agent_id=self.cfg.agent_id, state=out.state.value, reason=out.reason,
+            time_s=now, wall_time_s=wall, agent_id=self.cfg.agent_id, state=state, reason=out.reason,
             position_map_m=pos, velocity_map_m_s=vel, setpoint_map_m_s=sp, cv_id=out.cv_id,
             map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
             link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age, autopilot=autopilot, armed=armed,
-            mode=mode, laps=laps, parcel_map_m=parcel)
+            mode=mode, laps=laps, failsafe=failsafe_active(state, out.reason),
+            outside_map=outside_map(state, out.reason, out.cv_id, pos is not None and cmap is not None),
+            parcel_map_m=parcel)
 
     # ---- the tick ------------------------------------------------------------------------
     def _apply_pending(self) -> list[str]:

@@ -30,7 +30,7 @@ import numpy as np
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap
-from fisc_agent.zenoh_link import Keys
+from fisc_agent.zenoh_keys import Keys
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 
 log = logging.getLogger(__name__)
@@ -518,7 +518,7 @@ def verify_monitor_map(blob: bytes | bytearray, trusted_keys: list[bytes] | None
     """The monitor's rule for a map: with trusted keys, signed by one of them; without, any valid
     signature; an unsigned map only with ``allow_unsigned`` (``MapError`` names the refusal)."""
     from fisc_agent.mapfile import MapError
-    from fisc_agent.zenoh_link import verify_map_bytes
+    from fisc_agent.zenoh_maps import verify_map_bytes
 
     if trusted_keys:
         return verify_map_bytes(blob, trusted_keys, allow_unsigned=False, claimed_version=claimed_version,
@@ -535,7 +535,7 @@ def fetch_map(session: Any, keys: Keys, trusted_keys: list[bytes] | None, timeou
     import zenoh
 
     from fisc_agent.mapfile import MapError
-    from fisc_agent.zenoh_link import MapAssembler
+    from fisc_agent.map_chunks import MapAssembler
 
     asm = MapAssembler()
     for reply in session.get(keys.map, consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
@@ -570,7 +570,7 @@ class MapFollower:
 
     def _on_sample(self, sample: Any) -> None:
         from fisc_agent.mapfile import MapError
-        from fisc_agent.zenoh_link import KIND_ANNOUNCE, parse_chunk
+        from fisc_agent.map_chunks import KIND_ANNOUNCE, parse_chunk
 
         try:
             head, _ = parse_chunk(sample.payload.to_bytes()[:96])

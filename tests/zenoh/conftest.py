@@ -99,3 +99,23 @@ def wait_for(pred, timeout_s: float = 10.0, period_s: float = 0.02) -> bool:
             return True
         time.sleep(period_s)
     return bool(pred())
+
+
+def snap(**fields):
+    """A runner ``AgentSnapshot`` for link tests: an armed agent in FLOW with fresh fixes, no map,
+    now; ``fields`` (the snapshot's own field names) override."""
+    import math
+
+    from fisc_agent.runner import AgentSnapshot
+
+    base = dict(time_s=time.monotonic(), wall_time_s=time.time(), agent_id=0, state="FLOW", reason="test",
+                position_map_m=None, velocity_map_m_s=None, setpoint_map_m_s=None, cv_id=-1, map_sha256=None,
+                map_version=None, link_ok=True, heartbeat_age_s=0.1, position_age_s=0.1, autopilot="px4",
+                armed=True, mode="offboard", laps=0, failsafe=False, outside_map=False)
+    base.update(fields)
+    if base["position_map_m"] is not None:
+        base["position_map_m"] = tuple(float(v) for v in base["position_map_m"])
+    if base["velocity_map_m_s"] is not None:
+        base["velocity_map_m_s"] = tuple(float(v) for v in base["velocity_map_m_s"])
+    assert all(math.isfinite(v) for v in (base["time_s"], base["wall_time_s"]))
+    return AgentSnapshot(**base)

@@ -10,11 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from fisc_agent.zenoh_link import AgentZenohLink, Keys
+from fisc_agent.zenoh_keys import Keys
+from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground.fleet import TelemetryListener
 from fisc_ground.zenoh_publish import MapServer
 
-from .conftest import free_port, wait_for, zenoh
+from .conftest import free_port, snap, wait_for, zenoh
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "zenoh.md"
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
@@ -78,7 +79,7 @@ def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, grou
         for i in (1, 2):
             links[i] = AgentZenohLink(tls_net[f"agent-{i}"], "alpha", i, [ground_key[1]], False,
                                       lambda m: None, lambda c: None).start()
-            links[i].start_telemetry(lambda: {"state": "FLOW"}, rate_hz=20)
+            links[i].start_telemetry(lambda: snap(), rate_hz=20)
         assert wait_for(lambda: all(l.current is not None for l in links.values()))
         assert links[1].current.sha256 == served.sha256
         assert wait_for(lambda: set(listener.snapshot()) == {1, 2})
