@@ -7,7 +7,8 @@ re-synchronises instead of bursting).  Other threads (the Zenoh side) talk to a 
 
 - ``offer_map(cmap)``: a new map; checked now, swapped in atomically between two ticks.
 - ``fleet_command(name)``: ``hold`` / ``resume`` / ``land``, applied at the next tick.
-- ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick).
+- ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick; before the
+  first tick, the agent waiting on the ground).
 """
 
 from __future__ import annotations
@@ -200,11 +201,18 @@ class Runner:
         with self._lock:
             self._pending_cmds.append(name)
 
-    def snapshot(self) -> AgentSnapshot | None:
-        """The latest telemetry snapshot (None before the first tick)."""
+    def snapshot(self) -> AgentSnapshot:
+        """The latest telemetry snapshot; before the first tick, the agent waiting on the ground
+        (the mission's initial state, the map in use if any, no position, no autopilot yet)."""
         raw = self._snap_raw
         if raw is None:
-            return None
+            cmap, state = self.cmap, self.mission.state.value
+            return AgentSnapshot(
+                time_s=self.clock(), wall_time_s=self.wall_clock(), agent_id=self.cfg.agent_id, state=state,
+                reason=self.mission.reason, position_map_m=None, velocity_map_m_s=None, setpoint_map_m_s=None,
+                cv_id=-1, map_sha256=cmap.sha256 if cmap else None, map_version=cmap.map_version if cmap else None,
+                link_ok=False, heartbeat_age_s=math.inf, position_age_s=math.inf, autopilot=None, armed=False,
+                mode="unknown", laps=0, failsafe=False, outside_map=False)
         now, wall, out, pos, vel, sp, cmap, link_ok, hb_age, pos_age, autopilot, armed, mode, laps, parcel = raw
         state = out.state.value
         return AgentSnapshot(

@@ -607,7 +607,7 @@ def run_monitor(args: Any) -> int:
     from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, read_public_key
     from fisc_agent.safe_files import read_regular_file
     from fisc_ground.recording import Recorder
-    from fisc_ground.zenoh_config import open_ground_session
+    from fisc_ground.zenoh_config import open_ground_session, silence_hint, zenoh_neighbours
 
     keys = Keys(args.prefix, args.swarm)
     trusted = [read_public_key(p) for p in (args.trusted_key or [])]
@@ -649,6 +649,7 @@ def run_monitor(args: Any) -> int:
                                                      cmap.map_version if cmap is not None else 0,
                                                      allow_unsigned=args.allow_unsigned)
         end = time.monotonic() + args.duration if args.duration else math.inf
+        started, hinted = time.monotonic(), False
         title = f"FISC swarm {args.swarm}" + (f"  recording {args.record}" if args.record else "")
         try:
             with Live(console=console, refresh_per_second=4, screen=False) as live:
@@ -659,6 +660,11 @@ def run_monitor(args: Any) -> int:
                         shown_map = agg.cmap
                     live.update(render(view, fields, shown_map, pipe.dropped, title, pipe.worker_errors,
                                        pipe.last_error))
+                    hint = None if hinted else silence_hint(view.n_agents, time.monotonic() - started, keys,
+                                                            args.zenoh_config, zenoh_neighbours(session))
+                    if hint:  # once: why nobody is heard and what to start
+                        log.warning("%s", hint)
+                        hinted = True
                     time.sleep(0.5)
         except KeyboardInterrupt:
             pass

@@ -1,4 +1,4 @@
-"""The Zenoh subcommands of ``fisc-ground``: publish, cmd, status, monitor, replay.
+"""The Zenoh subcommands of ``fisc-ground``: publish, cmd, status, monitor, replay, router.
 
 ``add_parsers(subparsers)`` registers them on the ``fisc-ground`` argparse subparsers; each
 sets ``func`` to its ``run_*(args)``.
@@ -90,10 +90,11 @@ def run_publish(args: Any) -> int:
 
 
 def add_parsers(subparsers: Any) -> None:
-    """Register publish, cmd, status, monitor and replay on ``fisc-ground``'s subparsers."""
+    """Register publish, cmd, status, monitor, replay and router on ``fisc-ground``'s subparsers."""
     from fisc_ground.fleet import run_cmd, run_status
     from fisc_ground.monitor import DEFAULT_MAX_AGENTS, run_monitor
     from fisc_ground.recording import run_replay
+    from fisc_ground.zenoh_router import add_parser as add_router_parser
 
     p = subparsers.add_parser(
         "publish", help="serve a map to a swarm over Zenoh",
@@ -166,3 +167,5 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--min-samples", type=int, default=10, help="agent samples a CV needs to be compared (default 10)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=run_replay)
+
+    add_router_parser(subparsers)

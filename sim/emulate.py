@@ -586,11 +586,12 @@ def _agent_worker(conn, job: _AgentJob) -> None:
             for i in np.flatnonzero(active):
                 r = runners[i]
                 r.step()
-                if zlinks and tick % telemetry_every == 0:
-                    zlinks[i].publish_telemetry(r.snapshot())
                 if trimmed[i] < len(trims) and r.link.target_system is not None:
                     r.link.send_command(trims[trimmed[i]])
                     trimmed[i] += 1
+            if zlinks and tick % telemetry_every == 0:  # every agent: launched, or waiting on the ground
+                for zlink, r in zip(zlinks, runners):
+                    zlink.publish_telemetry(r.snapshot())
             loop.tick(start, deadline, time.monotonic())
             tick, next_t = _next_tick(t0, tick, period)
             _sleep_until(next_t)
