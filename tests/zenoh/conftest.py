@@ -20,6 +20,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def listening(port: int) -> bool:
+    """A TCP socket of this machine listens on ``port`` (read from /proc: no probe connection)."""
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            cols = line.split()
+            if int(cols[1].rsplit(":", 1)[1], 16) == port and cols[3] == "0A":
+                return True
+    return False
+
+
 def write_config(path: Path, listen: list[str], connect: list[str], gossip: bool = True, extra: dict | None = None) -> Path:
     """A standard Zenoh JSON5 config: peer mode, multicast scouting off, explicit endpoints."""
     cfg = {"mode": "peer", "listen": {"endpoints": listen}, "connect": {"endpoints": connect},

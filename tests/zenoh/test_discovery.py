@@ -22,7 +22,7 @@ import pytest
 from fisc_agent.zenoh_session import PORT_ENV, LabDiscovery, LabRole, lab_config_json, open_lab_session
 from fisc_ground.mapwrite import encode_map, generate_keypair, read_signing_key
 
-from .conftest import free_port, map_parts, wait_for
+from .conftest import free_port, listening, map_parts, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -40,20 +40,6 @@ def files(tmp_path_factory):
     (d / "m.fiscmap").write_bytes(blob)
     from fisc_agent.mapfile import decode_map
     return {"dir": d, "key": key, "pub": pub, "map": d / "m.fiscmap", "sha": decode_map(blob, None).sha256}
-
-
-def listening(port: int) -> bool:
-    """A TCP socket of this machine listens on ``port`` (read from /proc: no probe connection)."""
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        try:
-            lines = Path(table).read_text().splitlines()[1:]
-        except OSError:
-            continue
-        for line in lines:
-            cols = line.split()
-            if int(cols[1].rsplit(":", 1)[1], 16) == port and cols[3] == "0A":
-                return True
-    return False
 
 
 class Lab:
