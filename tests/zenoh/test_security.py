@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -62,10 +63,15 @@ def tls_net(pki, tmp_path):
             "agent-1": write("agent-1-mtls"), "agent-2": write("agent-1-mtls", "agent-2"), "port": port}
 
 
-def test_documented_lab_config_parses():
-    cfg = zenoh.Config.from_json5(doc_config("lab-peer"))
-    assert cfg.get_json("mode") == '"peer"'
-    assert cfg.get_json("scouting/multicast/enabled") == "false"
+def test_documented_lab_configs_are_the_ones_the_code_builds():
+    from fisc_agent.zenoh_session import LabDiscovery, LabRole, lab_config_json
+
+    for block, role in (("lab-hub", LabRole.HUB), ("lab-member", LabRole.MEMBER)):
+        cfg = zenoh.Config.from_json5(doc_config(block))
+        built = lab_config_json(role, LabDiscovery())
+        assert cfg.get_json("mode") == '"peer"' and cfg.get_json("scouting/multicast/enabled") == "false"
+        for key in ("listen", "connect"):
+            assert json.loads(cfg.get_json(f"{key}/endpoints")) == built[key]["endpoints"], (block, key)
 
 
 def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, ground_key, pki):
