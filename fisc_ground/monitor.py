@@ -660,8 +660,8 @@ def run_monitor(args: Any) -> int:
                         shown_map = agg.cmap
                     live.update(render(view, fields, shown_map, pipe.dropped, title, pipe.worker_errors,
                                        pipe.last_error))
-                    hint = None if hinted else silence_hint(view.n_agents, time.monotonic() - started, keys,
-                                                            args.zenoh_config, zenoh_neighbours(session))
+                    hint = None if hinted or view.n_agents else silence_hint(
+                        0, time.monotonic() - started, keys, args.zenoh_config, zenoh_neighbours(session))
                     if hint:  # once: why nobody is heard and what to start
                         log.warning("%s", hint)
                         hinted = True

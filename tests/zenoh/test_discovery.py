@@ -179,3 +179,19 @@ def test_emulated_fleet_and_monitor_meet_in_either_order(files, tmp_path):
                 if p.poll() is None:
                     p.kill()
                     p.communicate()
+
+
+def test_silence_hint_says_why_and_what_to_start():
+    from fisc_agent.zenoh_keys import Keys
+    from fisc_ground.zenoh_config import silence_hint
+
+    keys = Keys("fisc", "demo")
+    assert silence_hint(0, 4.9, keys, None, 0) is None          # not yet
+    assert silence_hint(3, 60.0, keys, None, 0) is None         # agents heard
+    alone = silence_hint(0, 5.0, keys, None, 0)
+    assert "no other Zenoh process is connected" in alone and "tcp/127.0.0.1:" in alone
+    assert "fisc-sim emulate --agents 20 --swarm demo" in alone
+    peers = silence_hint(0, 6.0, keys, None, 2)
+    assert "2 Zenoh peer(s)/router(s) are connected" in peers and "--swarm" in peers
+    with_file = silence_hint(0, 6.0, keys, "field.json5", 0)
+    assert "field.json5" in with_file and "same router" in with_file
