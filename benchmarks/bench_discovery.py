@@ -42,7 +42,7 @@ def one(order: tuple[str, str], agents: int, gap_s: float, window_s: float, work
     rec = work / f"{order[0]}-first.fiscrec"
     argv = {
         "monitor": [sys.executable, "-m", "fisc_ground.cli", "monitor", "--swarm", "demo", "--duration",
-                    str(window_s), "--map-timeout", "0.5", "--record", str(rec)],
+                    str(window_s), "--record", str(rec)],  # the monitor's defaults otherwise
         "emulate": [sys.executable, "-m", "sim.cli", "emulate", "--agents", str(agents), "--duration",
                     str(window_s + 10), "--swarm", "demo", "--trusted-key", str(work / "ground.pub"), "-o",
                     str(work / f"emu-{order[0]}"), "--no-compare", "--no-figures", "-q"],
