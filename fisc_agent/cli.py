@@ -178,7 +178,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
     try:
         if zenoh_args is not None and zenoh_args.swarm:
             from fisc_agent.mapfile import read_public_key
-            from fisc_agent.zenoh_link import connect_runner
+            from fisc_agent.zenoh_runner import connect_runner
 
             try:
                 keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None

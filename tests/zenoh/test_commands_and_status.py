@@ -98,7 +98,7 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
 
 def test_start_at_holds_now_and_resumes_at_the_time_and_a_later_command_cancels_it():
     from fisc_agent.fleet_commands import FleetCommand
-    from fisc_agent.zenoh_link import _CommandDispatcher
+    from fisc_agent.zenoh_runner import _CommandDispatcher
 
     class FakeRunner:
         def __init__(self):
