@@ -34,7 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fisc_agent import telemetry_codec as tc  # noqa: E402
-from fisc_agent.zenoh_link import AgentZenohLink, Keys, load_config  # noqa: E402
+from fisc_agent.zenoh_keys import Keys  # noqa: E402
+from fisc_agent.zenoh_link import AgentZenohLink  # noqa: E402
+from fisc_agent.zenoh_session import config_from_json, peer_config_json  # noqa: E402
 
 
 def free_port() -> int:
@@ -44,8 +46,8 @@ def free_port() -> int:
 
 
 def configs(port: int):
-    hub = load_config(listen=[f"tcp/127.0.0.1:{port}"], connect=[])
-    member = load_config(connect=[f"tcp/127.0.0.1:{port}"])
+    hub = config_from_json(peer_config_json([f"tcp/127.0.0.1:{port}"], []))
+    member = config_from_json(peer_config_json(["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"]))
     for c in (hub, member):
         c.insert_json5("scouting/gossip/enabled", "false")  # star around the hub, no full mesh
     return hub, member

@@ -83,7 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
     z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
     z.add_argument("--swarm", type=swarm_name_arg, help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
-    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: peer on loopback, hub 127.0.0.1:7447)")
+    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: peer on loopback, listen on tcp/127.0.0.1:7447 if free, else connect to it)")
     z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
     z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")
@@ -177,7 +177,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
     try:
         if zenoh_args is not None and zenoh_args.swarm:
             from fisc_agent.mapfile import read_public_key
-            from fisc_agent.zenoh_link import connect_runner
+            from fisc_agent.zenoh_runner import connect_runner
 
             try:
                 keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None

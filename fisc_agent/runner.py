@@ -7,7 +7,8 @@ re-synchronises instead of bursting).  Other threads (the Zenoh side) talk to a 
 
 - ``offer_map(cmap)``: a new map; checked now, swapped in atomically between two ticks.
 - ``fleet_command(name)``: ``hold`` / ``resume`` / ``land``, applied at the next tick.
-- ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick).
+- ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick; before the
+  first tick, the agent waiting on the ground).
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity
 from fisc_agent.link import PositionSample, VehicleLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
-from fisc_agent.mission import FLYING, Mission, MissionCommand, MissionOutput, State, VehicleStatus
+from fisc_agent.mission import (FLYING, Cause, HoldCause, Mission, MissionCommand, MissionOutput, Reason, State,
+                                VehicleStatus)
 from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.ratelimit import RateLimitedLog
 
@@ -75,6 +77,12 @@ class AgentSnapshot:
     """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
     laps: int
     """Completed passes through the tunnel."""
+    failsafe: bool
+    """A failsafe holds the vehicle (``failsafe_active``: link lost, position stale or lost,
+    geofence, mode taken by the pilot or an autopilot failsafe); telemetry flag ``failsafe``."""
+    outside_map: bool
+    """Outside the map's CVs where the mission expects to be inside (``outside_map``); telemetry
+    flag ``outside_map``."""
     parcel_map_m: Vec | None = None
     """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
 
@@ -114,6 +122,28 @@ class TickRecord:
     """Completed passes."""
     parcel_map_m: Vec | None
     """Streamline-tracking parcel in FLOW, map frame [m]."""
+
+
+FAILSAFE_HOLD_CAUSES = frozenset({HoldCause.LINK_LOST, HoldCause.POSITION_STALE, HoldCause.GEOFENCE,
+                                  HoldCause.PILOT_OVERRIDE})
+"""Hold causes that are failsafes (a fleet or exit hold is not)."""
+
+
+def failsafe_active(state: State, reason: Reason) -> bool:
+    """True while a failsafe holds or returns the vehicle: a HOLD for a lost link, a stale or
+    lost position, the geofence or a mode taken from the agent, or the geofence's RETURN."""
+    if state == State.HOLD:
+        return reason.cause in FAILSAFE_HOLD_CAUSES
+    return state == State.RETURN and reason.cause == Cause.GEOFENCE_RETURN
+
+
+def outside_map(state: State, reason: Reason, cv_id: int, position_known: bool) -> bool:
+    """True when the vehicle is outside the map's CVs (``cv_id`` -1 at a known position) in a
+    state that belongs inside: FLOW, the geofence's RETURN, or a geofence HOLD (joining from
+    the staging area and leaving past the outlet are outside by design)."""
+    if not position_known or cv_id >= 0:
+        return False
+    return state in (State.FLOW, State.RETURN) or (state == State.HOLD and reason.cause == HoldCause.GEOFENCE)
 
 
 class Runner:
@@ -208,18 +238,28 @@ class Runner:
         with self._lock:
             self._pending_cmds.append(cmd)
 
-    def snapshot(self) -> AgentSnapshot | None:
-        """The latest telemetry snapshot (None before the first tick)."""
+    def snapshot(self) -> AgentSnapshot:
+        """The latest telemetry snapshot; before the first tick, the agent waiting on the ground
+        (the mission's initial state, the map in use if any, no position, no autopilot yet)."""
         k = self._last_tick
         if k is None:
-            return None
-        cmap = k.cmap
+            cmap = self.cmap
+            return AgentSnapshot(
+                time_s=self.clock(), wall_time_s=self.wall_clock(), agent_id=self.cfg.agent_id,
+                state=self.mission.state.value, reason=self.mission.reason, position_map_m=None,
+                velocity_map_m_s=None, setpoint_map_m_s=None, cv_id=-1, map_sha256=cmap.sha256 if cmap else None,
+                map_version=cmap.map_version if cmap else None, link_ok=False, heartbeat_age_s=math.inf,
+                position_age_s=math.inf, autopilot=None, armed=False, mode=ModeClass.UNKNOWN.value, laps=0,
+                failsafe=False, outside_map=False)
+        cmap, state, reason = k.cmap, k.out.state, k.out.reason
         return AgentSnapshot(
-            time_s=k.now_s, wall_time_s=k.wall_time_s, agent_id=self.cfg.agent_id, state=k.out.state.value,
-            reason=k.out.reason, position_map_m=k.position_map_m, velocity_map_m_s=k.velocity_map_m_s,
+            time_s=k.now_s, wall_time_s=k.wall_time_s, agent_id=self.cfg.agent_id, state=state.value,
+            reason=reason, position_map_m=k.position_map_m, velocity_map_m_s=k.velocity_map_m_s,
             setpoint_map_m_s=k.setpoint_map_m_s, cv_id=k.out.cv_id, map_sha256=cmap.sha256 if cmap else None,
             map_version=cmap.map_version if cmap else None, link_ok=k.link_ok, heartbeat_age_s=k.heartbeat_age_s,
-            position_age_s=k.position_age_s, autopilot=k.autopilot, armed=k.armed, mode=k.mode, laps=k.laps,
+            position_age_s=k.position_age_s, autopilot=k.autopilot, armed=k.armed, mode=k.mode.value,
+            laps=k.laps, failsafe=failsafe_active(state, reason),
+            outside_map=outside_map(state, reason, k.out.cv_id, k.position_map_m is not None and cmap is not None),
             parcel_map_m=k.parcel_map_m)
 
     # ---- the tick ------------------------------------------------------------------------

@@ -1,20 +1,13 @@
-"""Agent side of the Zenoh link: signed map reception, fleet commands, telemetry.
+"""Agent side of the Zenoh link: signed map reception, fleet commands, telemetry (session I/O).
 
-Key expressions (``prefix`` default ``fisc``)::
+The pieces it wires: key expressions (``fisc_agent.zenoh_keys``), sessions and the lab
+discovery (``fisc_agent.zenoh_session``), the map-chunk codec and reassembly
+(``fisc_agent.map_chunks``), map verification (``fisc_agent.zenoh_maps``), the telemetry
+message (``fisc_agent.zenoh_telemetry``).
 
-    <prefix>/<swarm>/map                      map chunks and announcements (queryable for late joiners)
-    <prefix>/<swarm>/cmd                      signed fleet commands
-    <prefix>/<swarm>/agents/<id>/telemetry    telemetry (``fisc_agent.telemetry_codec``)
-
-Map transport.  A map (the ``.fiscmap`` bytes) travels as chunks, each a ``CHUNK_HEADER``
-(72 bytes) followed by a slice of the map::
-
-    b"FMCH", u8 version (1), u8 kind (1 chunk, 2 announce), u16 reserved,
-    u64 map_version, 32s sha256 of the whole map bytes, u64 total bytes,
-    u32 chunk index, u32 chunk count, u64 byte offset of this chunk
-
-The ground pushes every chunk once when it starts serving a map, answers queries on the map
-key with every chunk (late joiners), and announces (kind 2, no data) the current map
+Map transport.  A map travels as chunks (format: ``fisc_agent.map_chunks``).  The ground
+pushes every chunk once when it starts serving a map, answers queries on the map key with
+every chunk (late joiners), and announces (kind 2, no data) the current map
 periodically.  An agent queries on start and whenever an announcement names a map newer than
 its own that is not arriving.  Reassembled bytes must match the header's sha256, then pass
 ``decode_map`` (schema, content hash, Ed25519 signature from a trusted key) and carry a
@@ -29,196 +22,34 @@ This module is onboard code: numpy, the standard library, PyNaCl and zenoh only.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import queue
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
-from fisc_agent.names import check_prefix, check_swarm_name
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, decode_command
-from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, DEFAULT_CHUNK_BYTES,  # noqa: F401
-                                   DEFAULT_MAX_MAP_BYTES, KIND_ANNOUNCE, KIND_CHUNK, AssemblyDrop, AssemblyLimits,
-                                   ChunkHeader, DropReason, MapAssembler, announce_message, parse_chunk, split_map)
-from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind, decode_map
+from fisc_agent.map_chunks import (KIND_ANNOUNCE, AssemblyDrop, AssemblyLimits, ChunkHeader, DropReason,
+                                   MapAssembler)
+from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
 from fisc_agent.ratelimit import RateLimitedLog
+from fisc_agent.runner import AgentSnapshot
+from fisc_agent.zenoh_keys import DEFAULT_PREFIX, Keys
+from fisc_agent.zenoh_maps import command_check, reject_code, verify_map_bytes
+from fisc_agent.zenoh_session import ZenohSessionError, open_session
+from fisc_agent.zenoh_telemetry import LinkStatus, telemetry_message
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PREFIX = "fisc"
-DEFAULT_PORT = 7447
 DEFAULT_RX_QUEUE_BYTES = 512 << 20
 """Map-key payloads waiting for the assembler thread, at most [bytes] (more are dropped and counted)."""
 DEFAULT_RX_QUEUE_MESSAGES = 4096
 """... and at most this many messages."""
 LOG_PERIOD_S = 5.0
 """Refusals of the same kind are logged at most once per this period (all are counted)."""
-
-
-# --------------------------------------------------------------------------------------------
-# Key expressions and session configuration
-
-@dataclass(frozen=True)
-class Keys:
-    """The key expressions of one swarm."""
-
-    prefix: str
-    """Configurable root (default ``fisc``)."""
-    swarm: str
-    """Swarm name (one key segment)."""
-
-    def __post_init__(self) -> None:  # the one name rule of every command (fisc_agent.names)
-        check_prefix(self.prefix)
-        check_swarm_name(self.swarm)
-
-    @property
-    def map(self) -> str:
-        return f"{self.prefix}/{self.swarm}/map"
-
-    @property
-    def cmd(self) -> str:
-        return f"{self.prefix}/{self.swarm}/cmd"
-
-    def telemetry(self, agent_id: int | str) -> str:
-        return f"{self.prefix}/{self.swarm}/agents/{agent_id}/telemetry"
-
-    @property
-    def all_telemetry(self) -> str:
-        return f"{self.prefix}/{self.swarm}/agents/*/telemetry"
-
-    def agent_of(self, key: str) -> int | None:
-        """Agent id from a telemetry key (None if the key is not one)."""
-        parts = str(key).split("/")
-        try:
-            return int(parts[-2]) if parts[-1] == "telemetry" and parts[-3] == "agents" else None
-        except (ValueError, IndexError):
-            return None
-
-
-def default_config_json(listen: list[str] | None = None, connect: list[str] | None = None) -> dict:
-    """The lab default: peer mode, multicast scouting off, loopback endpoints only.
-
-    Without arguments: listen on an ephemeral loopback port and connect to
-    ``tcp/127.0.0.1:7447`` (where ``fisc-ground publish`` listens by default).  Gossip
-    scouting stays on, so peers that meet at the hub also connect directly.
-    """
-    return {
-        "mode": "peer",
-        "listen": {"endpoints": list(listen) if listen is not None else ["tcp/127.0.0.1:0"]},
-        "connect": {"endpoints": list(connect) if connect is not None else [f"tcp/127.0.0.1:{DEFAULT_PORT}"]},
-        "scouting": {"multicast": {"enabled": False}},
-    }
-
-
-def load_config(path: str | Path | None = None, *, listen: list[str] | None = None,
-                connect: list[str] | None = None):
-    """A ``zenoh.Config`` from a standard Zenoh JSON5 file, or the lab default if ``path`` is None."""
-    import zenoh
-
-    if path is not None:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: Zenoh config file not found")
-        try:
-            return zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh raises ZError with the JSON5 position
-            raise ValueError(f"{path}: invalid Zenoh config ({exc})") from exc
-    cfg = zenoh.Config()
-    for key, value in default_config_json(listen, connect).items():
-        cfg.insert_json5(key, json.dumps(value))
-    return cfg
-
-
-class ZenohSessionError(ValueError):
-    """A Zenoh session could not be opened (endpoint busy or unreachable, bad TLS files...)."""
-
-
-def open_session(config: Any = None):
-    """Open a Zenoh session from a ``zenoh.Config``, a config file path, or None (lab default)."""
-    import zenoh
-
-    where = str(config) if isinstance(config, (str, Path)) else "the default lab config"
-    if config is None or isinstance(config, (str, Path)):
-        config = load_config(config)
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as exc:
-        raise ZenohSessionError(f"cannot open a Zenoh session with {where}: {exc}") from exc
-
-
-# --------------------------------------------------------------------------------------------
-# Map refusals (pure)
-
-def _command_check(exc: Exception) -> str:
-    """The check a ``CommandError`` names (``"<check>: <detail>"``), for the counter's key."""
-    head = str(exc).split(":", 1)[0].strip()
-    return head if head.isidentifier() and len(head) <= 24 else "other"
-
-
-def reject_code(exc: Exception) -> str:
-    """The ``REJECT_REASONS`` name of a map refusal: a ``MapError``'s kind where the telemetry
-    has a code for it, ``other`` for the rest (and for any other exception)."""
-    kind = exc.kind.value if isinstance(exc, MapError) else MapErrorKind.OTHER.value
-    return kind if kind in tc.REJECT_REASONS[1:] else MapErrorKind.OTHER.value
-
-
-def verify_map_bytes(blob: bytes | bytearray, trusted_keys: list[bytes] | None, allow_unsigned: bool,
-                     claimed_version: int | None = None, source: str = "<zenoh>") -> CommandMap:
-    """decode_map plus the transport checks; arrays are made read-only."""
-    if allow_unsigned:
-        cmap = decode_map(memoryview(blob), None, source=source)
-        if cmap.signed and trusted_keys and bytes.fromhex(cmap.public_key or "") not in trusted_keys:
-            raise MapError(MapErrorKind.SIGNATURE, "signed by a key that is not trusted", source=source)
-    else:
-        if not trusted_keys:
-            raise MapError(MapErrorKind.SIGNATURE, "no trusted key configured", source=source)
-        cmap = decode_map(memoryview(blob), trusted_keys, source=source)
-    if claimed_version is not None and cmap.map_version != claimed_version:
-        raise MapError(MapErrorKind.VERSION_MISMATCH, f"chunks claim map_version {claimed_version}, "
-                       f"the map says {cmap.map_version}", source=source)
-    for arr in cmap.arrays.values():
-        arr.flags.writeable = False
-    return cmap
-
-
-# --------------------------------------------------------------------------------------------
-# Telemetry from a runner snapshot
-
-_SNAPSHOT_NAMES = {
-    "time_s": ("wall_time_s", "unix_time_s", "time_unix_s"),
-    "position_m": ("position_map_m", "position_m", "pos_m"),
-    "velocity_m_s": ("velocity_map_m_s", "velocity_m_s", "vel_m_s"),
-    "cv_index": ("cv_index", "cv_id", "cv"),
-    "state": ("state",),
-    "map_sha256": ("map_sha256",),
-    "map_version": ("map_version",),
-    "position_age_s": ("position_age_s",),
-    "heartbeat_age_s": ("heartbeat_age_s",),
-    "armed": ("armed",),
-    "mavlink_ok": ("mavlink_ok", "link_ok"),
-    "outside_map": ("outside_map",),
-    "failsafe": ("failsafe",),
-}
-
-
-def _get(snap: Any, field_name: str, default: Any) -> Any:
-    for name in _SNAPSHOT_NAMES[field_name]:
-        value = snap.get(name) if isinstance(snap, Mapping) else getattr(snap, name, None)
-        if value is not None:
-            return value
-    return default
-
-
-def _vec3(value: Any) -> tuple[float, float, float]:
-    if value is None:
-        return (math.nan, math.nan, math.nan)
-    x, y, z = (float(v) for v in value)
-    return (x, y, z)
 
 
 # --------------------------------------------------------------------------------------------
@@ -566,7 +397,7 @@ class AgentZenohLink:
             if "target:" not in str(exc):
                 with self._lock:
                     self.stats.commands_rejected += 1
-                self.rlog.event(f"cmd:{_command_check(exc)}", logging.WARNING, "fleet command refused: %s", exc)
+                self.rlog.event(f"cmd:{command_check(exc)}", logging.WARNING, "fleet command refused: %s", exc)
             return
         with self._lock:
             self.stats.commands_accepted += 1
@@ -576,45 +407,28 @@ class AgentZenohLink:
         self.on_command(cmd)
 
     # -- telemetry ---------------------------------------------------------------------------
-    def telemetry_from(self, snap: Any) -> tc.Telemetry:
-        """Build the telemetry message for a runner snapshot (mapping or object; see
-        ``_SNAPSHOT_NAMES`` for the field names read) plus this link's counters."""
+    def telemetry_from(self, snap: AgentSnapshot | None) -> tc.Telemetry:
+        """The telemetry message for a runner snapshot (None before its first tick) plus this
+        link's counters (``fisc_agent.zenoh_telemetry.telemetry_message``)."""
         with self._lock:
             stats, current = self.stats, self.current
             self._seq = (self._seq + 1) & 0xFFFFFFFF
             seq = self._seq
-        flags = {name for name in ("armed", "mavlink_ok", "outside_map", "failsafe") if _get(snap, name, False)}
-        pos_age = float(_get(snap, "position_age_s", math.inf))
-        if pos_age < 1.0:
-            flags.add("position_fresh")
-        if self._pub is not None:
-            flags.add("zenoh_ok")
-        sha = _get(snap, "map_sha256", current.sha256 if current is not None else "") or ""
-        version = _get(snap, "map_version", None)
-        if version is None:
-            version = current.map_version if current is not None and current.sha256 == sha else 0
-        if current is not None and current.sha256 == sha and not current.signed:
-            flags.add("map_unsigned")
-        state = getattr(_get(snap, "state", "UNKNOWN"), "value", None) or str(_get(snap, "state", "UNKNOWN"))
-        if not sha and state in ("UNKNOWN", "WAIT_POSITION"):
-            state = "WAIT_MAP"  # on the ground, unarmed, until a valid map arrives
-        return tc.Telemetry(
-            agent_id=self.agent_id, seq=seq, time_s=float(_get(snap, "time_s", self.clock())),
-            position_m=_vec3(_get(snap, "position_m", None)), velocity_m_s=_vec3(_get(snap, "velocity_m_s", None)),
-            cv_index=int(_get(snap, "cv_index", -1)), state=state,
-            map_version=int(version), map_sha256=str(sha), flags=frozenset(flags),
-            maps_rejected=stats.maps_rejected, reject_reason=stats.last_reject_reason, position_age_s=pos_age,
-            heartbeat_age_s=float(_get(snap, "heartbeat_age_s", math.inf)), ack_command=stats.last_command,
-            ack_seq=stats.last_command_seq)
+            sha = snap.map_sha256 if snap is not None else None
+            status = LinkStatus(maps_rejected=stats.maps_rejected, reject_reason=stats.last_reject_reason,
+                                ack_command=stats.last_command, ack_seq=stats.last_command_seq,
+                                zenoh_ok=self._pub is not None,
+                                map_unsigned=current is not None and current.sha256 == sha and not current.signed)
+        return telemetry_message(snap, self.agent_id, seq, status, self.clock())
 
-    def publish_telemetry(self, snap: Any) -> None:
+    def publish_telemetry(self, snap: AgentSnapshot | None) -> None:
         """Encode and publish one telemetry message (never blocks: dropped under congestion)."""
         if self._pub is None:
             return
         self._pub.put(tc.encode(self.telemetry_from(snap)))
         self.stats.telemetry_sent += 1
 
-    def start_telemetry(self, snapshot: Callable[[], Any], rate_hz: float = 5.0) -> None:
+    def start_telemetry(self, snapshot: Callable[[], AgentSnapshot | None], rate_hz: float = 5.0) -> None:
         """Publish ``snapshot()`` at ``rate_hz`` from a background thread until ``close``."""
         if not rate_hz > 0:
             raise ValueError(f"telemetry rate must be > 0 Hz, got {rate_hz}")
@@ -632,54 +446,3 @@ class AgentZenohLink:
 
         self._telemetry_thread = threading.Thread(target=loop, name=f"fisc-telemetry-{self.agent_id}", daemon=True)
         self._telemetry_thread.start()
-
-
-# --------------------------------------------------------------------------------------------
-# Wiring to the agent runner
-
-class _CommandDispatcher:
-    """Fleet commands -> ``Runner.fleet_command``; ``start-at T`` = hold (on the ground) now,
-    resume at T.  A later command cancels a pending start."""
-
-    def __init__(self, runner: Any, clock: Callable[[], float]) -> None:
-        self.runner = runner
-        self.clock = clock
-        self._timer: threading.Timer | None = None
-        self._lock = threading.Lock()
-
-    def __call__(self, cmd: FleetCommand) -> None:
-        with self._lock:
-            self.cancel()
-            if cmd.name != "start-at":
-                self.runner.fleet_command(cmd.name)
-                return
-            self.runner.fleet_command("hold")
-            delay = float(cmd.start_at_unix_s) - self.clock()
-            log.info("start-at: holding until %.3f (in %.1f s)", cmd.start_at_unix_s, delay)
-            if delay <= 0:
-                self.runner.fleet_command("resume")
-            else:
-                self._timer = threading.Timer(delay, self.runner.fleet_command, ("resume",))
-                self._timer.daemon = True
-                self._timer.start()
-
-    def cancel(self) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
-
-
-def connect_runner(runner: Any, session_config: Any, swarm: str, trusted_keys: list[bytes] | None,
-                   allow_unsigned: bool = False, telemetry_rate_hz: float = 5.0, prefix: str = DEFAULT_PREFIX,
-                   session: Any = None, clock: Callable[[], float] = time.time) -> AgentZenohLink:
-    """Start an ``AgentZenohLink`` for a ``fisc_agent.runner.Runner``: verified maps go to
-    ``runner.offer_map`` (swapped at its next tick), fleet commands to ``runner.fleet_command``
-    (``start-at``: hold until the time, then resume), and ``runner.snapshot()`` is published as
-    telemetry at ``telemetry_rate_hz``.  Close the returned link when the runner stops."""
-    dispatcher = _CommandDispatcher(runner, clock)
-    link = AgentZenohLink(session_config, swarm, runner.cfg.agent_id, trusted_keys, allow_unsigned,
-                          runner.offer_map, dispatcher, prefix=prefix, session=session, clock=clock)
-    link.close_hooks.append(dispatcher.cancel)
-    link.start()
-    link.start_telemetry(runner.snapshot, telemetry_rate_hz)
-    return link

@@ -12,7 +12,7 @@ from typing import Any
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
-from fisc_agent.zenoh_link import Keys
+from fisc_agent.zenoh_keys import Keys
 from fisc_ground.monitor import DEFAULT_MAX_AGENTS
 
 log = logging.getLogger(__name__)

@@ -30,7 +30,7 @@ import numpy as np
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap
-from fisc_agent.zenoh_link import Keys
+from fisc_agent.zenoh_keys import Keys
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 
 log = logging.getLogger(__name__)
@@ -518,7 +518,7 @@ def verify_monitor_map(blob: bytes | bytearray, trusted_keys: list[bytes] | None
     """The monitor's rule for a map: with trusted keys, signed by one of them; without, any valid
     signature; an unsigned map only with ``allow_unsigned`` (``MapError`` names the refusal)."""
     from fisc_agent.mapfile import MapError, MapErrorKind
-    from fisc_agent.zenoh_link import verify_map_bytes
+    from fisc_agent.zenoh_maps import verify_map_bytes
 
     if trusted_keys:
         return verify_map_bytes(blob, trusted_keys, allow_unsigned=False, claimed_version=claimed_version,
@@ -536,7 +536,7 @@ def fetch_map(session: Any, keys: Keys, trusted_keys: list[bytes] | None, timeou
     import zenoh
 
     from fisc_agent.mapfile import MapError
-    from fisc_agent.zenoh_link import MapAssembler
+    from fisc_agent.map_chunks import MapAssembler
 
     asm = MapAssembler()
     for reply in session.get(keys.map, consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
@@ -571,7 +571,7 @@ class MapFollower:
 
     def _on_sample(self, sample: Any) -> None:
         from fisc_agent.mapfile import MapError
-        from fisc_agent.zenoh_link import KIND_ANNOUNCE, parse_chunk
+        from fisc_agent.map_chunks import KIND_ANNOUNCE, parse_chunk
 
         try:
             head, _ = parse_chunk(sample.payload.to_bytes()[:96])
@@ -608,7 +608,7 @@ def run_monitor(args: Any) -> int:
     from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, MapFileError, read_public_key
     from fisc_agent.safe_files import read_regular_file
     from fisc_ground.recording import Recorder
-    from fisc_ground.zenoh_config import open_ground_session
+    from fisc_ground.zenoh_config import open_ground_session, silence_hint, zenoh_neighbours
 
     keys = Keys(args.prefix, args.swarm)
     trusted = [read_public_key(p) for p in (args.trusted_key or [])]
@@ -650,6 +650,7 @@ def run_monitor(args: Any) -> int:
                                                      cmap.map_version if cmap is not None else 0,
                                                      allow_unsigned=args.allow_unsigned)
         end = time.monotonic() + args.duration if args.duration else math.inf
+        started, hinted = time.monotonic(), False
         title = f"FISC swarm {args.swarm}" + (f"  recording {args.record}" if args.record else "")
         try:
             with Live(console=console, refresh_per_second=4, screen=False) as live:
@@ -660,6 +661,11 @@ def run_monitor(args: Any) -> int:
                         shown_map = agg.cmap
                     live.update(render(view, fields, shown_map, pipe.dropped, title, pipe.worker_errors,
                                        pipe.last_error))
+                    hint = None if hinted or view.n_agents else silence_hint(
+                        0, time.monotonic() - started, keys, args.zenoh_config, zenoh_neighbours(session))
+                    if hint:  # once: why nobody is heard and what to start
+                        log.warning("%s", hint)
+                        hinted = True
                     time.sleep(0.5)
         except KeyboardInterrupt:
             pass

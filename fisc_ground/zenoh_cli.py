@@ -1,4 +1,4 @@
-"""The Zenoh subcommands of ``fisc-ground``: publish, cmd, status, monitor, replay.
+"""The Zenoh subcommands of ``fisc-ground``: publish, cmd, status, monitor, replay, router.
 
 ``add_parsers(subparsers)`` registers them on the ``fisc-ground`` argparse subparsers; each
 sets ``func`` to its ``run_*(args)``.
@@ -14,7 +14,8 @@ from typing import Any
 
 from fisc_agent.fleet_commands import COMMANDS
 from fisc_agent.names import prefix_arg, swarm_name_arg
-from fisc_agent.zenoh_link import DEFAULT_CHUNK_BYTES, DEFAULT_PREFIX
+from fisc_agent.map_chunks import DEFAULT_CHUNK_BYTES
+from fisc_agent.zenoh_keys import DEFAULT_PREFIX
 
 log = logging.getLogger(__name__)
 
@@ -23,8 +24,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--swarm", required=True, type=swarm_name_arg, metavar="NAME",
                    help="swarm name (key expressions <prefix>/NAME/...): 1-64 of A-Z a-z 0-9 _ - .")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE",
-                   help="standard Zenoh JSON5 config (default: peer mode on loopback, multicast off, "
-                        "hub tcp/127.0.0.1:7447)")
+                   help="standard Zenoh JSON5 config (default: the lab default, peer mode on loopback: listen "
+                        "on tcp/127.0.0.1:7447 if free, else connect to it; port from FISC_ZENOH_PORT)")
     p.add_argument("--prefix", type=prefix_arg, default=DEFAULT_PREFIX,
                    help=f"key expression prefix: chunks of A-Z a-z 0-9 _ - . joined by / (default {DEFAULT_PREFIX})")
 
@@ -55,7 +56,7 @@ def run_publish(args: Any) -> int:
     from fisc_ground.zenoh_publish import MapServer
 
     path = Path(args.map)
-    session = open_ground_session(args.zenoh_config, hub=True)
+    session = open_ground_session(args.zenoh_config)
     try:
         server = MapServer(session, args.swarm, args.prefix, chunk_bytes=args.chunk_size,
                            announce_period_s=args.announce_period)
@@ -89,17 +90,18 @@ def run_publish(args: Any) -> int:
 
 
 def add_parsers(subparsers: Any) -> None:
-    """Register publish, cmd, status, monitor and replay on ``fisc-ground``'s subparsers."""
+    """Register publish, cmd, status, monitor, replay and router on ``fisc-ground``'s subparsers."""
     from fisc_ground.fleet import run_cmd, run_status
     from fisc_ground.monitor import DEFAULT_MAX_AGENTS, run_monitor
     from fisc_ground.recording import run_replay
+    from fisc_ground.zenoh_router import add_parser as add_router_parser
 
     p = subparsers.add_parser(
         "publish", help="serve a map to a swarm over Zenoh",
         description="Serve MAP on <prefix>/<swarm>/map: pushed to running agents, answered to agents that "
                     "start later, announced periodically. When the file is replaced by a newer map "
-                    "(higher map_version) that map is served instead. Without --zenoh-config this process "
-                    "is the lab hub (listens on tcp/127.0.0.1:7447).")
+                    "(higher map_version) that map is served instead. Without --zenoh-config the lab default "
+                    "applies (listen on tcp/127.0.0.1:7447 if free, else connect to it).")
     p.add_argument("map", metavar="MAP", type=Path, help="the .fiscmap to serve (sign it: agents refuse unsigned maps)")
     _common(p)
     p.add_argument("--chunk-size", type=int, default=DEFAULT_CHUNK_BYTES, metavar="BYTES",
@@ -165,3 +167,5 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--min-samples", type=int, default=10, help="agent samples a CV needs to be compared (default 10)")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.set_defaults(func=run_replay)
+
+    add_router_parser(subparsers)

@@ -4,7 +4,7 @@
 ``<prefix>/<swarm>/map`` (agents already running), answered to every query on that key (agents
 that start later), and announced periodically (agents that missed chunks re-query).  A newer
 map (higher ``map_version``) replaces the current one; an older or equal one is refused.
-Transport format: ``fisc_agent.zenoh_link`` (chunk header with the map's sha256, index, count).
+Transport format: ``fisc_agent.map_chunks`` (chunk header with the map's sha256, index, count).
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind, MapFileError, decode_map
-from fisc_agent.zenoh_link import (DEFAULT_CHUNK_BYTES, DEFAULT_PREFIX, Keys, announce_message, parse_chunk,
-                                  split_map)
+from fisc_agent.map_chunks import DEFAULT_CHUNK_BYTES, announce_message, parse_chunk, split_map
+from fisc_agent.zenoh_keys import DEFAULT_PREFIX, Keys
 
 log = logging.getLogger(__name__)
 

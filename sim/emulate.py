@@ -135,7 +135,7 @@ class EmulateConfig:
     and ``status`` can watch the emulated swarm; None: no Zenoh."""
     zenoh_config: str | None = None
     """Standard Zenoh JSON5 config file for the agents' session (None: the lab default, peer mode on
-    loopback connecting to the hub ``tcp/127.0.0.1:7447``)."""
+    loopback, listening on ``tcp/127.0.0.1:7447`` if free, else connecting to it)."""
     zenoh_prefix: str = "fisc"
     """Zenoh key-expression prefix."""
     telemetry_rate_hz: float = 5.0
@@ -523,7 +523,8 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
     if not job.swarm:
         return None, []
     from fisc_agent.mapfile import read_public_key
-    from fisc_agent.zenoh_link import AgentZenohLink, open_session
+    from fisc_agent.zenoh_link import AgentZenohLink
+    from fisc_agent.zenoh_session import open_session
 
     keys = [read_public_key(job.trusted_key)]
     session = open_session(job.zenoh_config)
@@ -585,11 +586,12 @@ def _agent_worker(conn, job: _AgentJob) -> None:
             for i in np.flatnonzero(active):
                 r = runners[i]
                 r.step()
-                if zlinks and tick % telemetry_every == 0:
-                    zlinks[i].publish_telemetry(r.snapshot())
                 if trimmed[i] < len(trims) and r.link.target_system is not None:
                     r.link.send_command(trims[trimmed[i]])
                     trimmed[i] += 1
+            if zlinks and tick % telemetry_every == 0:  # every agent: launched, or waiting on the ground
+                for zlink, r in zip(zlinks, runners):
+                    zlink.publish_telemetry(r.snapshot())
             loop.tick(start, deadline, time.monotonic())
             tick, next_t = _next_tick(t0, tick, period)
             _sleep_until(next_t)

@@ -145,7 +145,9 @@ def test_full_pass_every_setpoint_is_clamped_and_velocity_only_transformed():
 
 def test_snapshot_reports_state_position_map_and_link():
     cfg, clock, link, r = make()
-    assert r.snapshot() is None
+    pre = r.snapshot()  # before the first tick: waiting on the ground, map known, no position
+    assert pre.state == "WAIT_POSITION" and pre.position_map_m is None and pre.map_sha256 == r.cmap.sha256
+    assert not (pre.armed or pre.link_ok or pre.failsafe or pre.outside_map)
     tick_until(r, clock, lambda: r.mission.state == State.FLOW)
     snap = r.snapshot()
     assert isinstance(snap, AgentSnapshot)

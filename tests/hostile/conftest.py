@@ -227,7 +227,7 @@ class Flight:
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory, ground_keys, request):
     """One agent flying loops through the tunnel (map version 100 over Zenoh)."""
-    from fisc_agent.zenoh_link import Keys
+    from fisc_agent.zenoh_keys import Keys
     from fisc_ground.fleet import TelemetryListener
     from fisc_ground.zenoh_publish import MapServer
 

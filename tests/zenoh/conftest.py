@@ -21,6 +21,20 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def listening(port: int) -> bool:
+    """A TCP socket of this machine listens on ``port`` (read from /proc: no probe connection)."""
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            cols = line.split()
+            if int(cols[1].rsplit(":", 1)[1], 16) == port and cols[3] == "0A":
+                return True
+    return False
+
+
 def write_config(path: Path, listen: list[str], connect: list[str], gossip: bool = True, extra: dict | None = None) -> Path:
     """A standard Zenoh JSON5 config: peer mode, multicast scouting off, explicit endpoints."""
     cfg = {"mode": "peer", "listen": {"endpoints": listen}, "connect": {"endpoints": connect},
@@ -100,3 +114,23 @@ def wait_for(pred, timeout_s: float = 10.0, period_s: float = 0.02) -> bool:
             return True
         time.sleep(period_s)
     return bool(pred())
+
+
+def snap(**fields):
+    """A runner ``AgentSnapshot`` for link tests: an armed agent in FLOW with fresh fixes, no map,
+    now; ``fields`` (the snapshot's own field names) override."""
+    import math
+
+    from fisc_agent.runner import AgentSnapshot
+
+    base = dict(time_s=time.monotonic(), wall_time_s=time.time(), agent_id=0, state="FLOW", reason="test",
+                position_map_m=None, velocity_map_m_s=None, setpoint_map_m_s=None, cv_id=-1, map_sha256=None,
+                map_version=None, link_ok=True, heartbeat_age_s=0.1, position_age_s=0.1, autopilot="px4",
+                armed=True, mode="offboard", laps=0, failsafe=False, outside_map=False)
+    base.update(fields)
+    if base["position_map_m"] is not None:
+        base["position_map_m"] = tuple(float(v) for v in base["position_map_m"])
+    if base["velocity_map_m_s"] is not None:
+        base["velocity_map_m_s"] = tuple(float(v) for v in base["velocity_map_m_s"])
+    assert all(math.isfinite(v) for v in (base["time_s"], base["wall_time_s"]))
+    return AgentSnapshot(**base)

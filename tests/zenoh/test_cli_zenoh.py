@@ -10,7 +10,7 @@ import pytest
 
 from fisc_agent.zenoh_link import AgentZenohLink
 
-from .conftest import wait_for
+from .conftest import snap, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -31,8 +31,8 @@ def test_cli_publish_status_cmd_monitor_replay(net, make_map, ground_key, tmp_pa
     try:
         link.start()
         assert wait_for(lambda: maps, timeout_s=20), "agent never got the published map"
-        link.start_telemetry(lambda: {"state": "FLOW", "position_m": (1.0, 0.1, 0.1), "velocity_m_s": (3, 0, 0),
-                                      "map_sha256": maps[-1].sha256}, rate_hz=10)
+        link.start_telemetry(lambda: snap(position_map_m=(1.0, 0.1, 0.1), velocity_map_m_s=(3, 0, 0),
+                                                 map_sha256=maps[-1].sha256), rate_hz=10)
         out = subprocess.run(ground("status", "--swarm", "alpha", "--zenoh-config", member, "--json", "--wait", "2"),
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 0, out.stderr

@@ -14,8 +14,8 @@ from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import (ALL_AGENTS, CommandError, CommandGate, FleetCommand, decode_command,
                                        encode_command)
 from fisc_agent.mapfile import MapError, MapErrorKind
-from fisc_agent.zenoh_link import (CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, reject_code,
-                                   split_map)
+from fisc_agent.map_chunks import CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, split_map
+from fisc_agent.zenoh_maps import reject_code
 
 SHA = "0123456789abcdef" * 4
 

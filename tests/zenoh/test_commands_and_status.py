@@ -9,10 +9,11 @@ from nacl.signing import SigningKey
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.fleet_commands import encode_command
-from fisc_agent.zenoh_link import AgentZenohLink, Keys
+from fisc_agent.zenoh_keys import Keys
+from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground.fleet import TelemetryListener, matching, make_command, send_command, status_report
 
-from .conftest import wait_for
+from .conftest import snap, wait_for
 
 
 @pytest.fixture()
@@ -34,7 +35,7 @@ def test_signed_command_reaches_every_agent_and_is_acknowledged(fleet, ground_ke
     listener = TelemetryListener(ground, keys)
     cmd = make_command("hold", "alpha")
     for link in links:
-        link.start_telemetry(lambda: {"state": "FLOW", "position_m": (1, 0, 0)}, rate_hz=20)
+        link.start_telemetry(lambda: snap(position_map_m=(1, 0, 0)), rate_hz=20)
     res = send_command(ground, keys, cmd, ground_key[0], ack_timeout_s=10, listener=listener)
     assert res.matched
     assert wait_for(lambda: all(len(v) == 1 for v in got.values()))
@@ -76,7 +77,7 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
     listener = TelemetryListener(ground, Keys("fisc", "alpha"))
     sha = "ab" * 32
     for link in links:
-        link.start_telemetry(lambda: {"state": "FLOW", "map_sha256": sha, "position_m": (1.0, 2.0, 3.0)}, 20)
+        link.start_telemetry(lambda: snap(map_sha256=sha, position_map_m=(1.0, 2.0, 3.0)), 20)
     assert wait_for(lambda: len(listener.snapshot()) == 3)
     report = status_report(listener.snapshot(), time.time())
     assert [a["id"] for a in report["agents"]] == [0, 1, 2]
@@ -97,7 +98,7 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
 
 def test_start_at_holds_now_and_resumes_at_the_time_and_a_later_command_cancels_it():
     from fisc_agent.fleet_commands import FleetCommand
-    from fisc_agent.zenoh_link import _CommandDispatcher
+    from fisc_agent.zenoh_runner import _CommandDispatcher
 
     class FakeRunner:
         def __init__(self):

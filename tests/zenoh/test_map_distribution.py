@@ -6,11 +6,12 @@ import threading
 
 import pytest
 
+from fisc_agent.map_chunks import KIND_ANNOUNCE, KIND_CHUNK, parse_chunk
 from fisc_agent.mapfile import encode_map
-from fisc_agent.zenoh_link import KIND_ANNOUNCE, KIND_CHUNK, AgentZenohLink, parse_chunk
+from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground.zenoh_publish import MapServer
 
-from .conftest import map_parts, wait_for
+from .conftest import map_parts, snap, wait_for
 
 
 class Agent:
@@ -101,7 +102,7 @@ def test_bad_maps_are_refused_and_the_good_map_is_kept(bad, net, sessions, agent
         blob[200] ^= 0xFF  # inside the header JSON: the content hash no longer matches
         blob = bytes(blob)
         server._chunks = []  # noqa: SLF001 - push the tampered bytes as a (compromised) server would
-        from fisc_agent.zenoh_link import split_map
+        from fisc_agent.map_chunks import split_map
         for chunk in split_map(blob, 300, 4096):
             server._pub.put(chunk)  # noqa: SLF001
         reason = "sha256"
@@ -114,7 +115,7 @@ def test_bad_maps_are_refused_and_the_good_map_is_kept(bad, net, sessions, agent
     assert wait_for(lambda: ag.link.stats.maps_rejected >= 1)
     assert ag.link.stats.last_reject_reason == reason
     assert ag.versions() == [100] and ag.link.current.sha256 == good.sha256
-    tele = ag.link.telemetry_from({"state": "FLOW"})
+    tele = ag.link.telemetry_from(snap(map_sha256=good.sha256, map_version=100))
     assert tele.maps_rejected >= 1 and tele.reject_reason == reason and tele.map_sha256 == good.sha256
     server.close()
 
@@ -127,7 +128,7 @@ def test_allow_unsigned_accepts_unsigned_maps(net, sessions, agents, make_map):
     ag.link.start()
     assert wait_for(lambda: ag.link.current is not None)
     assert not ag.link.current.signed
-    assert "map_unsigned" in ag.link.telemetry_from({}).flags
+    assert "map_unsigned" in ag.link.telemetry_from(snap(map_sha256=ag.link.current.sha256)).flags
     server.close()
 
 
@@ -176,7 +177,7 @@ def test_client_mode_agent_started_before_the_router_connects_later(tmp_path, se
     try:
         link.start()  # no router yet: returns, keeps trying
         assert not link.connected
-        link.publish_telemetry({})  # a no-op while disconnected
+        link.publish_telemetry(snap())  # a no-op while disconnected
         router = sessions(router_cfg)
         server = MapServer(router, "alpha", announce_period_s=0.2)
         server.serve(make_map(100))
@@ -203,7 +204,7 @@ def test_a_map_the_runner_refuses_is_counted_and_not_adopted(net, sessions, make
         assert wait_for(lambda: link.stats.maps_rejected == 1)
         threading.Event().wait(0.5)  # announcements of the refused map do not make it retry
         assert offered == [100, 200] and link.current.map_version == 100
-        assert link.telemetry_from({}).reject_reason == "other"
+        assert link.telemetry_from(None).reject_reason == "other"
         server.serve(make_map(300, seed=2))
         assert wait_for(lambda: link.current.map_version == 300)
     finally:

@@ -10,7 +10,7 @@ import pytest
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import MapError, decode_map
-from fisc_agent.zenoh_link import Keys
+from fisc_agent.zenoh_keys import Keys
 from fisc_ground.monitor import AgentRoster, MapFollower, TelemetryAggregator, TelemetryPipe, fetch_map, render
 from fisc_ground.recording import Recorder, read_recording
 from fisc_ground.zenoh_publish import MapServer

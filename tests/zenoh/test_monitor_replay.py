@@ -10,11 +10,12 @@ import numpy as np
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import decode_map
-from fisc_agent.zenoh_link import AgentZenohLink, Keys
+from fisc_agent.zenoh_keys import Keys
+from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground.monitor import NO_AGENT, TelemetryAggregator, TelemetryPipe, render
 from fisc_ground.recording import Recorder, aggregate, read_recording, replay
 
-from .conftest import wait_for
+from .conftest import snap, wait_for
 
 CSV_COLUMNS = ["cv_x", "cv_y", "cv_z", "target_u_axial", "target_pressure", "target_density", "swarm_u_axial",
                "swarm_pressure", "swarm_density", "swarm_temperature", "samples"]
@@ -107,9 +108,9 @@ def test_hundred_agents_reach_the_monitor_and_replay_equals_live(net, sessions, 
         start = np.array([rng.uniform(0, 3.0), rng.uniform(-0.7, 0.7), rng.uniform(-0.7, 0.7)])
         vel = np.array([0.1, rng.normal(0, 0.005), rng.normal(0, 0.005)])
         t0 = time.time()
-        link.start_telemetry(lambda s=start, v=vel, t0=t0: {
-            "state": "FLOW", "position_m": s + v * (time.time() - t0), "velocity_m_s": v,
-            "map_sha256": cmap.sha256, "map_version": cmap.map_version}, rate_hz=10)
+        link.start_telemetry(lambda s=start, v=vel, t0=t0: snap(
+            position_map_m=s + v * (time.time() - t0), velocity_map_m_s=v, map_sha256=cmap.sha256,
+            map_version=cmap.map_version), rate_hz=10)
         links.append(link)
     try:
         assert wait_for(lambda: len(agg.slots) == 100, timeout_s=20)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -10,11 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from fisc_agent.zenoh_link import AgentZenohLink, Keys
+from fisc_agent.zenoh_keys import Keys
+from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground.fleet import TelemetryListener
 from fisc_ground.zenoh_publish import MapServer
 
-from .conftest import free_port, wait_for, zenoh
+from .conftest import free_port, snap, wait_for, zenoh
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "zenoh.md"
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl CLI")
@@ -61,10 +63,15 @@ def tls_net(pki, tmp_path):
             "agent-1": write("agent-1-mtls"), "agent-2": write("agent-1-mtls", "agent-2"), "port": port}
 
 
-def test_documented_lab_config_parses():
-    cfg = zenoh.Config.from_json5(doc_config("lab-peer"))
-    assert cfg.get_json("mode") == '"peer"'
-    assert cfg.get_json("scouting/multicast/enabled") == "false"
+def test_documented_lab_configs_are_the_ones_the_code_builds():
+    from fisc_agent.zenoh_session import LabDiscovery, LabRole, lab_config_json
+
+    for block, role in (("lab-hub", LabRole.HUB), ("lab-member", LabRole.MEMBER)):
+        cfg = zenoh.Config.from_json5(doc_config(block))
+        built = lab_config_json(role, LabDiscovery())
+        assert cfg.get_json("mode") == '"peer"' and cfg.get_json("scouting/multicast/enabled") == "false"
+        for key in ("listen", "connect"):
+            assert json.loads(cfg.get_json(f"{key}/endpoints")) == built[key]["endpoints"], (block, key)
 
 
 def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, ground_key, pki):
@@ -78,7 +85,7 @@ def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, grou
         for i in (1, 2):
             links[i] = AgentZenohLink(tls_net[f"agent-{i}"], "alpha", i, [ground_key[1]], False,
                                       lambda m: None, lambda c: None).start()
-            links[i].start_telemetry(lambda: {"state": "FLOW"}, rate_hz=20)
+            links[i].start_telemetry(lambda: snap(), rate_hz=20)
         assert wait_for(lambda: all(l.current is not None for l in links.values()))
         assert links[1].current.sha256 == served.sha256
         assert wait_for(lambda: set(listener.snapshot()) == {1, 2})
