@@ -25,20 +25,18 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "fisc_agent"))  # the agent t
 from test_agent_runner import MemoryLink, make, tick_until  # noqa: E402
 
 from fisc_agent import telemetry_codec as tc  # noqa: E402
-from fisc_agent.adapters import Px4Adapter  # noqa: E402
+from fisc_agent.adapters import ModeClass  # noqa: E402
 from fisc_agent.link import PositionSample  # noqa: E402
-from fisc_agent.mapfile import decode_map  # noqa: E402
+from fisc_agent.mapfile import decode_map, encode_map  # noqa: E402
 from fisc_agent.mission import State  # noqa: E402
 from fisc_agent.zenoh_keys import Keys  # noqa: E402
 from fisc_agent.zenoh_link import AgentZenohLink  # noqa: E402
 from fisc_agent.zenoh_session import PORT_ENV, LabDiscovery, open_lab_session  # noqa: E402
-from fisc_agent.mapfile import encode_map
 from fisc_ground.mapwrite import generate_keypair, read_signing_key  # noqa: E402
 from fisc_ground.monitor import TelemetryAggregator, TelemetryPipe  # noqa: E402
 
 from .conftest import free_port, map_parts, wait_for  # noqa: E402
 
-PX4_POSCTL = 2
 
 
 class FaultyLink(MemoryLink):
@@ -133,7 +131,7 @@ def test_geofence_sets_failsafe_and_outside_map(policy):
 def test_mode_taken_by_the_pilot_sets_failsafe():
     cfg, clock, link, r = runner_with()
     to_flow(r, clock)
-    link.custom_mode = Px4Adapter.px4_custom_mode(PX4_POSCTL)
+    link.vehicle_mode = ModeClass.OTHER  # the pilot switched to POSCTL
     tick_until(r, clock, lambda: r.mission.state == State.HOLD)
     snap = r.snapshot()
     assert snap.reason.startswith("pilot override") and snap.failsafe
