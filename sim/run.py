@@ -252,7 +252,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
     if config.scenario == "seed":
         swarm.add_agents(seed_positions(cf, rng, config.x_axial_m, config.agents))
     else:
-        reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents))
+        reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
+                              settings.persistence_s if settings.mode == "kinetic" else None)
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
     mass = float(cmap.body.get("agent_mass_kg", 1.0))
     n_steps = max(1, int(round(config.duration / config.dt_s)))
@@ -266,7 +267,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
     for k in range(n_steps + 1):
         if reservoir is not None and k < n_steps:
             for _ in range(reservoir.due(swarm.t_s)):
-                swarm.add_agents(reservoir.batch(rng))
+                pos, ids = reservoir.admit(reservoir.batch(rng), swarm.next_id, swarm.t_s, rng)
+                swarm.add_agents(pos, ids=ids)
         if k in snap_steps:
             swarm.assign()
             snapshots.append((snap_steps[k], swarm.pos_m.copy()))
