@@ -151,6 +151,8 @@ class Reservoir:
         if kinetic_persistence_s is not None:
             self._candidate_rate_per_cv = self.rate_per_cv / kinetic_admission_mean(
                 self.entry_cmd_m_s[:, 0], np.asarray(field.spread_m_s)[self.cvs])
+        self._entry_u_m_s = np.asarray(field.mean_cmd_m_s)[:, 0]
+        self._spread_m_s = None if field.spread_m_s is None else np.asarray(field.spread_m_s)
         self._carry = np.zeros(self.cvs.size)
         self._next_t = 0.0
 
@@ -160,7 +162,16 @@ class Reservoir:
         return float(self.rate_per_cv.sum())
 
     def batch(self, rng: np.random.Generator) -> np.ndarray:
-        """Positions (k, 3) of one batch (one interval's worth of inflow)."""
+        """Positions (k, 3) of one batch (one interval's worth of inflow; a kinetic reservoir's
+        candidates, see ``admit``)."""
+        return self._batch(rng)[0]
+
+    def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """One batch after admission: positions (k, 3) and ids (``batch`` then ``admit``)."""
+        pos, cv = self._batch(rng)
+        return self.admit(pos, first_id, t_s, rng, cv)
+
+    def _batch(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         self._carry += self._candidate_rate_per_cv * self.interval_s
         counts = np.floor(self._carry).astype(np.int64)
         self._carry -= counts
@@ -171,21 +182,22 @@ class Reservoir:
         depth = np.minimum(np.abs(np.repeat(self.entry_cmd_m_s[:, 0], counts)) * self.interval_s, l)
         pos = lo + u * l
         pos[:, 0] = lo[:, 0] + u[:, 0] * depth
-        return pos
+        return pos, cv
 
-    def admit(self, pos_m: np.ndarray, first_id: int, t_s: float,
-              rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def admit(self, pos_m: np.ndarray, first_id: int, t_s: float, rng: np.random.Generator,
+              cv_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The agents of a batch that enter, and their ids: candidate k gets id ``first_id + k``;
         all enter unless the reservoir is kinetic, which admits each with probability
-        ``kinetic_admission`` of its own deviation at ``t_s`` (ids of the others are skipped)."""
+        ``kinetic_admission`` of its own deviation at ``t_s`` (ids of the others are skipped).
+        ``cv_ids``: the candidates' CVs if known (else looked up)."""
         pos = np.asarray(pos_m, dtype=float).reshape(-1, 3)
         ids = np.arange(first_id, first_id + pos.shape[0], dtype=np.int64)
         if self.kinetic_persistence_s is None or pos.shape[0] == 0:
             return pos, ids
-        cv = self.field.cv_of(pos)
+        cv = self.field.cv_of(pos) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
         j = np.maximum(cv, 0)
         d, _ = deviation_direction(ids, t_s, self.kinetic_persistence_s)
-        p = kinetic_admission(np.asarray(self.field.mean_cmd_m_s)[j, 0], np.asarray(self.field.spread_m_s)[j], d[:, 0])
+        p = kinetic_admission(self._entry_u_m_s[j], self._spread_m_s[j], d[:, 0])
         keep = rng.random(pos.shape[0]) < np.where(cv >= 0, p, 1.0)
         return pos[keep], ids[keep]
 
