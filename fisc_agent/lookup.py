@@ -34,8 +34,6 @@ WALL_ZONE = 0.25
 #: within v_n * BRAKE_S (if that is deeper than ``WALL_ZONE``): the lag-proportional turning
 #: distance that keeps the reflection scale-free (a 5 m/s map deviates 2.5x faster than a 2 m/s one).
 BRAKE_S = 0.25
-#: Kinetic mode: length of the inlet ramp of an upstream deviation component [cells].
-INLET_RAMP_CELLS = 1.0
 #: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
 DEFAULT_PERSISTENCE_S = 2.0
 
@@ -320,6 +318,18 @@ def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
+def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 3) unit deviation directions before any wall reflection, and (m,) their interval index.
+
+    Each agent keeps a direction for ``persistence_s``; the intervals are staggered per agent by a
+    hashed phase (the swarm does not switch in step) and the direction is uniform on the sphere, a
+    hash of (agent id, interval).  Any fixed component of it is uniform on [-1, 1]."""
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
+    epoch = np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+    return _unit_from_hash(ids, epoch), epoch
+
+
 def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
                       persistence_s: float, state: DeviationState,
                       velocity_m_s: np.ndarray | None = None) -> tuple[np.ndarray, DeviationState]:
@@ -331,16 +341,16 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     is reflected while the agent is within ``WALL_ZONE`` cells of that face, or within its turning
     distance v_n ``BRAKE_S`` when ``velocity_m_s`` is given (the zone absorbs the vehicle's lag,
     which would otherwise carry it across): the kinetic picture of a gas whose
-    molecules bounce off the walls.  The inlet is an inflow boundary instead: an upstream (-x)
-    component fades out linearly over the first cell, so agents neither leave through the inlet
-    nor stall at it.
+    molecules bounce off the walls.  The inlet is an open boundary to the reservoir, not a wall:
+    an agent whose deviation carries it upstream out of the first slice leaves the CVs there (the
+    simulator's reservoir admits entering agents flux-weighted by their deviation,
+    ``sim.scenarios.Reservoir.admit``; a fade-out of upstream components over the first cell, as
+    before, made agents stall there: first slices 1.2x their designed density).
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
-    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
-    epoch = np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+    d, epoch = deviation_direction(agent_ids, t_s, persistence_s)
     sign = np.where((epoch != state.epoch)[:, None], 1.0, state.sign)
-    d = _unit_from_hash(ids, epoch) * sign
+    d *= sign
     f = (pts - field.origin_m) / field.cell_size_m
     cell = np.floor(f).astype(np.int64)
     frac = f - cell
@@ -358,11 +368,6 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     flip = toward & wall_ahead
     sign[flip] *= -1.0
     d[flip] *= -1.0
-    # the inlet is an inflow boundary, not a wall: an upstream deviation fades out over the first cell
-    # (a reflection there sends a persistent excess of fast agents downstream and empties the inlet)
-    if INLET_RAMP_CELLS > 0:
-        ramp = np.clip(f[:, 0] / INLET_RAMP_CELLS, 0.0, 1.0)
-        d[:, 0] = np.where(d[:, 0] < 0, d[:, 0] * ramp, d[:, 0])
     return d, DeviationState(epoch, sign)
 
 

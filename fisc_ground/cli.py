@@ -15,6 +15,7 @@ from pathlib import Path
 
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
                                    missing_dependency_message, setup_logging, sig3)
+from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
 
 log = logging.getLogger("fisc_ground")
 
@@ -214,7 +215,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="candidate agent counts per CV (default 2 10)")
     p.add_argument("--scale", type=_scale, default=None, metavar="S|auto",
                    help="speed scaling S (default auto: largest S keeping commands within --max-speed)")
-    p.add_argument("--max-speed", type=float, default=5.0, metavar="V", help="agent speed limit [m/s] (default 5)")
+    p.add_argument("--max-speed", type=float, default=DEFAULT_MAX_SPEED_M_S, metavar="V",
+                   help=f"agent speed limit [m/s] (default {DEFAULT_MAX_SPEED_M_S:g}, as fisc-sim run)")
     p.add_argument("--kappa", type=float, default=None, help="pressure mapping factor (default: auto)")
     p.add_argument("--agent-mass", type=float, default=1.0, metavar="KG", help="agent mass (default 1 kg)")
     p.add_argument("--min-nodes", type=int, default=1, help="reference nodes a CV needs to exist (default 1)")

@@ -24,7 +24,7 @@ from fisc_ground.staggered import (
     StaggeredConfig,
     build_staggered,
 )
-from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
+from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +52,9 @@ class FitConfig:
     """Largest candidate agent count N per CV (paper: 10)."""
     scale: float | None = None
     """Speed scaling S; None chooses the largest S that keeps every command within ``max_speed_m_s``."""
-    max_speed_m_s: float = 5.0
-    """Agent speed limit used to choose S [m/s] (agents fly 2-10 m/s)."""
+    max_speed_m_s: float = DEFAULT_MAX_SPEED_M_S
+    """Agent speed limit used to choose S [m/s] (agents fly 2-10 m/s); default
+    ``scaling.DEFAULT_MAX_SPEED_M_S`` (2 m/s), the same limit ``fisc-sim run`` fits its maps with."""
     kappa: float | None = None
     """Pressure mapping P_target = kappa (P_cfd - min P_cfd); None chooses it from ``max_dispersion_m_s``."""
     max_dispersion_m_s: float | None = None

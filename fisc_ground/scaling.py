@@ -15,9 +15,12 @@ over the map (worst CV, fewest agents N = n_min) to ``max_dispersion``, set by d
 the spread stays a quarter of the peak mean command, large enough to carry the pressure
 pattern, small enough that the flow direction dominates every command.  Then S is the largest
 factor that keeps every commanded vector (mean plus deviation) within the agent's speed limit,
-so ``S (|mean| + deviation) <= max_speed`` holds by construction.  DEFAULT_MAX_SPEED_M_S = 5 m/s
-sits in the paper's 2-10 m/s flyable range and leaves margin for the plant's transients and the
-onboard clamps; the inviscid reference (13.6 m/s peak CV mean) gets S of about 0.3.
+so ``S (|mean| + deviation) <= max_speed`` holds by construction.  DEFAULT_MAX_SPEED_M_S = 2 m/s
+is the paper's own speed regime (S = 0.1 on 22.4 m/s peaks) and the low end of its 2-10 m/s flyable
+range: the vehicles' ~0.58 s response lag then costs about a CV of lag distance instead of five at
+5 m/s (docs/simulation.md, "Defaults chosen").  ``fisc-ground fit`` and ``fisc-sim run`` share it, so
+the map a user fits is the map the simulator's default run flies; the inviscid reference gets
+S of about 0.13 (schema 2).
 """
 
 from __future__ import annotations
@@ -26,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Default agent speed limit for the commands [m/s] (paper: agents fly 2-10 m/s).
-DEFAULT_MAX_SPEED_M_S = 5.0
+#: Default agent speed limit for the commands [m/s] (paper: agents fly 2-10 m/s; see the module docstring).
+DEFAULT_MAX_SPEED_M_S = 2.0
 #: Default largest per-agent rms velocity deviation, as a fraction of the largest target speed.
 DEFAULT_DISPERSION_RATIO = 0.25
 

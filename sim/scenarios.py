@@ -16,6 +16,17 @@
   face in (y, z) and over the distance ``|v_x| dt_source`` (capped at l) in x, i.e. where a
   continuous inflow would have put those agents during the interval.
 
+  Mode ``kinetic`` (``Reservoir(..., kinetic_persistence_s=T)``): every agent flies the field plus
+  a persistent deviation of rms sigma_j along a direction d it keeps for T.  A gas streaming out
+  of a reservoir crosses the inlet face with a *flux*-weighted velocity distribution: a direction
+  class d enters at a rate proportional to its axial speed (u + sigma d_x)+, so that inside the
+  duct every class has the same density.  ``Reservoir.admit`` applies that weight to each batch
+  (thinning: an agent is admitted with probability (u + sigma d_x)+ / (u + sigma), d_x its own
+  deviation at entry, uniform on [-1, 1]) and the rate is divided by the mean admission
+  probability E = a / (1 + a) for a = u / sigma >= 1, (1 + a) / 4 below, so the expected inflow
+  stays eq. source_rate.  Without it, slow classes (d_x near -u / sigma) entered as often as fast
+  ones and piled up in the first slices (1.2x the designed density).
+
 Population scale (``--agents N``): both scenarios take a ``population_scale`` that multiplies
 N* (seeding, with largest-remainder rounding so the total is exactly N) or the source rate
 (reservoir).  ``scale_for_agents`` gives the scale that makes the seeded total, or the
@@ -26,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import CommandField, deviation_direction
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -85,6 +96,26 @@ def source_rate(n_star_entry: np.ndarray, v_entry_m_s: np.ndarray, cell_size_m: 
     return np.asarray(n_star_entry, dtype=float) * np.linalg.norm(v_entry_m_s, axis=1) / float(cell_size_m)
 
 
+def kinetic_admission(u_m_s: np.ndarray, spread_m_s: np.ndarray, d_x: np.ndarray) -> np.ndarray:
+    """Admission probability (u + sigma d_x)+ / (u + sigma) of an agent entering with axial field
+    speed u, deviation rms sigma and deviation direction x component d_x (module docstring)."""
+    u = np.abs(np.asarray(u_m_s, dtype=float))
+    sg = np.asarray(spread_m_s, dtype=float)
+    return np.clip((u + sg * np.asarray(d_x, dtype=float)) / np.maximum(u + sg, 1e-12), 0.0, 1.0)
+
+
+def kinetic_admission_mean(u_m_s: np.ndarray, spread_m_s: np.ndarray) -> np.ndarray:
+    """Mean of ``kinetic_admission`` over d_x uniform on [-1, 1]: a / (1 + a) for a = u / sigma >= 1,
+    (1 + a) / 4 below (1 for sigma = 0)."""
+    u = np.abs(np.asarray(u_m_s, dtype=float))
+    sg = np.asarray(spread_m_s, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean = np.where(u >= sg, u / (u + sg), (u + sg) / (4.0 * sg))
+    if not np.all(mean > 0):
+        raise ValueError("an inlet CV has no axial entry speed and no deviation: no agent would be admitted")
+    return mean
+
+
 def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float = np.inf) -> float:
     """Population scale that makes sum_j N*_j (over the seeded CVs) equal ``n_agents`` (1 if None)."""
     if n_agents is None:
@@ -98,17 +129,30 @@ def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float
 class Reservoir:
     """Case 2: batches of agents through the inlet at eq. source_rate (see module docstring)."""
 
-    def __init__(self, field: CommandField, interval_s: float = 0.05, population_scale: float = 1.0) -> None:
+    def __init__(self, field: CommandField, interval_s: float = 0.05, population_scale: float = 1.0,
+                 kinetic_persistence_s: float | None = None) -> None:
         if not interval_s > 0:
             raise ValueError(f"reservoir interval_s must be > 0, got {interval_s!r}")
         if not population_scale >= 0:
             raise ValueError(f"population_scale must be >= 0, got {population_scale!r}")
+        if kinetic_persistence_s is not None and not (kinetic_persistence_s > 0 and np.isfinite(kinetic_persistence_s)):
+            raise ValueError(f"kinetic_persistence_s must be finite and > 0, got {kinetic_persistence_s!r}")
+        if kinetic_persistence_s is not None and field.spread_m_s is None:
+            raise ValueError("a kinetic reservoir needs a field with the fitted spread (CommandField.from_map)")
+        self.kinetic_persistence_s = kinetic_persistence_s
         self.field = field
         self.interval_s = float(interval_s)
         self.cvs = inlet_cvs(field)
         self.entry_cmd_m_s = np.asarray(field.mean_cmd_m_s)[self.cvs]
         self.rate_per_cv = population_scale * source_rate(np.asarray(field.n_star)[self.cvs],
                                                           self.entry_cmd_m_s, field.cell_size_m)
+        #: candidates per second and inlet CV: the rate divided by the mean admission (kinetic)
+        self._candidate_rate_per_cv = self.rate_per_cv
+        if kinetic_persistence_s is not None:
+            self._candidate_rate_per_cv = self.rate_per_cv / kinetic_admission_mean(
+                self.entry_cmd_m_s[:, 0], np.asarray(field.spread_m_s)[self.cvs])
+        self._entry_u_m_s = np.asarray(field.mean_cmd_m_s)[:, 0]
+        self._spread_m_s = None if field.spread_m_s is None else np.asarray(field.spread_m_s)
         self._carry = np.zeros(self.cvs.size)
         self._next_t = 0.0
 
@@ -118,8 +162,17 @@ class Reservoir:
         return float(self.rate_per_cv.sum())
 
     def batch(self, rng: np.random.Generator) -> np.ndarray:
-        """Positions (k, 3) of one batch (one interval's worth of inflow)."""
-        self._carry += self.rate_per_cv * self.interval_s
+        """Positions (k, 3) of one batch (one interval's worth of inflow; a kinetic reservoir's
+        candidates, see ``admit``)."""
+        return self._batch(rng)[0]
+
+    def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """One batch after admission: positions (k, 3) and ids (``batch`` then ``admit``)."""
+        pos, cv = self._batch(rng)
+        return self.admit(pos, first_id, t_s, rng, cv)
+
+    def _batch(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        self._carry += self._candidate_rate_per_cv * self.interval_s
         counts = np.floor(self._carry).astype(np.int64)
         self._carry -= counts
         cv = np.repeat(self.cvs, counts)
@@ -129,7 +182,24 @@ class Reservoir:
         depth = np.minimum(np.abs(np.repeat(self.entry_cmd_m_s[:, 0], counts)) * self.interval_s, l)
         pos = lo + u * l
         pos[:, 0] = lo[:, 0] + u[:, 0] * depth
-        return pos
+        return pos, cv
+
+    def admit(self, pos_m: np.ndarray, first_id: int, t_s: float, rng: np.random.Generator,
+              cv_ids: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The agents of a batch that enter, and their ids: candidate k gets id ``first_id + k``;
+        all enter unless the reservoir is kinetic, which admits each with probability
+        ``kinetic_admission`` of its own deviation at ``t_s`` (ids of the others are skipped).
+        ``cv_ids``: the candidates' CVs if known (else looked up)."""
+        pos = np.asarray(pos_m, dtype=float).reshape(-1, 3)
+        ids = np.arange(first_id, first_id + pos.shape[0], dtype=np.int64)
+        if self.kinetic_persistence_s is None or pos.shape[0] == 0:
+            return pos, ids
+        cv = self.field.cv_of(pos) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
+        j = np.maximum(cv, 0)
+        d, _ = deviation_direction(ids, t_s, self.kinetic_persistence_s)
+        p = kinetic_admission(self._entry_u_m_s[j], self._spread_m_s[j], d[:, 0])
+        keep = rng.random(pos.shape[0]) < np.where(cv >= 0, p, 1.0)
+        return pos[keep], ids[keep]
 
     def due(self, t_s: float) -> int:
         """Number of batches due by time ``t_s`` (advances the internal clock)."""

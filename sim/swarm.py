@@ -351,14 +351,27 @@ class Swarm:
                                                  cv_ids=cv[inside]) * MAP_TO_NED
 
     # ---------------------------------------------------------------- population
-    def add_agents(self, pos_m: np.ndarray, vel_map_m_s: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def next_id(self) -> int:
+        """The id the next added agent gets unless ``add_agents`` is given ids."""
+        return self._next_id
+
+    def add_agents(self, pos_m: np.ndarray, vel_map_m_s: np.ndarray | None = None,
+                   ids: np.ndarray | None = None) -> np.ndarray:
         """Add agents at ``pos_m`` (k, 3) flying ``vel_map_m_s`` (k, 3; default: their command).
 
-        The thrust state starts at the trim of that velocity (steady flight).  Returns their ids.
+        ``ids``: their ids, strictly increasing from ``next_id`` on (gaps allowed: a reservoir that
+        did not admit some candidates); default the next k.  The thrust state starts at the trim of
+        that velocity (steady flight).  Returns their ids.
         """
         pos = np.asarray(pos_m, dtype=float).reshape(-1, 3)
         k = pos.shape[0]
-        ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
+        if ids is None:
+            ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
+        else:
+            ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+            if ids.size != k or (k and (ids[0] < self._next_id or np.any(np.diff(ids) <= 0))):
+                raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
         if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
@@ -382,7 +395,7 @@ class Swarm:
         self._epoch[s] = -1
         self._sign[s] = 1.0
         self.n += k
-        self._next_id += k
+        self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
         self._cv = None
         self._cmd_ready = False

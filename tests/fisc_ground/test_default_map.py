@@ -31,3 +31,16 @@ def test_default_map_carries_the_open_volume_fraction():
     full = np.where(np.asarray(cmap["cv_index"])[:, 0] == cmap.grid_shape[0] - 1, 150, 125)
     np.testing.assert_allclose(frac, count / full)
     assert frac.min() > 0 and frac.max() == 1.0 and np.count_nonzero(frac == 1.0) > 200
+
+
+def test_fit_default_is_the_map_the_simulator_default_run_flies():
+    """``fisc-ground fit`` (FitConfig defaults) and ``fisc-sim run`` share the speed limit, so the
+    shipped map, a default fit and the map the default run fits itself are the same map."""
+    from sim.run import RunConfig, load_command_map
+
+    cfg = RunConfig()
+    run_map, shipped = load_command_map(cfg.map, cfg.max_speed_m_s, cfg.preset), load_shipped_default_map()
+    assert run_map.scale == shipped.scale and run_map.body["max_speed_m_s"] == shipped.body["max_speed_m_s"] == 2.0
+    assert run_map.body["flight"] == shipped.body["flight"]
+    for name in ("fit_velocity_m_s", "face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s", "cv_design_density"):
+        np.testing.assert_allclose(run_map[name], shipped[name], rtol=0, atol=1e-9, err_msg=name)

@@ -121,7 +121,8 @@ def test_run_defaults_are_the_papers_population_and_speed_regime():
     assert RunConfig(mode="slot", lookahead_s=0.3).flight_settings(cmap).mode == "slot"
     peak = np.nanmax(np.linalg.norm(cmap.scale * np.asarray(cmap["fit_velocity_m_s"]), axis=-1))
     assert peak == pytest.approx(2.0)
-    assert load_command_map(None).scale == pytest.approx(2.5 * cmap.scale)  # map builder default: 5 m/s
+    assert load_command_map(None).scale == cmap.scale  # the map builder's default limit is the run's
+    assert load_command_map(None, 5.0).scale == pytest.approx(2.5 * cmap.scale)
     with pytest.raises(ValueError, match="lookahead_s"):
         RunConfig(lookahead_s=-1.0)
     with pytest.raises(ValueError, match="preset"):
@@ -192,9 +193,12 @@ def test_main_job_default_and_paper_preset_figures_recomputed_from_fields_csv(tm
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     for q in ("velocity", "pressure", "density"):
         assert mine[f"nrmse_{q}"] == pytest.approx(metrics[f"nrmse_{q}"], abs=0.01)
-    assert mine["nrmse_velocity"] <= 0.06
-    assert mine["nrmse_pressure"] <= 0.30 and mine["pearson_pressure"] >= 0.7
-    assert mine["nrmse_density"] <= 0.32
+    # measured (seeds 0 / 1 / 2): velocity 0.046 / 0.045 / 0.045, pressure 0.257 / 0.249 / 0.239 (r 0.88),
+    # density 0.256 / 0.269 / 0.260 (r 0.53); before the flux-weighted admission and the 200 s window
+    # 0.045, 0.277 (r 0.87), 0.288 (r 0.53)
+    assert mine["nrmse_velocity"] <= 0.05
+    assert mine["nrmse_pressure"] <= 0.28 and mine["pearson_pressure"] >= 0.8
+    assert mine["nrmse_density"] <= 0.28 and mine["pearson_density"] >= 0.45
     paper = metrics["paper_preset"]
     assert paper["nrmse_velocity"] == pytest.approx(0.066, abs=0.02)
     assert paper["nrmse_pressure"] == pytest.approx(0.806, abs=0.02)

@@ -89,3 +89,66 @@ def test_reservoir_steady_population_close_to_n_star_density(field):
         sw.step()
     inlet = inlet_cvs(field)
     assert counts[inlet].mean() / 100 == pytest.approx(field.n_star[inlet].mean(), rel=0.1)
+
+
+def test_kinetic_admission_mean_matches_the_average_over_directions():
+    from sim.scenarios import kinetic_admission, kinetic_admission_mean
+
+    d = np.linspace(-1.0, 1.0, 200001)  # d_x of a direction uniform on the sphere is uniform on [-1, 1]
+    for u, sg in ((1.0, 0.2), (1.0, 1.0), (0.45, 0.6), (0.1, 2.0)):
+        p = kinetic_admission(np.full(d.size, u), np.full(d.size, sg), d)
+        assert 0.0 <= p.min() and p.max() <= 1.0
+        assert kinetic_admission_mean(np.array([u]), np.array([sg]))[0] == pytest.approx(p.mean(), abs=1e-4)
+    assert kinetic_admission_mean(np.array([1.0]), np.array([0.0]))[0] == 1.0  # no deviation: everyone enters
+    with pytest.raises(ValueError, match="no axial entry speed"):
+        kinetic_admission_mean(np.array([0.0]), np.array([0.0]))
+
+
+def test_kinetic_reservoir_keeps_the_rate_and_admits_flux_weighted(field):
+    """Admitted agents arrive at eq. source_rate on average, and their deviation classes are weighted
+    by their axial speed u + sigma d_x: the flux of a gas that has the same density in every class."""
+    from fisc_agent.lookup import deviation_direction
+
+    plain = Reservoir(field, interval_s=0.05)
+    kin = Reservoir(field, interval_s=0.05, kinetic_persistence_s=2.0)
+    assert kin.rate_per_s == pytest.approx(plain.rate_per_s)
+    rng = np.random.default_rng(3)
+    ids_all, t, next_id, n_cand = [], 0.0, 0, 0
+    for k in range(4000):  # 200 s
+        cand = kin.batch(rng)
+        pos, ids = kin.admit(cand, next_id, t, rng)
+        assert np.all(np.isin(ids, np.arange(next_id, next_id + len(cand))))
+        ids_all.append(ids)
+        next_id += len(cand)
+        n_cand += len(cand)
+        t += 0.05
+    ids = np.concatenate(ids_all)
+    expected = plain.rate_per_s * 200.0
+    assert abs(len(ids) - expected) < 4.0 * np.sqrt(expected)
+    assert n_cand > 1.1 * len(ids)  # some candidates were turned away
+    # deviation at entry (recomputed for the entry times)
+    inlet = inlet_cvs(field)
+    u, sg = field.mean_cmd_m_s[inlet[0], 0], field.spread_m_s[inlet[0]]
+    a = u / sg
+    assert a >= 1.0
+    # flux-weighted mean of d_x for d_x uniform on [-1, 1]: E[d (a + d)] / E[a + d] = 1 / (3 a)
+    t_entry = np.concatenate([np.full(len(x), 0.05 * k) for k, x in enumerate(ids_all)])
+    d_x = np.concatenate([deviation_direction(ids[t_entry == tt], tt, 2.0)[0][:, 0] for tt in np.unique(t_entry)])
+    assert d_x.mean() == pytest.approx(1.0 / (3.0 * a), abs=4.0 / np.sqrt(len(d_x)))
+    # the plain reservoir admits everything
+    cand = plain.batch(rng)
+    pos, ids2 = plain.admit(cand, 7, 0.0, rng)
+    np.testing.assert_array_equal(pos, cand)
+    np.testing.assert_array_equal(ids2, np.arange(7, 7 + len(cand)))
+
+
+def test_swarm_takes_explicit_increasing_ids(field):
+    sw = Swarm(field)
+    p = field.centers_m[:3]
+    np.testing.assert_array_equal(sw.add_agents(p, ids=np.array([2, 5, 9])), [2, 5, 9])
+    assert sw.next_id == 10
+    np.testing.assert_array_equal(sw.add_agents(p[:1]), [10])
+    with pytest.raises(ValueError, match="strictly increasing"):
+        sw.add_agents(p[:2], ids=np.array([12, 12]))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        sw.add_agents(p[:1], ids=np.array([3]))
