@@ -61,7 +61,7 @@ def open_fraction(cmap) -> np.ndarray:
 def random_pressure(fields) -> np.ndarray:
     """2/3 rho_s <||v - U||^2> = 4/3 rho_s T_s,rand / K_b,s: the internal pressure about the full
     local mean velocity U (eq. internal_pressure with U for u_s), i.e. the velocity variance only."""
-    from fisc_ground.swarm_fields import SwarmGasParams
+    from fisc_ground.swarm_equations import SwarmGasParams
 
     t = np.nan_to_num(np.asarray(fields.t_rand_m2_s2, dtype=float))
     return 4.0 / 3.0 * np.asarray(fields.rho_s_kg_m3, dtype=float) * t / SwarmGasParams().k_b_s

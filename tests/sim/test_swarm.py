@@ -5,7 +5,8 @@ import pytest
 
 from fisc_agent.lookup import CommandField
 from sim.scenarios import seed_positions, synthetic_tunnel_map
-from sim.swarm import MAP_TO_NED, CVLookup, Swarm, SwarmConfig
+from sim.cv_lookup import CVLookup
+from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
 
 
 @pytest.fixture(scope="module")
