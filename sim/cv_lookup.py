@@ -4,45 +4,21 @@ assigns and gathers the command in one pass (``sim.swarm`` steps with them)."""
 
 from __future__ import annotations
 
-import functools
 
 import numpy as np
 
 from fisc_agent.lookup import CommandField
-from sim.kernels import cell_and_slot_helpers
+from sim.kernels import jit_kernels
 
 
-@functools.lru_cache(maxsize=1)
 def fused_lookup_kernel():
     """Fused numba kernel: padded-grid CV lookup + command gather (mean or slot); None without numba.
 
     Same arithmetic as the numpy path (``CVLookup.__call__`` then the table gathers, and
     ``fisc_agent.lookup.slot_hash`` for the slot index); tested equal to it.
     """
-    try:
-        import numba
-    except ImportError:
-        return None
-    padded_cell, slot_of = cell_and_slot_helpers()
-
-    @numba.njit(cache=True, nogil=True)
-    def kernel(pos, ids, origin, inv_l, hi, strides, flat, mean_ned, slot_ned, n_star, slot_mode,
-               cv_out, cmd_out, cell_out):
-        for i in range(pos.shape[0]):
-            c = padded_cell(pos, i, origin, inv_l, hi, strides)
-            cell_out[i] = c
-            j = flat[c]
-            cv_out[i] = j
-            if slot_mode and j >= 0:
-                kk = slot_of(ids[i], j, n_star[j])
-                for k in range(3):
-                    cmd_out[i, k] = slot_ned[j, kk, k]
-            else:
-                r = j if j >= 0 else mean_ned.shape[0] - 1  # j = -1: the zero row
-                for k in range(3):
-                    cmd_out[i, k] = mean_ned[r, k]
-
-    return kernel
+    jk = jit_kernels()
+    return None if jk is None else jk.fused_lookup
 
 
 class CVLookup:

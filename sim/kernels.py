@@ -16,11 +16,20 @@ Each factory returns the compiled kernel, or None when numba is not importable.
 
 from __future__ import annotations
 
-import functools
-import math
+from types import ModuleType
 
 
-@functools.lru_cache(maxsize=1)
+def jit_kernels() -> ModuleType | None:
+    """The module of compiled kernels (``sim.jit_kernels``), or None when numba is not installed."""
+    try:
+        from sim import jit_kernels as module
+    except ModuleNotFoundError as exc:
+        if exc.name != "numba":
+            raise
+        return None
+    return module
+
+
 def cell_and_slot_helpers():
     """``(padded_cell, slot_of)`` jitted helpers shared by the kernels; None without numba.
 
@@ -31,39 +40,10 @@ def cell_and_slot_helpers():
     float64, so the mix is spelled with uint64 constants here); tests/fisc_agent/test_contracts.py
     checks the two equal on 10^5 inputs.
     """
-    try:
-        import numba
-        import numpy as np
-    except ImportError:
-        return None
-    m32 = np.uint64(0xFFFFFFFF)
-
-    @numba.njit(cache=True, nogil=True, inline="always")
-    def padded_cell(pos, i, origin, inv_l, hi, strides):
-        c = 0
-        for k in range(3):
-            f = math.floor((pos[i, k] - origin[k]) * inv_l)
-            if f < 0.0:
-                f = 0.0
-            elif f > hi[k]:
-                f = hi[k]
-            c += np.int64(f) * strides[k]
-        return c
-
-    @numba.njit(cache=True, nogil=True, inline="always")
-    def slot_of(agent_id, j, n_star_j):
-        a = np.uint64(agent_id) & m32
-        b = np.uint64(j) & m32
-        h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & m32
-        h ^= h >> np.uint64(15)
-        h = (h * np.uint64(0x2C1B3C6D)) & m32
-        h ^= h >> np.uint64(12)
-        return np.int64(h % n_star_j)
-
-    return padded_cell, slot_of
+    jk = jit_kernels()
+    return None if jk is None else (jk.padded_cell, jk.slot_of)
 
 
-@functools.lru_cache(maxsize=1)
 def return_commands_kernel():
     """Kernel ``(pos, ids, cv, cmd, out_s, dt_s, origin, inv_l, hi, strides, near_flat, centers,
     mean_speed, mean_ned, slot_ned, n_star, slot_mode, gain, frac, map_to_ned) -> n_outside``.
@@ -75,51 +55,10 @@ def return_commands_kernel():
     ``fisc_agent.lookup.slot_hash``) NED command of ``j``; ``out_s[i] += dt_s``.  Agents with
     ``cv[i] >= 0`` get ``out_s[i] = 0`` (their command is untouched).  Returns the number outside.
     """
-    try:
-        import numba
-    except ImportError:
-        return None
-    padded_cell, slot_of = cell_and_slot_helpers()
-
-    @numba.njit(cache=True, nogil=True, error_model="numpy")
-    def kernel(pos, ids, cv, cmd, out_s, dt_s, origin, inv_l, hi, strides, near_flat, centers,
-               mean_speed, mean_ned, slot_ned, n_star, slot_mode, gain, frac, map_to_ned):
-        n_out = 0
-        for i in range(cv.shape[0]):
-            if cv[i] >= 0:
-                out_s[i] = 0.0
-                continue
-            n_out += 1
-            out_s[i] += dt_s
-            c = padded_cell(pos, i, origin, inv_l, hi, strides)
-            j = near_flat[c]
-            if j < 0:
-                j = 0
-            q0 = gain * (centers[j, 0] - pos[i, 0])
-            q1 = gain * (centers[j, 1] - pos[i, 1])
-            q2 = gain * (centers[j, 2] - pos[i, 2])
-            # (x^2 + z^2) + y^2: the order numpy's einsum sums in on this path, so both paths agree
-            # bit for bit (any order is equally correct, to round-off)
-            mag = math.sqrt((q0 * q0 + q2 * q2) + q1 * q1)
-            s = min(1.0, frac * mean_speed[j] / max(mag, 1e-12))
-            q0 *= s
-            q1 *= s
-            q2 *= s
-            if slot_mode:
-                kk = slot_of(ids[i], j, n_star[j])
-                cmd[i, 0] = slot_ned[j, kk, 0] + q0 * map_to_ned[0]
-                cmd[i, 1] = slot_ned[j, kk, 1] + q1 * map_to_ned[1]
-                cmd[i, 2] = slot_ned[j, kk, 2] + q2 * map_to_ned[2]
-            else:
-                cmd[i, 0] = mean_ned[j, 0] + q0 * map_to_ned[0]
-                cmd[i, 1] = mean_ned[j, 1] + q1 * map_to_ned[1]
-                cmd[i, 2] = mean_ned[j, 2] + q2 * map_to_ned[2]
-        return n_out
-
-    return kernel
+    jk = jit_kernels()
+    return None if jk is None else jk.return_commands
 
 
-@functools.lru_cache(maxsize=1)
 def removal_kernel():
     """Kernel ``(pos, cv, cells, out_s, near_flat, x_outlet_m, grace_s, keep) -> (n_exited,
     n_escaped)``: the removal rule of ``Swarm.assign`` in one pass.
@@ -129,43 +68,11 @@ def removal_kernel():
     ``cells[i]`` has no CV within the return radius (``near_flat[cells[i]] < 0``).  Writes
     ``keep[i] = not (exited or escaped)``.
     """
-    try:
-        import numba
-    except ImportError:
-        return None
-
-    @numba.njit(cache=True, nogil=True)
-    def kernel(pos, cv, cells, out_s, near_flat, x_outlet_m, grace_s, keep):
-        n_exit = 0
-        n_esc = 0
-        for i in range(cv.shape[0]):
-            if pos[i, 0] >= x_outlet_m:
-                n_exit += 1
-                keep[i] = False
-            elif cv[i] < 0 and (out_s[i] > grace_s or near_flat[cells[i]] < 0):
-                n_esc += 1
-                keep[i] = False
-            else:
-                keep[i] = True
-        return n_exit, n_esc
-
-    return kernel
+    jk = jit_kernels()
+    return None if jk is None else jk.removal
 
 
-@functools.lru_cache(maxsize=1)
 def move_kernel():
     """Kernel ``(pos, vel, fdt)``: ``pos[i, k] += vel[i, k] * fdt[k]`` in place (one pass)."""
-    try:
-        import numba
-    except ImportError:
-        return None
-
-    @numba.njit(cache=True, nogil=True)
-    def kernel(pos, vel, fdt):
-        f0, f1, f2 = fdt[0], fdt[1], fdt[2]
-        for i in range(pos.shape[0]):
-            pos[i, 0] += vel[i, 0] * f0
-            pos[i, 1] += vel[i, 1] * f1
-            pos[i, 2] += vel[i, 2] * f2
-
-    return kernel
+    jk = jit_kernels()
+    return None if jk is None else jk.move
