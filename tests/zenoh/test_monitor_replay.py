@@ -11,7 +11,9 @@ import numpy as np
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import decode_map
 from fisc_agent.zenoh_link import AgentZenohLink, Keys
-from fisc_ground.monitor import NO_AGENT, TelemetryAggregator, TelemetryPipe, render
+from fisc_ground.monitor import TelemetryPipe
+from fisc_ground.monitor_aggregator import NO_AGENT, TelemetryAggregator
+from fisc_ground.monitor_view import render
 from fisc_ground.recording import Recorder, aggregate, read_recording, replay
 
 from .conftest import wait_for
