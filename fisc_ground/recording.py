@@ -28,14 +28,14 @@ import threading
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Iterator
 
 import numpy as np
 
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import CommandMap, decode_map
-from fisc_ground.monitor import DEFAULT_MAX_AGENTS, AgentRoster, TelemetryAggregator
+from fisc_ground.field_run import FieldRun, FieldSource
+from fisc_ground.monitor_aggregator import DEFAULT_MAX_AGENTS, AgentRoster, TelemetryAggregator
 
 log = logging.getLogger(__name__)
 
@@ -195,41 +195,27 @@ def replay(path: str | Path, out_dir: str | Path, cmap: CommandMap | None = None
         raise RecordingError(f"{path}: the recording holds no map; pass --map MAP")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fields = agg.fields()
-    result = _result_like(agg.cmap, fields, min_samples)
-    from fisc_ground.field_report import json_safe, swarm_columns, write_fields_csv
+    run = field_run_of(agg, min_samples)
+    from fisc_ground.field_report import write_fields_csv, write_json
 
-    from fisc_ground.metrics import fidelity_metrics
-
-    paths = {"fields.csv": write_fields_csv(result, out / "fields.csv")}
-    cols = swarm_columns(result)
-    metrics = fidelity_metrics(np.stack([cols["cv_x"], cols["cv_y"], cols["cv_z"]], axis=1), cols["target_u_axial"],
-                               cols["target_pressure"], cols["target_density"], cols["swarm_u_axial"],
-                               cols["swarm_pressure"], cols["swarm_density"], cols["samples"],
-                               min_samples=min_samples).as_dict()
+    paths = {"fields.csv": write_fields_csv(run, out / "fields.csv")}
+    metrics = run.metrics()
     view = agg.view()
-    metrics.update(source="telemetry replay", recording=str(path), truncated=rec.truncated,
+    metrics.update(recording=str(path), truncated=rec.truncated,
                    messages=view.messages, bad_messages=view.bad_messages, spoofed=view.spoofed,
-                   agents=view.n_agents, time_samples=int(fields.n_time_samples),
-                   sample_period_s=agg.sample_period_s, stale_after_s=agg.stale_after_s,
-                   map={"sha256": agg.cmap.sha256, "map_version": agg.cmap.map_version})
-    (out / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=2, sort_keys=True) + "\n")
-    paths["metrics.json"] = out / "metrics.json"
+                   agents=view.n_agents, sample_period_s=agg.sample_period_s, stale_after_s=agg.stale_after_s)
+    paths["metrics.json"] = write_json(out / "metrics.json", metrics)
     if figures:
         from fisc_ground.field_figures import write_run_figures
 
-        paths.update(write_run_figures(result, out))
+        paths.update(write_run_figures(run, out))
     return paths
 
 
-
-def _result_like(cmap: CommandMap, fields: Any, min_samples: int) -> Any:
-    """The attributes of ``sim.run.RunResult`` that the fields.csv and figure writers read."""
-    return SimpleNamespace(
-        cmap=cmap, fields=fields,
-        target_command_m_s=cmap.scale * np.asarray(cmap["target_velocity_m_s"], dtype=float),
-        config=SimpleNamespace(min_samples=min_samples, scenario="telemetry", mode="replay", collisions=False),
-        snapshots=[])
+def field_run_of(agg: TelemetryAggregator, min_samples: int) -> FieldRun:
+    """The aggregator's estimate so far as a ``FieldRun`` (it needs a map)."""
+    return FieldRun(source=FieldSource.REPLAY, cmap=agg.cmap, fields=agg.fields(), scale=agg.cmap.scale,
+                    min_samples=int(min_samples), scenario="telemetry", mode="replay")
 
 
 def iter_messages(recording: Recording) -> Iterator[tuple[float, int, bytes]]:

@@ -27,7 +27,6 @@ map, duration, population and mode) are written, and report.md gets an "Emulatio
 from __future__ import annotations
 
 import gc
-import json
 import logging
 import math
 import multiprocessing as mp
@@ -972,32 +971,10 @@ def _fmtv(v) -> str:
         f"{v:.3f}" if isinstance(v, float) else str(v))
 
 
-def json_safe(obj: Any) -> Any:
-    """Plain-JSON copy: numpy arrays/scalars -> lists/numbers, paths -> str, NaN/inf -> None."""
-    if isinstance(obj, dict):
-        return {str(k): json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_safe(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(float(obj)) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
-def _write_json(path: Path, obj: dict) -> Path:
-    path.write_text(json.dumps(json_safe(obj), indent=2, sort_keys=True) + "\n")
-    return path
-
-
 def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) -> EmulateResult:
     """The ``fisc-sim emulate`` job: map, launch plan, fly, fields, outputs (see the module docstring)."""
+    from fisc_ground.field_report import json_safe, write_json
+    from fisc_ground.field_run import FieldRun, FieldSource
     from sim import report
     from sim.run import PAPER_SNAPSHOT_TIMES_S, RunConfig, RunResult
     from sim.run import run as sim_run
@@ -1021,11 +998,13 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     first_entry = entries["first_entry_s"] if entries["first_entry_s"] is not None else float(plan.arrival_time_s[0])
     rcfg = _run_config(config, map_path)
     t_win = swarm.sample_t_s[window] if window.size else np.array([0.0, 0.0])
-    rr = RunResult(config=rcfg, cmap=cmap, settings=rcfg.flight_settings(cmap), scale=cmap.scale, fields=fields, target_command_m_s=target_cmd,
-                   counters=counters, alive=alive, wall_time_s=swarm.duration_s,
-                   window_s=(float(np.nanmin(t_win)), float(np.nanmax(t_win))),
-                   inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None,
-                   snapshots=_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry))
+    settings = rcfg.flight_settings(cmap)
+    fr = FieldRun(source=FieldSource.EMULATION, cmap=cmap, fields=fields, scale=cmap.scale,
+                  min_samples=config.min_samples, scenario=rcfg.scenario, mode=settings.mode,
+                  snapshots=tuple(_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry)))
+    rr = RunResult(config=rcfg, field_run=fr, settings=settings, counters=counters, alive=alive,
+                   wall_time_s=swarm.duration_s, window_s=(float(np.nanmin(t_win)), float(np.nanmax(t_win))),
+                   inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None)
     res = EmulateResult(config=config, run_result=rr, swarm=swarm, plan=plan, entries=entries,
                         realtime=realtime_summary(swarm, config.rate_hz, config.agents,
                                                   steady_start_s(plan, config.duration_s)))
@@ -1033,12 +1012,12 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     rr.metrics["emulation"] = json_safe({"entries": entries, "real_time": {
         k: v for k, v in res.realtime.items() if k not in ("agent_loops", "emulator_loops")}})
     res.paths["map"] = map_path
-    res.paths["fields"] = report.write_fields_csv(rr, out / "fields.csv")
+    res.paths["fields"] = report.write_fields_csv(fr, out / "fields.csv")
     res.paths["metrics"] = report.write_metrics_json(rr, out / "metrics.json")
     if config.figures:
         from fisc_ground import field_figures as figures
 
-        rr.paths.update(figures.write_run_figures(rr, out))
+        rr.paths.update(figures.write_run_figures(fr, out))
         res.paths.update(rr.paths)
     if config.compare:
         # the reference flies the simulator's own step (paper: 0.05 s), whatever the agents' rate
@@ -1046,8 +1025,8 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
         res.comparison = compare_fields(rr.metrics, ref.metrics, fields, ref.fields, config.min_samples)
         res.comparison["run_reference"] = {"out_dir": str(out / "run_reference"),
                                            "wall_time_s": ref.wall_time_s, "agents": ref.metrics.get("agents")}
-        res.paths["comparison"] = _write_json(out / "comparison.json", res.comparison)
-    res.paths["emulation"] = _write_json(out / "emulation.json", {
+        res.paths["comparison"] = write_json(out / "comparison.json", res.comparison)
+    res.paths["emulation"] = write_json(out / "emulation.json", {
         "config": asdict(config), "entries": entries, "real_time": res.realtime,
         "launch_plan": {"start_ned_m": plan.start_ned_m, "start_time_s": plan.start_time_s,
                         "arrival_time_s": plan.arrival_time_s, "inflow_rate_per_s": plan.inflow_rate_per_s,
