@@ -69,9 +69,15 @@ class FieldRun:
         """Per-CV columns of fields.csv (``field_report.FIELD_COLUMNS``, SI units)."""
         return swarm_columns(self)
 
+    def fidelity(self) -> dict:
+        """Fidelity metrics (DESIGN.md section 4: nRMSE, Pearson, centreline deviation of velocity,
+        pressure and density) against the map's CFD targets; NaN where undefined."""
+        cols = self.columns()
+        return fidelity_for_columns(cols, cols["swarm_pressure"], self.min_samples)
+
     def metrics(self) -> dict:
-        """Fidelity metrics (DESIGN.md section 4) of this estimate against the map's CFD targets, with
-        the other pressure and density definitions scored alike; NaN where undefined."""
+        """metrics.json core: ``fidelity`` plus the other pressure and density definitions scored
+        alike, the definitions, the map and the sample counts."""
         cols = self.columns()
         out = dict(fidelity_for_columns(cols, cols["swarm_pressure"], self.min_samples))
         alt = {}

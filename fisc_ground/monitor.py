@@ -25,6 +25,7 @@ import numpy as np
 
 from fisc_agent.mapfile import CommandMap
 from fisc_agent.zenoh_link import Keys
+from fisc_ground.flight_log import FlightLog, LogSettings
 from fisc_ground.monitor_aggregator import (  # noqa: F401 - DEFAULT_MAX_AGENTS: imported from here by the CLI
     DEFAULT_MAX_AGENTS,
     NO_AGENT,
@@ -40,14 +41,15 @@ log = logging.getLogger(__name__)
 # Zenoh -> queue -> consumer
 
 class TelemetryPipe:
-    """Zenoh subscriber feeding an aggregator (and optionally a recorder) through a bounded queue.
+    """Zenoh subscriber feeding an aggregator (and optionally a flight log) through a bounded queue.
 
     The Zenoh callback never blocks: when the queue is full the message is counted in
-    ``dropped``.  The consumer thread writes each batch to the recorder first, then ingests it,
-    so a slow *renderer* (which only reads ``view()``) can never cause a loss.
+    ``dropped``.  The consumer thread writes each batch to the flight log first (``--record``
+    MCAP, ``--foxglove`` server), then ingests it and lets the log publish the scene, so a slow
+    *renderer* (which only reads ``view()``) can never cause a loss.
     """
 
-    def __init__(self, keys: Keys, aggregator: TelemetryAggregator, recorder: Any = None,
+    def __init__(self, keys: Keys, aggregator: TelemetryAggregator, recorder: FlightLog | None = None,
                  maxsize: int = 200_000, batch: int = 8192) -> None:
         self.keys = keys
         self.aggregator = aggregator
@@ -130,7 +132,7 @@ class TelemetryPipe:
                 _, cmap, blob = it
                 if self.recorder is not None and blob is not None:
                     last = self.aggregator.last_receive_s
-                    self.recorder.write_map(last if math.isfinite(last) else time.time(), blob)
+                    self.recorder.write_map(last if math.isfinite(last) else time.time(), blob, cmap)
                 with self.lock:
                     self.aggregator.set_map(cmap)
             else:
@@ -147,6 +149,8 @@ class TelemetryPipe:
             self.recorder.write_telemetry(recv, ids, payloads)
         with self.lock:
             self.aggregator.ingest(recv, ids, payloads)
+            if self.recorder is not None:
+                self.recorder.publish(self.aggregator)
 
     def drain(self, timeout_s: float = 10.0) -> bool:
         """Wait until everything queued so far is processed."""
@@ -264,13 +268,12 @@ class MapFollower:
 
 
 def run_monitor(args: Any) -> int:
-    """``fisc-ground monitor --swarm NAME [--map MAP] [--record FILE] [--duration S]``."""
+    """``fisc-ground monitor --swarm NAME [--map MAP] [--record FILE.mcap] [--foxglove [PORT]] [--duration S]``."""
     from rich.console import Console
     from rich.live import Live
 
     from fisc_agent.mapfile import MAGIC, MAX_MAP_FILE_BYTES, MapError, read_public_key
     from fisc_agent.safe_files import read_regular_file
-    from fisc_ground.recording import Recorder
     from fisc_ground.zenoh_config import open_ground_session
 
     keys = Keys(args.prefix, args.swarm)
@@ -299,12 +302,15 @@ def run_monitor(args: Any) -> int:
                 cmap, blob = got
         agg = TelemetryAggregator(None, sample_period_s=args.sample_period, stale_after_s=args.stale_after,
                                   roster=roster, max_agents=args.max_agents)
-        if args.record:
-            recorder = Recorder(args.record, {"swarm": args.swarm, "prefix": args.prefix,
-                                              "sample_period_s": args.sample_period,
-                                              "stale_after_s": args.stale_after,
-                                              "roster": roster.spec() if roster else None,
-                                              "max_agents": args.max_agents})
+        foxglove_port = getattr(args, "foxglove", None)
+        if args.record or foxglove_port is not None:
+            recorder = FlightLog(LogSettings(sample_period_s=args.sample_period, stale_after_s=args.stale_after,
+                                             swarm=args.swarm, prefix=args.prefix,
+                                             roster=roster.spec() if roster else None, max_agents=args.max_agents),
+                                 mcap_path=args.record, ws_port=foxglove_port)
+            if recorder.port is not None:
+                console.print(f"Foxglove WebSocket: ws://127.0.0.1:{recorder.port} (open it in Foxglove; "
+                              "layout: docs/foxglove_layout.json)")
         pipe = TelemetryPipe(keys, agg, recorder)
         if cmap is not None:
             pipe.set_map(cmap, blob)
@@ -313,7 +319,8 @@ def run_monitor(args: Any) -> int:
                                                      cmap.map_version if cmap is not None else 0,
                                                      allow_unsigned=args.allow_unsigned)
         end = time.monotonic() + args.duration if args.duration else math.inf
-        title = f"FISC swarm {args.swarm}" + (f"  recording {args.record}" if args.record else "")
+        title = f"FISC swarm {args.swarm}" + (f"  recording {args.record}" if args.record else "") + (
+            f"  Foxglove ws://127.0.0.1:{recorder.port}" if recorder is not None and recorder.port else "")
         try:
             with Live(console=console, refresh_per_second=4, screen=False) as live:
                 while time.monotonic() < end:

@@ -22,6 +22,7 @@ import numpy as np
 from fisc_agent import telemetry_codec as tc
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap
+from fisc_ground.field_run import FieldRun, FieldSource
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 
 FLYING_STATES = frozenset({"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"})
@@ -231,6 +232,13 @@ class TelemetryAggregator:
     def fields(self) -> SwarmFields | None:
         """Time-averaged swarm fields so far (None without a map)."""
         return None if self.acc is None else self.acc.result()
+
+    def field_run(self, min_samples: int) -> FieldRun:
+        """The estimate so far as a ``FieldRun`` (source: replay of telemetry; needs a map)."""
+        if self.cmap is None:
+            raise ValueError("the aggregator has no map yet: no swarm fields to report")
+        return FieldRun(source=FieldSource.REPLAY, cmap=self.cmap, fields=self.acc.result(), scale=self.cmap.scale,
+                        min_samples=int(min_samples), scenario="telemetry", mode="replay")
 
     def agents(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(agent ids, newest records, receive times) of every agent heard."""

@@ -14,7 +14,8 @@ from fisc_agent.zenoh_link import AgentZenohLink, Keys
 from fisc_ground.monitor import TelemetryPipe
 from fisc_ground.monitor_aggregator import NO_AGENT, TelemetryAggregator
 from fisc_ground.monitor_view import render
-from fisc_ground.recording import Recorder, aggregate, read_recording, replay
+from fisc_ground.flight_log import FlightLog, LogSettings
+from fisc_ground.recording import aggregate, iter_messages, read_recording, replay
 
 from .conftest import wait_for
 
@@ -73,19 +74,25 @@ def test_aggregator_view_counts_states_stale_agents_and_alarms(make_map):
     render(v, agg.fields(), cmap, 0, "test")  # renders without error
 
 
-def test_truncated_recording_is_read_up_to_the_last_complete_record(tmp_path, make_map):
-    path = tmp_path / "rec.fiscrec"
-    rec = Recorder(path, {"swarm": "alpha", "sample_period_s": 0.5, "stale_after_s": 3.0})
+def test_truncated_recording_is_read_up_to_the_last_complete_chunk(tmp_path, make_map):
+    path = tmp_path / "rec.mcap"
+    rec = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.5, stale_after_s=3.0), mcap_path=path)
     blob = make_map(1)
     rec.write_map(999.0, blob)
-    t, ids, p = synthetic_stream(n_agents=3, seconds=1.0)
-    rec.write_telemetry(t, ids, p)
+    t, ids, p = synthetic_stream(n_agents=30, seconds=30.0)  # ~9000 messages: several MCAP chunks
+    for a in range(0, len(p), 300):
+        rec.write_telemetry(t[a:a + 300], ids[a:a + 300], p[a:a + 300])
     rec.close()
     full = read_recording(path)
     assert full.n_messages == len(p) and full.maps() == [blob] and not full.truncated
-    path.write_bytes(path.read_bytes()[:-50])
+    assert full.settings.sample_period_s == 0.5 and full.settings.swarm == "alpha"
+    got = [m for m in iter_messages(full)]
+    assert [g[2] for g in got] == p and [g[0] for g in got] == t.tolist()  # exact, in order
+    path.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
     cut = read_recording(path)
-    assert cut.truncated and cut.n_messages == len(p) - 1
+    assert cut.truncated and 0 < cut.n_messages < len(p)
+    assert [m[2] for m in iter_messages(cut)] == \
+        p[:cut.n_messages]  # a prefix of the stream
 
 
 def test_hundred_agents_reach_the_monitor_and_replay_equals_live(net, sessions, make_map, tmp_path, ground_key):
@@ -93,8 +100,8 @@ def test_hundred_agents_reach_the_monitor_and_replay_equals_live(net, sessions, 
     blob = make_map(5, nx=12)
     cmap = decode_map(blob)
     monitor_session = sessions(hub)
-    rec_path = tmp_path / "live.fiscrec"
-    recorder = Recorder(rec_path, {"swarm": "alpha", "prefix": "fisc", "sample_period_s": 0.2, "stale_after_s": 1.0})
+    rec_path = tmp_path / "live.mcap"
+    recorder = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.2, stale_after_s=1.0), mcap_path=rec_path)
     agg = TelemetryAggregator(None, sample_period_s=0.2, stale_after_s=1.0)
     pipe = TelemetryPipe(Keys("fisc", "alpha"), agg, recorder)
     pipe.set_map(cmap, blob)
