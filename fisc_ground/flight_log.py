@@ -13,6 +13,7 @@ back (``fisc_ground.recording``); the scene and time-series channels are derived
 from __future__ import annotations
 
 import base64
+import json
 import threading
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
@@ -59,6 +60,13 @@ class LogSettings:
                                    max_agents=self.max_agents)
 
 
+def map_bytes(cmap: CommandMap) -> bytes:
+    """The ``.fiscmap`` bytes of a decoded map (re-encoded unsigned: same content, same sha256)."""
+    from fisc_ground.mapwrite import encode_map
+
+    return encode_map({k: v for k, v in cmap.body.items() if k != "arrays"}, dict(cmap.arrays))
+
+
 def _ns(t_s: float) -> int:
     return max(0, int(round(float(t_s) * 1e9)))
 
@@ -102,7 +110,11 @@ class FlightLog:
         if ws_port is not None:
             self._server = foxglove.start_server(name=f"FISC {settings.swarm or settings.source}", host=ws_host,
                                                  port=int(ws_port), context=self._ctx)
-        ch = lambda topic, schema: foxglove.Channel(topic, schema=schema, context=self._ctx)  # noqa: E731
+        def ch(topic: str, schema: dict) -> Any:  # a JSON channel named after its schema's title
+            return foxglove.Channel(topic, schema=foxglove.Schema(name=schema["title"], encoding="jsonschema",
+                                                                  data=json.dumps(schema).encode()),
+                                    message_encoding="json", context=self._ctx)
+
         self._settings_ch = ch(fs.TOPIC_SETTINGS, fs.SETTINGS_SCHEMA)
         self._map_ch = ch(fs.TOPIC_MAP, fs.MAP_SCHEMA)
         self._telemetry_ch = ch(fs.TOPIC_TELEMETRY, fs.TELEMETRY_SCHEMA)

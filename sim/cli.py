@@ -63,6 +63,9 @@ def _add_run(sub) -> None:
     p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("-o", "--out", default="out/run", help="output directory (default out/run)")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write the run as a Foxglove/MCAP flight log (the channels of fisc-ground monitor "
+                        "--record; fisc-ground replay reads it)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
@@ -98,7 +101,8 @@ def _cmd_run(args) -> int:
     cfg = RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                     average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                    lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.out, **extra)
+                    lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.out, mcap=args.mcap,
+                    **extra)
     show = not args.quiet and sys.stderr.isatty()
     with _progress(show, f"{cfg.scenario}/{cfg.preset}") as cb:
         res = run(cfg, progress=cb)

@@ -28,6 +28,7 @@ from fisc_agent.lookup import (
 from fisc_agent.mapfile import MAGIC, CommandMap, load_map
 from fisc_agent.safe_files import read_head
 from fisc_ground.field_run import FieldRun, FieldSource
+from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 from sim import report
 from sim.collisions import CollisionModel, CollisionParams
@@ -119,6 +120,9 @@ class RunConfig:
     quadrotor; ``px4-sih``: fitted to real PX4 SITL flights)."""
     out_dir: str = "out/run"
     """Output directory."""
+    mcap: str | None = None
+    """Also write the run as a Foxglove/MCAP flight log to this path (``fisc_ground.flight_log``: the
+    channels of ``fisc-ground monitor --record``, one fleet sample every ``sample_interval_s``); None: no log."""
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
@@ -249,10 +253,12 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None, prese
 
 
 def simulate(config: RunConfig, cmap: CommandMap,
-             progress: Callable[[float], None] | None = None) -> RunResult:
+             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None) -> RunResult:
     """Run the scenario on ``cmap`` and time-average the swarm fields (no file output).
 
-    ``progress(fraction_done)`` is called now and then (for a progress bar).
+    ``progress(fraction_done)`` is called now and then (for a progress bar).  ``telemetry``: every
+    ``sample_interval_s`` of the whole run, the fleet is also sent there as agent telemetry (state
+    FLOW inside a CV, RETURN outside; the run's clock as receive time).
     """
     scale = cmap.scale if config.scale is None else float(config.scale)
     cf = CommandField.from_map(cmap, scale=scale)
@@ -297,6 +303,10 @@ def simulate(config: RunConfig, cmap: CommandMap,
         if k > first_sample and (n_steps - k) % every == 0:
             cv = swarm.assign()
             acc.add(cv, swarm.velocity_map(), mass, target_cmd)
+        if telemetry is not None and (n_steps - k) % every == 0:
+            cv = swarm.assign()
+            telemetry.sample(k * config.dt_s, swarm.ids, swarm.pos_m, swarm.velocity_map(),
+                             np.where(cv >= 0, "FLOW", "RETURN"), cv)
         if k == n_steps:
             break
         swarm.step()
@@ -319,7 +329,19 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
     paper = settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
-    result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)))
+    telemetry = None
+    if config.mcap is not None:
+        telemetry = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=config.sample_interval_s,
+                                                             stale_after_s=1.5 * config.sample_interval_s,
+                                                             source="fisc-sim run"), mcap_path=config.mcap),
+                                       cmap, map_bytes(cmap))
+    try:
+        result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)), telemetry)
+    finally:
+        if telemetry is not None:
+            telemetry.close()
+    if telemetry is not None:
+        result.paths["mcap"] = Path(config.mcap)
     paper = None
     if config.compare_paper and not settings_are_paper:
         pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
