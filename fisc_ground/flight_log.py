@@ -32,6 +32,10 @@ from fisc_ground.monitor_aggregator import DEFAULT_MAX_AGENTS, TelemetryAggregat
 CHUNK_BYTES = 256 * 1024
 
 
+class FlightLogError(ValueError):
+    """A flight-log sink cannot be opened (the message names the file or the port)."""
+
+
 @dataclass(frozen=True)
 class LogSettings:
     """Aggregator settings written at the start of a flight log (``/fisc/settings``); replay uses them."""
@@ -82,9 +86,11 @@ class FlightLog:
 
     def __init__(self, settings: LogSettings, mcap_path: str | Path | None = None, ws_port: int | None = None,
                  ws_host: str = "127.0.0.1", publish_period_s: float = 0.5, min_samples: int = 1) -> None:
-        import foxglove
-        from foxglove.channels import PointCloudChannel, SceneUpdateChannel
-
+        try:
+            import foxglove
+            from foxglove.channels import PointCloudChannel, SceneUpdateChannel
+        except ImportError as exc:
+            raise RuntimeError(f"flight logs (--record, --foxglove, --mcap) need the foxglove-sdk package: {exc}") from exc
         if mcap_path is None and ws_port is None:
             raise ValueError("a flight log needs an MCAP file or a WebSocket port")
         if not publish_period_s > 0:
@@ -105,11 +111,18 @@ class FlightLog:
         if self.mcap_path is not None:
             from foxglove.mcap import MCAPWriteOptions
 
-            self._mcap = foxglove.open_mcap(self.mcap_path, allow_overwrite=True, context=self._ctx,
-                                            writer_options=MCAPWriteOptions(chunk_size=CHUNK_BYTES))
+            try:
+                self._mcap = foxglove.open_mcap(self.mcap_path, allow_overwrite=True, context=self._ctx,
+                                                writer_options=MCAPWriteOptions(chunk_size=CHUNK_BYTES))
+            except (OSError, RuntimeError) as exc:
+                raise FlightLogError(f"{self.mcap_path}: cannot write the MCAP flight log: {exc}") from exc
         if ws_port is not None:
-            self._server = foxglove.start_server(name=f"FISC {settings.swarm or settings.source}", host=ws_host,
-                                                 port=int(ws_port), context=self._ctx)
+            try:
+                self._server = foxglove.start_server(name=f"FISC {settings.swarm or settings.source}",
+                                                     host=ws_host, port=int(ws_port), context=self._ctx)
+            except (OSError, RuntimeError) as exc:
+                self.close()
+                raise FlightLogError(f"Foxglove WebSocket on {ws_host}:{ws_port}: {exc}") from exc
         def ch(topic: str, schema: dict) -> Any:  # a JSON channel named after its schema's title
             return foxglove.Channel(topic, schema=foxglove.Schema(name=schema["title"], encoding="jsonschema",
                                                                   data=json.dumps(schema).encode()),

@@ -188,3 +188,20 @@ def test_arrow_quaternions_turn_x_onto_the_velocity():
     unit = np.divide(v, np.linalg.norm(v, axis=1, keepdims=True), out=np.tile([1.0, 0, 0], (len(v), 1)),
                      where=np.linalg.norm(v, axis=1, keepdims=True) > 0)
     np.testing.assert_allclose(turned, unit, atol=1e-12)
+
+
+def test_a_flight_log_that_cannot_open_its_file_or_port_names_it(tmp_path):
+    import socket
+
+    from fisc_ground.flight_log import FlightLog, FlightLogError, LogSettings
+
+    with pytest.raises(FlightLogError, match="nowhere/x.mcap"):
+        FlightLog(LogSettings(), mcap_path=tmp_path / "nowhere" / "x.mcap")
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with pytest.raises(FlightLogError, match=f"127.0.0.1:{port}"):
+            FlightLog(LogSettings(), mcap_path=tmp_path / "x.mcap", ws_port=port)
+    with pytest.raises(ValueError, match="MCAP file or a WebSocket port"):
+        FlightLog(LogSettings())
