@@ -168,10 +168,10 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
     parser = argparse.ArgumentParser()
     emulate_cli.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["emulate", "--agents", "7", "--duration", "12", "--mode", "slot", "--autopilot",
-                              "ardupilot", "--no-compare", "-o", str(tmp_path)])
+                              "ardupilot", "--no-compare", "-o", str(tmp_path), "--mcap", "f.mcap"])
     cfg = emulate_cli.config_from_args(args)
-    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir) == (
-        7, 12.0, "slot", "ardupilot", False, str(tmp_path))
+    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap) == (
+        7, 12.0, "slot", "ardupilot", False, str(tmp_path), "f.mcap")
 
 
 @pytest.mark.slow
@@ -223,6 +223,14 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     # replayed, the log gives the agents' flight: the emulators' true states as telemetry, with mission states
     agg = aggregate(read_recording(tmp_path / "flight.mcap"))
     assert len(agg.slots) == 3 and agg.fields().samples.sum() > 0
+    # ... and exactly the estimate the log published last (its /fisc/fidelity series)
+    from fisc_ground.field_report import json_safe
+
+    with open(tmp_path / "flight.mcap", "rb") as fh:
+        series = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[fs.TOPIC_FIDELITY])]
+    fid = json_safe(agg.field_run(1).fidelity())
+    assert series and all(series[-1][k] == fid[k] for k in ("nrmse_velocity", "nrmse_pressure", "nrmse_density",
+                                                             "pearson_velocity", "n_cv_compared"))
 
 
 def test_launch_plan_start_positions_are_finite_on_the_ground_for_many_vehicles():
