@@ -165,15 +165,24 @@ class TelemetryAggregator:
         tmax = np.maximum.accumulate(np.r_[self._tmax, recv_s])[1:]
         self._tmax = float(tmax[-1])
         if self.next_sample_s is None:
-            self.next_sample_s = (math.floor(recv_s[0] / self.sample_period_s) + 1) * self.sample_period_s
+            self.next_sample_s = self._grid_after(float(recv_s[0]))
         i = 0
         while i < n:
             j = i + int(np.searchsorted(tmax[i:], self.next_sample_s, side="left"))
             self._update(records[i:j][ok[i:j]], recv_s[i:j][ok[i:j]])
             if j < n:
                 self._sample(self.next_sample_s)
-                self.next_sample_s = (math.floor(tmax[j] / self.sample_period_s) + 1) * self.sample_period_s
+                self.next_sample_s = self._grid_after(float(tmax[j]))
             i = j
+
+    def _grid_after(self, t: float) -> float:
+        """The first sample time k * sample_period_s strictly after ``t``.  (``floor(t / p) + 1``
+        alone is not enough in floating point: t = 4.3, p = 0.1 gives 43 * 0.1 == 4.3, and ingest
+        would sample the same instant forever.)"""
+        k = math.floor(t / self.sample_period_s) + 1
+        while k * self.sample_period_s <= t:
+            k += 1
+        return k * self.sample_period_s
 
     def _slot_of(self, agent_ids: np.ndarray) -> np.ndarray:
         """Slot of each id (new ids get one while fewer than ``max_agents`` are tracked, else -1)."""

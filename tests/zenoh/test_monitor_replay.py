@@ -55,6 +55,19 @@ def test_aggregator_is_independent_of_batching(make_map):
     assert fa.samples.sum() > 0 and np.nanmax(fa.rho_s_kg_m3) > 0
 
 
+def test_aggregator_samples_on_grid_times_that_round_onto_themselves(make_map):
+    """Receive times on the sampling grid where floor(t / p) + 1 lands back on t in floating point
+    (4.3 / 0.1 = 42.99999999999999): ingest used to loop forever on them (a simulated run's clock
+    hits them; a monitor's UNIX clock can)."""
+    cmap = decode_map(make_map(1))
+    agg = TelemetryAggregator(cmap, sample_period_s=0.1, stale_after_s=0.15)
+    times = np.round(np.arange(80, 120) * 0.05, 10)  # 4.0 .. 5.95 s, 4.3 among them
+    assert 4.3 in times.tolist()
+    for t in times:
+        agg.ingest([t], [1], [telemetry(1, t, (1.0, 0.0, 0.0))])
+    assert agg.fields().n_time_samples == 19  # one per 0.1 s grid point after the first message
+
+
 def test_aggregator_view_counts_states_stale_agents_and_alarms(make_map):
     cmap = decode_map(make_map(1))
     agg = TelemetryAggregator(cmap, stale_after_s=2.0)
