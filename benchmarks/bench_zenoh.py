@@ -169,14 +169,14 @@ def _publisher(port: int, n_agents: int, rate_hz: float, seconds: float, ready, 
 def bench_telemetry(n_agents: int, rate_hz: float, seconds: float) -> dict:
     import zenoh
 
+    from fisc_ground.flight_log import FlightLog, LogSettings
     from fisc_ground.monitor import TelemetryAggregator, TelemetryPipe
-    from fisc_ground.recording import Recorder
 
     port = free_port()
     hub_cfg, _ = configs(port)
     hub = zenoh.open(hub_cfg)
-    tmp = Path(tempfile.mkdtemp()) / "bench.fiscrec"
-    rec = Recorder(tmp, {"swarm": "bench", "sample_period_s": 0.5, "stale_after_s": 3.0})
+    tmp = Path(tempfile.mkdtemp()) / "bench.mcap"
+    rec = FlightLog(LogSettings(swarm="bench", sample_period_s=0.5, stale_after_s=3.0), mcap_path=tmp)
     agg = TelemetryAggregator(None)
     pipe = TelemetryPipe(Keys("fisc", "bench"), agg, rec).attach(hub)
     ctx = mp.get_context("spawn")

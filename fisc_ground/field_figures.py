@@ -30,28 +30,25 @@ def _bymax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
-    """Write the PNGs into ``out_dir``; returns name -> path."""
-    cmap, f, cfg = result.cmap, result.fields, result.config
+def write_run_figures(run: Any, out_dir: Path) -> dict[str, Path]:
+    """Write the PNGs of a ``fisc_ground.field_run.FieldRun`` into ``out_dir``; returns name -> path."""
+    cmap, f = run.cmap, run.fields
     c = np.asarray(cmap["cv_center_m"], dtype=float)
     l = cmap.cell_size_m
     wall = plots.design_tunnel_wall(cmap)
-    ok = f.samples >= cfg.min_samples
+    ok = f.samples >= run.min_samples
     everywhere = np.ones(c.shape[0], dtype=bool)
     tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
     fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
     paths: dict[str, Path] = {}
-    settings = getattr(result, "settings", None)
-    mode = settings.mode if settings is not None else getattr(cfg, "mode", None)
-    tag = f"{cfg.scenario}, {mode}{', collisions' if cfg.collisions else ''}"
-    for t, pos in result.snapshots:  # fig. 4
-        name = f"snapshot_{cfg.scenario}_{t:05.1f}s".replace(".", "_")
+    tag = f"{run.scenario}, {run.mode}{', collisions' if run.collisions else ''}"
+    for t, pos in run.snapshots:  # fig. 4
+        name = f"snapshot_{run.scenario}_{t:05.1f}s".replace(".", "_")
         paths[name] = plots.plot_swarm_snapshot(pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
     swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
     # a companion run of the paper's preset on the same CVs (``sim.run``): a fourth panel / curve
-    paper = getattr(result, "paper", None)
-    pf = paper.fields if paper is not None else None
-    pok = pf.samples >= cfg.min_samples if pf is not None else None
+    pf = run.companion.fields if run.companion is not None else None
+    pok = pf.samples >= run.min_samples if pf is not None else None
     p_extra = {"(d) swarm pressure (paper preset)": _minmax(pf.p_dispersion_pa, pok)} if pf is not None else {}
     u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
                if pf is not None else {})
@@ -81,13 +78,13 @@ def write_run_figures(result: Any, out_dir: Path) -> dict[str, Path]:
         wall_radius=wall)
     prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
                                np.asarray(cmap["target_density_kg_m3"], dtype=float), f.u_axial_m_s,
-                               f.p_dispersion_pa, f.rho_s_kg_m3, f.samples, cfg.min_samples)
+                               f.p_dispersion_pa, f.rho_s_kg_m3, f.samples, run.min_samples)
     extra = None
     if pf is not None:
         extra = {"swarm, paper preset": centreline_profiles(
             c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
             np.asarray(cmap["target_density_kg_m3"], dtype=float), pf.u_axial_m_s, pf.p_dispersion_pa,
-            pf.rho_s_kg_m3, pf.samples, cfg.min_samples).swarm}
+            pf.rho_s_kg_m3, pf.samples, run.min_samples).swarm}
     paths["centreline"] = plots.plot_centreline_profiles(  # fig. 10
         prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})", extra_swarm=extra)
     return paths

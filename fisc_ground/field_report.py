@@ -1,8 +1,7 @@
 """Swarm-field outputs: fields.csv, metrics.json and report.md (no plotting here).
 
 Shared by ``fisc-sim run``, ``fisc-sim emulate`` and ``fisc-ground replay`` (``sim.report`` adds
-the run-specific metrics.json and report.md); ``result`` is
-any object with the attributes of ``sim.run.RunResult`` (map, fields, config, metrics).
+the run-specific metrics.json and report.md); ``run`` is a ``fisc_ground.field_run.FieldRun``.
 
 The swarm pressure compared with the CFD (column ``swarm_pressure``) is the paper's simulation
 pressure: eq. pressure_constraint evaluated with the agents' actual velocities against the CV's
@@ -20,6 +19,8 @@ optional array); both are scored in metrics.json (``other_densities``, ``other_p
 from __future__ import annotations
 
 import csv
+import enum
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -67,10 +68,10 @@ def random_pressure(fields) -> np.ndarray:
     return 4.0 / 3.0 * np.asarray(fields.rho_s_kg_m3, dtype=float) * t / SwarmGasParams().k_b_s
 
 
-def swarm_columns(result: Any) -> dict[str, np.ndarray]:
-    """Per-CV columns of fields.csv (SI units)."""
-    f = result.fields
-    cmap = result.cmap
+def swarm_columns(run: Any) -> dict[str, np.ndarray]:
+    """Per-CV columns of fields.csv (SI units) of a ``FieldRun``."""
+    f = run.fields
+    cmap = run.cmap
     c = np.asarray(cmap["cv_center_m"], dtype=float)
     frac = open_fraction(cmap)
     return {
@@ -79,7 +80,7 @@ def swarm_columns(result: Any) -> dict[str, np.ndarray]:
         "target_u_axial": np.asarray(cmap["target_velocity_m_s"], dtype=float)[:, 0],
         "target_pressure": np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
         "target_density": np.asarray(cmap["target_density_kg_m3"], dtype=float),
-        "target_command_u_axial": result.target_command_m_s[:, 0],
+        "target_command_u_axial": run.target_command_m_s[:, 0],
         "fit_pressure": np.asarray(cmap["fit_pressure"], dtype=float),
         "swarm_u_axial": f.u_axial_m_s,
         "swarm_pressure": f.p_dispersion_pa,
@@ -109,22 +110,37 @@ def fidelity_for_columns(cols: dict[str, np.ndarray], pressure: np.ndarray, min_
                             cols["samples"], min_samples=min_samples).as_dict()
 
 
-def json_safe(obj):
-    """NaN/inf -> None, numpy scalars -> Python, recursively (metrics.json is strict JSON)."""
+def json_safe(obj: Any) -> Any:
+    """Plain-JSON copy (metrics.json, emulation.json ... are strict JSON): numpy arrays/scalars ->
+    lists/numbers, paths and enums -> str, NaN/inf -> None, recursively."""
     if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
+        return {str(k): json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [json_safe(v) for v in obj]
-    if isinstance(obj, (np.integer,)):
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
         return int(obj)
     if isinstance(obj, (float, np.floating)):
-        return None if not math.isfinite(float(obj)) else float(obj)
+        return float(obj) if math.isfinite(float(obj)) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, enum.Enum):
+        return json_safe(obj.value)
     return obj
 
 
-def write_fields_csv(result: Any, path: Path) -> Path:
-    """fields.csv: one row per CV, columns ``FIELD_COLUMNS`` (SI; empty cells are NaN)."""
-    cols = swarm_columns(result)
+def write_json(path: Path, obj: Any) -> Path:
+    """``json_safe(obj)`` as indented, key-sorted strict JSON (no NaN) into ``path``."""
+    Path(path).write_text(json.dumps(json_safe(obj), indent=2, sort_keys=True, allow_nan=False) + "\n")
+    return Path(path)
+
+
+def write_fields_csv(run: Any, path: Path) -> Path:
+    """fields.csv of a ``FieldRun``: one row per CV, columns ``FIELD_COLUMNS`` (SI; empty cells are NaN)."""
+    cols = swarm_columns(run)
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(FIELD_COLUMNS)

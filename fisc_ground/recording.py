@@ -1,169 +1,123 @@
-"""Telemetry recordings (``fisc-ground monitor --record FILE``) and their replay.
+"""Flight-log recordings (MCAP, ``fisc_ground.flight_log``) read back, and ``fisc-ground replay``.
 
-File format (little-endian), version 1::
-
-    b"FISCREC\\0"             magic
-    u32  format version (1)
-    u64  header length, header JSON {swarm, prefix, created_utc, telemetry_version,
-                                     sample_period_s, stale_after_s}
-    records, each:  u8 kind, f64 receive time [UNIX s], u32 agent id from the key
-                    (0xFFFFFFFF: none), u32 length, payload
-        kind 1: one telemetry message (``fisc_agent.telemetry_codec``), as received
-        kind 2: the map the monitor switched to at that point (``.fiscmap`` bytes)
-
-Records are appended in the order the monitor processed them, so a replay feeds the
-aggregator exactly what the live monitor saw.  A file cut short by a crash is read up to its
-last complete record (``Recording.truncated`` tells).
+A recording is any MCAP written by a ``FlightLog``: ``fisc-ground monitor --record FILE``,
+``fisc-sim run --mcap FILE`` or ``fisc-sim emulate --mcap FILE``.  Replay reads its raw channels
+(``/fisc/settings``, ``/fisc/map``, ``/fisc/telemetry``) in the order they were logged and feeds
+them through a fresh ``TelemetryAggregator`` with the recorded settings: the result equals the
+live estimate, because the aggregator is deterministic in the message sequence.  A file cut short
+by a crash (no MCAP summary) is read up to its last complete chunk (``Recording.truncated``).
 
 ``replay`` turns a recording into the outputs of ``fisc-sim run``: fields.csv (same columns),
-metrics.json (DESIGN.md section 4 fidelity metrics) and the figures.
+metrics.json (``FieldRun.metrics``) and the figures.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
-import struct
-import threading
-from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from dataclasses import dataclass, field, fields as dc_fields
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any, Iterator
 
 import numpy as np
 
-from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import CommandMap, decode_map
-from fisc_ground.monitor import DEFAULT_MAX_AGENTS, AgentRoster, TelemetryAggregator
+from fisc_ground import foxglove_scene as fs
+from fisc_ground.flight_log import LogSettings
+from fisc_ground.monitor_aggregator import TelemetryAggregator
 
 log = logging.getLogger(__name__)
 
-MAGIC = b"FISCREC\x00"
-VERSION = 1
-KIND_TELEMETRY = 1
-KIND_MAP = 2
-_HEAD = struct.Struct("<8sIQ")
-_REC = struct.Struct("<BdII")
-#: Largest recording ``read_recording`` reads (it holds the file in memory; about 2 h of 1000
-#: agents at 10 Hz).
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: Largest recording ``read_recording`` reads (about 2 h of 1000 agents at 10 Hz).
 MAX_RECORDING_BYTES = 8 << 30
-_REC_DTYPE = np.dtype([("kind", "u1"), ("recv_s", "<f8"), ("agent_id", "<u4"), ("length", "<u4")])
 
 
 class RecordingError(ValueError):
     """A recording cannot be read (message names the file and the problem)."""
 
 
-class Recorder:
-    """Append-only recording writer (thread-safe)."""
-
-    def __init__(self, path: str | Path, meta: dict[str, Any], flush_every: int = 4096) -> None:
-        self.path = Path(path)
-        meta = dict(meta, created_utc=datetime.now(timezone.utc).isoformat(), telemetry_version=tc.VERSION)
-        raw = json.dumps(meta, sort_keys=True).encode()
-        self._fh = open(self.path, "wb")
-        self._fh.write(_HEAD.pack(MAGIC, VERSION, len(raw)) + raw)
-        self._lock = threading.Lock()
-        self._since_flush = 0
-        self._flush_every = int(flush_every)
-        self.records = 0
-
-    def write_telemetry(self, recv_s: np.ndarray, agent_ids: np.ndarray, payloads: list[bytes]) -> None:
-        parts = []
-        for t, aid, p in zip(np.asarray(recv_s, dtype=float).tolist(), np.asarray(agent_ids).tolist(), payloads):
-            parts.append(_REC.pack(KIND_TELEMETRY, t, int(aid) & 0xFFFFFFFF, len(p)))
-            parts.append(p)
-        self._write(b"".join(parts), len(payloads))
-
-    def write_map(self, recv_s: float, blob: bytes) -> None:
-        self._write(_REC.pack(KIND_MAP, float(recv_s), 0xFFFFFFFF, len(blob)) + bytes(blob), 1)
-
-    def _write(self, data: bytes, n: int) -> None:
-        with self._lock:
-            self._fh.write(data)
-            self.records += n
-            self._since_flush += n
-            if self._since_flush >= self._flush_every:
-                self._fh.flush()
-                self._since_flush = 0
-
-    def close(self) -> None:
-        with self._lock:
-            if not self._fh.closed:
-                self._fh.flush()
-                self._fh.close()
-
-
 @dataclass
 class Recording:
-    """A recording read back."""
+    """A flight log read back."""
 
-    meta: dict
-    """The header JSON."""
+    settings: LogSettings
+    """The aggregator settings recorded (``/fisc/settings``)."""
     events: list = field(default_factory=list)
-    """In order: ("telemetry", recv_s (n,), agent_ids (n,), payloads) runs and ("map", recv_s, blob)."""
+    """In log order: ("telemetry", recv_s (n,), agent_ids (n,), payloads) and ("map", recv_s, blob)."""
     truncated: bool = False
-    """True when the file ended inside a record (the partial record is ignored)."""
+    """True when the file ended early (a crash): what precedes the break is used."""
 
     @property
     def n_messages(self) -> int:
+        """Telemetry messages in the recording."""
         return sum(len(e[3]) for e in self.events if e[0] == "telemetry")
 
     def maps(self) -> list[bytes]:
+        """The ``.fiscmap`` blobs recorded, in order."""
         return [e[2] for e in self.events if e[0] == "map"]
 
 
+def _settings(path: Path, raw: dict) -> LogSettings:
+    known = {f.name for f in dc_fields(LogSettings)}
+    try:
+        return LogSettings(**{k: v for k, v in raw.items() if k in known})
+    except TypeError as exc:
+        raise RecordingError(f"{path}: {fs.TOPIC_SETTINGS}: {exc}") from exc
+
+
 def read_recording(path: str | Path) -> Recording:
-    """Read a recording (tolerates a truncated tail)."""
-    from fisc_agent.safe_files import read_regular_file
+    """Read the raw channels of an MCAP flight log (tolerates a truncated tail)."""
+    from mcap.exceptions import McapError
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    from fisc_agent.safe_files import check_regular_file
 
     path = Path(path)
-    data = read_regular_file(path, what="FISC telemetry recording", max_bytes=MAX_RECORDING_BYTES, magic=MAGIC,
-                             error=RecordingError)
-    if len(data) < _HEAD.size or data[:8] != MAGIC:
-        raise RecordingError(f"{path}: not a FISC telemetry recording (bad magic)")
-    _, version, n = _HEAD.unpack_from(data)
-    if version != VERSION:
-        raise RecordingError(f"{path}: recording format {version} is not supported (expected {VERSION})")
-    try:
-        meta = json.loads(data[_HEAD.size:_HEAD.size + n])
-    except ValueError as exc:
-        raise RecordingError(f"{path}: header is not valid JSON ({exc})") from exc
-    rec = Recording(meta=meta)
-    pos = _HEAD.size + n
-    run_t: list[float] = []
-    run_id: list[int] = []
-    run_p: list[bytes] = []
-
-    def flush() -> None:
-        if run_p:
-            rec.events.append(("telemetry", np.array(run_t), np.array(run_id, dtype=np.int64), list(run_p)))
-            run_t.clear(), run_id.clear(), run_p.clear()
-
-    view = memoryview(data)
-    while pos < len(data):
-        if pos + _REC.size > len(data):
-            rec.truncated = True
-            break
-        kind, t, aid, length = _REC.unpack_from(data, pos)
-        end = pos + _REC.size + length
-        if end > len(data):
-            rec.truncated = True
-            break
-        payload = bytes(view[pos + _REC.size:end])
-        if kind == KIND_TELEMETRY:
-            run_t.append(t), run_id.append(aid), run_p.append(payload)
-        elif kind == KIND_MAP:
-            flush()
-            rec.events.append(("map", t, payload))
-        else:
-            raise RecordingError(f"{path}: unknown record kind {kind} at byte {pos}")
-        pos = end
-    flush()
-    if rec.truncated:
-        log.warning("%s: file ends inside a record at byte %d (recording cut short); using what precedes it",
-                    path, pos)
+    check_regular_file(path, what="FISC flight log (MCAP)", max_bytes=MAX_RECORDING_BYTES, magic=MCAP_MAGIC,
+                       error=RecordingError)
+    topics: dict[int, str] = {}
+    raw: list[tuple[int, str, dict]] = []
+    settings_raw: dict | None = None
+    truncated = False
+    with open(path, "rb") as fh:
+        try:
+            for rec in StreamReader(fh, skip_magic=False).records:
+                if isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                elif isinstance(rec, Message):
+                    topic = topics.get(rec.channel_id)
+                    if topic not in (fs.TOPIC_SETTINGS, fs.TOPIC_MAP, fs.TOPIC_TELEMETRY):
+                        continue
+                    try:
+                        msg = json.loads(rec.data)
+                    except ValueError as exc:
+                        raise RecordingError(f"{path}: {topic}: message is not JSON ({exc})") from exc
+                    if topic == fs.TOPIC_SETTINGS:
+                        settings_raw = msg
+                    else:
+                        raw.append((int(msg["seq"]), topic, msg))
+        except (McapError, EOFError, ValueError) as exc:
+            if isinstance(exc, RecordingError):
+                raise
+            truncated = True
+            log.warning("%s: the MCAP file ends early (%s: %s; recording cut short?): using what precedes it",
+                        path, type(exc).__name__, exc)
+    if settings_raw is None:
+        raise RecordingError(f"{path}: no {fs.TOPIC_SETTINGS} message: not a FISC flight log")
+    rec = Recording(settings=_settings(path, settings_raw), truncated=truncated)
+    for _, topic, msg in sorted(raw, key=lambda r: r[0]):
+        try:
+            if topic == fs.TOPIC_MAP:
+                rec.events.append(("map", float(msg["recv_s"]), base64.b64decode(msg["map_b64"])))
+            else:
+                rec.events.append(("telemetry", np.asarray(msg["recv_s"], dtype=float),
+                                   np.asarray(msg["key_agent_id"], dtype=np.int64),
+                                   [base64.b64decode(p) for p in msg["payload_b64"]]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RecordingError(f"{path}: {topic} record {msg.get('seq')}: {type(exc).__name__}: {exc}") from exc
     return rec
 
 
@@ -171,12 +125,7 @@ def aggregate(recording: Recording, cmap: CommandMap | None = None) -> Telemetry
     """Feed a recording through a fresh aggregator with the recorded settings.
 
     ``cmap``: use this map for the whole recording instead of the map records in it."""
-    meta = recording.meta
-    roster = meta.get("roster")
-    agg = TelemetryAggregator(cmap, sample_period_s=float(meta.get("sample_period_s", 0.5)),
-                              stale_after_s=float(meta.get("stale_after_s", 3.0)),
-                              roster=AgentRoster.parse(roster) if roster else None,
-                              max_agents=int(meta.get("max_agents", DEFAULT_MAX_AGENTS)))
+    agg = recording.settings.aggregator(cmap)
     for ev in recording.events:
         if ev[0] == "map":
             if cmap is None:
@@ -189,47 +138,27 @@ def aggregate(recording: Recording, cmap: CommandMap | None = None) -> Telemetry
 def replay(path: str | Path, out_dir: str | Path, cmap: CommandMap | None = None, min_samples: int = 10,
            figures: bool = True) -> dict[str, Path]:
     """Recording -> fields.csv, metrics.json (and figures) in ``out_dir``; returns name -> path."""
+    from fisc_ground.field_report import write_fields_csv, write_json
+
     rec = read_recording(path)
     agg = aggregate(rec, cmap)
     if agg.cmap is None:
         raise RecordingError(f"{path}: the recording holds no map; pass --map MAP")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    fields = agg.fields()
-    result = _result_like(agg.cmap, fields, min_samples)
-    from fisc_ground.field_report import json_safe, swarm_columns, write_fields_csv
-
-    from fisc_ground.metrics import fidelity_metrics
-
-    paths = {"fields.csv": write_fields_csv(result, out / "fields.csv")}
-    cols = swarm_columns(result)
-    metrics = fidelity_metrics(np.stack([cols["cv_x"], cols["cv_y"], cols["cv_z"]], axis=1), cols["target_u_axial"],
-                               cols["target_pressure"], cols["target_density"], cols["swarm_u_axial"],
-                               cols["swarm_pressure"], cols["swarm_density"], cols["samples"],
-                               min_samples=min_samples).as_dict()
+    run = agg.field_run(min_samples)
+    paths = {"fields.csv": write_fields_csv(run, out / "fields.csv")}
+    metrics = run.metrics()
     view = agg.view()
-    metrics.update(source="telemetry replay", recording=str(path), truncated=rec.truncated,
+    metrics.update(recording=str(path), recorded_by=rec.settings.source, truncated=rec.truncated,
                    messages=view.messages, bad_messages=view.bad_messages, spoofed=view.spoofed,
-                   agents=view.n_agents, time_samples=int(fields.n_time_samples),
-                   sample_period_s=agg.sample_period_s, stale_after_s=agg.stale_after_s,
-                   map={"sha256": agg.cmap.sha256, "map_version": agg.cmap.map_version})
-    (out / "metrics.json").write_text(json.dumps(json_safe(metrics), indent=2, sort_keys=True) + "\n")
-    paths["metrics.json"] = out / "metrics.json"
+                   agents=view.n_agents, sample_period_s=agg.sample_period_s, stale_after_s=agg.stale_after_s)
+    paths["metrics.json"] = write_json(out / "metrics.json", metrics)
     if figures:
         from fisc_ground.field_figures import write_run_figures
 
-        paths.update(write_run_figures(result, out))
+        paths.update(write_run_figures(run, out))
     return paths
-
-
-
-def _result_like(cmap: CommandMap, fields: Any, min_samples: int) -> Any:
-    """The attributes of ``sim.run.RunResult`` that the fields.csv and figure writers read."""
-    return SimpleNamespace(
-        cmap=cmap, fields=fields,
-        target_command_m_s=cmap.scale * np.asarray(cmap["target_velocity_m_s"], dtype=float),
-        config=SimpleNamespace(min_samples=min_samples, scenario="telemetry", mode="replay", collisions=False),
-        snapshots=[])
 
 
 def iter_messages(recording: Recording) -> Iterator[tuple[float, int, bytes]]:

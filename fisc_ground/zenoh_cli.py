@@ -40,6 +40,17 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _port(text: str) -> int:
+    """A TCP port 0-65535 (0: any free port)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"port {port} is outside 0-65535")
+    return port
+
+
 def _roster(text: str) -> Any:
     from fisc_ground.monitor import AgentRoster
 
@@ -136,8 +147,8 @@ def add_parsers(subparsers: Any) -> None:
     p = subparsers.add_parser(
         "monitor", help="live ground-station dashboard (density, pressure, fleet, alarms)",
         description="Aggregate telemetry into live per-CV swarm density and pressure (XZ heat maps), agent "
-                    "counts by state, stale agents, map versions and alarms. --record writes the telemetry "
-                    "stream for `fisc-ground replay`.")
+                    "counts by state, stale agents, map versions and alarms. --record writes an MCAP flight log "
+                    "for `fisc-ground replay` and Foxglove; --foxglove serves the same channels live.")
     _common(p)
     p.add_argument("--map", type=Path, metavar="MAP", help="map for the CVs (default: fetched from the swarm)")
     p.add_argument("--trusted-key", type=Path, action="append", metavar="PUB",
@@ -149,7 +160,11 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--max-agents", type=_positive_int, default=DEFAULT_MAX_AGENTS, metavar="N",
                    help=f"track at most N agent ids; further new ids are counted and shown, not tracked "
                         f"(default {DEFAULT_MAX_AGENTS})")
-    p.add_argument("--record", type=Path, metavar="FILE", help="record the telemetry stream to FILE")
+    p.add_argument("--record", type=Path, metavar="FILE",
+                   help="record the telemetry stream and the Foxglove scene to FILE (MCAP) for `fisc-ground replay`")
+    p.add_argument("--foxglove", type=_port, nargs="?", const=8765, default=None, metavar="PORT",
+                   help="serve the swarm in 3-D on a Foxglove WebSocket on 127.0.0.1 (default port 8765; 0: a free "
+                        "port; layout: docs/foxglove_layout.json)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: run)")
     p.add_argument("--sample-period", type=float, default=0.5, metavar="S",
                    help="fleet sampling period of the field average (default 0.5 s)")
@@ -160,7 +175,8 @@ def add_parsers(subparsers: Any) -> None:
 
     p = subparsers.add_parser(
         "replay", help="recording -> fields.csv, metrics.json, figures",
-        description="Turn a `monitor --record` file into the outputs of `fisc-sim run`.")
+        description="Turn an MCAP flight log (`monitor --record`, `fisc-sim run/emulate --mcap`) into the "
+                    "outputs of `fisc-sim run`.")
     p.add_argument("file", metavar="FILE", type=Path)
     p.add_argument("-o", "--output", required=True, type=Path, metavar="DIR")
     p.add_argument("--map", type=Path, metavar="MAP", help="map to use (default: the one recorded)")

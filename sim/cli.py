@@ -64,6 +64,9 @@ def _add_run(sub) -> None:
     p.add_argument("--x-axial", type=float, default=math.inf, help="seed: fill CVs with centre x <= this [m]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_output_arg(p, aliases=("--out",), default="out/run", help="output directory (default out/run)")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write the run as a Foxglove/MCAP flight log (the channels of fisc-ground monitor "
+                        "--record; fisc-ground replay reads it)")
 
 
 def _add_bench(sub) -> None:
@@ -99,7 +102,8 @@ def run_config_from_args(args: argparse.Namespace):
     return RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                      average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
                      seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
-                     lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output, **extra)
+                     lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output,
+                     mcap=args.mcap, **extra)
 
 
 def _cmd_run(args) -> int:

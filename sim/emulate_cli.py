@@ -71,6 +71,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
                    "commands (required with --swarm)")
     add_output_arg(p, aliases=("--out",), required=True, help="output directory")
+    p.add_argument("--mcap", default=None, metavar="FILE",
+                   help="also write the flight as a Foxglove/MCAP flight log (the emulators' true states as "
+                        "telemetry, the channels of fisc-ground monitor --record)")
     return p
 
 
@@ -86,7 +89,7 @@ def config_from_args(args: argparse.Namespace):
                          emulator_workers=args.workers, agent_workers=args.workers,
                          compare=not args.no_compare, figures=not args.no_figures, seed=args.seed,
                          swarm=args.swarm, zenoh_config=args.zenoh_config, zenoh_prefix=args.zenoh_prefix,
-                         telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key)
+                         telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key, mcap=args.mcap)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -6,45 +6,31 @@ with ``fisc-ground replay``).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
 from fisc_ground.field_report import (  # noqa: F401 - re-exported for the simulator's callers
     FIELD_COLUMNS,
     PAPER_FIGURES,
-    fidelity_for_columns,
     json_safe,
+    write_json,
     open_fraction,
     swarm_columns,
     write_fields_csv,
 )
 
-if TYPE_CHECKING:
-    from sim.run import RunResult
+#: A ``sim.run.RunResult`` (not imported: sim.run imports this module).
+RunResult = Any
 
 
-def compute_metrics(result: "RunResult") -> dict:
-    """metrics.json content: fidelity (DESIGN.md section 4), agent counts, speed, config."""
-    from sim.run import config_dict
-
-    cols = swarm_columns(result)
+def compute_metrics(result: RunResult) -> dict:
+    """metrics.json content: the run's ``FieldRun.metrics`` (fidelity, DESIGN.md section 4) plus
+    agent counts, speed and the configuration."""
     cfg = result.config
-    fid = fidelity_for_columns(cols, cols["swarm_pressure"], cfg.min_samples)
-    alt = {}
-    for name in ("swarm_pressure_kinetic", "swarm_pressure_internal", "swarm_pressure_random",
-                 "swarm_pressure_open_volume"):
-        m = fidelity_for_columns(cols, cols[name], cfg.min_samples)
-        alt[name] = {"nrmse_pressure": m["nrmse_pressure"], "pearson_pressure": m["pearson_pressure"],
-                     "centreline_max_dev_pressure": m["centreline_max_dev_pressure"]}
-    m = fidelity_for_columns(cols, cols["swarm_pressure"], cfg.min_samples, density=cols["swarm_density_open_volume"])
-    alt_rho = {"swarm_density_open_volume": {
-        "nrmse_density": m["nrmse_density"], "pearson_density": m["pearson_density"],
-        "centreline_max_dev_density": m["centreline_max_dev_density"]}}
     c = result.counters
-    out = dict(fid)
+    out = result.field_run.metrics()
     out["flight_settings"] = {"mode": result.settings.mode, "lookahead_s": result.settings.lookahead_s,
                               "persistence_s": result.settings.persistence_s, "preset": cfg.preset,
                               "map_schema_version": result.cmap.schema_version}
@@ -56,28 +42,19 @@ def compute_metrics(result: "RunResult") -> dict:
             "pearson_density", "centreline_max_dev_velocity", "centreline_max_dev_pressure",
             "centreline_max_dev_density", "n_cv_compared", "wall_time_s")}
     out.update(
-        n_cv=int(cols["cv_x"].size),
-        pressure_definition="swarm_pressure = 2 m/(3 dV) <sum ||u_i - S v_target,j||^2> (eq. pressure_constraint, "
-                            "time-averaged density)",
-        other_pressures=alt,
-        density_definition="swarm_density = M_j / l^3 (eq. swarm_density with the CV cube as the swarm's volume: "
-                           "the agents fly in the whole cube)",
-        other_densities=alt_rho,
         agents={"injected": c.injected, "exited": c.exited, "escaped": c.escaped, "removed": c.removed,
                 "alive": int(result.alive), "return_agent_steps": c.returned},
         steps=c.steps, agent_steps=c.agent_steps, simulated_s=c.steps * cfg.dt_s,
         wall_time_s=result.wall_time_s,
         agent_steps_per_s=c.agent_steps / result.wall_time_s if result.wall_time_s > 0 else None,
-        average_window_s=list(result.window_s), time_samples=int(result.fields.n_time_samples),
+        average_window_s=list(result.window_s),
         scale=result.scale, inflow_rate_per_s=result.inflow_rate_per_s, collisions=result.collisions,
-        map={"sha256": result.cmap.sha256, "map_version": result.cmap.map_version,
-             "reference": result.cmap.body.get("provenance", {}).get("reference", {}).get("name")},
-        config=config_dict(cfg),
+        config=cfg.as_dict(),
     )
     return json_safe(out)
 
 
-def spread_realised_over_fitted(result: "RunResult", min_samples: int) -> np.ndarray:
+def spread_realised_over_fitted(result: RunResult, min_samples: int) -> np.ndarray:
     """(n_cv,) realised per-agent rms velocity deviation about the CV's local mean, over the fitted
     spread sqrt(mean_k ||S v_k - S v_mean||^2) of the map (NaN where too few samples or no spread).
 
@@ -97,7 +74,7 @@ def spread_realised_over_fitted(result: "RunResult", min_samples: int) -> np.nda
     return np.where(ok, ratio, np.nan)
 
 
-def spread_ratio_summary(result: "RunResult", min_samples: int) -> dict:
+def spread_ratio_summary(result: RunResult, min_samples: int) -> dict:
     """Median and quartiles of ``spread_realised_over_fitted`` over the CVs with a fitted spread of at
     least a tenth of the largest (the throat's ~0 spread makes the ratio meaningless there)."""
     r = spread_realised_over_fitted(result, min_samples)
@@ -108,10 +85,9 @@ def spread_ratio_summary(result: "RunResult", min_samples: int) -> dict:
             "p75": float(np.percentile(v, 75)), "n_cv": int(v.size)}
 
 
-def write_metrics_json(result: "RunResult", path: Path) -> Path:
+def write_metrics_json(result: RunResult, path: Path) -> Path:
     """metrics.json (``compute_metrics``; NaN written as null)."""
-    path.write_text(json.dumps(result.metrics or compute_metrics(result), indent=2, sort_keys=True) + "\n")
-    return path
+    return write_json(path, result.metrics or compute_metrics(result))
 
 
 def _fmt(v) -> str:
@@ -122,7 +98,7 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def write_report_md(result: "RunResult", path: Path) -> Path:
+def write_report_md(result: RunResult, path: Path) -> Path:
     """report.md: our metrics beside the paper's, agent counts, speed, figures."""
     m = result.metrics or compute_metrics(result)
     cfg = result.config

@@ -27,8 +27,11 @@ from fisc_agent.lookup import (
 )
 from fisc_agent.mapfile import MAGIC, CommandMap, load_map
 from fisc_agent.safe_files import read_head
+from fisc_ground.field_run import FieldRun, FieldSource
+from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
 from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
+from sim import report
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant_fit import plant_preset
 from sim.scenarios import Reservoir, scale_for_agents, seed_positions
@@ -125,6 +128,9 @@ class RunConfig:
     quadrotor; ``px4-sih``: fitted to real PX4 SITL flights)."""
     out_dir: str = "out/run"
     """Output directory."""
+    mcap: str | None = None
+    """Also write the run as a Foxglove/MCAP flight log to this path (``fisc_ground.flight_log``: the
+    channels of ``fisc-ground monitor --record``, one fleet sample every ``sample_interval_s``); None: no log."""
 
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
@@ -156,6 +162,17 @@ class RunConfig:
                               base.lookahead_s if self.lookahead_s is None else float(self.lookahead_s),
                               self.persistence_s)
 
+    def as_dict(self) -> dict:
+        """JSON-ready dict of the configuration (inf -> "inf"; defaults of duration and window applied)."""
+        out = {}
+        for k, v in asdict(self).items():
+            if isinstance(v, float) and not math.isfinite(v):
+                v = str(v)
+            out[k] = list(v) if isinstance(v, tuple) else v
+        out["duration_s"], out["average_window_s"] = self.duration, self.window
+        out["sample_interval_s"] = self.sample_interval
+        return out
+
     @property
     def duration(self) -> float:
         """Simulated time with the scenario default applied [s]."""
@@ -184,16 +201,10 @@ class RunResult:
 
     config: RunConfig
     """The configuration."""
-    cmap: CommandMap
-    """The command map flown."""
+    field_run: FieldRun
+    """The swarm-field estimate (map, time-averaged fields, snapshots): what every FISC run produces."""
     settings: FlightSettings
     """The flight settings flown (mode, look-ahead, persistence)."""
-    scale: float
-    """The speed scale S actually used."""
-    fields: SwarmFields
-    """Time-averaged swarm fields per CV over the averaging window."""
-    target_command_m_s: np.ndarray
-    """(n_cv, 3) S * CFD target velocity: the reference of the dispersion pressure [m/s]."""
     counters: SwarmCounters
     """Agent bookkeeping (injected / exited / escaped ...)."""
     alive: int
@@ -206,14 +217,32 @@ class RunResult:
     """Case 2: nominal source rate of eq. source_rate summed over the inlet [agents/s]."""
     collisions: dict | None
     """Collision statistics (counts by type) when the collision layer was on."""
-    snapshots: list[tuple[float, np.ndarray]] = field(default_factory=list)
-    """(t, positions (n, 3)) at the snapshot times."""
     metrics: dict = field(default_factory=dict)
     """metrics.json content (filled by ``sim.report.compute_metrics``)."""
     paths: dict[str, Path] = field(default_factory=dict)
     """Written outputs by name."""
     paper: "RunResult | None" = None
     """``run``: the companion run of the paper's preset (``RunConfig.compare_paper``), else None."""
+
+    @property
+    def cmap(self) -> CommandMap:
+        """The command map flown."""
+        return self.field_run.cmap
+
+    @property
+    def fields(self) -> SwarmFields:
+        """Time-averaged swarm fields per CV over the averaging window."""
+        return self.field_run.fields
+
+    @property
+    def scale(self) -> float:
+        """The speed scale S actually used."""
+        return self.field_run.scale
+
+    @property
+    def target_command_m_s(self) -> np.ndarray:
+        """(n_cv, 3) S * CFD target velocity: the reference of the dispersion pressure [m/s]."""
+        return self.field_run.target_command_m_s
 
 
 def load_command_map(spec: str | None, max_speed_m_s: float | None = None, preset: str = "default") -> CommandMap:
@@ -240,10 +269,12 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None, prese
 
 
 def simulate(config: RunConfig, cmap: CommandMap,
-             progress: Callable[[float], None] | None = None) -> RunResult:
+             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None) -> RunResult:
     """Run the scenario on ``cmap`` and time-average the swarm fields (no file output).
 
-    ``progress(fraction_done)`` is called now and then (for a progress bar).
+    ``progress(fraction_done)`` is called now and then (for a progress bar).  ``telemetry``: every
+    ``sample_interval_s`` of the whole run, the fleet is also sent there as agent telemetry (state
+    FLOW inside a CV, RETURN outside; the run's clock as receive time).
     """
     scale = cmap.scale if config.scale is None else float(config.scale)
     cf = CommandField.from_map(cmap, scale=scale)
@@ -290,6 +321,10 @@ def simulate(config: RunConfig, cmap: CommandMap,
         if k > first_sample and (n_steps - k) % every == 0:
             cv = swarm.assign()
             acc.add(cv, swarm.velocity_map(), mass, target_cmd)
+        if telemetry is not None and (n_steps - k) % every == 0:
+            cv = swarm.assign()
+            telemetry.sample(k * config.dt_s, swarm.ids, swarm.pos_m, swarm.velocity_map(),
+                             np.where(cv >= 0, "FLOW", "RETURN"), cv)
         if k == n_steps:
             break
         swarm.step()
@@ -298,33 +333,33 @@ def simulate(config: RunConfig, cmap: CommandMap,
     wall = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
+    fr = FieldRun(source=FieldSource.SIMULATION, cmap=cmap, fields=acc.result(), scale=scale,
+                  min_samples=config.min_samples, scenario=config.scenario, mode=settings.mode,
+                  collisions=config.collisions, snapshots=tuple(snapshots))
     return RunResult(
-        config=config, cmap=cmap, settings=settings, scale=scale, fields=acc.result(), target_command_m_s=target_cmd,
-        counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
+        config=config, field_run=fr, settings=settings, counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
         window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
         inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
-        collisions=None if collider is None else collider.stats.as_dict(), snapshots=snapshots)
-
-
-def config_dict(config: RunConfig) -> dict:
-    """JSON-safe dict of a RunConfig (inf -> "inf")."""
-    out = {}
-    for k, v in asdict(config).items():
-        if isinstance(v, float) and not math.isfinite(v):
-            v = str(v)
-        out[k] = list(v) if isinstance(v, tuple) else v
-    out["duration_s"], out["average_window_s"] = config.duration, config.window
-    out["sample_interval_s"] = config.sample_interval
-    return out
+        collisions=None if collider is None else collider.stats.as_dict())
 
 
 def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> RunResult:
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
-    from sim import report
-
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
     paper = settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
-    result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)))
+    telemetry = None
+    if config.mcap is not None:
+        telemetry = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=config.sample_interval,
+                                                             stale_after_s=1.5 * config.sample_interval,
+                                                             source="fisc-sim run"), mcap_path=config.mcap),
+                                       cmap, map_bytes(cmap))
+    try:
+        result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)), telemetry)
+    finally:
+        if telemetry is not None:
+            telemetry.close()
+    if telemetry is not None:
+        result.paths["mcap"] = Path(config.mcap)
     paper = None
     if config.compare_paper and not settings_are_paper:
         pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
@@ -333,15 +368,16 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
         paper = simulate(pcfg, pmap)
         paper.metrics = report.compute_metrics(paper)
         result.paper = paper
+        result.field_run = replace(result.field_run, companion=paper.field_run)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result.metrics = report.compute_metrics(result)
-    result.paths["fields"] = report.write_fields_csv(result, out / "fields.csv")
+    result.paths["fields"] = report.write_fields_csv(result.field_run, out / "fields.csv")
     result.paths["metrics"] = report.write_metrics_json(result, out / "metrics.json")
     if config.figures:
         from fisc_ground import field_figures as figures
 
-        result.paths.update(figures.write_run_figures(result, out))
+        result.paths.update(figures.write_run_figures(result.field_run, out))
     result.paths["report"] = report.write_report_md(result, out / "report.md")
     log.info("run written to %s", out)
     return result

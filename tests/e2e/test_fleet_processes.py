@@ -263,7 +263,7 @@ def test_monitor_aggregates_the_fleet_telemetry_into_per_cv_density_and_pressure
     await_fleet(fleet, lambda a: a["state"] in FLYING, 60, "every agent to fly")
     poll(lambda: any(a["state"] == "FLOW" for a in status(fleet, 0.5).values()), 30, period_s=0.0)
 
-    rec = fleet.dir / "flight.fiscrec"
+    rec = fleet.dir / "flight.mcap"
     out = ok(run_cli(ground("monitor", "--swarm", SWARM, "--zenoh-config", fleet.member_cfg,
                             "--map", fleet.good_copy, "--record", rec, "--duration", "6", "--sample-period", "0.2"),
                      timeout_s=60))

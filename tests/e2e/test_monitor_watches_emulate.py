@@ -33,7 +33,7 @@ def test_monitor_records_the_emulated_swarm_and_replay_gives_density_and_pressur
 
     procs = Processes(tmp_path / "logs")
     try:
-        rec = tmp_path / "emu.fiscrec"
+        rec = tmp_path / "emu.mcap"
         monitor = procs.start("monitor", cli("fisc-ground") + [
             "monitor", "--swarm", SWARM, "--zenoh-config", hub, "--map", map_path, "--record", rec,
             "--duration", "40", "--sample-period", "0.2"])

@@ -32,7 +32,8 @@ from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import decode_map, encode_map
 from fisc_ground.field_report import FIELD_COLUMNS
 from fisc_ground.monitor import TelemetryAggregator
-from fisc_ground.recording import Recorder, replay
+from fisc_ground.flight_log import FlightLog, LogSettings
+from fisc_ground.recording import replay
 
 A_MAX = 1.2 * 9.81
 NAN = math.nan
@@ -110,8 +111,8 @@ def test_the_monitor_estimates_match_the_hand_computation():
 
 def test_every_fields_csv_column_of_a_replay_matches_the_hand_computation(tmp_path):
     blob = three_cv_map()
-    rec_path = tmp_path / "r.fiscrec"
-    rec = Recorder(rec_path, {"swarm": "alpha", "prefix": "fisc", "sample_period_s": 0.5, "stale_after_s": 3.0})
+    rec_path = tmp_path / "r.mcap"
+    rec = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.5, stale_after_s=3.0), mcap_path=rec_path)
     rec.write_map(99.0, blob)
     t, ids, payloads = one_sample_stream()
     rec.write_telemetry(np.array(t), np.array(ids), payloads)

@@ -168,17 +168,18 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
     parser = argparse.ArgumentParser()
     emulate_cli.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["emulate", "--agents", "7", "--duration", "12", "--mode", "slot", "--autopilot",
-                              "ardupilot", "--no-compare", "-o", str(tmp_path)])
+                              "ardupilot", "--no-compare", "-o", str(tmp_path), "--mcap", "f.mcap"])
     cfg = emulate_cli.config_from_args(args)
-    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir) == (
-        7, 12.0, "slot", "ardupilot", False, str(tmp_path))
+    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap) == (
+        7, 12.0, "slot", "ardupilot", False, str(tmp_path), "f.mcap")
 
 
 @pytest.mark.slow
 def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     from sim.emulate import run
 
-    cfg = EmulateConfig(out_dir=str(tmp_path), agents=3, duration_s=22.0, figures=False, compare=True)
+    cfg = EmulateConfig(out_dir=str(tmp_path), agents=3, duration_s=22.0, figures=False, compare=True,
+                        mcap=str(tmp_path / "flight.mcap"))
     res = run(cfg)
     # the mission went through the Case 2 entry: ground -> arm -> takeoff -> join -> flow
     flown = [a for a in res.swarm.agents if any(dst == "FLOW" for _, _, dst, _ in a["transitions"])]
@@ -203,6 +204,33 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert (tmp_path / "run_reference" / "metrics.json").is_file()
     assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "map.fiscmap").is_file()
+    # the MCAP flight log opens with the mcap reader, every channel with its schema
+    from mcap.reader import make_reader
+
+    from fisc_ground import foxglove_scene as fs
+    from fisc_ground.recording import aggregate, read_recording
+
+    with open(tmp_path / "flight.mcap", "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    topics = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
+    assert set(topics) == {fs.TOPIC_AGENTS, fs.TOPIC_CVS, fs.TOPIC_SCENE, fs.TOPIC_FIDELITY, fs.TOPIC_STATES,
+                           fs.TOPIC_TELEMETRY, fs.TOPIC_MAP, fs.TOPIC_SETTINGS}
+    assert topics[fs.TOPIC_AGENTS].name == "foxglove.PointCloud" and topics[fs.TOPIC_AGENTS].encoding == "protobuf"
+    assert topics[fs.TOPIC_SCENE].name == "foxglove.SceneUpdate"
+    assert all(sc.data for sc in topics.values())
+    counts = summary.statistics.channel_message_counts
+    assert all(counts.get(ch_id, 0) > 0 for ch_id in summary.channels), counts
+    # replayed, the log gives the agents' flight: the emulators' true states as telemetry, with mission states
+    agg = aggregate(read_recording(tmp_path / "flight.mcap"))
+    assert len(agg.slots) == 3 and agg.fields().samples.sum() > 0
+    # ... and exactly the estimate the log published last (its /fisc/fidelity series)
+    from fisc_ground.field_report import json_safe
+
+    with open(tmp_path / "flight.mcap", "rb") as fh:
+        series = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[fs.TOPIC_FIDELITY])]
+    fid = json_safe(agg.field_run(1).fidelity())
+    assert series and all(series[-1][k] == fid[k] for k in ("nrmse_velocity", "nrmse_pressure", "nrmse_density",
+                                                             "pearson_velocity", "n_cv_compared"))
 
 
 def test_launch_plan_start_positions_are_finite_on_the_ground_for_many_vehicles():

@@ -3,6 +3,8 @@
 import csv
 import json
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -156,8 +158,7 @@ def test_open_volume_columns_use_the_maps_fraction_or_fall_back_to_one():
     arrays = dict(cmap.arrays)
     arrays["cv_open_fraction"] = np.where(np.arange(cmap.n_cv) % 2 == 0, 1.0, 0.5)
     cmap2 = type(cmap)(body=cmap.body, arrays=arrays, sha256=cmap.sha256, signed=False, public_key=None)
-    r.cmap = cmap2
-    cols2 = swarm_columns(r)
+    cols2 = swarm_columns(replace(r.field_run, cmap=cmap2))
     np.testing.assert_allclose(cols2["swarm_density_open_volume"], cols["swarm_density"] / arrays["cv_open_fraction"])
 
 
@@ -221,3 +222,39 @@ def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, 
     assert "schema-2" in capsys.readouterr().err
     assert main(["run", "-q", "--map", str(tmp_path / "missing.fiscmap"), "-o", str(tmp_path / "o2")]) == 2
     assert "missing.fiscmap" in capsys.readouterr().err   # the file is named
+
+
+def test_run_mcap_flight_log_replays_to_exactly_the_logged_estimate(tmp_path):
+    """``RunConfig.mcap``: the run's fleet, sampled as telemetry, goes to an MCAP flight log whose
+    replay gives exactly the estimate the log's own aggregator published (the monitor's path)."""
+    from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
+    from fisc_ground.recording import aggregate, read_recording, replay
+
+    cmap = synthetic_tunnel_map(nx=8)
+    cfg = RunConfig(duration_s=4.0, average_window_s=2.0, agents=None, figures=False)
+    path = tmp_path / "sim.mcap"
+    tel = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=cfg.sample_interval_s, stale_after_s=0.15,
+                                                   source="fisc-sim run"), mcap_path=path), cmap, map_bytes(cmap))
+    r = simulate(cfg, cmap, telemetry=tel)
+    live = tel.close()
+    rec = read_recording(path)
+    assert rec.settings.source == "fisc-sim run" and rec.maps() and not rec.truncated
+    replayed = aggregate(rec)
+    assert replayed.cmap.sha256 == cmap.sha256
+    for name, arr in live.fields().as_arrays().items():
+        np.testing.assert_array_equal(arr, replayed.fields().as_arrays()[name], err_msg=name)
+    # the telemetry estimate sees the swarm the simulator averaged: same CVs visited
+    visited_sim, visited_log = r.fields.samples > 0, live.fields().samples > 0
+    assert visited_log.sum() > 0 and (visited_sim & visited_log).sum() >= 0.8 * visited_sim.sum()
+    out = replay(path, tmp_path / "replay", min_samples=1, figures=False)
+    assert json.loads(out["metrics.json"].read_text())["recorded_by"] == "fisc-sim run"
+
+
+def test_cli_run_mcap_flag_writes_the_flight_log(tmp_path, map_file):
+    out = tmp_path / "run"
+    rc = main(["run", "--map", str(map_file), "--duration", "1", "--average-window", "0.5", "--no-figures", "-q",
+               "-o", str(out), "--mcap", str(tmp_path / "run.mcap")])
+    assert rc == 0 and (tmp_path / "run.mcap").stat().st_size > 0
+    from fisc_ground.recording import read_recording
+
+    assert read_recording(tmp_path / "run.mcap").n_messages > 0

@@ -47,7 +47,7 @@ def test_cli_publish_status_cmd_monitor_replay(net, make_map, ground_key, tmp_pa
         assert wait_for(lambda: [c.name for c in cmds] == ["hold"])
         assert json.loads(out.stdout.strip().splitlines()[-1])["acked"] == [4]
 
-        rec = tmp_path / "r.fiscrec"
+        rec = tmp_path / "r.mcap"
         out = subprocess.run(ground("monitor", "--swarm", "alpha", "--zenoh-config", member, "--record", rec,
                                     "--duration", "3", "--sample-period", "0.2"),
                              capture_output=True, text=True, timeout=60)

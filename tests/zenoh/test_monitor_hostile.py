@@ -12,7 +12,8 @@ from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import MapError, decode_map
 from fisc_agent.zenoh_keys import Keys
 from fisc_ground.monitor import AgentRoster, MapFollower, TelemetryAggregator, TelemetryPipe, fetch_map, render
-from fisc_ground.recording import Recorder, read_recording
+from fisc_ground.flight_log import FlightLog, LogSettings
+from fisc_ground.recording import read_recording
 from fisc_ground.zenoh_publish import MapServer
 
 from .conftest import wait_for
@@ -32,8 +33,8 @@ def test_a_huge_agent_id_in_the_key_neither_kills_the_worker_nor_stops_recording
     hub, member = net
     blob = make_map(1)
     keys = Keys("fisc", "alpha")
-    rec_path = tmp_path / "live.fiscrec"
-    recorder = Recorder(rec_path, {"swarm": "alpha", "prefix": "fisc", "sample_period_s": 0.2, "stale_after_s": 3.0})
+    rec_path = tmp_path / "live.mcap"
+    recorder = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.2, stale_after_s=3.0), mcap_path=rec_path)
     agg = TelemetryAggregator(None, sample_period_s=0.2)
     pipe = TelemetryPipe(keys, agg, recorder)
     pipe.set_map(decode_map(blob), blob)
@@ -72,8 +73,11 @@ class _DiskFullOnce:
             raise OSError(28, "No space left on device")
         self.written.extend(int(i) for i in ids)
 
-    def write_map(self, t, blob):
+    def write_map(self, t, blob, cmap=None):
         pass
+
+    def publish(self, agg, force=False):
+        return False
 
 
 def test_a_failing_batch_is_counted_shown_and_the_worker_keeps_going(make_map):
@@ -162,7 +166,7 @@ def test_monitor_cli_records_its_map_file_and_refuses_an_unsigned_one(net, make_
     signed, unsigned = tmp_path / "signed.fiscmap", tmp_path / "unsigned.fiscmap"
     signed.write_bytes(make_map(3))
     unsigned.write_bytes(make_map(4, signing_key=None))
-    rec = tmp_path / "m.fiscrec"
+    rec = tmp_path / "m.mcap"
     base = ["monitor", "--swarm", "alpha", "--zenoh-config", str(hub), "--duration", "0.3"]
     assert main([*base, "--map", str(signed), "--record", str(rec)]) == 0
     assert read_recording(rec).maps() == [signed.read_bytes()]  # replay needs the map in the recording

@@ -12,8 +12,11 @@ from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import decode_map
 from fisc_agent.zenoh_keys import Keys
 from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground.monitor import NO_AGENT, TelemetryAggregator, TelemetryPipe, render
-from fisc_ground.recording import Recorder, aggregate, read_recording, replay
+from fisc_ground.monitor import TelemetryPipe
+from fisc_ground.monitor_aggregator import NO_AGENT, TelemetryAggregator
+from fisc_ground.monitor_view import render
+from fisc_ground.flight_log import FlightLog, LogSettings
+from fisc_ground.recording import aggregate, iter_messages, read_recording, replay
 
 from .conftest import snap, wait_for
 
@@ -53,6 +56,19 @@ def test_aggregator_is_independent_of_batching(make_map):
     assert fa.samples.sum() > 0 and np.nanmax(fa.rho_s_kg_m3) > 0
 
 
+def test_aggregator_samples_on_grid_times_that_round_onto_themselves(make_map):
+    """Receive times on the sampling grid where floor(t / p) + 1 lands back on t in floating point
+    (4.3 / 0.1 = 42.99999999999999): ingest used to loop forever on them (a simulated run's clock
+    hits them; a monitor's UNIX clock can)."""
+    cmap = decode_map(make_map(1))
+    agg = TelemetryAggregator(cmap, sample_period_s=0.1, stale_after_s=0.15)
+    times = np.round(np.arange(80, 120) * 0.05, 10)  # 4.0 .. 5.95 s, 4.3 among them
+    assert 4.3 in times.tolist()
+    for t in times:
+        agg.ingest([t], [1], [telemetry(1, t, (1.0, 0.0, 0.0))])
+    assert agg.fields().n_time_samples == 19  # one per 0.1 s grid point after the first message
+
+
 def test_aggregator_view_counts_states_stale_agents_and_alarms(make_map):
     cmap = decode_map(make_map(1))
     agg = TelemetryAggregator(cmap, stale_after_s=2.0)
@@ -72,19 +88,25 @@ def test_aggregator_view_counts_states_stale_agents_and_alarms(make_map):
     render(v, agg.fields(), cmap, 0, "test")  # renders without error
 
 
-def test_truncated_recording_is_read_up_to_the_last_complete_record(tmp_path, make_map):
-    path = tmp_path / "rec.fiscrec"
-    rec = Recorder(path, {"swarm": "alpha", "sample_period_s": 0.5, "stale_after_s": 3.0})
+def test_truncated_recording_is_read_up_to_the_last_complete_chunk(tmp_path, make_map):
+    path = tmp_path / "rec.mcap"
+    rec = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.5, stale_after_s=3.0), mcap_path=path)
     blob = make_map(1)
     rec.write_map(999.0, blob)
-    t, ids, p = synthetic_stream(n_agents=3, seconds=1.0)
-    rec.write_telemetry(t, ids, p)
+    t, ids, p = synthetic_stream(n_agents=30, seconds=30.0)  # ~9000 messages: several MCAP chunks
+    for a in range(0, len(p), 300):
+        rec.write_telemetry(t[a:a + 300], ids[a:a + 300], p[a:a + 300])
     rec.close()
     full = read_recording(path)
     assert full.n_messages == len(p) and full.maps() == [blob] and not full.truncated
-    path.write_bytes(path.read_bytes()[:-50])
+    assert full.settings.sample_period_s == 0.5 and full.settings.swarm == "alpha"
+    got = [m for m in iter_messages(full)]
+    assert [g[2] for g in got] == p and [g[0] for g in got] == t.tolist()  # exact, in order
+    path.write_bytes(path.read_bytes()[: int(path.stat().st_size * 0.6)])
     cut = read_recording(path)
-    assert cut.truncated and cut.n_messages == len(p) - 1
+    assert cut.truncated and 0 < cut.n_messages < len(p)
+    assert [m[2] for m in iter_messages(cut)] == \
+        p[:cut.n_messages]  # a prefix of the stream
 
 
 def test_hundred_agents_reach_the_monitor_and_replay_equals_live(net, sessions, make_map, tmp_path, ground_key):
@@ -92,8 +114,8 @@ def test_hundred_agents_reach_the_monitor_and_replay_equals_live(net, sessions, 
     blob = make_map(5, nx=12)
     cmap = decode_map(blob)
     monitor_session = sessions(hub)
-    rec_path = tmp_path / "live.fiscrec"
-    recorder = Recorder(rec_path, {"swarm": "alpha", "prefix": "fisc", "sample_period_s": 0.2, "stale_after_s": 1.0})
+    rec_path = tmp_path / "live.mcap"
+    recorder = FlightLog(LogSettings(swarm="alpha", sample_period_s=0.2, stale_after_s=1.0), mcap_path=rec_path)
     agg = TelemetryAggregator(None, sample_period_s=0.2, stale_after_s=1.0)
     pipe = TelemetryPipe(Keys("fisc", "alpha"), agg, recorder)
     pipe.set_map(cmap, blob)

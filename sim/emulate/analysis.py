@@ -1,0 +1,213 @@
+"""Analysis of a flown swarm: ground-truth fields, inlet arrivals, real-time verdict, comparison with
+``fisc-sim run`` (pure: arrays in, numbers out)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fisc_agent.frames import DeploymentTransform
+from fisc_agent.lookup import CommandField
+from fisc_agent.mapfile import CommandMap
+from sim.emulate.fly import SwarmRun
+from sim.emulate.plan import LaunchPlan
+
+
+
+def loop_stats(log_: dict, t_from_s: float, t_to_s: float) -> dict:
+    """Timing of one worker loop over [t_from_s, t_to_s] (times since launch): the share of the
+    nominal ticks it ran, lag of the tick starts behind their deadlines, gaps between tick starts
+    (how long its vehicles went unserved; a loop that falls more than a period behind skips the
+    missed ticks, so gaps, not lags, show the stall), busy share, CPU."""
+    period = float(log_["period_s"])
+    t = log_["tick_t_s"]
+    sel = (t >= t_from_s) & (t <= t_to_s)
+    span = max(t_to_s - t_from_s, period)
+    lag = log_["lag_s"][sel] if sel.any() else np.zeros(1)
+    gap = np.diff(t[sel]) if sel.sum() >= 2 else np.full(1, period)
+    busy = log_["busy_s"][sel] if sel.any() else np.zeros(1)
+    cpu_t, cpu = log_["cpu_t_s"], log_["cpu_s"]
+    c0, c1 = np.interp([t_from_s, t_to_s], cpu_t, cpu)
+    return {
+        "period_s": period, "window_s": [float(t_from_s), float(t_to_s)], "ticks": int(sel.sum()),
+        "tick_rate_ratio": float(sel.sum() * period / span),
+        "lag_p50_s": float(np.percentile(lag, 50)), "lag_p99_s": float(np.percentile(lag, 99)),
+        "lag_max_s": float(lag.max()), "gap_p99_s": float(np.percentile(gap, 99)), "gap_max_s": float(gap.max()),
+        "busy_mean_s": float(busy.mean()), "busy_p99_s": float(np.percentile(busy, 99)),
+        "utilisation": float(busy.sum() / span), "overruns": int(np.sum(lag > period)),
+        "cpu_s": float(c1 - c0), "cpu_cores": float((c1 - c0) / span),
+    }
+
+
+# ------------------------------------------------------------------------------------ analysis
+def sample_window(sample_t_s: np.ndarray, duration_s: float, average_window_s: float) -> np.ndarray:
+    """Indices of the samples in the averaging window: the last ``average_window_s`` of the run
+    (the whole run if it is shorter), as ``fisc-sim run`` averages."""
+    start = max(0.0, duration_s - average_window_s)
+    return np.flatnonzero(np.nan_to_num(sample_t_s, nan=-1.0) >= start - 1e-9)
+
+
+def ground_truth_fields(swarm: SwarmRun, cmap: CommandMap, transform: DeploymentTransform, window: np.ndarray,
+                        reference_velocity_m_s: np.ndarray):
+    """Time-averaged swarm fields from the emulators' true states (map frame, per CV).
+
+    Returns ``(SwarmFields, cv_ids (K, N))``: every sample in ``window`` is one ``FieldAccumulator.add``
+    of all vehicles (vehicles outside every CV carry cv -1 and are ignored, as are NaN samples).
+    """
+    from fisc_ground.swarm_fields import FieldAccumulator
+
+    field = CommandField.from_map(cmap)
+    k, n = swarm.pos_ned_m.shape[:2]
+    pos_map = transform.ned_to_map(swarm.pos_ned_m.reshape(-1, 3))
+    vel_map = transform.vel_ned_to_map(swarm.vel_ned_m_s.reshape(-1, 3))
+    finite = np.all(np.isfinite(pos_map), axis=1) & np.all(np.isfinite(vel_map), axis=1)
+    cv = np.full(k * n, -1, dtype=np.int64)
+    cv[finite] = field.cv_of(pos_map[finite])
+    cv = cv.reshape(k, n)
+    vel_map = np.where(finite[:, None], vel_map, 0.0).reshape(k, n, 3)
+    acc = FieldAccumulator(field.n_cv, field.cell_size_m ** 3)
+    mass = float(cmap.body.get("agent_mass_kg", 1.0))
+    for i in window:  # one add per time sample (vectorised over vehicles inside)
+        acc.add(cv[i], vel_map[i], mass, reference_velocity_m_s)
+    return acc.result(), cv
+
+
+def entry_statistics(agents: list[dict], plan: LaunchPlan) -> dict:
+    """Arrivals at the inlet (JOIN -> FLOW transitions) against the launch plan."""
+    first = np.array([next((t for t, src, dst, _ in a["transitions"] if dst == "FLOW" and src == "JOIN"), np.nan)
+                      for a in agents])
+    entries = np.sort(np.array([t for a in agents for t, src, dst, _ in a["transitions"]
+                                if dst == "FLOW" and src == "JOIN"]))
+    ok = np.isfinite(first)
+    n_first = int(ok.sum())
+    span = float(np.nanmax(first) - np.nanmin(first)) if n_first >= 2 else float("nan")
+    err = first[ok] - plan.arrival_time_s[: first.size][ok]
+    return {
+        "vehicles_entered": n_first, "entries_total": int(entries.size),
+        "planned_rate_per_s": plan.inflow_rate_per_s, "source_rate_per_s": plan.nominal_rate_per_s,
+        "realised_first_entry_rate_per_s": (n_first - 1) / span if n_first >= 2 and span > 0 else None,
+        "first_entry_s": float(np.nanmin(first)) if n_first else None,
+        "last_first_entry_s": float(np.nanmax(first)) if n_first else None,
+        "arrival_error_mean_s": float(err.mean()) if err.size else None,
+        "arrival_error_std_s": float(err.std()) if err.size else None,
+    }
+
+
+def steady_start_s(plan: LaunchPlan, duration_s: float, settle_s: float = 3.0, min_window_s: float = 5.0) -> float:
+    """Start of the steady (fully loaded) part of a run: every vehicle launched and streaming
+    (last launch + ``settle_s``), or the second half of the run if that leaves < ``min_window_s``."""
+    t = float(plan.start_time_s.max()) + settle_s
+    return t if duration_s - t >= min_window_s else 0.5 * duration_s
+
+
+def realtime_summary(swarm: SwarmRun, rate_hz: float, n_agents: int, t_from_s: float = 0.0,
+                     tolerance: float = 0.05) -> dict:
+    """Did the swarm keep real time over [t_from_s, end]?
+
+    * the setpoint rate measured at the autopilots is within ``tolerance`` of ``rate_hz``;
+    * every agent loop (the setpoint producers) ran >= (1 - tolerance) of its nominal ticks;
+    * every loop, agent and emulator, kept its lag bounded relative to the control period
+      T = 1 / rate_hz: p99 of the tick lag < T and p99 of the gap between ticks < 2 T (no vehicle
+      went unserved for more than two control periods, 99 % of the time).
+
+    CPU per agent = CPU seconds of all worker processes per vehicle per second of the window."""
+    t_to = swarm.duration_s
+    sel = swarm.setpoint_rate_t_s >= t_from_s
+    sp = swarm.setpoint_rate_hz[sel]
+    sp_mean = float(sp.mean()) if sp.size else float("nan")
+    agent_loops = [loop_stats(tm, t_from_s, t_to) for tm in swarm.agent_timing]
+    emulator_loops = [loop_stats(tm, t_from_s, t_to) for tm in swarm.emulator_timing]
+    loops = agent_loops + emulator_loops
+    control_period = 1.0 / rate_hz
+    ticks_ok = bool(agent_loops) and all(lp["tick_rate_ratio"] >= 1.0 - tolerance for lp in agent_loops)
+    lag_ok = bool(loops) and all(lp["lag_p99_s"] < control_period and lp["gap_p99_s"] < 2.0 * control_period
+                                 for lp in loops)
+    rate_ok = bool(sp.size) and abs(sp_mean - rate_hz) <= tolerance * rate_hz
+    span = max(t_to - t_from_s, 1e-9)
+    cpu = float(sum(lp["cpu_s"] for lp in loops))
+    return {
+        "keeps_real_time": bool(rate_ok and ticks_ok and lag_ok), "window_s": [float(t_from_s), float(t_to)],
+        "setpoint_rate_nominal_hz": rate_hz, "setpoint_rate_mean_hz": sp_mean,
+        "setpoint_rate_p5_hz": float(np.percentile(sp, 5)) if sp.size else None,
+        "setpoint_rate_samples": int(sp.size), "setpoint_rate_ok": rate_ok, "loop_ticks_ok": ticks_ok,
+        "loop_lag_ok": lag_ok, "cpu_s": cpu, "cpu_cores_used": cpu / span, "cpu_per_agent": cpu / span / n_agents,
+        "setup_s": swarm.setup_s, "agent_loops": agent_loops, "emulator_loops": emulator_loops,
+        "messages": swarm.messages,
+    }
+
+
+COMPARED_METRICS = ("nrmse_velocity", "nrmse_pressure", "nrmse_density", "pearson_velocity", "pearson_pressure",
+                    "pearson_density", "centreline_max_dev_velocity", "centreline_max_dev_pressure",
+                    "centreline_max_dev_density", "n_cv_compared")
+
+
+def _num(v) -> float | None:
+    return None if v is None or not math.isfinite(float(v)) else float(v)
+
+
+def compare_fields(emu_metrics: dict, run_metrics: dict, emu_fields, run_fields, min_samples: int) -> dict:
+    """Metric differences (emulate - run) and a direct comparison of the two swarm fields."""
+    from fisc_ground.metrics import nrmse, normalise, pearson
+
+    diff = {}
+    for k in COMPARED_METRICS:
+        e, r = _num(emu_metrics.get(k)), _num(run_metrics.get(k))
+        if k == "n_cv_compared":
+            e, r = (None if e is None else int(e)), (None if r is None else int(r))
+        diff[k] = {"emulate": e, "run": r, "difference": None if e is None or r is None else e - r}
+    direct = {}
+    both = (emu_fields.samples >= min_samples) & (run_fields.samples >= min_samples)
+    for name, attr, kind in (("velocity", "u_axial_m_s", "max"), ("pressure", "p_dispersion_pa", "minmax"),
+                             ("density", "rho_s_kg_m3", "minmax")):
+        a, b = np.asarray(getattr(emu_fields, attr), float), np.asarray(getattr(run_fields, attr), float)
+        ok = both & np.isfinite(a) & np.isfinite(b)
+        an, bn = (normalise(a[ok], kind), normalise(b[ok], kind)) if ok.sum() >= 2 else (None, None)
+        direct[name] = {"n_cv": int(ok.sum()),
+                        "nrmse_emulate_vs_run": None if an is None or bn is None else _num(nrmse(an, bn)),
+                        "pearson_emulate_vs_run": _num(pearson(a[ok], b[ok])) if ok.sum() >= 2 else None}
+    return {"metrics": diff, "fields_emulate_vs_run": direct,
+            "cvs_with_samples": {"emulate": int(np.sum(emu_fields.samples >= min_samples)),
+                                 "run": int(np.sum(run_fields.samples >= min_samples)), "both": int(both.sum())}}
+
+
+def _counters(agents: list[dict], cv_last: np.ndarray, n_steps: int, agent_steps: int):
+    """Run-style bookkeeping: injected = inlet entries, exited = outlet passes (laps), alive =
+    vehicles inside a CV at the end, escaped = the rest (left the map sideways: geofence)."""
+    from sim.swarm import SwarmCounters
+
+    injected = sum(1 for a in agents for _, src, dst, _ in a["transitions"] if src == "JOIN" and dst == "FLOW")
+    exited = sum(a["laps"] for a in agents)
+    alive = int(np.sum(cv_last >= 0))
+    return SwarmCounters(injected=injected, exited=exited, escaped=max(0, injected - exited - alive),
+                         returned=0, steps=n_steps, agent_steps=agent_steps), alive
+
+
+def _snapshots(swarm: SwarmRun, cv: np.ndarray, transform: DeploymentTransform, times_s: tuple[float, ...],
+               t_offset_s: float) -> list[tuple[float, np.ndarray]]:
+    out = []
+    for t in times_s:
+        tt = t + t_offset_s
+        if not np.isfinite(swarm.sample_t_s).any() or tt > np.nanmax(swarm.sample_t_s):
+            continue
+        i = int(np.nanargmin(np.abs(swarm.sample_t_s - tt)))
+        inside = cv[i] >= 0
+        out.append((float(swarm.sample_t_s[i]), transform.ned_to_map(swarm.pos_ned_m[i][inside])))
+    return out
+
+
+def states_at(agents: list[dict], t_s: np.ndarray) -> np.ndarray:
+    """(K, N) mission state names of each agent (``agents`` in column order) at the times ``t_s``
+    since launch, from its transitions; before its first transition an agent is in that
+    transition's source state."""
+    t_s = np.nan_to_num(np.asarray(t_s, dtype=float), nan=-np.inf)
+    out = np.empty((t_s.size, len(agents)), dtype=object)
+    for j, a in enumerate(agents):
+        tr = a["transitions"]
+        if not tr:
+            out[:, j] = a["state"]
+            continue
+        times = np.array([x[0] for x in tr], dtype=float)
+        names = np.array([tr[0][1]] + [x[2] for x in tr], dtype=object)
+        out[:, j] = names[np.searchsorted(times, t_s, side="right")]
+    return out

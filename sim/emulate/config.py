@@ -1,0 +1,154 @@
+"""Configuration of ``fisc-sim emulate`` (``EmulateConfig``) and its constants."""
+
+from __future__ import annotations
+
+import math
+import os
+from types import SimpleNamespace
+from dataclasses import dataclass
+
+
+from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
+from fisc_agent.lookup import COMMAND_MODES
+
+
+
+PERSONALITIES = ("px4", "ardupilot")
+MAP_FILE_NAME = "map.fiscmap"
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+#: Worker start-up (spawned interpreters import numpy/pymavlink; the agents decode the map).
+STARTUP_TIMEOUT_S = 120.0
+TELEMETRY = ("full", "lean")
+#: Measured launch overheads [s] (PX4 streams 1 s before OFFBOARD and climbs in OFFBOARD;
+#: ArduPilot arms in GUIDED and takes off by command): arrivals then land within ~0.2 s of the plan.
+LAUNCH_OVERHEAD_S = {"px4": 6.2, "ardupilot": 4.8}
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclass(frozen=True)
+class EmulateConfig:
+    """Everything one ``fisc-sim emulate`` needs (recorded in emulation.json)."""
+
+    out_dir: str = "out/emulate"
+    """Output directory (also receives ``map.fiscmap``, the map the agents load)."""
+    map: str | None = None
+    """Command map: ``.fiscmap`` path, a reference spec to fit now, or None for the embedded default."""
+    agents: int = 50
+    """Number of emulated vehicles N (one autopilot emulator + one agent each)."""
+    duration_s: float = 60.0
+    """Real (wall-clock) time flown, from the launch of the first vehicle [s]."""
+    mode: str | None = None
+    """Command mode of the agents (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended one."""
+    lookahead_s: float | None = None
+    """Command look-ahead of the agents [s]; None: the map's recommended value."""
+    preset: str = "default"
+    """``default`` (schema-2 map, its recommended settings) or ``paper`` (schema-1 map, Algorithm 1)."""
+    personality: str = "px4"
+    """Autopilot emulated: ``px4`` or ``ardupilot``."""
+    exit_policy: str = "loop"
+    """Agent exit policy after the outlet: ``loop`` (back to the inlet, keeps feeding), ``hold``, ``land``."""
+    geofence: str = "return"
+    """Agents leaving the CVs sideways: ``return`` (fly back to the nearest CV, as the simulator's return
+    policy; the kinetic mode's deviations reach the staircase walls) or ``hold``."""
+    rate_hz: float = 20.0
+    """Agent setpoint (control loop) rate [Hz]."""
+    position_rate_hz: float = 20.0
+    """LOCAL_POSITION_NED rate the agents request from their autopilot [Hz]."""
+    physics_rate_hz: float = 50.0
+    """Emulator service rate: receive, advance the physics, send due telemetry [Hz]."""
+    physics_dt_s: float = 0.02
+    """Physics step of the emulated vehicles [s] (the emulator's default; 0.05 = the simulator's dt)."""
+    plant: str = "paper"
+    """Vehicle model inside the emulators: a named ``sim.plant_fit.PLANT_PRESETS`` entry."""
+    telemetry: str = "full"
+    """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
+    and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""
+    average_window_s: float = 100.0
+    """Fields are time-averaged over the last this many seconds of the run (as ``fisc-sim run``) [s]."""
+    sample_interval_s: float = 0.1
+    """Interval between ground-truth samples of the average (``fisc-sim run``'s default) [s]."""
+    min_samples: int = 10
+    """CVs with fewer agent samples in the window are left out of the metrics."""
+    start_spacing_m: float = 1.0
+    """Spacing of the ground start grid [m]."""
+    start_gap_m: float = 3.0
+    """Distance of the first start row upstream of the staging plane [m]."""
+    launch_overhead_s: float | None = None
+    """Predicted time from mission start to the end of the climb-out (HEARTBEAT discovery, arming,
+    OFFBOARD/GUIDED, takeoff) [s], used to stagger the launches so that arrivals at the inlet follow
+    the source rate; None: measured default of the personality (``LAUNCH_OVERHEAD_S``)."""
+    emulator_workers: int = 0
+    """Processes hosting the emulators (0: automatic, 1 per 200 vehicles, at most one per CPU)."""
+    agent_workers: int = 0
+    """Processes hosting the agents (0: automatic, 1 per 300 vehicles, at most one per CPU)."""
+    compare: bool = True
+    """Also run ``fisc-sim run`` (vectorised) on the same map/duration/agents/mode and write comparison.json."""
+    figures: bool = True
+    """Write the PNG figures."""
+    seed: int = 0
+    """Seed of the comparison run (the emulated run itself is deterministic up to OS scheduling)."""
+    worker_log_level: str = "WARNING"
+    """Log level inside the worker processes (agents log every mission transition at INFO)."""
+    swarm: str | None = None
+    """Zenoh swarm name: when set, every agent publishes its telemetry on
+    ``<prefix>/<swarm>/agents/<id>/telemetry`` as a deployed fleet does, so ``fisc-ground monitor``
+    and ``status`` can watch the emulated swarm; None: no Zenoh."""
+    zenoh_config: str | None = None
+    """Standard Zenoh JSON5 config file for the agents' session (None: the lab default, peer mode on
+    loopback, listening on ``tcp/127.0.0.1:7447`` if free, else connecting to it)."""
+    zenoh_prefix: str = "fisc"
+    """Zenoh key-expression prefix."""
+    telemetry_rate_hz: float = 5.0
+    """Zenoh telemetry rate per agent [Hz] (with ``swarm``)."""
+    trusted_key: str | None = None
+    """Ground Ed25519 public key (.pub) the agents trust for maps and fleet commands over Zenoh
+    (required with ``swarm``, as on a real fleet)."""
+    mcap: str | None = None
+    """Also write the flight as a Foxglove/MCAP flight log to this path: the emulators' true states
+    (map frame) and the agents' mission states as telemetry, one fleet sample every
+    ``sample_interval_s``, with the channels of ``fisc-ground monitor --record``; None: no log."""
+
+    def __post_init__(self) -> None:
+        def need(cond: bool, msg: str) -> None:
+            if not cond:
+                raise ValueError(f"emulate: {msg}")
+
+        need(isinstance(self.agents, int) and self.agents >= 1, f"agents must be >= 1, is {self.agents!r}")
+        need(math.isfinite(self.duration_s) and self.duration_s > 0, f"duration_s must be > 0, is {self.duration_s!r}")
+        need(self.mode is None or self.mode in COMMAND_MODES,
+             f"mode {self.mode!r}: choose one of {', '.join(COMMAND_MODES)}")
+        need(self.lookahead_s is None or (math.isfinite(self.lookahead_s) and self.lookahead_s >= 0),
+             f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
+        need(self.preset in ("default", "paper"), f"preset {self.preset!r}: choose default or paper")
+        need(self.personality in PERSONALITIES, f"personality {self.personality!r}: choose px4 or ardupilot")
+        need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
+        need(self.geofence in GEOFENCE_POLICIES, f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
+        need(self.telemetry in TELEMETRY, f"telemetry {self.telemetry!r}: choose one of {', '.join(TELEMETRY)}")
+        for name in ("rate_hz", "position_rate_hz", "physics_rate_hz", "physics_dt_s", "average_window_s",
+                     "sample_interval_s", "start_spacing_m"):
+            v = getattr(self, name)
+            need(math.isfinite(v) and v > 0, f"{name} must be > 0, is {v!r}")
+        need(self.rate_hz > 2.0, "rate_hz must be > 2 Hz (PX4 offboard needs a > 2 Hz stream)")
+        need(self.start_gap_m >= 0, "start_gap_m must be >= 0")
+        need(self.launch_overhead_s is None or self.launch_overhead_s >= 0, "launch_overhead_s must be >= 0")
+        need(self.emulator_workers >= 0 and self.agent_workers >= 0, "worker counts must be >= 0")
+        need(self.worker_log_level in ("DEBUG", "INFO", "WARNING", "ERROR"), "worker_log_level must be a level name")
+        need(self.telemetry_rate_hz > 0, f"telemetry_rate_hz must be > 0, is {self.telemetry_rate_hz!r}")
+        need(self.swarm is None or self.trusted_key is not None,
+             "a Zenoh swarm needs the ground's public key (trusted_key / --trusted-key) for maps and commands")
+
+    def agent_settings(self) -> "SimpleNamespace":
+        """``mode`` and ``lookahead_s`` the agents are started with (None: the map's recommended;
+        ``paper`` preset: mean, no look-ahead unless given)."""
+        paper = self.preset == "paper"
+        return SimpleNamespace(mode=self.mode if self.mode is not None or not paper else "mean",
+                               lookahead_s=self.lookahead_s if self.lookahead_s is not None or not paper else 0.0)
+
+    def workers(self) -> tuple[int, int]:
+        """(emulator processes, agent processes) actually used.  Automatic: one emulator process
+        per 200 vehicles and one agent process per 300 (an emulator costs about 1.5 x an agent),
+        at most one per CPU."""
+        ncpu = os.cpu_count() or 1
+        emu = self.emulator_workers or min(ncpu, max(1, math.ceil(self.agents / 200)))
+        agent = self.agent_workers or min(ncpu, max(1, math.ceil(self.agents / 300)))
+        return emu, agent
