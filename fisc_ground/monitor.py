@@ -77,6 +77,7 @@ class TelemetryPipe:
         return self
 
     def on_sample(self, sample: Any) -> None:
+        """Zenoh subscriber callback: enqueue the sample with its receive time."""
         self.offer(time.time(), str(sample.key_expr), sample.payload.to_bytes())
 
     def offer(self, recv_s: float, key: str, payload: bytes) -> None:
@@ -160,10 +161,12 @@ class TelemetryPipe:
         return not self._q.unfinished_tasks
 
     def view(self) -> FleetView:
+        """The aggregator's fleet view now (under the pipe's lock)."""
         with self.lock:
             return self.aggregator.view(time.time())
 
     def close(self) -> None:
+        """Undeclare the subscriber and stop the consumer thread."""
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
@@ -265,6 +268,7 @@ class MapFollower:
             self._busy.release()
 
     def close(self) -> None:
+        """Stop following the map key."""
         self._sub.undeclare()
 
 

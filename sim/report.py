@@ -11,15 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from fisc_ground.field_report import (  # noqa: F401 - re-exported for the simulator's callers
-    FIELD_COLUMNS,
-    PAPER_FIGURES,
-    json_safe,
-    write_json,
-    open_fraction,
-    swarm_columns,
-    write_fields_csv,
-)
+from fisc_ground.field_report import PAPER_FIGURES, json_safe, write_json
 
 #: A ``sim.run.RunResult`` (not imported: sim.run imports this module).
 RunResult = Any

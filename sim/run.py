@@ -27,6 +27,7 @@ from fisc_agent.lookup import (
 )
 from fisc_agent.mapfile import MAGIC, CommandMap, load_map
 from fisc_agent.safe_files import read_head
+from fisc_ground.field_report import write_fields_csv
 from fisc_ground.field_run import FieldRun, FieldSource
 from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
 from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
@@ -372,7 +373,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result.metrics = report.compute_metrics(result)
-    result.paths["fields"] = report.write_fields_csv(result.field_run, out / "fields.csv")
+    result.paths["fields"] = write_fields_csv(result.field_run, out / "fields.csv")
     result.paths["metrics"] = report.write_metrics_json(result, out / "metrics.json")
     if config.figures:
         from fisc_ground import field_figures as figures

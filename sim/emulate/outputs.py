@@ -102,7 +102,7 @@ def _fmtv(v) -> str:
 
 def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) -> EmulateResult:
     """The ``fisc-sim emulate`` job: map, launch plan, fly, fields, outputs (see the module docstring)."""
-    from fisc_ground.field_report import json_safe, write_json
+    from fisc_ground.field_report import json_safe, write_fields_csv, write_json
     from fisc_ground.field_run import FieldRun, FieldSource
     from sim import report
     from sim.run import PAPER_SNAPSHOT_TIMES_S, RunConfig, RunResult
@@ -141,7 +141,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     rr.metrics["emulation"] = json_safe({"entries": entries, "real_time": {
         k: v for k, v in res.realtime.items() if k not in ("agent_loops", "emulator_loops")}})
     res.paths["map"] = map_path
-    res.paths["fields"] = report.write_fields_csv(fr, out / "fields.csv")
+    res.paths["fields"] = write_fields_csv(fr, out / "fields.csv")
     res.paths["metrics"] = report.write_metrics_json(rr, out / "metrics.json")
     if config.figures:
         from fisc_ground import field_figures as figures

@@ -41,13 +41,14 @@ AGENT = {
 AGENT_NO_FIELD = {
     "--flight-log": "an output file of the process (fisc_agent.cli.run's flight_log), not a flight setting",
     "--max-duration": "lifetime of the process (Runner.run's max_duration_s), not a flight setting",
-    "--swarm": "Zenoh link option passed to fisc_agent.zenoh_link.connect_runner (no config dataclass yet; "
-               "the Zenoh link is being restructured, issue 10 part 1 / issue 11 item 5)",
+    "--swarm": "Zenoh link option passed to fisc_agent.zenoh_runner.connect_runner (the Zenoh link's "
+               "arguments; the flight settings live in AgentConfig)",
     "--zenoh-config": "Zenoh link option (as --swarm)", "--zenoh-prefix": "Zenoh link option (as --swarm)",
     "--telemetry-rate": "Zenoh link option (as --swarm)", "--allow-unsigned": "Zenoh link option (as --swarm)",
 }
 
 RUN = {
+    "--mcap": "RunConfig.mcap",
     "--map": "RunConfig.map", "--scenario": "RunConfig.scenario", "--agents": "RunConfig.agents",
     "--duration": "RunConfig.duration_s", "--average-window": "RunConfig.average_window_s",
     "--plant": "RunConfig.plant", "--preset": "RunConfig.preset", "--mode": "RunConfig.mode",
@@ -57,6 +58,7 @@ RUN = {
 }
 
 EMULATE = {
+    "--mcap": "EmulateConfig.mcap",
     "--map": "EmulateConfig.map", "--agents": "EmulateConfig.agents", "--duration": "EmulateConfig.duration_s",
     "--mode": "EmulateConfig.mode", "--lookahead": "EmulateConfig.lookahead_s", "--preset": "EmulateConfig.preset",
     "--autopilot": "EmulateConfig.personality", "--plant": "EmulateConfig.plant",
@@ -91,12 +93,12 @@ NO_CONFIG_DATACLASS = {
     ("fisc-ground", "router"): "a Zenoh router: its configuration is a standard Zenoh config file (--config) or endpoints",
     ("fisc-ground", "cmd"): "one signed fleet command's fields",
     ("fisc-ground", "status"): "a listening window",
-    ("fisc-ground", "monitor"): "monitor options; the monitor is being split and reworked (issue 10 part 2, issue 11 item 5)",
-    ("fisc-ground", "replay"): "arguments of fisc_ground.recording.replay; being reworked (issue 10 part 2)",
+    ("fisc-ground", "monitor"): "monitor options: swarm, map, trust, recording and Foxglove port (arguments of run_monitor)",
+    ("fisc-ground", "replay"): "arguments of fisc_ground.recording.replay (the MCAP file and the output folder)",
     ("fisc-sim", "bench"): "benchmark sizes and switches (sim.bench.run_bench arguments)",
     ("fisc-sim", "sweep"): "the spec file is the configuration (checked against RunConfig/FitConfig by sim.sweep)",
     ("fisc-sim", "autopilot"): "keyword arguments of sim.autopilot.server.AutopilotEmulator; its defaults are "
-                               "checked against that signature below (the autopilot is being split, issue 11 item 5)",
+                               "checked against that signature below",
 }
 
 

@@ -8,16 +8,9 @@ from __future__ import annotations
 
 import ast
 
-import pytest
 
 from import_graph import REPO, module_files
 
-#: Modules other work is rewriting or splitting today (issue 11 items 1, 2, 5, 6), left undocumented
-#: here to keep the merge clean.  Each is an xfail(strict=True) case below: once documented, strict
-#: mode fails the suite until the entry is removed.  The lead empties this set after merging.
-KNOWN_UNDOCUMENTED = frozenset({
-    "fisc_ground.monitor", "fisc_ground.recording",
-})
 
 
 def undocumented(tree: ast.Module, module: str) -> list[str]:
@@ -54,13 +47,5 @@ def _missing(module: str, path) -> list[str]:
 def test_every_public_function_has_a_docstring():
     missing = []
     for module, path in module_files().items():
-        if module not in KNOWN_UNDOCUMENTED:
-            missing += _missing(module, path)
+        missing += _missing(module, path)
     assert not missing, f"{len(missing)} public functions/classes without a docstring: {missing}"
-
-
-@pytest.mark.parametrize("module", sorted(KNOWN_UNDOCUMENTED))
-@pytest.mark.xfail(strict=True, reason="being rewritten elsewhere today; remove from KNOWN_UNDOCUMENTED once documented")
-def test_known_undocumented_module_is_documented(module):
-    path = module_files().get(module)
-    assert path is None or not _missing(module, path)  # a module split away counts as done

@@ -5,25 +5,14 @@ The graph is read from the source (``import_graph.py``), lazy imports inside fun
 
 from __future__ import annotations
 
-import pytest
-
 from import_graph import PACKAGES, cycles, import_graph
-
-#: Cycles known today, being broken by issue 11 item 3 (the typed FieldRun record).  Each is an
-#: xfail(strict=True) test below: once the cycle is gone the test passes, which strict mode turns
-#: into a failure, so whoever breaks the cycle must also delete its entry here.
-KNOWN_CYCLES = (
-    frozenset({"sim.run", "sim.report"}),
-    frozenset({"fisc_ground.monitor", "fisc_ground.recording"}),
-)
-
 
 def test_the_graph_sees_the_project():
     graph = import_graph()
     assert len(graph) > 60
     assert "fisc_agent.mapfile" in graph["fisc_agent.runner"] or "fisc_agent.mapfile" in graph["fisc_agent.cli"]
-    # a lazy import inside a function is an edge too (sim.report imports sim.run in compute_metrics)
-    assert "sim.run" in graph["sim.report"] or frozenset({"sim.run", "sim.report"}) not in KNOWN_CYCLES
+    # a lazy import inside a function is an edge too (run_monitor imports zenoh_config)
+    assert "fisc_ground.zenoh_config" in graph["fisc_ground.monitor"]
 
 
 def test_cycle_finder_finds_a_planted_cycle():
@@ -31,17 +20,9 @@ def test_cycle_finder_finds_a_planted_cycle():
     assert cycles(graph) == [frozenset({"a", "b", "c"})]
 
 
-def test_no_import_cycles_beyond_the_known_ones():
-    found = set(cycles(import_graph()))
-    new = found - set(KNOWN_CYCLES)
-    assert not new, "import cycles: " + "; ".join(" <-> ".join(sorted(c)) for c in new)
-
-
-@pytest.mark.parametrize("cycle", KNOWN_CYCLES, ids=lambda c: "<->".join(sorted(c)))
-@pytest.mark.xfail(strict=True, reason="known cycle (issue 11 item 3); delete it from KNOWN_CYCLES once broken")
-def test_known_cycle_is_gone(cycle):
+def test_no_import_cycles():
     found = cycles(import_graph())
-    assert not any(cycle <= c for c in found), f"still a cycle: {sorted(cycle)}"
+    assert not found, "import cycles: " + "; ".join(" <-> ".join(sorted(c)) for c in found)
 
 
 def test_layering_agent_ground_sim():

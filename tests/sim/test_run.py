@@ -143,7 +143,8 @@ def test_lookahead_reaches_the_swarm_and_cuts_the_velocity_error():
 
 
 def test_open_volume_columns_use_the_maps_fraction_or_fall_back_to_one():
-    from sim.report import compute_metrics, open_fraction, swarm_columns
+    from fisc_ground.field_report import open_fraction, swarm_columns
+    from sim.report import compute_metrics
 
     cmap = synthetic_tunnel_map(nx=8)
     assert "cv_open_fraction" not in cmap.arrays
