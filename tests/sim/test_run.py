@@ -232,9 +232,9 @@ def test_run_mcap_flight_log_replays_to_exactly_the_logged_estimate(tmp_path):
     from fisc_ground.recording import aggregate, read_recording, replay
 
     cmap = synthetic_tunnel_map(nx=8)
-    cfg = RunConfig(duration_s=4.0, average_window_s=2.0, agents=None, figures=False)
+    cfg = RunConfig(duration_s=4.0, average_window_s=2.0, sample_interval_s=0.1, agents=None, figures=False)
     path = tmp_path / "sim.mcap"
-    tel = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=cfg.sample_interval_s, stale_after_s=0.15,
+    tel = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=cfg.sample_interval, stale_after_s=0.15,
                                                    source="fisc-sim run"), mcap_path=path), cmap, map_bytes(cmap))
     r = simulate(cfg, cmap, telemetry=tel)
     live = tel.close()

@@ -23,7 +23,7 @@ from fisc_agent.mapfile import decode_map
 from fisc_agent.zenoh_link import AgentZenohLink
 from fisc_ground import foxglove_scene as fs
 
-from .conftest import free_port, wait_for
+from .conftest import free_port, snap, wait_for
 
 websockets = pytest.importorskip("websockets")
 
@@ -121,9 +121,9 @@ def test_a_foxglove_client_sees_agents_and_cv_density_within_5_s_of_the_first_te
                     t0 = time.time()
                     link = AgentZenohLink(None, "alpha", 100 + i, [ground_key[1]], False, lambda m: None,
                                           lambda c: None, session=link_session).start()
-                    link.start_telemetry(lambda s=start, v=vel, t0=t0: {
-                        "state": "FLOW", "position_m": s + v * (time.time() - t0), "velocity_m_s": v,
-                        "map_sha256": cmap.sha256, "map_version": cmap.map_version}, rate_hz=10)
+                    link.start_telemetry(lambda s=start, v=vel, t0=t0, i=i: snap(
+                        agent_id=100 + i, position_map_m=s + v * (time.time() - t0), velocity_map_m_s=v,
+                        map_sha256=cmap.sha256, map_version=cmap.map_version), rate_hz=10)
                     links.append(link)
                 t_first["t"] = time.monotonic()
 
