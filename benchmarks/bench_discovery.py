@@ -39,7 +39,7 @@ def free_port() -> int:
 def one(order: tuple[str, str], agents: int, gap_s: float, window_s: float, work: Path) -> dict:
     """Start both processes in ``order``; returns agents heard and first/last heard [s after launch]."""
     env = {**os.environ, PORT_ENV: str(free_port())}
-    rec = work / f"{order[0]}-first.fiscrec"
+    rec = work / f"{order[0]}-first.mcap"
     argv = {
         "monitor": [sys.executable, "-m", "fisc_ground.cli", "monitor", "--swarm", "demo", "--duration",
                     str(window_s), "--record", str(rec)],  # the monitor's defaults otherwise
