@@ -27,6 +27,9 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Callable, Hashable
 
+from pymavlink.dialects.v20.common import (MAV_AUTOPILOT_INVALID, MAV_TYPE_ADSB, MAV_TYPE_CAMERA, MAV_TYPE_GCS,
+                                           MAV_TYPE_GIMBAL, MAV_TYPE_ODID, MAV_TYPE_ONBOARD_CONTROLLER)
+
 MAGIC_V1 = 0xFE
 MAGIC_V2 = 0xFD
 HEADER_V1 = 6
@@ -37,9 +40,9 @@ IFLAG_SIGNED = 0x01
 MAX_BAD_FRAMES_PER_DATAGRAM = 4
 """Failed frame decodes after which the rest of a datagram is dropped (bounds the CPU a datagram costs)."""
 
-NON_VEHICLE_TYPES = frozenset({6, 18, 26, 27, 30, 34})
+NON_VEHICLE_TYPES = frozenset({MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER, MAV_TYPE_GIMBAL, MAV_TYPE_ADSB,
+                               MAV_TYPE_CAMERA, MAV_TYPE_ODID})
 """MAV_TYPE of GCS, onboard controller, gimbal, ADSB, camera, OpenDroneID: never an autopilot."""
-MAV_AUTOPILOT_INVALID = 8
 
 
 @dataclass(frozen=True)

@@ -11,11 +11,8 @@ from dataclasses import dataclass
 from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
 from fisc_agent.lookup import COMMAND_MODES
 
-
-
 PERSONALITIES = ("px4", "ardupilot")
 MAP_FILE_NAME = "map.fiscmap"
-MAV_CMD_SET_MESSAGE_INTERVAL = 511
 #: Worker start-up (spawned interpreters import numpy/pymavlink; the agents decode the map).
 STARTUP_TIMEOUT_S = 120.0
 TELEMETRY = ("full", "lean")

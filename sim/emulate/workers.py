@@ -16,7 +16,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fisc_agent.mapfile import load_map
-from sim.emulate.config import MAV_CMD_SET_MESSAGE_INTERVAL
+from pymavlink.dialects.v20.common import MAV_CMD_SET_MESSAGE_INTERVAL
 
 log = logging.getLogger(__name__)
 
