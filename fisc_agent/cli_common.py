@@ -48,6 +48,8 @@ EXTRA_OF_MODULE = {
     "matplotlib": "ground",
     "meshio": "ground",
     "rich": "ground",
+    "foxglove": "ground",
+    "mcap": "ground",
     "numba": "jit",
     "dask": "sweep",
     "distributed": "sweep",

@@ -21,7 +21,7 @@ from fisc_agent.flightlog import read_flight_log
 pytestmark = pytest.mark.slow
 
 REPO = Path(__file__).resolve().parents[2]
-HEAVY = ("scipy", "matplotlib", "numba", "meshio", "rich", "dask")
+HEAVY = ("scipy", "matplotlib", "numba", "meshio", "rich", "dask", "foxglove", "mcap")
 LEAN = ("numpy", "pymavlink", "zenoh", "nacl", "fisc_agent")
 
 

@@ -9,7 +9,7 @@ import sys
 
 from import_graph import REPO, module_files
 
-FORBIDDEN = ("scipy", "matplotlib", "numba", "fisc_ground", "sim", "meshio", "rich", "dask",
+FORBIDDEN = ("scipy", "matplotlib", "numba", "fisc_ground", "sim", "meshio", "rich", "dask", "foxglove", "mcap",
              "mavsdk")  # mavsdk: optional, imported only when --backend mavsdk connects
 
 _PROBE = """
