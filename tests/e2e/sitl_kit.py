@@ -278,6 +278,34 @@ def ulog_summary(path: Path) -> UlogSummary:
     return UlogSummary(hz, gap, bool(np.any(st["failsafe"])), gps, states, err)
 
 
+def truth_track(path: Path, map_above_start_m: float = 10.0, x_lo_m: float = 0.0,
+                x_hi_m: float = 15.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """SIH's ground truth (``vehicle_local_position_groundtruth``) of the pass, in the map frame, as
+    ``(t_s, pos_m, vel_m_s, states)`` for ``fisc_ground.flight_score.score_track``.
+
+    The vehicle's real motion, not PX4's estimate of it: EKF2's velocity estimate carries a bias
+    that the agent's streamline tracking corrects for (measured: an estimate of 0.73-0.79 m/s
+    where the vehicle truly flew 0.36-0.50 m/s near the outlet), so a score from the estimate
+    counts the correction as an error.  The local frame's origin is the start point and the map
+    origin ``map_above_start_m`` above it (the default deployment transform).  Samples from the
+    first forward motion inside ``[x_lo_m, x_hi_m]`` up to the first one past ``x_hi_m`` are the
+    pass (state ``FLOW``); the rest are ``JOIN``.
+    """
+    from pyulog import ULog
+
+    gt = ULog(str(path), ["vehicle_local_position_groundtruth"]).get_dataset(
+        "vehicle_local_position_groundtruth").data
+    pos = np.stack([gt["x"], gt["y"], -(gt["z"] + map_above_start_m)], axis=1).astype(float)
+    vel = np.stack([gt["vx"], gt["vy"], -gt["vz"]], axis=1).astype(float)
+    x = pos[:, 0]
+    states = np.full(len(x), "JOIN", dtype=object)
+    start = np.flatnonzero((x >= x_lo_m) & (x <= x_hi_m) & (vel[:, 0] > 0.2))
+    if start.size:
+        past = np.flatnonzero((x > x_hi_m) & (np.arange(len(x)) > start[0]))
+        states[start[0]:(past[0] + 1 if past.size else len(x))] = "FLOW"
+    return gt["timestamp"] / 1e6, pos, vel, states.astype(str)
+
+
 def dataflash_log(run: SitlRun, i: int) -> Path:
     files = sorted(glob.glob(str(run.run_dir / "instances" / str(i) / "logs" / "*.BIN")), key=os.path.getmtime)
     if not files:

