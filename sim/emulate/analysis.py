@@ -171,7 +171,7 @@ def compare_fields(emu_metrics: dict, run_metrics: dict, emu_fields, run_fields,
                                  "run": int(np.sum(run_fields.samples >= min_samples)), "both": int(both.sum())}}
 
 
-def _counters(agents: list[dict], cv_last: np.ndarray, n_steps: int, agent_steps: int):
+def swarm_counters(agents: list[dict], cv_last: np.ndarray, n_steps: int, agent_steps: int):
     """Run-style bookkeeping: injected = inlet entries, exited = outlet passes (laps), alive =
     vehicles inside a CV at the end, escaped = the rest (left the map sideways: geofence)."""
     from sim.swarm import SwarmCounters
@@ -183,8 +183,11 @@ def _counters(agents: list[dict], cv_last: np.ndarray, n_steps: int, agent_steps
                          returned=0, steps=n_steps, agent_steps=agent_steps), alive
 
 
-def _snapshots(swarm: SwarmRun, cv: np.ndarray, transform: DeploymentTransform, times_s: tuple[float, ...],
-               t_offset_s: float) -> list[tuple[float, np.ndarray]]:
+def position_snapshots(swarm: SwarmRun, cv: np.ndarray, transform: DeploymentTransform,
+                       times_s: tuple[float, ...], t_offset_s: float) -> list[tuple[float, np.ndarray]]:
+    """Map-frame positions of the vehicles inside a CV at the fleet sample nearest each of
+    ``times_s`` (shifted by ``t_offset_s``), for the paper's snapshot figures; times past the
+    last sample are skipped."""
     out = []
     for t in times_s:
         tt = t + t_offset_s

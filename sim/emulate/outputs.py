@@ -15,8 +15,8 @@ import numpy as np
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import CommandMap
-from sim.emulate.analysis import (_counters, _snapshots, compare_fields, entry_statistics, ground_truth_fields,
-                                  realtime_summary, sample_window, states_at, steady_start_s)
+from sim.emulate.analysis import (compare_fields, entry_statistics, ground_truth_fields, position_snapshots,
+                                  realtime_summary, sample_window, states_at, steady_start_s, swarm_counters)
 from sim.emulate.config import LAUNCH_OVERHEAD_S, EmulateConfig
 from sim.emulate.fly import SwarmRun, fly_swarm
 from sim.emulate.plan import LaunchPlan, launch_plan, prepare_map
@@ -122,7 +122,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     window = sample_window(swarm.sample_t_s, config.duration_s, config.average_window_s)
     fields, cv = ground_truth_fields(swarm, cmap, transform, window, target_cmd)
     n_steps = int(round(config.duration_s * config.rate_hz))
-    counters, alive = _counters(swarm.agents, cv[-1], n_steps, sum(a["ticks"] for a in swarm.agents))
+    counters, alive = swarm_counters(swarm.agents, cv[-1], n_steps, sum(a["ticks"] for a in swarm.agents))
     entries = entry_statistics(swarm.agents, plan)
     first_entry = entries["first_entry_s"] if entries["first_entry_s"] is not None else float(plan.arrival_time_s[0])
     rcfg = _run_config(config, map_path)
@@ -130,7 +130,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     settings = rcfg.flight_settings(cmap)
     fr = FieldRun(source=FieldSource.EMULATION, cmap=cmap, fields=fields, scale=cmap.scale,
                   min_samples=config.min_samples, scenario=rcfg.scenario, mode=settings.mode,
-                  snapshots=tuple(_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry)))
+                  snapshots=tuple(position_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry)))
     rr = RunResult(config=rcfg, field_run=fr, settings=settings, counters=counters, alive=alive,
                    wall_time_s=swarm.duration_s, window_s=(float(np.nanmin(t_win)), float(np.nanmax(t_win))),
                    inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None)
