@@ -23,6 +23,7 @@ from fisc_agent.lookup import (
     DeviationState,
     FlightSettings,
     flight_command,
+    kinetic_deviation,
     slot_hash_int,
 )
 from fisc_agent.mapfile import MapError, MapErrorKind
@@ -95,6 +96,23 @@ class ScalarField:
         if not np.all(np.isfinite(cmd[0])):
             return None
         return (float(cmd[0, 0]), float(cmd[0, 1]), float(cmd[0, 2]))
+
+    def deviation(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float) -> Vec:
+        """This vehicle's ``kinetic`` deviation at ``pos`` [m/s]: the CV's fitted spread times the
+        persistent, wall-reflected direction of ``fisc_agent.lookup.kinetic_deviation`` (the
+        simulator's rule; its state is kept here, shared with ``flight``).  Zero outside the CVs or
+        on a map without a fitted spread.  Streamline tracking adds it to its parcel
+        (``fisc_agent.tracking.ParcelTracker.step``)."""
+        cv = self.cv_of(*pos)
+        spread = self.field.spread_m_s
+        if cv < 0 or spread is None:
+            return ZERO
+        st = self._dev_state if self._dev_state is not None else DeviationState.new(1)
+        d, self._dev_state = kinetic_deviation(
+            self.field, np.array([pos], dtype=float), np.array([agent_id]), t_s, self.settings().persistence_s, st,
+            None if vel is None else np.array([vel], dtype=float))
+        s = float(spread[cv])
+        return (s * float(d[0, 0]), s * float(d[0, 1]), s * float(d[0, 2]))
 
     def _interpolate(self, x: float, y: float, z: float, cv: int) -> Vec:
         l = self._l

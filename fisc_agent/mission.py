@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from typing import Callable
 
 from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig
@@ -78,6 +79,7 @@ class Mission:
         self.entry: Vec | None = None
         self.tracker = ParcelTracker(cfg.tracking)
         self._tracked_mode = "mean"
+        self._kinetic = False
         self.response: VehicleResponse | None = None
         """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
         self._recorder = ResponseRecorder()
@@ -95,10 +97,14 @@ class Mission:
         self.tracker.x_outlet_m = self.geom.x_outlet_m
         self.tracker.clear()  # a parcel of the old map means nothing in the new one
         mode = sfield.settings(self.cfg.mode).mode
+        # kinetic under streamline tracking: the parcel follows the staggered field and carries the
+        # agent's deviation (ParcelTracker.step), when the mode was asked for explicitly
         self._tracked_mode = "staggered" if mode == "kinetic" else mode
-        if mode != self._tracked_mode and self.cfg.tracking.gain_1_s > 0.0:
-            log.warning("mode kinetic: its per-agent deviations are not flown under streamline tracking; flying the "
-                        "map's staggered field (--track-gain 0 flies kinetic open loop, the simulator's way)")
+        self._kinetic = mode == "kinetic" and self.cfg.mode == "kinetic"
+        if mode == "kinetic" and not self._kinetic and self.cfg.tracking.gain_1_s > 0.0:
+            log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "
+                        "with an explicit --mode kinetic (they reach the staircase's outer cubes, which lie partly "
+                        "outside a real duct: docs/deployment.md); flying the map's staggered field")
         if self.response is None:
             self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self._lookahead_s())
         if self._last_pos is not None and self.state == State.JOIN:
@@ -331,7 +337,8 @@ class Mission:
                 if cfg.tracking.gain_1_s == 0.0:  # open loop: the simulator's own command function
                     vel = self.sfield.flight(pos, s.vel_m_s, cfg.agent_id, t, cfg.mode, self._lookahead_s(), cv)
                 else:
-                    vel = self.tracker.step(t, pos, self._field_command)
+                    deviation = self._deviation_fn(t, s.vel_m_s) if self._kinetic else None
+                    vel = self.tracker.step(t, pos, self._field_command, deviation)
                     if vel is None:  # the parcel's CV vanished with a new map: fly the field where we are
                         self.tracker.reset(pos, t)
                         vel = self._field_command(*pos)
@@ -370,6 +377,11 @@ class Mission:
         if mode in POINT_MODES:
             return self.sfield.command(x, y, z, self.cfg.agent_id, mode)
         return self.sfield.flight((x, y, z), None, self.cfg.agent_id, 0.0, mode, 0.0)
+
+    def _deviation_fn(self, t: float, vel: Vec | None) -> Callable[[Vec], Vec]:
+        """The ``kinetic`` deviation at time ``t`` as a function of the parcel's position (for
+        ``ParcelTracker.step``; the vehicle's velocity sets the wall-reflection zone)."""
+        return lambda p: self.sfield.deviation(p, vel, self.cfg.agent_id, t)
 
     def _lookahead_s(self) -> float:
         """Look-ahead in use: identified in flight (``lookahead_auto``), else given, else the map's."""

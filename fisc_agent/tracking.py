@@ -48,6 +48,8 @@ from typing import Callable
 Vec = tuple[float, float, float]
 FieldFn = Callable[[float, float, float], "Vec | None"]
 """Map-frame command at a point (the selected command mode), None outside the map's CVs."""
+DeviationFn = Callable[[Vec], Vec]
+"""The ``kinetic`` mode's deviation of this agent at a map-frame point [m/s] (zero outside the CVs)."""
 
 ZERO: Vec = (0.0, 0.0, 0.0)
 
@@ -188,8 +190,14 @@ class ParcelTracker:
             return v
         return _add(v, _add(ahead, v, -1.0), dist / d)
 
-    def step(self, t_s: float, pos_m: Vec, field: FieldFn) -> Vec | None:
+    def step(self, t_s: float, pos_m: Vec, field: FieldFn, deviation: DeviationFn | None = None) -> Vec | None:
         """Move the parcel abreast of the vehicle and return the velocity command (map frame).
+
+        ``deviation`` (the ``kinetic`` mode): the agent's persistent deviation at a point
+        (``ScalarField.deviation``).  The parcel then is a kinetic particle: its cross-stream part
+        moves the parcel across the stream (so the vehicle's position feedback pulls towards a
+        deviated parcel instead of cancelling the deviation), and the whole deviation is added to the
+        feed-forward; along the stream it is flown open loop, like the field.
 
         None when the field has no command at the parcel; the mission then applies its geofence
         to the vehicle's own position.
@@ -207,9 +215,21 @@ class ParcelTracker:
             t_hat = _unit(v)
             p = self._slide(p, _scale(t_hat, _dot(_add(pos_m, p, -1.0), t_hat)), field)
             v = self._field_at(p, field) or v
-        self.parcel_m, self._v_last = p, v
+        self._v_last = v
         v_ff = self._ahead(p, v, field)
-        e = _add(p, pos_m, -1.0)
+        lag_m: Vec = ZERO
+        if deviation is not None:
+            dev = deviation(p)
+            t_hat = _unit(v)
+            cross = _add(dev, t_hat, -_dot(dev, t_hat))
+            if dt > 0.0:
+                p = self._slide(p, _scale(cross, dt), field)
+            v_ff = _add(v_ff, dev)
+            # a vehicle lagging by about lookahead_s trails its deviated parcel by cross * lookahead_s:
+            # the position feedback aims there, so it does not amplify the deviation
+            lag_m = _scale(cross, cfg.lookahead_s)
+        self.parcel_m = p
+        e = _add(_add(p, lag_m, -1.0), pos_m, -1.0)
         if dt > 0.0:
             self.integral_m_s = saturate(_add(self.integral_m_s, e, cfg.integral_gain_1_s2 * dt),
                                          cfg.max_integral_m_s)

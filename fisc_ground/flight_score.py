@@ -11,6 +11,8 @@ The figures the real-autopilot acceptance asks for, computed from an agent's fli
 - **axial-velocity nRMSE**: RMS over the in-duct FLOW samples of (flown axial velocity -
   S * CFD axial velocity at the nearest CFD node), divided by the largest such target along
   the track.
+- **realised spread** (``realised_spread_ratio``): the kinetic deviation a pass flew, over the
+  map's fitted spread.
 - **crossing**: whether the pass reached ``x > x_hi`` without a hold, and the time it took from
   the inlet plane.
 """
@@ -23,6 +25,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fisc_agent.lookup import CommandField
 from fisc_ground.reference.field import ReferenceField
 
 @dataclass(frozen=True)
@@ -130,3 +133,23 @@ def track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray,
     pos = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows]).reshape(-1, 3)
     vel = np.array([[float(r["vx_m_s"]), float(r["vy_m_s"]), float(r["vz_m_s"])] for r in rows]).reshape(-1, 3)
     return t, pos, vel, np.array([r["state"] for r in rows])
+
+
+def realised_spread_ratio(pos_m: np.ndarray, vel_m_s: np.ndarray, states: np.ndarray, field: CommandField) -> float:
+    """How much of the map's fitted spread a flown pass realised (the ``kinetic`` mode's pressure).
+
+    RMS over the FLOW samples inside a CV of ||v - c(x)||, with c the map's staggered field at the
+    vehicle (``fisc_agent.lookup.CommandField``, mode ``staggered``), over the RMS of the fitted spread
+    sigma_j of the samples' CVs.  About 1 for a vehicle flying the kinetic deviations, about its
+    tracking error over sigma (~0.2) for one flying the field alone.  NaN without such samples.
+    """
+    pos = np.asarray(pos_m, dtype=float)
+    flow = np.asarray(states).astype(str) == "FLOW"
+    cv = field.cv_of(pos)
+    ok = flow & (cv >= 0) & np.all(np.isfinite(vel_m_s), axis=1)
+    if not ok.any() or field.spread_m_s is None:
+        return math.nan
+    c = field.command(pos[ok], np.zeros(int(ok.sum()), dtype=np.int64), "staggered", cv_ids=cv[ok])
+    dev = np.asarray(vel_m_s, dtype=float)[ok] - c
+    sigma = np.asarray(field.spread_m_s)[cv[ok]]
+    return float(np.sqrt(np.mean(np.sum(dev ** 2, axis=1))) / np.sqrt(np.mean(sigma ** 2)))

@@ -11,6 +11,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from fisc_agent.lookup import map_flight_settings
+from fisc_agent.mapfile import load_map
 from sim.emulate.config import STARTUP_TIMEOUT_S, EmulateConfig
 from sim.emulate.plan import LaunchPlan
 from sim.emulate.workers import _AgentJob, _EmulatorJob, _agent_worker, _emulator_worker
@@ -70,6 +72,8 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
     n = plan.start_ned_m.shape[0]
     n_emu, n_agent = config.workers()
     settings = config.agent_settings()
+    if settings.mode is None:  # emulated ducts have no physical wall: fly the map's mode as fisc-sim run does
+        settings.mode = map_flight_settings(load_map(map_path)).mode
     ctx = mp.get_context("spawn")
     t_setup = time.monotonic()
     procs: list = []

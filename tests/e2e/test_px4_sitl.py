@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.flightlog import read_flight_log
-from fisc_ground.flight_score import DuctWall, score_track
+from fisc_agent.lookup import CommandField
+from fisc_ground.flight_score import DuctWall, realised_spread_ratio, score_track
 from fisc_agent.mapfile import load_map
 from fisc_ground.reference.builtin import load_builtin
 
@@ -67,7 +68,12 @@ def _score(log: Path, tunnel):
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path, tunnel, backend):
     """Take-off, join, the pass and the exit hold on one real PX4, in the local frame, with either
-    MAVLink backend (MAVSDK: its own mavsdk_server, its offboard plugin and actions)."""
+    MAVLink backend (MAVSDK: its own mavsdk_server, its offboard plugin and actions).
+
+    The agent's default under streamline tracking: the map's staggered field without the kinetic
+    deviations (``realised_spread_ratio`` is printed: ~0.46 of the fitted spread, the tracking error;
+    the kinetic deviations under tracking reached 0.82 m outside the real wall in one of two PX4 flights,
+    see docs/deployment.md)."""
     if backend == "mavsdk":
         pytest.importorskip("mavsdk", reason="the optional MAVSDK backend (pip install 'fisc[mavsdk]')")
     log = tmp_path / "agent1.csv"
@@ -85,13 +91,15 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
         ulog = ulog_summary(ulog_path)
     tr, score = _score(log, tunnel)
     _, ref, wall, scale = tunnel
-    truth = score_track(*truth_track(ulog_path), ref, scale, wall=wall)
+    t_true, pos_true, vel_true, states_true = truth_track(ulog_path)
+    truth = score_track(t_true, pos_true, vel_true, states_true, ref, scale, wall=wall)
     agent_log = agent.log_path.read_text()
     assert "velocity response identified" in agent_log, agent_log[-3000:]
     assert score.crossed and not score.held, score
     assert score.max_excursion_m < MAX_EXCURSION_M and truth.max_excursion_m < MAX_EXCURSION_M, (score, truth)
     # the vehicle's real velocity (SIH ground truth) against the CFD; PX4's biased estimate (``score``,
     # the agent's log) is printed for comparison (truth_track says why it is not the judge)
+    spread = realised_spread_ratio(pos_true, vel_true, states_true, CommandField.from_map(load_map(tunnel[0])))
     bound = MAX_VELOCITY_NRMSE if backend == "pymavlink" else MAX_VELOCITY_NRMSE_MAVSDK
     assert truth.crossed and truth.velocity_nrmse <= bound, (truth, score)
     alt_dev, hold_s = tr.hold_altitude_range_m()
@@ -105,7 +113,8 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     assert np.median(np.diff(flow_t)) == pytest.approx(0.05, abs=0.005), "agent streamed below 20 Hz"
     assert not ulog.failsafe_seen and ulog.gps_fused, ulog
     assert NAV_OFFBOARD in ulog.nav_states and ulog.nav_states[-1] == NAV_AUTO_LOITER, ulog
-    print(json.dumps({"score": score.as_dict(), "truth": truth.as_dict(), "hold_alt_dev_m": alt_dev,
+    print(json.dumps({"score": score.as_dict(), "truth": truth.as_dict(), "realised_spread": spread,
+                      "hold_alt_dev_m": alt_dev,
                       "ulog": ulog.__dict__}, default=str))
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from agent_testkit import EmulatorProbe
@@ -19,6 +20,7 @@ from fisc_agent.link import TYPEMASK_VELOCITY_ONLY, MavlinkLink
 from fisc_agent.lookup import CommandField
 from fisc_agent.mission import State
 from fisc_agent.runner import Runner
+from fisc_ground.flight_score import realised_spread_ratio
 from fisc_ground.mapbuild import build_default_map
 from sim.autopilot import server
 
@@ -128,6 +130,26 @@ def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personali
                                     State.EXIT, State.HOLD], runner.mission.transitions
         assert runner.snapshot().autopilot == personality
         _check_flight(f, cmap)
+    finally:
+        emu.stop()
+
+
+def test_explicit_kinetic_mode_under_streamline_tracking_flies_the_fitted_spread():
+    """``--mode kinetic`` with tracking: the vehicle flies the map's deviations (the swarm's pressure),
+    about the fitted spread, where the field alone leaves only its tracking error (~0.1-0.5)."""
+    cmap = build_default_map()
+    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
+    try:
+        cfg = agent_cfg(f"udpout:127.0.0.1:{emu.local_address[1]}", mode="kinetic", geofence="return")
+        runner = Runner(cfg, MavlinkLink(cfg.mavlink_url), cmap)
+        with Flight(runner) as f:
+            f.wait(lambda s: s.state in ("EXIT", "HOLD"), 60, "the outlet")
+        flow = [s for s in f.track if s.state == "FLOW" and s.velocity_map_m_s is not None]
+        pos = np.array([s.position_map_m for s in flow])
+        vel = np.array([s.velocity_map_m_s for s in flow])
+        ratio = realised_spread_ratio(pos, vel, np.array(["FLOW"] * len(flow)), CommandField.from_map(cmap))
+        assert 0.6 <= ratio <= 1.4, ratio
+        assert pos[:, 0].max() > MapGeometry.from_field(CommandField.from_map(cmap)).x_outlet_m - cmap.cell_size_m
     finally:
         emu.stop()
 

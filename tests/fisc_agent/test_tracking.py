@@ -87,3 +87,25 @@ def test_config_rejects_nonsense():
         TrackingConfig(gain_1_s=-1.0)
     with pytest.raises(ValueError, match="feedforward_gain"):
         TrackingConfig(feedforward_gain=math.nan)
+
+
+def test_a_kinetic_deviation_moves_the_parcel_across_the_stream_and_is_flown_as_feedforward():
+    """The parcel of a kinetic agent is a kinetic particle: the cross-stream part of its deviation
+    moves it across the stream (so the position feedback does not cancel the deviation), the whole
+    deviation joins the feed-forward, and the feedback aims at where a vehicle lagging by
+    ``lookahead_s`` behind the deviated parcel should be."""
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.0, bias_time_constant_s=0.0, lookahead_s=0.5)
+    tr = ParcelTracker(cfg)
+    tr.reset((1.0, 0.0, 0.0), 0.0)
+    dev = (0.3, 0.4, 0.0)
+    v = tr.step(0.1, (1.0, 0.0, 0.0), uniform, lambda p: dev)
+    assert tr.parcel_m == pytest.approx((1.0, 0.04, 0.0))        # 0.4 m/s across for 0.1 s, none along
+    # feed-forward 2 + 0.3 along, 0.4 across; feedback to parcel - 0.4 * 0.5 across = -0.16 m
+    assert v == pytest.approx((2.3, 0.4 - 0.16, 0.0))
+    t, pos = 0.1, (1.0, 0.0, 0.0)
+    for _ in range(20):                                          # a vehicle that flies the command
+        t += 0.05
+        v = tr.step(t, pos, uniform, lambda p: dev)
+        pos = (pos[0] + 0.05 * v[0], pos[1] + 0.05 * v[1], pos[2])
+    assert pos[1] > 0.3 and tr.parcel_m[1] > pos[1]               # the deviation is flown, not cancelled
+    assert tr.step(t + 0.05, pos, uniform) == pytest.approx((2.0, tr.parcel_m[1] - pos[1], 0.0))  # none: field only
