@@ -32,6 +32,7 @@ from sim.emulate.analysis import (  # noqa: F401
     COMPARED_METRICS,
     compare_fields,
     entry_statistics,
+    flowing,
     ground_truth_fields,
     loop_stats,
     realtime_summary,

@@ -48,12 +48,33 @@ def sample_window(sample_t_s: np.ndarray, duration_s: float, average_window_s: f
     return np.flatnonzero(np.nan_to_num(sample_t_s, nan=-1.0) >= start - 1e-9)
 
 
+def flowing(swarm: SwarmRun) -> np.ndarray:
+    """(K, N) bool: the vehicle's agent was in state FLOW at the fleet sample (from the agents'
+    transitions, which share the samples' time base)."""
+    k, n = swarm.pos_ned_m.shape[:2]
+    out = np.zeros((k, n), dtype=bool)
+    col = {int(a): j for j, a in enumerate(np.asarray(swarm.agent_ids).tolist())}
+    t = np.nan_to_num(np.asarray(swarm.sample_t_s, dtype=float), nan=-np.inf)
+    for a in swarm.agents:
+        j = col.get(int(a["agent_id"]))
+        if j is None:
+            continue
+        for i, (t_s, _src, dst, _why) in enumerate(a["transitions"]):
+            if dst != "FLOW":
+                continue
+            t_end = next((tt for tt, _s, d, _w in a["transitions"][i + 1:]), math.inf)
+            out[(t >= t_s) & (t < t_end), j] = True
+    return out
+
+
 def ground_truth_fields(swarm: SwarmRun, cmap: CommandMap, transform: DeploymentTransform, window: np.ndarray,
                         reference_velocity_m_s: np.ndarray):
     """Time-averaged swarm fields from the emulators' true states (map frame, per CV).
 
     Returns ``(SwarmFields, cv_ids (K, N))``: every sample in ``window`` is one ``FieldAccumulator.add``
-    of all vehicles (vehicles outside every CV carry cv -1 and are ignored, as are NaN samples).
+    of the vehicles whose agent flies the field (state FLOW, ``flowing``), as ``fisc-sim run`` counts
+    its agents: a vehicle joining, returning, holding or looping back that passes through a CV is not
+    part of the flow (cv -1 there, like vehicles outside every CV and NaN samples).
     """
     from fisc_ground.swarm_fields import FieldAccumulator
 
@@ -65,6 +86,7 @@ def ground_truth_fields(swarm: SwarmRun, cmap: CommandMap, transform: Deployment
     cv = np.full(k * n, -1, dtype=np.int64)
     cv[finite] = field.cv_of(pos_map[finite])
     cv = cv.reshape(k, n)
+    cv[~flowing(swarm)] = -1
     vel_map = np.where(finite[:, None], vel_map, 0.0).reshape(k, n, 3)
     acc = FieldAccumulator(field.n_cv, field.cell_size_m ** 3)
     mass = float(cmap.body.get("agent_mass_kg", 1.0))

@@ -14,7 +14,7 @@ from fisc_agent.control import MapGeometry
 from fisc_agent.frames import DeploymentTransform
 from fisc_agent.lookup import CommandField
 from fisc_ground.mapbuild import build_default_map
-from sim.emulate import (EmulateConfig, LaunchPlan, SwarmRun, entry_statistics, ground_truth_fields, launch_plan,
+from sim.emulate import (EmulateConfig, LaunchPlan, SwarmRun, entry_statistics, flowing, ground_truth_fields, launch_plan,
                          realtime_summary, sample_window)
 from sim.scenarios import Reservoir, scale_for_agents
 
@@ -81,9 +81,18 @@ def test_config_rejects_bad_values():
     assert (s.mode, s.lookahead_s) == ("mean", 0.0)
 
 
-def _swarm(pos_ned: np.ndarray, vel_ned: np.ndarray, t: np.ndarray) -> SwarmRun:
+def _flow_from(t_s: float, agent_id: int, until_s: float | None = None) -> dict:
+    """An agent record whose mission entered FLOW at ``t_s`` (and left it for JOIN at ``until_s``)."""
+    tr = [(0.0, "WAIT_POSITION", "JOIN", "test"), (t_s, "JOIN", "FLOW", "entered")]
+    if until_s is not None:
+        tr.append((until_s, "FLOW", "JOIN", "lap done"))
+    return {"agent_id": agent_id, "transitions": tr}
+
+
+def _swarm(pos_ned: np.ndarray, vel_ned: np.ndarray, t: np.ndarray, agents: list | None = None) -> SwarmRun:
     n = pos_ned.shape[1]
-    return SwarmRun(agent_ids=np.arange(n), sample_t_s=t, pos_ned_m=pos_ned, vel_ned_m_s=vel_ned, agents=[],
+    agents = [_flow_from(0.0, i) for i in range(n)] if agents is None else agents
+    return SwarmRun(agent_ids=np.arange(n), sample_t_s=t, pos_ned_m=pos_ned, vel_ned_m_s=vel_ned, agents=agents,
                     emulator_timing=[], agent_timing=[], setpoint_rate_hz=np.zeros(0), setpoint_rate_t_s=np.zeros(0),
                     duration_s=float(t[-1]) if t.size else 0.0, setup_s=0.0, messages={})
 
@@ -104,6 +113,22 @@ def test_ground_truth_fields_bin_true_states_into_cvs_in_the_map_frame(cmap, fie
     assert fields.samples[j] == k and fields.samples.sum() == k
     assert np.allclose(fields.mean_velocity_m_s[j], (2.0, 0.5, 1.0))
     assert fields.rho_s_kg_m3[j] == pytest.approx(float(cmap.body.get("agent_mass_kg", 1.0)) / field.cell_size_m ** 3)
+
+
+def test_only_vehicles_flying_the_field_are_counted(cmap, field):
+    """A vehicle passing through a CV while its agent joins, returns or loops back is not part of the
+    flow (``fisc-sim run`` counts agents flying the field): ``flowing`` follows each agent's transitions."""
+    j = 100
+    k = 6
+    pos = np.repeat(TF.map_to_ned(field.centers_m[j][None])[None], k, axis=0).repeat(2, axis=1)  # both in CV j
+    vel = np.zeros((k, 2, 3))
+    t = np.arange(k) * 1.0
+    agents = [_flow_from(2.0, 0, until_s=4.0), _flow_from(1e9, 1)]     # 0 flows over [2, 4) s, 1 never
+    sw = _swarm(pos, vel, t, agents)
+    assert np.array_equal(flowing(sw)[:, 0], [False, False, True, True, False, False])
+    assert not flowing(sw)[:, 1].any()
+    fields, cv = ground_truth_fields(sw, cmap, TF, np.arange(k), np.zeros((field.n_cv, 3)))
+    assert fields.samples[j] == 2 and np.array_equal(cv[:, 0], [-1, -1, j, j, -1, -1])
 
 
 def test_sample_window_keeps_the_last_seconds():
