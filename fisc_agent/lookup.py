@@ -72,6 +72,21 @@ def slot_index(agent_id: np.ndarray | int, cv_id: np.ndarray | int, n_star: np.n
     return (slot_hash(agent_id, cv_id) % np.asarray(n_star, dtype=np.uint64)).astype(np.int64)
 
 
+def kinetic_spread(fitted_spread_m_s: np.ndarray, design_density: np.ndarray) -> np.ndarray:
+    """The ``kinetic`` deviation's rms per CV: the fitted spread sigma_j scaled to the designed density,
+    sigma_j sqrt(mean(rho_d) / rho_d,j).
+
+    The fit gives each CV the spread that carries the CFD pressure at the fitted (uniform) agent
+    density, P_j = 2/3 rho sigma_j^2 (DESIGN.md section 3).  A swarm designed to be thinner in a CV
+    must be hotter there for the same pressure (an ideal gas: sigma^2 ~ P / rho).  Measured (Case 2,
+    seeds 0-2): pressure nRMSE 0.196-0.215 against 0.248-0.257 on cd_nozzle_inviscid, density a
+    little better on all three ducts of docs/simulation.md."""
+    rho = np.asarray(design_density, dtype=float)
+    if rho.shape != np.shape(fitted_spread_m_s) or not np.all(rho > 0):
+        raise ValueError("design density must be > 0 with one value per CV")
+    return np.asarray(fitted_spread_m_s, dtype=float) * np.sqrt(rho.mean() / rho)
+
+
 def lookahead_point(points_m: np.ndarray, velocity_m_s: np.ndarray, lead_s: float) -> np.ndarray:
     """Point ``x + u t_lead`` whose command an agent flies to compensate its velocity lag.
 
@@ -105,7 +120,9 @@ class CommandField:
     n_star: np.ndarray
     """(n_cv,) fitted agent count N*_j."""
     spread_m_s: np.ndarray | None = None
-    """(n_cv,) scaled fitted per-agent rms deviation sqrt(mean_k ||S v_k - S v_mean||^2) [m/s]."""
+    """(n_cv,) scaled per-agent rms deviation of the ``kinetic`` mode [m/s]: the fitted spread
+    sqrt(mean_k ||S v_k - S v_mean||^2), on a map with a designed density rho_d (schema 2) times
+    sqrt(mean(rho_d) / rho_d) (``kinetic_spread``)."""
     recommended: "FlightSettings | None" = None
     """The map's recommended flight settings (``map_flight_settings``); None for hand-built fields."""
     face_u_m_s: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -123,6 +140,8 @@ class CommandField:
         mean = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
         d2 = np.nansum((slots - mean[:, None, :]) ** 2, axis=2)
         spread = s * np.sqrt(d2.sum(axis=1) / np.maximum(np.asarray(cmap["n_star"]), 1))
+        if "cv_design_density" in cmap.arrays:
+            spread = kinetic_spread(spread, np.asarray(cmap["cv_design_density"], dtype=float))
         return cls(
             origin_m=cmap.origin_m,
             spread_m_s=spread,

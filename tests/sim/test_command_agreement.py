@@ -15,6 +15,7 @@ from fisc_agent.lookup import (
     FlightSettings,
     flight_command,
     kinetic_deviation,
+    kinetic_spread,
 )
 from fisc_ground.mapbuild import FitConfig, build_map_from_reference
 from sim.swarm import Swarm, SwarmConfig
@@ -112,6 +113,21 @@ def test_kinetic_deviation_has_the_fitted_spread_persists_and_reflects(field):
     q[0, 0] = field.origin_m[0] + 0.5 * WALL_ZONE * field.cell_size_m
     d, new = kinetic_deviation(field, np.repeat(q, 500, axis=0), ids, 10.0, 2.0, DeviationState.new(500))
     assert d[:, 0].min() < -0.9 and d[:, 0].max() > 0.9 and np.all(new.sign[:, 0] > 0)
+
+
+def test_kinetic_spread_is_the_fitted_spread_at_the_designed_density():
+    """sigma^2 ~ P / rho (an ideal gas): uniform design leaves the fitted spread, a CV designed at half
+    the mean density gets sqrt(2) of it, and the pressure 2/3 rho sigma^2 the fit gave is kept."""
+    fitted = np.array([0.4, 0.4, 0.2, 0.0])
+    np.testing.assert_allclose(kinetic_spread(fitted, np.ones(4)), fitted)
+    rho = np.array([0.5, 1.5, 1.0, 1.0])  # mean 1
+    got = kinetic_spread(fitted, rho)
+    np.testing.assert_allclose(got, fitted * np.sqrt(1.0 / rho))
+    np.testing.assert_allclose(rho * got ** 2, fitted ** 2)  # same pressure per CV as fitted at rho = 1
+    with pytest.raises(ValueError, match="design density"):
+        kinetic_spread(fitted, np.array([1.0, 0.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="one value per CV"):
+        kinetic_spread(fitted, np.ones(3))
 
 
 def test_max_command_speed_bounds_the_face_modes(field):
