@@ -33,7 +33,8 @@ class AgentConfig:
     """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
     mode: str | None = None
     """Command mode (``fisc_agent.lookup.COMMAND_MODES``, DESIGN.md section 3); None: the map's
-    recommended mode (``mean`` for a schema-1 map)."""
+    recommended mode (``mean`` for a schema-1 map), except that under streamline tracking a
+    recommended ``kinetic`` is flown as ``staggered``; ``kinetic`` given here flies its deviations."""
     lookahead_s: float | None = None
     """Command look-ahead t_lead [s] (``fisc_agent.lookup.lookahead_point``); None: the map's
     recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""
