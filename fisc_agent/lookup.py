@@ -79,8 +79,9 @@ def kinetic_spread(fitted_spread_m_s: np.ndarray, design_density: np.ndarray) ->
     The fit gives each CV the spread that carries the CFD pressure at the fitted (uniform) agent
     density, P_j = 2/3 rho sigma_j^2 (DESIGN.md section 3).  A swarm designed to be thinner in a CV
     must be hotter there for the same pressure (an ideal gas: sigma^2 ~ P / rho).  Measured (Case 2,
-    seeds 0-2): pressure nRMSE 0.196-0.215 against 0.248-0.257 on cd_nozzle_inviscid, density a
-    little better on all three ducts of docs/simulation.md."""
+    seeds 0 / 1 / 2 on cd_nozzle_inviscid): pressure nRMSE 0.196 / 0.210 / 0.233 against 0.257 /
+    0.249 / 0.239 with the fitted spread alone, density 0.251 / 0.262 / 0.254 against 0.256 / 0.269 /
+    0.260 (docs/simulation.md)."""
     rho = np.asarray(design_density, dtype=float)
     if rho.shape != np.shape(fitted_spread_m_s) or not np.all(rho > 0):
         raise ValueError("design density must be > 0 with one value per CV")

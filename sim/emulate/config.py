@@ -134,11 +134,16 @@ class EmulateConfig:
         need(self.swarm is None or self.trusted_key is not None,
              "a Zenoh swarm needs the ground's public key (trusted_key / --trusted-key) for maps and commands")
 
-    def agent_settings(self) -> "SimpleNamespace":
+    def agent_settings(self, recommended_mode: str | None = None) -> "SimpleNamespace":
         """``mode`` and ``lookahead_s`` the agents are started with (None: the map's recommended;
-        ``paper`` preset: mean, no look-ahead unless given)."""
+        ``paper`` preset: mean, no look-ahead unless given).  ``recommended_mode``: the map's
+        recommended mode, given to the agents explicitly when no mode is set, so that they fly a
+        ``kinetic`` recommendation's deviations under streamline tracking as ``fisc-sim run``'s agents
+        do (emulated ducts have no physical wall; a real agent flies that recommendation as
+        ``staggered`` unless told)."""
         paper = self.preset == "paper"
-        return SimpleNamespace(mode=self.mode if self.mode is not None or not paper else "mean",
+        mode = self.mode if self.mode is not None else ("mean" if paper else recommended_mode)
+        return SimpleNamespace(mode=mode,
                                lookahead_s=self.lookahead_s if self.lookahead_s is not None or not paper else 0.0)
 
     def workers(self) -> tuple[int, int]:

@@ -71,9 +71,7 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
     """Start the emulator and agent processes, fly ``config.duration_s`` of real time, collect."""
     n = plan.start_ned_m.shape[0]
     n_emu, n_agent = config.workers()
-    settings = config.agent_settings()
-    if settings.mode is None:  # emulated ducts have no physical wall: fly the map's mode as fisc-sim run does
-        settings.mode = map_flight_settings(load_map(map_path)).mode
+    settings = config.agent_settings(map_flight_settings(load_map(map_path)).mode)
     ctx = mp.get_context("spawn")
     t_setup = time.monotonic()
     procs: list = []
