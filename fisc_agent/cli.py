@@ -76,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
                         "length on the UNIX clock (agent i: window i mod slots); 0: no stagger [s]")
     p.add_argument("--entry-slots", type=int, default=AgentConfig.entry_slots, help="windows per entry-stagger cycle")
+    p.add_argument("--entry-radius-fraction", type=float, default=AgentConfig.entry_radius_fraction, metavar="F",
+                   help="entry points spread over this fraction of the inlet radius (1: every inlet CV)")
     p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flightlog)")
     p.add_argument("--rate", type=float, default=AgentConfig.rate_hz, help="setpoint rate [Hz]")
     p.add_argument("--origin", default=",".join(f"{c:g}" for c in AgentConfig.origin_ned_m), help="local NED of the map origin N,E,D [m]")
@@ -97,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default=AgentConfig.exit_policy,
                    help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
-    p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default=AgentConfig.geofence, help="outside the map while flowing")
+    p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default=AgentConfig.geofence, help="outside the map while flowing: hold, or return (near the map rejoin the nearest CV's flow with an "
+                   "inward pull, as fisc-sim run's agents do; farther fly straight back to it)")
     p.add_argument("--stale-timeout", type=float, default=AgentConfig.stale_timeout_s, help="position age that triggers a hold [s]")
     p.add_argument("--hold-grace", type=float, default=AgentConfig.hold_grace_s, help="zero-velocity hold before hold mode [s]")
     p.add_argument("--link-timeout", type=float, default=AgentConfig.link_timeout_s, help="HEARTBEAT age that means link lost [s]")
@@ -124,7 +127,8 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
-        exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
+        exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
+        entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system)
 
 

@@ -59,7 +59,9 @@ class AgentConfig:
     join_speed_m_s: float = 2.0
     """Speed while flying to the inlet (JOIN, loop return) [m/s]."""
     return_speed_m_s: float = 1.0
-    """Speed when flying back to the nearest CV (geofence ``return``) [m/s]."""
+    """Speed when flying straight back to the nearest CV (geofence ``return``) from farther than
+    ``fisc_agent.lookup.RETURN_RADIUS_CELLS`` cells; nearer, the vehicle rejoins the flow of that CV
+    (``fisc_agent.lookup.return_command``, the simulator's rule) [m/s]."""
     climb_speed_m_s: float = 1.0
     """Climb rate of a setpoint takeoff (PX4 offboard, or finishing an interrupted ArduPilot takeoff) [m/s]."""
     takeoff_alt_m: float = 2.5
@@ -87,7 +89,8 @@ class AgentConfig:
     waypoint_radius_m: float = 0.3
     """Acceptance radius of join waypoints [m]."""
     entry_radius_fraction: float = 0.6
-    """Entry points are spread over this fraction of the inlet radius."""
+    """Entry points are spread over this fraction of the inlet radius (``control.entry_point``): 0.6
+    keeps a real duct's wall clear; 1 spreads them over every inlet CV (``fisc-sim emulate``'s default)."""
     entry_stagger_s: float = 0.0
     """Staggered entry: agents cross the inlet in windows of this length on the shared clock, agent i in
     window ``i mod entry_slots`` (``control.entry_slot_open``); 0 = enter as soon as staged [s]."""

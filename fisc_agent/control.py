@@ -19,11 +19,13 @@ from fisc_agent.lookup import (
     COMMAND_MODES,
     FACE_MODES,
     PAPER_SETTINGS,
+    RETURN_RADIUS_CELLS,
     CommandField,
     DeviationState,
     FlightSettings,
     flight_command,
     kinetic_deviation,
+    return_command,
     slot_hash_int,
 )
 from fisc_agent.mapfile import MapError, MapErrorKind
@@ -138,6 +140,16 @@ class ScalarField:
             return (ax / wsum, ay / wsum, az / wsum)
         return self._mean[cv]
 
+    def return_command(self, pos: Vec) -> Vec | None:
+        """The geofence ``return`` command at a point outside the CVs (``fisc_agent.lookup.return_command``,
+        the simulator's rule): rejoin the flow of the nearest CV within ``RETURN_RADIUS_CELLS`` cells;
+        None when no CV is that close (the caller flies straight back instead)."""
+        near = self.field.nearest_cv_within(np.array([pos], dtype=float), RETURN_RADIUS_CELLS)
+        if near[0] < 0:
+            return None
+        cmd = return_command(self.field, np.array([pos], dtype=float), near)[0]
+        return (float(cmd[0]), float(cmd[1]), float(cmd[2]))
+
     def nearest_cv(self, x: float, y: float, z: float, radius_cells: int = 2) -> int:
         """Nearest CV: within ``radius_cells`` via ``nearest_cv_within``, else the global nearest centre."""
         j = int(self.field.nearest_cv_within(np.array([[x, y, z]]), radius_cells)[0])
@@ -228,18 +240,31 @@ def entry_point(agent_id: int, geom: MapGeometry, sfield: ScalarField, radius_fr
                 n_points: int = 32) -> Vec:
     """Deterministic entry point of an agent in the inlet disc (first CV slice, map frame).
 
-    Points of a Vogel (golden-angle) spiral of ``n_points`` over ``radius_fraction`` of the
-    inlet radius; agent ``i`` takes point ``i mod n_points``.  Snapped to the nearest CV of the
-    first slice if the spiral point has no CV.
+    Points of a Vogel (golden-angle) spiral, area-uniform over ``radius_fraction`` of the inlet
+    radius, of which the first ``n_points`` that lie in an inlet CV are kept (points outside
+    the staircase are skipped, so ``radius_fraction`` 1 spreads the entries evenly over every inlet
+    CV, as the simulator's reservoir does); agent ``i`` takes kept point ``i mod n_points``.  If
+    the disc holds no inlet CV at all, the nearest inlet CV centre to the spiral point is used.
     """
+    x = geom.x_inlet_m + 0.5 * geom.cell_size_m
+    kept: list[Vec] = []
+    n_total = n_points
+    while len(kept) < n_points and n_total <= 16 * n_points:
+        kept = []
+        for k in range(n_total):
+            r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n_total)
+            p = (x, geom.inlet_center_yz_m[0] + r * math.cos(k * GOLDEN_ANGLE_RAD),
+                 geom.inlet_center_yz_m[1] + r * math.sin(k * GOLDEN_ANGLE_RAD))
+            if sfield.cv_of(*p) >= 0:
+                kept.append(p)
+        n_total = max(n_total + 1, math.ceil(n_total * n_points / max(len(kept), 1)))
+    if kept:
+        kept = kept[:n_points]
+        return kept[int(agent_id) % len(kept)]
     k = int(agent_id) % n_points
     r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n_points)
-    th = k * GOLDEN_ANGLE_RAD
-    x = geom.x_inlet_m + 0.5 * geom.cell_size_m
-    y = geom.inlet_center_yz_m[0] + r * math.cos(th)
-    z = geom.inlet_center_yz_m[1] + r * math.sin(th)
-    if sfield.cv_of(x, y, z) >= 0:
-        return (x, y, z)
+    y = geom.inlet_center_yz_m[0] + r * math.cos(k * GOLDEN_ANGLE_RAD)
+    z = geom.inlet_center_yz_m[1] + r * math.sin(k * GOLDEN_ANGLE_RAD)
     first = [c for c in sfield.centers if c[0] <= geom.x_inlet_m + geom.cell_size_m]
     best = min(first, key=lambda c: (c[1] - y) ** 2 + (c[2] - z) ** 2)
     return (x, best[1], best[2])

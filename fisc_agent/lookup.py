@@ -36,6 +36,12 @@ WALL_ZONE = 0.25
 BRAKE_S = 0.25
 #: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
 DEFAULT_PERSISTENCE_S = 2.0
+#: Geofence ``return`` (``return_command``): gain of the pull towards the nearest CV's centre [1/s] ...
+RETURN_GAIN_1_S = 1.0
+#: ... capped at this fraction of that CV's mean command speed [-] ...
+RETURN_SPEED_FRACTION = 0.25
+#: ... for an agent whose nearest CV lies within this many grid cells.
+RETURN_RADIUS_CELLS = 2
 
 
 _MASK32 = 0xFFFFFFFF
@@ -389,6 +395,29 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     sign[flip] *= -1.0
     d[flip] *= -1.0
     return d, DeviationState(epoch, sign)
+
+
+def return_pull(field: CommandField, points_m: np.ndarray, near_cv: np.ndarray,
+                gain_1_s: float = RETURN_GAIN_1_S, speed_fraction: float = RETURN_SPEED_FRACTION) -> np.ndarray:
+    """(m, 3) inward part of ``return_command``: gain (c - x) towards the centre c of each agent's
+    nearest CV ``near_cv`` (m,), its length capped at ``speed_fraction`` times that CV's mean command
+    speed (so the pull never dominates the flow, whatever the map's scale)."""
+    near = np.asarray(near_cv, dtype=np.int64)
+    corr = gain_1_s * (np.asarray(field.centers_m)[near] - np.atleast_2d(np.asarray(points_m, dtype=float)))
+    mag = np.sqrt(np.einsum("ij,ij->i", corr, corr))
+    cap = speed_fraction * np.linalg.norm(np.asarray(field.mean_cmd_m_s)[near], axis=1)
+    return corr * np.minimum(1.0, cap / np.maximum(mag, 1e-12))[:, None]
+
+
+def return_command(field: CommandField, points_m: np.ndarray, near_cv: np.ndarray,
+                   gain_1_s: float = RETURN_GAIN_1_S, speed_fraction: float = RETURN_SPEED_FRACTION) -> np.ndarray:
+    """(m, 3) map-frame command of agents just outside the CVs (the geofence ``return`` policy of the
+    simulator and of ``fisc-agent`` near the map): the mean command of the nearest CV ``near_cv`` plus
+    ``return_pull``.  The agent rejoins the flow moving with it; flying straight back to a CV centre
+    instead turns a vehicle that overshot a closed staircase face round against the flow, and it
+    re-enters slow and backwards (measured in ``fisc-sim emulate``: the pressure's top CVs)."""
+    near = np.asarray(near_cv, dtype=np.int64)
+    return np.asarray(field.mean_cmd_m_s)[near] + return_pull(field, points_m, near, gain_1_s, speed_fraction)
 
 
 def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.ndarray, agent_ids: np.ndarray,

@@ -317,8 +317,10 @@ class Mission:
             if cv >= 0:
                 self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}"))
                 st = State.FLOW
+            elif pos[0] >= self.geom.x_outlet_m:  # carried past the outlet while rejoining: that lap is done
+                vel = self._passed_outlet(t, pos)
             else:
-                vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
+                vel = self._return_velocity(pos)
         elif st == State.EXIT:
             want_mode = ModeClass.OFFBOARD
             vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
@@ -343,16 +345,10 @@ class Mission:
                         self.tracker.reset(pos, t)
                         vel = self._field_command(*pos)
             elif verdict == GeofenceVerdict.EXIT:
-                self.laps += 1
-                if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
-                    self._enter(t, State.JOIN, Reason(Cause.LAP_DONE, f"lap {self.laps} done: back to the inlet"), pos)
-                else:
-                    self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)
-                vel = goto_velocity(pos, self._waypoints[0] if self.state == State.JOIN else self._target,
-                                    cfg.join_speed_m_s)
+                vel = self._passed_outlet(t, pos)
             elif verdict == GeofenceVerdict.RETURN:
                 self._enter(t, State.RETURN, Reason(Cause.GEOFENCE_RETURN), pos)
-                vel = goto_velocity(pos, self._target, cfg.return_speed_m_s)
+                vel = self._return_velocity(pos)
             else:
                 self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 st = State.HOLD
@@ -370,6 +366,21 @@ class Mission:
         elif want_mode is not None and s.mode == want_mode:
             self._want_seen = True
         return MissionOutput(self.state, vel, want_mode, want_armed, takeoff, cv, self.reason)
+
+    def _passed_outlet(self, t: float, pos: Vec) -> Vec:
+        """A lap is done: back to the inlet (exit policy ``loop``, laps left) or on to the exit."""
+        cfg = self.cfg
+        self.laps += 1
+        if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
+            self._enter(t, State.JOIN, Reason(Cause.LAP_DONE, f"lap {self.laps} done: back to the inlet"), pos)
+        else:
+            self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)
+        return goto_velocity(pos, self._waypoints[0] if self.state == State.JOIN else self._target, cfg.join_speed_m_s)
+
+    def _return_velocity(self, pos: Vec) -> Vec:
+        """Geofence ``return``: near the map, rejoin the flow of the nearest CV (the simulator's rule,
+        ``ScalarField.return_command``); farther, fly straight back to the CV chosen on leaving."""
+        return self.sfield.return_command(pos) or goto_velocity(pos, self._target, self.cfg.return_speed_m_s)
 
     def _field_command(self, x: float, y: float, z: float) -> Vec | None:
         """The map's command at a point in the tracked mode (None outside the map's CVs)."""

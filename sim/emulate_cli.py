@@ -46,6 +46,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "SITL flights; sim.plant_fit)")
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="loop",
                    help="after the outlet: loop (fly back to the inlet), hold or land")
+    p.add_argument("--open-loop", action="store_true",
+                   help="agents fly fisc-sim run's command function at their position, without streamline tracking "
+                        "(fisc-agent's default on a real vehicle, kept by default here)")
+    p.add_argument("--entry-radius-fraction", type=float, default=1.0, metavar="F",
+                   help="agents' entry points spread over this fraction of the inlet radius (1: every inlet CV, as "
+                        "fisc-sim run injects; fisc-agent's default 0.6 keeps a real duct's wall clear)")
     p.add_argument("--geofence", choices=("return", "hold"), default="return",
                    help="agents leaving the CVs sideways: return (fly back to the nearest CV, as fisc-sim run's "
                         "return policy) or hold")
@@ -61,7 +67,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="processes for the emulators and, as many, for the agents (0: automatic)")
     p.add_argument("--no-compare", action="store_true", help="skip the fisc-sim run reference and comparison.json")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    p.add_argument("--seed", type=int, default=0, help="seed of the reference fisc-sim run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the (first) reference fisc-sim run")
+    p.add_argument("--reference-seeds", type=int, default=5, metavar="K",
+                   help="fisc-sim run references (seeds SEED..SEED+K-1) whose mean and spread the comparison uses")
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
     z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
@@ -83,11 +91,13 @@ def config_from_args(args: argparse.Namespace):
 
     return EmulateConfig(out_dir=args.output, map=args.map, agents=args.agents, duration_s=args.duration,
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
-                         geofence=args.geofence,
+                         geofence=args.geofence, tracking=not args.open_loop,
+                         entry_radius_fraction=args.entry_radius_fraction,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,
                          emulator_workers=args.workers, agent_workers=args.workers,
                          compare=not args.no_compare, figures=not args.no_figures, seed=args.seed,
+                         reference_seeds=args.reference_seeds,
                          swarm=args.swarm, zenoh_config=args.zenoh_config, zenoh_prefix=args.zenoh_prefix,
                          telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key, mcap=args.mcap)
 

@@ -40,10 +40,14 @@ from fisc_agent.lookup import (
     COMMAND_MODES,
     DEFAULT_PERSISTENCE_S,
     CommandField,
+    RETURN_GAIN_1_S,
+    RETURN_RADIUS_CELLS,
+    RETURN_SPEED_FRACTION,
     DeviationState,
     FlightSettings,
     flight_command,
     lookahead_point,
+    return_pull,
     slot_hash,
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
@@ -65,12 +69,12 @@ class SwarmConfig:
     """Command mode: ``mean`` (paper's Algorithm 1), ``slot`` or ``interpolated``."""
     escape_grace_s: float = 5.0
     """Longest continuous time an agent may spend outside every CV before it is removed as escaped [s]."""
-    return_gain_1_s: float = 1.0
+    return_gain_1_s: float = RETURN_GAIN_1_S
     """Gain k of the inward correction k (x_c - x) for agents outside the CVs [1/s]."""
-    return_speed_fraction: float = 0.25
+    return_speed_fraction: float = RETURN_SPEED_FRACTION
     """Cap on the magnitude of the inward correction, as a fraction of the nearest CV's mean
     command speed (so the correction never dominates the flow, whatever the scale S) [-]."""
-    return_radius_cells: int = 2
+    return_radius_cells: int = RETURN_RADIUS_CELLS
     """How far (in cells) an outside agent looks for the nearest CV; none within -> escaped."""
     plant_backend: str = "auto"
     """Plant kernel: ``auto`` (numba when importable), ``numpy`` or ``numba``."""
@@ -465,14 +469,12 @@ class Swarm:
         )  # fmt: skip
 
     def _return_commands(self, idx: np.ndarray, cmd_ned: np.ndarray) -> None:
-        """Return policy for agents ``idx`` outside the CVs: nearest CV's command + inward pull."""
+        """Return policy for agents ``idx`` outside the CVs: ``fisc_agent.lookup.return_command`` (the
+        nearest CV's command + inward pull; ``slot`` mode: that CV's slot vector + the pull)."""
         pos = self.pos_m[idx]
         near = self.lookup.nearest(pos)
         near = np.where(near < 0, 0, near)  # cannot happen after assign(); keeps indexing safe
-        corr = self.config.return_gain_1_s * (self.field.centers_m[near] - pos)
-        mag = np.sqrt(np.einsum("ij,ij->i", corr, corr))
-        cap = self.config.return_speed_fraction * self._mean_speed[near]
-        corr *= np.minimum(1.0, cap / np.maximum(mag, 1e-12))[:, None]
+        corr = return_pull(self.field, pos, near, self.config.return_gain_1_s, self.config.return_speed_fraction)
         if self.config.mode == "slot":
             base = self._slot_ned[near, (slot_hash(self.ids[idx], near) % self._n_star[near]).astype(np.int64)]
         else:

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import math
 
 import numpy as np
@@ -168,16 +170,26 @@ def _num(v) -> float | None:
     return None if v is None or not math.isfinite(float(v)) else float(v)
 
 
-def compare_fields(emu_metrics: dict, run_metrics: dict, emu_fields, run_fields, min_samples: int) -> dict:
-    """Metric differences (emulate - run) and a direct comparison of the two swarm fields."""
+def compare_fields(emu_metrics: dict, run_metrics: Sequence[dict], emu_fields, run_fields, min_samples: int) -> dict:
+    """Metric differences (emulate - run) and a direct comparison of the two swarm fields.
+
+    ``run_metrics``: the metrics of one or more ``fisc-sim run`` references (seeds); each metric's
+    ``run`` is their mean, ``run_sd`` their standard deviation (None for one), ``run_seeds`` the
+    values.  ``run_fields``: the first reference's fields (the direct comparison)."""
     from fisc_ground.metrics import nrmse, normalise, pearson
 
+    if not run_metrics:
+        raise ValueError("compare_fields needs at least one fisc-sim run reference")
     diff = {}
     for k in COMPARED_METRICS:
-        e, r = _num(emu_metrics.get(k)), _num(run_metrics.get(k))
+        e = _num(emu_metrics.get(k))
+        vals = [_num(m.get(k)) for m in run_metrics]
+        r = None if any(v is None for v in vals) else float(np.mean(vals))
+        sd = None if r is None or len(vals) < 2 else float(np.std(vals, ddof=1))
         if k == "n_cv_compared":
-            e, r = (None if e is None else int(e)), (None if r is None else int(r))
-        diff[k] = {"emulate": e, "run": r, "difference": None if e is None or r is None else e - r}
+            e, r = (None if e is None else int(e)), (None if r is None else int(round(r)))
+        diff[k] = {"emulate": e, "run": r, "run_sd": sd, "run_seeds": vals,
+                   "difference": None if e is None or r is None else e - r}
     direct = {}
     both = (emu_fields.samples >= min_samples) & (run_fields.samples >= min_samples)
     for name, attr, kind in (("velocity", "u_axial_m_s", "max"), ("pressure", "p_dispersion_pa", "minmax"),

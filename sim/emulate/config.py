@@ -44,6 +44,14 @@ class EmulateConfig:
     """Autopilot emulated: ``px4`` or ``ardupilot``."""
     exit_policy: str = "loop"
     """Agent exit policy after the outlet: ``loop`` (back to the inlet, keeps feeding), ``hold``, ``land``."""
+    tracking: bool = True
+    """Agents track their streamline (``fisc_agent.tracking``), as ``fisc-agent`` does by default on a
+    real vehicle; False: gain 0, the agents fly ``fisc_agent.lookup.flight_command`` at their position,
+    the very command function of ``fisc-sim run`` (a like-for-like check of the command chain)."""
+    entry_radius_fraction: float = 1.0
+    """Fraction of the inlet radius the agents' entry points spread over (``AgentConfig.entry_radius_fraction``;
+    a real deployment keeps 0.6 clear of the duct's wall).  1: evenly over every inlet CV, as ``fisc-sim
+    run``'s reservoir injects; at 0.6 the outer inlet CVs are seldom entered (docs/emulation.md)."""
     geofence: str = "return"
     """Agents leaving the CVs sideways: ``return`` (fly back to the nearest CV, as the simulator's return
     policy; the kinetic mode's deviations reach the staircase walls) or ``hold``."""
@@ -84,6 +92,11 @@ class EmulateConfig:
     """Write the PNG figures."""
     seed: int = 0
     """Seed of the comparison run (the emulated run itself is deterministic up to OS scheduling)."""
+    reference_seeds: int = 5
+    """``fisc-sim run`` references flown for the comparison (seeds ``seed``, ``seed + 1``, ...): its run
+    values are their mean, with their standard deviation (at 50 agents one run's pressure nRMSE varies
+    by about 0.03 from seed to seed, as much as the difference being measured); the first one's
+    outputs are written to ``run_reference/``."""
     worker_log_level: str = "WARNING"
     """Log level inside the worker processes (agents log every mission transition at INFO)."""
     swarm: str | None = None
@@ -119,6 +132,10 @@ class EmulateConfig:
         need(self.preset in ("default", "paper"), f"preset {self.preset!r}: choose default or paper")
         need(self.personality in PERSONALITIES, f"personality {self.personality!r}: choose px4 or ardupilot")
         need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
+        need(isinstance(self.reference_seeds, int) and self.reference_seeds >= 1,
+             f"reference_seeds must be >= 1, is {self.reference_seeds!r}")
+        need(0.0 < self.entry_radius_fraction <= 1.0,
+             f"entry_radius_fraction must be in (0, 1], is {self.entry_radius_fraction!r}")
         need(self.geofence in GEOFENCE_POLICIES, f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
         need(self.telemetry in TELEMETRY, f"telemetry {self.telemetry!r}: choose one of {', '.join(TELEMETRY)}")
         for name in ("rate_hz", "position_rate_hz", "physics_rate_hz", "physics_dt_s", "average_window_s",
@@ -138,9 +155,9 @@ class EmulateConfig:
         """``mode`` and ``lookahead_s`` the agents are started with (None: the map's recommended;
         ``paper`` preset: mean, no look-ahead unless given).  ``recommended_mode``: the map's
         recommended mode, given to the agents explicitly when no mode is set, so that they fly a
-        ``kinetic`` recommendation's deviations under streamline tracking as ``fisc-sim run``'s agents
-        do (emulated ducts have no physical wall; a real agent flies that recommendation as
-        ``staggered`` unless told)."""
+        ``kinetic`` recommendation's deviations (under streamline tracking on the tracking parcel) as
+        ``fisc-sim run``'s agents do (emulated ducts have no physical wall; a real, tracking agent
+        flies that recommendation as ``staggered`` unless told)."""
         paper = self.preset == "paper"
         mode = self.mode if self.mode is not None else ("mean" if paper else recommended_mode)
         return SimpleNamespace(mode=mode,

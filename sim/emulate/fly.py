@@ -94,13 +94,15 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             ports[part] = _recv(c, "emulator", STARTUP_TIMEOUT_S)
         for part in _split(n, n_agent):
             parent, child = ctx.Pipe()
-            job = _AgentJob(tuple(int(i) for i in part), tuple(int(x) for x in ports[part]),
-                            tuple(float(x) for x in plan.start_time_s[part]), str(map_path), config.personality,
-                            settings.mode, settings.lookahead_s, config.exit_policy, config.geofence,
-                            config.rate_hz,
-                            config.position_rate_hz,
-                            config.telemetry, config.worker_log_level, config.swarm, config.zenoh_config,
-                            config.zenoh_prefix, config.telemetry_rate_hz, config.trusted_key)
+            job = _AgentJob(agent_ids=tuple(int(i) for i in part), ports=tuple(int(x) for x in ports[part]),
+                            start_time_s=tuple(float(x) for x in plan.start_time_s[part]), map_path=str(map_path),
+                            personality=config.personality, mode=settings.mode, lookahead_s=settings.lookahead_s,
+                            exit_policy=config.exit_policy, geofence=config.geofence, rate_hz=config.rate_hz,
+                            position_rate_hz=config.position_rate_hz, telemetry=config.telemetry,
+                            log_level=config.worker_log_level, tracking=config.tracking,
+                            entry_radius_fraction=config.entry_radius_fraction, swarm=config.swarm,
+                            zenoh_config=config.zenoh_config, zenoh_prefix=config.zenoh_prefix,
+                            telemetry_rate_hz=config.telemetry_rate_hz, trusted_key=config.trusted_key)
             p = ctx.Process(target=_agent_worker, args=(child, job), name="fisc-agents", daemon=True)
             p.start()
             child.close()

@@ -83,9 +83,12 @@ def _emulation_section(res: EmulateResult) -> str:
                          f"p99 {1e3 * lp['lag_p99_s']:.1f} ms, utilisation {lp['utilisation']:.2f}")
     if res.comparison is not None:
         lines += ["", "### Difference to `fisc-sim run` (same map, duration, agents, mode)", "",
-                  "| metric | emulate | run | emulate - run |", "|---|---|---|---|"]
+                  f"`run` is the mean over {len(res.comparison['run_reference']['seeds'])} seeds "
+                  f"({', '.join(str(k) for k in res.comparison['run_reference']['seeds'])}), sd their spread.", "",
+                  "| metric | emulate | run | run sd | emulate - run |", "|---|---|---|---|---|"]
         for k, d in res.comparison["metrics"].items():
-            lines.append(f"| {k} | {_fmtv(d['emulate'])} | {_fmtv(d['run'])} | {_fmtv(d['difference'])} |")
+            lines.append(f"| {k} | {_fmtv(d['emulate'])} | {_fmtv(d['run'])} | {_fmtv(d['run_sd'])} | "
+                         f"{_fmtv(d['difference'])} |")
         lines += ["", "Swarm field against swarm field (CVs with enough samples in both):", ""]
         for q, d in res.comparison["fields_emulate_vs_run"].items():
             lines.append(f"* {q}: {d['n_cv']} CVs, nRMSE {_fmtv(d['nrmse_emulate_vs_run'])}, Pearson "
@@ -107,13 +110,15 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     from sim import report
     from sim.run import PAPER_SNAPSHOT_TIMES_S, RunConfig, RunResult
     from sim.run import run as sim_run
+    from sim.run import simulate
 
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     map_path, cmap = prepare_map(config.map, out, config.preset)
     transform = DeploymentTransform(DEFAULT_ORIGIN_NED_M, 0.0)
     cf = CommandField.from_map(cmap)
-    plan = launch_plan(cf, config.agents, transform, spacing_m=config.start_spacing_m, gap_m=config.start_gap_m,
+    plan = launch_plan(cf, config.agents, transform, entry_radius_fraction=config.entry_radius_fraction,
+                       spacing_m=config.start_spacing_m, gap_m=config.start_gap_m,
                        overhead_s=config.launch_overhead_s if config.launch_overhead_s is not None
                        else LAUNCH_OVERHEAD_S[config.personality], duration_s=config.duration_s)
     swarm = fly_swarm(map_path, plan, config, progress)
@@ -150,10 +155,16 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
         res.paths.update(rr.paths)
     if config.compare:
         # the reference flies the simulator's own step (paper: 0.05 s), whatever the agents' rate
-        ref = sim_run(replace(rcfg, out_dir=str(out / "run_reference"), figures=False, dt_s=RunConfig().dt_s))
-        res.comparison = compare_fields(rr.metrics, ref.metrics, fields, ref.fields, config.min_samples)
+        ref_cfg = replace(rcfg, out_dir=str(out / "run_reference"), figures=False, dt_s=RunConfig().dt_s)
+        ref = sim_run(ref_cfg)
+        more = [simulate(replace(ref_cfg, seed=ref_cfg.seed + k, compare_paper=False), ref.cmap)
+                for k in range(1, config.reference_seeds)]
+        res.comparison = compare_fields(rr.metrics, [ref.metrics] + [m.field_run.metrics() for m in more], fields,
+                                        ref.fields, config.min_samples)
         res.comparison["run_reference"] = {"out_dir": str(out / "run_reference"),
-                                           "wall_time_s": ref.wall_time_s, "agents": ref.metrics.get("agents")}
+                                           "seeds": [ref_cfg.seed + k for k in range(config.reference_seeds)],
+                                           "wall_time_s": ref.wall_time_s + sum(m.wall_time_s for m in more),
+                                           "agents": ref.metrics.get("agents")}
         res.paths["comparison"] = write_json(out / "comparison.json", res.comparison)
     if config.mcap is not None:
         res.paths["mcap"] = write_flight_log(Path(config.mcap), swarm, cmap, map_path, transform, cv,

@@ -57,6 +57,8 @@ class _AgentJob:
     position_rate_hz: float
     telemetry: str
     log_level: str
+    tracking: bool = True
+    entry_radius_fraction: float = 0.6
     swarm: str | None = None
     zenoh_config: str | None = None
     zenoh_prefix: str = "fisc"
@@ -258,12 +260,25 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
     return session, links
 
 
+def agent_config(job: _AgentJob, agent_id: int, port: int):
+    """The ``fisc_agent.config.AgentConfig`` of one emulated vehicle's agent: the job's settings, and
+    streamline tracking only when ``job.tracking`` (else gain 0: the agent flies
+    ``fisc_agent.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies)."""
+    from fisc_agent.config import AgentConfig
+    from fisc_agent.tracking import TrackingConfig
+
+    return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path,
+                       autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
+                       exit_policy=job.exit_policy, geofence=job.geofence,
+                       entry_radius_fraction=job.entry_radius_fraction,
+                       tracking=TrackingConfig() if job.tracking else TrackingConfig(gain_1_s=0.0))
+
+
 def _agent_worker(conn, job: _AgentJob) -> None:
     """Host ``len(job.agent_ids)`` fisc-agent runners in one thread (spawned process)."""
     try:
         logging.basicConfig(level=job.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         from fisc_agent.adapters import CommandLong
-        from fisc_agent.config import AgentConfig
         from fisc_agent.endpoints import parse_endpoint
         from fisc_agent.link import MavlinkLink
         from fisc_agent.runner import Runner
@@ -272,10 +287,7 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         cmap = load_map(job.map_path)
         runners = []
         for aid, port in zip(job.agent_ids, job.ports):
-            cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=int(aid), map_path=job.map_path,
-                              autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s,
-                              rate_hz=job.rate_hz,
-                              exit_policy=job.exit_policy, geofence=job.geofence)
+            cfg = agent_config(job, int(aid), port)
             link = MavlinkLink(parse_endpoint(cfg.mavlink_url), position_rate_hz=job.position_rate_hz)
             runners.append(Runner(cfg, link, cmap))
         # lean telemetry: once the autopilot is found, switch its streams other than HEARTBEAT and

@@ -108,6 +108,26 @@ def test_entry_points_deterministic_distinct_and_inside_first_slice(field, sfiel
         assert c >= 0 and field.centers_m[c][0] == pytest.approx(0.25)
 
 
+def test_entry_points_over_the_whole_inlet_are_area_uniform_over_its_cvs():
+    # radius fraction 1: spiral points outside the staircase are skipped, not snapped onto a CV
+    # centre, so the entries spread over every inlet CV about in proportion to its area
+    from fisc_ground.mapbuild import build_default_map
+
+    f = CommandField.from_map(build_default_map())
+    g, sf = MapGeometry.from_field(f), ScalarField(f)
+    inlet = np.flatnonzero(f.centers_m[:, 0] == f.centers_m[:, 0].min())
+    pts = np.array([entry_point(i, g, sf, 1.0, n_points=8 * inlet.size) for i in range(8 * inlet.size)])
+    cv = np.array([sf.cv_of(*p) for p in pts])
+    assert np.all(np.isin(cv, inlet))
+    counts = np.bincount(np.searchsorted(inlet, cv), minlength=inlet.size)
+    assert counts.min() >= 4 and counts.max() <= 12           # 8 per CV on average
+    assert not np.any(np.all(np.isclose(pts[:, None, 1:], f.centers_m[None, inlet, 1:]), axis=2))
+    # the default 0.6 keeps to the inner disc, clear of a real duct's wall
+    inner = np.array([entry_point(i, g, sf) for i in range(32)])
+    r = np.hypot(inner[:, 1] - g.inlet_center_yz_m[0], inner[:, 2] - g.inlet_center_yz_m[1])
+    assert r.max() <= 0.6 * g.inlet_radius_m + 1e-9 < np.abs(pts[:, 1:]).max()
+
+
 def _segment_enters_box(a, b, g, margin):
     for s in np.linspace(0.0, 1.0, 200):
         p = tuple(np.asarray(a) + s * (np.asarray(b) - np.asarray(a)))

@@ -4,11 +4,12 @@ import json
 import math
 import pickle
 
+import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import CommandField, return_command
 from fisc_agent.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.tracking import TrackingConfig
 
@@ -199,17 +200,46 @@ def test_geofence_hold(sfield):
     outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
     m.command("resume")                              # resume from a geofence hold flies back
     run(m, v, cfg, lambda m, v, o: m.state == State.RETURN, max_s=v.t + 1)
-    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 15)
+    y0 = v.pos[1]
+    run_for(m, v, cfg, 1.0)
+    assert m.state == State.RETURN and v.pos[1] < y0 - 0.5
 
 
-def test_geofence_return_flies_to_the_nearest_cv(sfield):
+def test_geofence_return_far_from_the_map_flies_straight_back_then_rejoins(sfield):
     cfg, m, v = make(sfield, geofence="return")
     _fly_to_flow(m, v, cfg)
-    v.pos[1] = 2.5
+    v.pos[1] = 2.5                                   # 3 cells out: beyond RETURN_RADIUS_CELLS
     outs = run(m, v, cfg, lambda m, v, o: m.state == State.RETURN)
     vy = outs[-1].velocity_m_s[1]
     assert vy < 0 and math.hypot(*outs[-1].velocity_m_s) <= cfg.return_speed_m_s + 1e-9
-    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 15)
+    # within two cells of a CV it flies that CV's flow (downstream) with the inward pull
+    outs = run(m, v, cfg, lambda m, v, o: o.velocity_m_s is not None and o.velocity_m_s[0] > 1.0, max_s=v.t + 3)
+    assert m.state == State.RETURN and v.pos[1] < 2.0 and outs[-1].velocity_m_s[1] < 0
+
+
+def test_geofence_return_near_the_map_rejoins_its_flow_downstream(sfield):
+    # just past a side face the vehicle flies the nearest CV's flow plus an inward pull (the
+    # simulator's rule), never back against the flow
+    cfg, m, v = make(sfield, geofence="return")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1] = 1.2                                   # 0.2 m outside the side face
+    at = []
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.RETURN, hook=lambda m, v, o: at.append(tuple(v.pos)))
+    near = sfield.field.nearest_cv_within([at[-1]])[0]
+    np.testing.assert_allclose(outs[-1].velocity_m_s, return_command(sfield.field, [at[-1]], [near])[0])
+    outs += run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 3)
+    back = [o.velocity_m_s for o in outs if o.state == State.RETURN]
+    assert back and all(vel[0] > 0 for vel in back) and all(vel[1] < 0 for vel in back)
+
+
+def test_return_carried_past_the_outlet_ends_the_lap(sfield):
+    cfg, m, v = make(sfield, geofence="return", exit_policy="loop")
+    _fly_to_flow(m, v, cfg)
+    v.pos[0], v.pos[1] = 2.8, 1.3                    # outside, near the outlet: the flow carries it past
+    run(m, v, cfg, lambda m, v, o: m.state != State.FLOW, max_s=v.t + 1)
+    assert m.state == State.RETURN
+    run(m, v, cfg, lambda m, v, o: m.state != State.RETURN, max_s=v.t + 3)
+    assert m.state == State.JOIN and m.reason.cause == Cause.LAP_DONE and m.laps == 1
 
 
 def test_link_loss_holds_latched_and_requests_hold_mode_when_back(sfield):

@@ -74,11 +74,56 @@ def test_config_rejects_bad_values():
         EmulateConfig(geofence="fly")
     with pytest.raises(ValueError, match="lookahead_s"):
         EmulateConfig(lookahead_s=-1.0)
+    with pytest.raises(ValueError, match="entry_radius_fraction"):
+        EmulateConfig(entry_radius_fraction=0.0)
+    with pytest.raises(ValueError, match="reference_seeds"):
+        EmulateConfig(reference_seeds=0)
     # agents fly the map's settings by default; the paper preset pins Algorithm 1
     s = EmulateConfig().agent_settings()
     assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().geofence == "return"
     s = EmulateConfig(preset="paper").agent_settings()
     assert (s.mode, s.lookahead_s) == ("mean", 0.0)
+
+
+def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
+    from fisc_agent.tracking import TrackingConfig
+    from sim.emulate.workers import _AgentJob, agent_config
+
+    job = dict(agent_ids=(3,), ports=(14999,), start_time_s=(0.0,), map_path="m.fiscmap", personality="px4",
+               mode="kinetic", lookahead_s=0.5, exit_policy="loop", geofence="return", rate_hz=20.0,
+               position_rate_hz=20.0, telemetry="full", log_level="WARNING",
+               entry_radius_fraction=EmulateConfig().entry_radius_fraction)
+    agent = agent_config(_AgentJob(**job, tracking=EmulateConfig().tracking), 3, 14999)
+    assert agent.tracking == TrackingConfig()      # fisc-agent's own default, as on a real vehicle
+    assert (agent.agent_id, agent.mode, agent.lookahead_s, agent.mavlink_url) == (
+        3, "kinetic", 0.5, "udpout:127.0.0.1:14999")
+    assert agent.entry_radius_fraction == 1.0  # entries over every inlet CV, as fisc-sim run injects
+    # open loop, gain 0: the mission flies fisc_agent.lookup.flight_command at the vehicle
+    # (tests/sim/test_command_agreement.py, tests/fisc_agent/test_agent_mission.py)
+    assert agent_config(_AgentJob(**job, tracking=False), 3, 14999).tracking.gain_1_s == 0.0
+
+
+def test_comparison_takes_the_mean_and_spread_of_the_run_references():
+    from types import SimpleNamespace
+
+    from sim.emulate import compare_fields
+
+    rng = np.random.default_rng(1)
+    f = SimpleNamespace(samples=np.full(20, 50), u_axial_m_s=rng.random(20), p_dispersion_pa=rng.random(20),
+                        rho_s_kg_m3=rng.random(20))
+    emu = {"nrmse_velocity": 0.10, "nrmse_pressure": 0.60, "n_cv_compared": 600}
+    runs = [{"nrmse_velocity": 0.08, "nrmse_pressure": 0.55, "n_cv_compared": 700},
+            {"nrmse_velocity": 0.09, "nrmse_pressure": 0.65, "n_cv_compared": 710}]
+    c = compare_fields(emu, runs, f, f, 10)["metrics"]
+    assert c["nrmse_velocity"]["run"] == pytest.approx(0.085)
+    assert c["nrmse_velocity"]["difference"] == pytest.approx(0.015)
+    assert c["nrmse_pressure"]["run_sd"] == pytest.approx(np.std([0.55, 0.65], ddof=1))
+    assert c["nrmse_pressure"]["run_seeds"] == [0.55, 0.65] and c["n_cv_compared"]["run"] == 705
+    assert c["nrmse_density"]["run"] is None and c["nrmse_density"]["difference"] is None  # missing: not 0
+    one = compare_fields(emu, runs[:1], f, f, 10)["metrics"]
+    assert one["nrmse_velocity"]["run_sd"] is None and one["nrmse_velocity"]["difference"] == pytest.approx(0.02)
+    with pytest.raises(ValueError, match="reference"):
+        compare_fields(emu, [], f, f, 10)
 
 
 def _flow_from(t_s: float, agent_id: int, until_s: float | None = None) -> dict:
@@ -193,10 +238,11 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
     parser = argparse.ArgumentParser()
     emulate_cli.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["emulate", "--agents", "7", "--duration", "12", "--mode", "slot", "--autopilot",
-                              "ardupilot", "--no-compare", "-o", str(tmp_path), "--mcap", "f.mcap"])
+                              "ardupilot", "--no-compare", "-o", str(tmp_path), "--mcap", "f.mcap", "--open-loop",
+                              "--entry-radius-fraction", "0.8"])
     cfg = emulate_cli.config_from_args(args)
-    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap) == (
-        7, 12.0, "slot", "ardupilot", False, str(tmp_path), "f.mcap")
+    assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap, cfg.tracking,
+            cfg.entry_radius_fraction) == (7, 12.0, "slot", "ardupilot", False, str(tmp_path), "f.mcap", False, 0.8)
 
 
 @pytest.mark.slow
@@ -226,6 +272,8 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert abs(res.realtime["setpoint_rate_mean_hz"] - 20.0) < 2.0
     comparison = json.loads((tmp_path / "comparison.json").read_text())
     assert set(comparison["metrics"]) >= {"nrmse_velocity", "nrmse_pressure", "nrmse_density"}
+    assert comparison["run_reference"]["seeds"] == [0, 1, 2, 3, 4]
+    assert len(comparison["metrics"]["nrmse_velocity"]["run_seeds"]) == 5
     assert (tmp_path / "run_reference" / "metrics.json").is_file()
     assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "map.fiscmap").is_file()
