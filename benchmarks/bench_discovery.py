@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -28,12 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from fisc_agent.zenoh_session import PORT_ENV  # noqa: E402
 from fisc_ground.recording import iter_messages, read_recording  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.ports import free_tcp_port as free_port  # noqa: E402
 
 
 def one(order: tuple[str, str], agents: int, gap_s: float, window_s: float, work: Path) -> dict:

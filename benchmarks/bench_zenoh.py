@@ -21,7 +21,6 @@ import argparse
 import json
 import multiprocessing as mp
 import os
-import socket
 import sys
 import tempfile
 import threading
@@ -37,12 +36,7 @@ from fisc_agent import telemetry_codec as tc  # noqa: E402
 from fisc_agent.zenoh_keys import Keys  # noqa: E402
 from fisc_agent.zenoh_link import AgentZenohLink  # noqa: E402
 from fisc_agent.zenoh_session import config_from_json, peer_config_json  # noqa: E402
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.ports import free_tcp_port as free_port  # noqa: E402
 
 
 def configs(port: int):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from enum import StrEnum
 
 COMMANDS = ("hold", "resume", "land", "start-at")
 ALL_AGENTS = 0xFFFFFFFF
@@ -34,8 +35,31 @@ SIG_LEN = 64
 _HEAD = struct.Struct("<4sBBBBIQQQ")
 
 
+class CommandCheck(StrEnum):
+    """The check a fleet command failed (``CommandError.check``; the telemetry counter's key)."""
+
+    TRUNCATED = "truncated"
+    MAGIC = "magic"
+    VERSION = "version"
+    COMMAND = "command"
+    SIZE = "size"
+    SIGNATURE = "signature"
+    SWARM = "swarm"
+    START_AT = "start-at"
+    TARGET = "target"
+    REPLAY = "replay"
+    STALE = "stale"
+    FUTURE = "future"
+
+
 class CommandError(ValueError):
-    """A fleet command was malformed, unauthenticated, stale or replayed (message says which)."""
+    """A fleet command was malformed, unauthenticated, stale or replayed: ``check`` says which,
+    the message (``"<check>: <detail>"``) how."""
+
+    def __init__(self, check: CommandCheck, detail: str) -> None:
+        super().__init__(f"{check.value}: {detail}")
+        self.check = check
+        """The failed check."""
 
 
 @dataclass(frozen=True)
@@ -65,12 +89,12 @@ class FleetCommand:
 def encode_command(cmd: FleetCommand, signing_key: bytes | None = None) -> bytes:
     """FleetCommand -> bytes; ``signing_key``: 32-byte Ed25519 seed (None: unsigned)."""
     if cmd.name not in COMMANDS:
-        raise CommandError(f"unknown fleet command {cmd.name!r}; known: {', '.join(COMMANDS)}")
+        raise CommandError(CommandCheck.COMMAND, f"unknown fleet command {cmd.name!r}; known: {', '.join(COMMANDS)}")
     if (cmd.name == "start-at") != (cmd.start_at_unix_s is not None):
-        raise CommandError("start-at needs start_at_unix_s, and only start-at carries one")
+        raise CommandError(CommandCheck.START_AT, "start-at needs start_at_unix_s, and only start-at carries one")
     swarm = cmd.swarm.encode()
     if not 0 < len(swarm) < 256:
-        raise CommandError("swarm name must be 1..255 bytes")
+        raise CommandError(CommandCheck.SWARM, "name must be 1..255 bytes")
     start_ms = 0 if cmd.start_at_unix_s is None else int(round(cmd.start_at_unix_s * 1000))
     head = _HEAD.pack(MAGIC, VERSION, COMMANDS.index(cmd.name) + 1, 1 if signing_key is not None else 0,
                       len(swarm), int(cmd.target_id), int(cmd.seq), int(round(cmd.issued_unix_s * 1000)),
@@ -89,23 +113,23 @@ def decode_command(data: bytes | bytearray | memoryview, trusted_keys: list[byte
     whose signature fails is always refused."""
     data = bytes(data)
     if len(data) < _HEAD.size + SIG_LEN:
-        raise CommandError(f"truncated: command has {len(data)} bytes, at least {_HEAD.size + SIG_LEN} needed")
+        raise CommandError(CommandCheck.TRUNCATED, f"command has {len(data)} bytes, at least {_HEAD.size + SIG_LEN} needed")
     magic, version, code, flags, n_swarm, target, seq, issued_ms, start_ms = _HEAD.unpack_from(data)
     if magic != MAGIC:
-        raise CommandError("magic: not a FISC fleet command")
+        raise CommandError(CommandCheck.MAGIC, "not a FISC fleet command")
     if version != VERSION:
-        raise CommandError(f"version: command format {version} is not supported (expected {VERSION})")
+        raise CommandError(CommandCheck.VERSION, f"command format {version} is not supported (expected {VERSION})")
     if not 1 <= code <= len(COMMANDS):
-        raise CommandError(f"command: unknown command code {code}")
+        raise CommandError(CommandCheck.COMMAND, f"unknown command code {code}")
     end = _HEAD.size + n_swarm
     if len(data) != end + SIG_LEN:
-        raise CommandError(f"size: command should have {end + SIG_LEN} bytes, has {len(data)}")
+        raise CommandError(CommandCheck.SIZE, f"command should have {end + SIG_LEN} bytes, has {len(data)}")
     signed_part, signature = data[:end], data[end:]
     signed = bool(flags & 1)
     if signed:
         if not trusted_keys:
             if not allow_unsigned:
-                raise CommandError("signature: signed command but no trusted key configured")
+                raise CommandError(CommandCheck.SIGNATURE, "signed command but no trusted key configured")
         else:
             from nacl.exceptions import BadSignatureError
             from nacl.signing import VerifyKey
@@ -117,16 +141,16 @@ def decode_command(data: bytes | bytearray | memoryview, trusted_keys: list[byte
                 except (BadSignatureError, ValueError):
                     continue
             else:
-                raise CommandError("signature: command is not signed by a trusted key")
+                raise CommandError(CommandCheck.SIGNATURE, "command is not signed by a trusted key")
     elif not allow_unsigned:
-        raise CommandError("signature: command is unsigned (use --allow-unsigned only in a lab)")
+        raise CommandError(CommandCheck.SIGNATURE, "command is unsigned (use --allow-unsigned only in a lab)")
     try:
         swarm = data[_HEAD.size:end].decode()
     except UnicodeDecodeError as exc:
-        raise CommandError("swarm: name is not UTF-8") from exc
+        raise CommandError(CommandCheck.SWARM, "name is not UTF-8") from exc
     name = COMMANDS[code - 1]
     if (name == "start-at") != (start_ms != 0):
-        raise CommandError("start-at: start time missing or given to another command")
+        raise CommandError(CommandCheck.START_AT, "start time missing or given to another command")
     return FleetCommand(name=name, swarm=swarm, seq=seq, issued_unix_s=issued_ms / 1000.0, target_id=target,
                         start_at_unix_s=start_ms / 1000.0 if start_ms else None,
                         signed=signed and bool(trusted_keys))
@@ -151,15 +175,15 @@ class CommandGate:
     def check(self, cmd: FleetCommand, now_unix_s: float) -> FleetCommand:
         """Accept ``cmd`` (returned) or raise ``CommandError`` naming the failed check (swarm, target, replay, age)."""
         if cmd.swarm != self.swarm:
-            raise CommandError(f"swarm: command is for swarm {cmd.swarm!r}, this agent flies in {self.swarm!r}")
+            raise CommandError(CommandCheck.SWARM, f"command is for swarm {cmd.swarm!r}, this agent flies in {self.swarm!r}")
         if not cmd.applies_to(self.agent_id):
-            raise CommandError(f"target: command is for agent {cmd.target_id}")
+            raise CommandError(CommandCheck.TARGET, f"command is for agent {cmd.target_id}")
         if cmd.seq <= self.last_seq:
-            raise CommandError(f"replay: sequence {cmd.seq} is not above the last accepted {self.last_seq}")
+            raise CommandError(CommandCheck.REPLAY, f"sequence {cmd.seq} is not above the last accepted {self.last_seq}")
         age = now_unix_s - cmd.issued_unix_s
         if age > self.max_age_s:
-            raise CommandError(f"stale: command issued {age:.1f} s ago (window {self.max_age_s:.0f} s)")
+            raise CommandError(CommandCheck.STALE, f"command issued {age:.1f} s ago (window {self.max_age_s:.0f} s)")
         if age < -self.max_future_s:
-            raise CommandError(f"future: command issued {-age:.1f} s in the future (clock skew?)")
+            raise CommandError(CommandCheck.FUTURE, f"command issued {-age:.1f} s in the future (clock skew?)")
         self.last_seq = cmd.seq
         return cmd

@@ -31,14 +31,14 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from fisc_agent import telemetry_codec as tc
-from fisc_agent.fleet_commands import CommandError, CommandGate, FleetCommand, decode_command
+from fisc_agent.fleet_commands import CommandCheck, CommandError, CommandGate, FleetCommand, decode_command
 from fisc_agent.map_chunks import (KIND_ANNOUNCE, AssemblyDrop, AssemblyLimits, ChunkHeader, DropReason,
                                    MapAssembler)
 from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
 from fisc_agent.ratelimit import RateLimitedLog
 from fisc_agent.runner import AgentSnapshot
 from fisc_agent.zenoh_keys import DEFAULT_PREFIX, Keys
-from fisc_agent.zenoh_maps import command_check, reject_code, verify_map_bytes
+from fisc_agent.zenoh_maps import reject_code, verify_map_bytes
 from fisc_agent.zenoh_session import ZenohSessionError, open_session
 from fisc_agent.zenoh_telemetry import LinkStatus, telemetry_message
 
@@ -394,10 +394,10 @@ class AgentZenohLink:
             with self._lock:
                 self._gate.check(cmd, self.clock())
         except CommandError as exc:
-            if "target:" not in str(exc):
+            if exc.check is not CommandCheck.TARGET:  # another agent's command is not a refusal
                 with self._lock:
                     self.stats.commands_rejected += 1
-                self.rlog.event(f"cmd:{command_check(exc)}", logging.WARNING, "fleet command refused: %s", exc)
+                self.rlog.event(f"cmd:{exc.check.value}", logging.WARNING, "fleet command refused: %s", exc)
             return
         with self._lock:
             self.stats.commands_accepted += 1

@@ -11,12 +11,6 @@ from fisc_agent import telemetry_codec as tc
 from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind, decode_map
 
 
-def command_check(exc: Exception) -> str:
-    """The check a ``CommandError`` names (``"<check>: <detail>"``), for the counter's key."""
-    head = str(exc).split(":", 1)[0].strip()
-    return head if head.isidentifier() and len(head) <= 24 else "other"
-
-
 def reject_code(exc: Exception) -> str:
     """The ``REJECT_REASONS`` name of a map refusal: a ``MapError``'s kind where the telemetry
     has a code for it, ``other`` for the rest (and for any other exception)."""

@@ -22,7 +22,6 @@ import atexit
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -32,21 +31,9 @@ from typing import Any, Callable
 
 import pytest
 
+from ..ports import free_tcp_port, free_udp_port  # noqa: F401 (the e2e tests import them from here)
+
 _MODULES = {"fisc-agent": "fisc_agent.cli", "fisc-ground": "fisc_ground.cli", "fisc-sim": "sim.cli"}
-
-
-def free_tcp_port() -> int:
-    """A TCP port on 127.0.0.1 that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def write_zenoh_config(path: Path, listen: list[str], connect: list[str]) -> Path:

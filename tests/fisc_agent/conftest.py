@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 import sys
 from pathlib import Path
 
@@ -14,6 +13,8 @@ from fisc_agent.mapfile import decode_map  # noqa: E402
 
 
 from agent_testkit import tunnel_arrays, tunnel_map_bytes  # noqa: E402,F401
+
+from ..ports import free_udp_port  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -28,10 +29,6 @@ def tunnel_map_path(tmp_path):
     return p
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture()

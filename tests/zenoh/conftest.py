@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import time
 from pathlib import Path
 
@@ -14,11 +13,9 @@ import zenoh  # a dependency: missing means broken, not skipped
 from fisc_agent.mapfile import encode_map
 from fisc_ground.mapwrite import generate_keypair, read_signing_key
 
+from ..ports import free_tcp_port as free_port  # noqa: F401 (the zenoh tests import it from here)
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+
 
 
 def listening(port: int) -> bool:

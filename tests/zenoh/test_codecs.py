@@ -11,7 +11,7 @@ import pytest
 from nacl.signing import SigningKey
 
 from fisc_agent import telemetry_codec as tc
-from fisc_agent.fleet_commands import (ALL_AGENTS, CommandError, CommandGate, FleetCommand, decode_command,
+from fisc_agent.fleet_commands import (ALL_AGENTS, CommandCheck, CommandError, CommandGate, FleetCommand, decode_command,
                                        encode_command)
 from fisc_agent.mapfile import MapError, MapErrorKind
 from fisc_agent.map_chunks import CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, split_map
@@ -98,8 +98,13 @@ def test_command_signature_checks():
     with pytest.raises(CommandError, match="unsigned"):
         decode_command(encode_command(cmd(), None), trusted)
     assert not decode_command(encode_command(cmd(), None), None, allow_unsigned=True).signed
-    with pytest.raises(CommandError, match="truncated"):
+    with pytest.raises(CommandError, match="truncated") as err:
         decode_command(b"FCMD", trusted)
+    assert err.value.check is CommandCheck.TRUNCATED
+    bad_magic = b"XCMD" + encode_command(cmd(), key.encode())[4:]
+    with pytest.raises(CommandError) as err:
+        decode_command(bad_magic, trusted)
+    assert err.value.check is CommandCheck.MAGIC and str(err.value).startswith("magic: ")
 
 
 def test_gate_refuses_replays_reorders_stale_future_and_foreign_commands():
@@ -108,8 +113,9 @@ def test_gate_refuses_replays_reorders_stale_future_and_foreign_commands():
     for bad, why in [(cmd(seq=10, issued=1000.0), "replay"), (cmd(seq=9, issued=1000.5), "replay"),
                      (cmd(seq=11, issued=900.0), "stale"), (cmd(seq=12, issued=1100.0), "future"),
                      (FleetCommand("hold", "beta", 13, 1001.0), "swarm"), (cmd(seq=14, target_id=6), "target")]:
-        with pytest.raises(CommandError, match=why):
+        with pytest.raises(CommandError, match=why) as err:
             gate.check(bad, now_unix_s=1001.0)
+        assert err.value.check is CommandCheck(why)  # the typed check the agent's counters key on
     assert gate.check(cmd(seq=15, issued=1000.9), now_unix_s=1001.0).seq == 15
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import socket
 import time
 from typing import Callable
 
@@ -14,18 +13,6 @@ POS_ONLY_MASK = 0b0000_1101_1111_1000  # ignore velocity, acceleration, yaw, yaw
 POS_VEL_MASK = 0b0000_1101_1100_0000  # position + velocity
 
 
-def free_udp_port() -> int:
-    """A currently free UDP port on 127.0.0.1."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def free_tcp_port() -> int:
-    """A currently free TCP port on 127.0.0.1."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Client:

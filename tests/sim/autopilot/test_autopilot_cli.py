@@ -10,7 +10,9 @@ import sys
 import pytest
 from pymavlink import mavutil
 
-from autopilot_testkit import Client, free_udp_port
+from autopilot_testkit import Client
+
+from ...ports import free_udp_port
 from sim.autopilot import cli
 
 ML = mavutil.mavlink

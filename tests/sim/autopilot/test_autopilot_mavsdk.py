@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from autopilot_testkit import free_udp_port
+from ...ports import free_udp_port
 from sim.autopilot.personalities import FlightMode
 from sim.autopilot.server import AutopilotEmulator
 

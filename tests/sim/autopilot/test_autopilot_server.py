@@ -8,7 +8,9 @@ import time
 import pytest
 from pymavlink import mavutil
 
-from autopilot_testkit import POS_ONLY_MASK, POS_VEL_MASK, Client, free_tcp_port
+from autopilot_testkit import POS_ONLY_MASK, POS_VEL_MASK, Client
+
+from ...ports import free_tcp_port
 from fisc_agent.frames import GeodeticAnchor
 from sim.autopilot.server import AutopilotEmulator
 from sim.autopilot.setpoints import resolve_local_setpoint
