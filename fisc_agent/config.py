@@ -4,15 +4,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
+from fisc_agent.failsafe import GeofencePolicy
 from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.tracking import TrackingConfig
 
+
+
+class ExitPolicy(StrEnum):
+    """What an agent does once it has passed the outlet."""
+
+    HOLD = "hold"
+    """Stop ``exit_clearance_m`` beyond the outlet and hold (latched)."""
+    LAND = "land"
+    """Land beyond the outlet."""
+    LOOP = "loop"
+    """Fly back to the inlet outside the tunnel and go round again (``laps``)."""
+
+
 AUTOPILOTS = ("auto", "px4", "ardupilot")
 BACKENDS = ("pymavlink", "mavsdk")
-EXIT_POLICIES = ("hold", "land", "loop")
-GEOFENCE_POLICIES = ("hold", "return")
+EXIT_POLICIES = tuple(p.value for p in ExitPolicy)
+GEOFENCE_POLICIES = tuple(p.value for p in GeofencePolicy)
 
 
 @dataclass(frozen=True)
@@ -66,12 +81,13 @@ class AgentConfig:
     """Climb rate of a setpoint takeoff (PX4 offboard, or finishing an interrupted ArduPilot takeoff) [m/s]."""
     takeoff_alt_m: float = 2.5
     """Takeoff height above the start position [m]."""
-    exit_policy: str = "hold"
-    """After the outlet: ``hold`` (autopilot hold mode), ``land``, or ``loop`` (back to the inlet)."""
+    exit_policy: ExitPolicy = ExitPolicy.HOLD
+    """After the outlet (``ExitPolicy``; its value as a string is accepted and converted)."""
     laps: int = 0
     """With ``loop``: number of passes before applying ``hold`` (0 = loop until told otherwise)."""
-    geofence: str = "hold"
-    """Leaving the map's CVs (not through the outlet) while flowing: ``hold`` or ``return``."""
+    geofence: GeofencePolicy = GeofencePolicy.HOLD
+    """Leaving the map's CVs (not through the outlet) while flowing (``fisc_agent.failsafe.GeofencePolicy``;
+    its value as a string is accepted and converted)."""
     stale_timeout_s: float = 0.5
     """Position older than this is stale -> zero-velocity hold setpoints [s]."""
     hold_grace_s: float = 2.0
@@ -115,8 +131,10 @@ class AgentConfig:
         need(self.lookahead_s is None or (isinstance(self.lookahead_s, (int, float)) and math.isfinite(self.lookahead_s)
                                           and self.lookahead_s >= 0),
              f"lookahead_s must be a finite number >= 0 seconds, is {self.lookahead_s!r}")
-        need(self.exit_policy in EXIT_POLICIES, f"exit policy must be one of {EXIT_POLICIES}")
-        need(self.geofence in GEOFENCE_POLICIES, f"geofence must be one of {GEOFENCE_POLICIES}")
+        for name, kind in (("exit_policy", ExitPolicy), ("geofence", GeofencePolicy)):
+            value = getattr(self, name)
+            need(value in tuple(kind), f"{name} must be one of {', '.join(kind)}, is {value!r}")
+            object.__setattr__(self, name, kind(value))  # typed from here on
         need(2.0 < self.rate_hz <= 500.0, f"rate must be in (2, 500] Hz (PX4 needs > 2 Hz), is {self.rate_hz}")
         for name in ("max_speed_m_s", "max_accel_m_s2", "join_speed_m_s", "return_speed_m_s", "climb_speed_m_s",
                      "takeoff_alt_m", "stale_timeout_s", "link_timeout_s", "command_retry_s",

@@ -14,7 +14,7 @@ them with this priority: link lost > position lost > position stale > geofence.
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import Enum, StrEnum
 
 
 class PositionHealth(str, Enum):
@@ -24,6 +24,15 @@ class PositionHealth(str, Enum):
     """Hold with zero-velocity setpoints."""
     LOST = "lost"
     """Stale beyond the grace time: request the autopilot's hold mode."""
+
+
+class GeofencePolicy(StrEnum):
+    """What a flowing agent does when it leaves the map's CVs other than through the outlet."""
+
+    HOLD = "hold"
+    """Latched hold (zero velocity, then the autopilot's hold mode) until a ``resume``."""
+    RETURN = "return"
+    """Fly back: rejoin the flow of the nearest CV (``fisc_agent.lookup.return_command``)."""
 
 
 class GeofenceVerdict(str, Enum):
@@ -49,14 +58,14 @@ def link_ok(heartbeat_age_s: float, link_timeout_s: float) -> bool:
     return heartbeat_age_s <= link_timeout_s
 
 
-def geofence(cv_id: int, x_m: float, x_outlet_m: float, policy: str) -> GeofenceVerdict:
+def geofence(cv_id: int, x_m: float, x_outlet_m: float, policy: GeofencePolicy | str) -> GeofenceVerdict:
     """What to do at a map-frame point whose CV is ``cv_id`` (-1 = outside the map's CVs)."""
     if cv_id >= 0:
         return GeofenceVerdict.INSIDE
     if x_m >= x_outlet_m:
         return GeofenceVerdict.EXIT
-    if policy == "return":
-        return GeofenceVerdict.RETURN
-    if policy == "hold":
-        return GeofenceVerdict.HOLD
-    raise ValueError(f"unknown geofence policy {policy!r}; choose hold or return")
+    try:
+        p = GeofencePolicy(policy)
+    except ValueError:
+        raise ValueError(f"unknown geofence policy {policy!r}; choose hold or return") from None
+    return GeofenceVerdict.RETURN if p is GeofencePolicy.RETURN else GeofenceVerdict.HOLD

@@ -30,7 +30,7 @@ from dataclasses import replace
 from typing import Callable
 
 from fisc_agent.adapters import ModeClass
-from fisc_agent.config import AgentConfig
+from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
                                 goto_velocity, join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
@@ -325,7 +325,7 @@ class Mission:
             want_mode = ModeClass.OFFBOARD
             vel = goto_velocity(pos, self._target, cfg.join_speed_m_s)
             if distance(pos, self._target) < cfg.waypoint_radius_m:
-                if cfg.exit_policy == "land":
+                if cfg.exit_policy is ExitPolicy.LAND:
                     self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
                     st = State.LAND
                 else:
@@ -371,7 +371,7 @@ class Mission:
         """A lap is done: back to the inlet (exit policy ``loop``, laps left) or on to the exit."""
         cfg = self.cfg
         self.laps += 1
-        if cfg.exit_policy == "loop" and (cfg.laps == 0 or self.laps < cfg.laps):
+        if cfg.exit_policy is ExitPolicy.LOOP and (cfg.laps == 0 or self.laps < cfg.laps):
             self._enter(t, State.JOIN, Reason(Cause.LAP_DONE, f"lap {self.laps} done: back to the inlet"), pos)
         else:
             self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)

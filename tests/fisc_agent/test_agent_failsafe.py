@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+from fisc_agent.failsafe import GeofencePolicy, GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 
 
 def test_position_health_stages():
@@ -30,5 +30,15 @@ def test_geofence_inside_exit_and_policies():
     assert geofence(-1, 5.0, 15.0, "hold") == GeofenceVerdict.HOLD      # out through a side
     assert geofence(-1, 5.0, 15.0, "return") == GeofenceVerdict.RETURN
     assert geofence(-1, -0.5, 15.0, "return") == GeofenceVerdict.RETURN  # back out of the inlet
+    assert geofence(-1, 5.0, 15.0, GeofencePolicy.RETURN) == GeofenceVerdict.RETURN
     with pytest.raises(ValueError, match="policy"):
         geofence(-1, 5.0, 15.0, "ignore")
+
+
+def test_policy_options_become_enums_and_bad_ones_name_the_choices():
+    from fisc_agent.config import AgentConfig, ExitPolicy
+
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, exit_policy="loop", geofence="return")
+    assert cfg.exit_policy is ExitPolicy.LOOP and cfg.geofence is GeofencePolicy.RETURN
+    with pytest.raises(ValueError, match="exit_policy must be one of hold, land, loop, is 'fly'"):
+        AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, exit_policy="fly")
