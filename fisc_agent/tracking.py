@@ -149,6 +149,8 @@ class ParcelTracker:
         if not 0.0 < dt <= 0.5:
             return
         rate = _scale(_add(pos_m, prev[1], -1.0), 1.0 / dt)
+        if _norm(_add(rate, vel_m_s, -1.0)) > 2.0 * self.cfg.max_bias_m_s:
+            return  # a position jump (an estimator reset), not a velocity bias
         k = min(1.0, dt / tau)
         self.bias_m_s = saturate(_add(self.bias_m_s, _add(_add(rate, vel_m_s, -1.0), self.bias_m_s, -1.0), k),
                                  self.cfg.max_bias_m_s)

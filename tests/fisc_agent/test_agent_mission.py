@@ -34,6 +34,8 @@ class SimVehicle:
         self.takeoff_to = None
         self.modes = []
         self.velocity_bias = (0.0, 0.0, 0.0)
+        self.bias_states = (State.FLOW,)
+        """Mission states in which the vehicle really moves ``velocity_bias`` off what it reports."""
         """Added to the real motion in FLOW, not to the reported velocity: an estimator's velocity bias."""
 
     def status(self):
@@ -63,7 +65,7 @@ class SimVehicle:
         if not self.armed:
             v = (0.0, 0.0, 0.0)
         self.vel = list(v)
-        bias = self.velocity_bias if out.state == State.FLOW else (0.0, 0.0, 0.0)
+        bias = self.velocity_bias if out.state in self.bias_states else (0.0, 0.0, 0.0)
         for i in range(3):
             self.pos[i] += (v[i] + bias[i]) * DT
         if self.pos[2] <= self.ground_z:
@@ -474,6 +476,27 @@ def test_tracking_holds_the_streamline_against_a_velocity_estimate_bias(default_
     cross = [math.hypot(p[1] - q[1], p[2] - q[2]) for p, q in track]
     assert max(cross[10:]) < 0.35
     assert m.tracker.bias_m_s[1] == pytest.approx(0.4, abs=0.05)   # the bias was learnt
+
+
+def test_join_corrects_the_velocity_estimate_bias_and_crosses_at_its_entry_point(default_sfield):
+    """From the takeoff on, the vehicle moves 0.4 m/s east of what it reports.  With the learnt bias
+    subtracted the join crosses the inlet within 0.1 m of its entry point; without, the proportional
+    approach settles bias / gain = 0.4 m beside its staging point, never within the waypoint radius
+    (PX4 SITL vehicles crossed 0.5-0.85 m off their entry points)."""
+    def flight(tracking):
+        cfg, m, v = make(default_sfield, origin_ned_m=(0.0, 0.0, -10.0), lookahead_auto=False, tracking=tracking)
+        v.pos, v.ground_z = [-6.0, 0.0, -10.0], -10.0
+        v.velocity_bias, v.bias_states = (0.0, 0.4, 0.0), (State.TAKEOFF, State.JOIN, State.FLOW)
+        return cfg, m, v
+
+    cfg, m, v = flight(TrackingConfig())
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=30.0)
+    assert math.hypot(v.pos[1] - m.entry[1], v.pos[2] - m.entry[2]) < 0.1
+    assert m.tracker.bias_m_s[1] == pytest.approx(0.4, abs=0.05)
+    cfg, m, v = flight(TrackingConfig(bias_time_constant_s=0.0))     # no bias learnt: the old join
+    run_for(m, v, cfg, 30.0)
+    stage = m._waypoints[-2]
+    assert m.state == State.JOIN and math.hypot(v.pos[1] - stage[1], v.pos[2] - stage[2]) > 0.3
 
 
 def test_entry_slots_stagger_agents_on_the_shared_clock():

@@ -66,6 +66,9 @@ def test_velocity_estimate_bias_is_learnt_from_position_against_reported_velocit
     tr.reset((1.0, 0.0, 0.0), t)
     v = tr.step(t + 0.05, (1.0, 0.0, 0.0), uniform)
     assert v[1] == pytest.approx(-0.5, abs=1e-3)                  # flies against the bias
+    # a position jump (an estimator reset, a moved vehicle) is not a velocity: the bias stays
+    tr.observe(t + 0.1, (1.0, 2.5, 0.0), (0.0, 0.0, 0.0))
+    assert tr.bias_m_s == pytest.approx((0.0, 0.5, 0.0), abs=1e-3)
 
 
 def test_a_slide_into_a_wall_cube_keeps_its_axial_part_and_the_parcel_coasts_past_the_outlet():
