@@ -236,38 +236,43 @@ class MapGeometry:
         return all(self.lo_m[i] - margin_m <= p[i] <= self.hi_m[i] + margin_m for i in range(3))
 
 
-def entry_point(agent_id: int, geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
-                n_points: int = 32) -> Vec:
-    """Deterministic entry point of an agent in the inlet disc (first CV slice, map frame).
+def entry_points(geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
+                 n_points: int = 32) -> list[Vec]:
+    """The entry points of the inlet disc (first CV slice, map frame), ``entry_point``'s table.
 
     Points of a Vogel (golden-angle) spiral, area-uniform over ``radius_fraction`` of the inlet
     radius, of which the first ``n_points`` that lie in an inlet CV are kept (points outside
     the staircase are skipped, so ``radius_fraction`` 1 spreads the entries evenly over every inlet
-    CV, as the simulator's reservoir does); agent ``i`` takes kept point ``i mod n_points``.  If
-    the disc holds no inlet CV at all, the nearest inlet CV centre to the spiral point is used.
+    CV, as the simulator's reservoir does).  If the disc holds no inlet CV at all, each of
+    ``n_points`` spiral points is moved to the nearest inlet CV centre.
     """
     x = geom.x_inlet_m + 0.5 * geom.cell_size_m
-    kept: list[Vec] = []
+
+    def spiral(n: int) -> list[Vec]:
+        out = []
+        for k in range(n):
+            r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n)
+            out.append((x, geom.inlet_center_yz_m[0] + r * math.cos(k * GOLDEN_ANGLE_RAD),
+                        geom.inlet_center_yz_m[1] + r * math.sin(k * GOLDEN_ANGLE_RAD)))
+        return out
+
     n_total = n_points
-    while len(kept) < n_points and n_total <= 16 * n_points:
-        kept = []
-        for k in range(n_total):
-            r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n_total)
-            p = (x, geom.inlet_center_yz_m[0] + r * math.cos(k * GOLDEN_ANGLE_RAD),
-                 geom.inlet_center_yz_m[1] + r * math.sin(k * GOLDEN_ANGLE_RAD))
-            if sfield.cv_of(*p) >= 0:
-                kept.append(p)
+    while True:  # more spiral points until n_points of them lie in inlet CVs
+        kept = [p for p in spiral(n_total) if sfield.cv_of(*p) >= 0]
+        if len(kept) >= n_points or n_total > 16 * n_points:
+            break
         n_total = max(n_total + 1, math.ceil(n_total * n_points / max(len(kept), 1)))
     if kept:
-        kept = kept[:n_points]
-        return kept[int(agent_id) % len(kept)]
-    k = int(agent_id) % n_points
-    r = radius_fraction * geom.inlet_radius_m * math.sqrt((k + 0.5) / n_points)
-    y = geom.inlet_center_yz_m[0] + r * math.cos(k * GOLDEN_ANGLE_RAD)
-    z = geom.inlet_center_yz_m[1] + r * math.sin(k * GOLDEN_ANGLE_RAD)
+        return kept[:n_points]
     first = [c for c in sfield.centers if c[0] <= geom.x_inlet_m + geom.cell_size_m]
-    best = min(first, key=lambda c: (c[1] - y) ** 2 + (c[2] - z) ** 2)
-    return (x, best[1], best[2])
+    return [(x, *min(first, key=lambda c: (c[1] - p[1]) ** 2 + (c[2] - p[2]) ** 2)[1:]) for p in spiral(n_points)]
+
+
+def entry_point(agent_id: int, geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
+                n_points: int = 32) -> Vec:
+    """Deterministic entry point of an agent: point ``agent_id mod len`` of ``entry_points``."""
+    pts = entry_points(geom, sfield, radius_fraction, n_points)
+    return pts[int(agent_id) % len(pts)]
 
 
 def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1.5,

@@ -17,6 +17,7 @@ from fisc_agent.cli_common import EXIT_OK, EXIT_USAGE, add_output_arg, sig3
 from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.lookup import COMMAND_MODES
 from fisc_agent.names import prefix_arg, swarm_name_arg
+from sim.emulate.config import EmulateConfig
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -49,7 +50,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--open-loop", action="store_true",
                    help="agents fly fisc-sim run's command function at their position, without streamline tracking "
                         "(fisc-agent's default on a real vehicle, kept by default here)")
-    p.add_argument("--entry-radius-fraction", type=float, default=1.0, metavar="F",
+    p.add_argument("--entry-radius-fraction", type=float, default=EmulateConfig.entry_radius_fraction, metavar="F",
                    help="agents' entry points spread over this fraction of the inlet radius (1: every inlet CV, as "
                         "fisc-sim run injects; fisc-agent's default 0.6 keeps a real duct's wall clear)")
     p.add_argument("--geofence", choices=("return", "hold"), default="return",
@@ -68,7 +69,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-compare", action="store_true", help="skip the fisc-sim run reference and comparison.json")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     p.add_argument("--seed", type=int, default=0, help="seed of the (first) reference fisc-sim run")
-    p.add_argument("--reference-seeds", type=int, default=5, metavar="K",
+    p.add_argument("--reference-seeds", type=int, default=EmulateConfig.reference_seeds, metavar="K",
                    help="fisc-sim run references (seeds SEED..SEED+K-1) whose mean and spread the comparison uses")
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
     z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.control import MapGeometry, ScalarField, entry_point, join_waypoints
+from fisc_agent.control import MapGeometry, ScalarField, entry_points, join_waypoints
 from fisc_agent.frames import DeploymentTransform
 from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import MAGIC, CommandMap, load_map
@@ -69,8 +69,9 @@ def launch_plan(field: CommandField, n_agents: int, transform: DeploymentTransfo
     start_ned[:, 2] = 0.0
     ground_map = transform.ned_to_map(start_ned)
     travel = np.empty(n_agents)
+    entries = entry_points(geom, sfield, entry_radius_fraction)  # agent i enters at entry_point(i, ...)
     for i in range(n_agents):  # once, at set-up (not a hot path)
-        entry = entry_point(i, geom, sfield, entry_radius_fraction)
+        entry = entries[i % len(entries)]
         p = tuple(ground_map[i] + np.array([0.0, 0.0, takeoff_alt_m]))
         pts = np.array([p] + join_waypoints(p, entry, geom, staging_m, keepout_margin_m))
         travel[i] = overhead_s + float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))) / join_speed_m_s

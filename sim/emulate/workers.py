@@ -57,8 +57,8 @@ class _AgentJob:
     position_rate_hz: float
     telemetry: str
     log_level: str
-    tracking: bool = True
-    entry_radius_fraction: float = 0.6
+    tracking: bool
+    entry_radius_fraction: float
     swarm: str | None = None
     zenoh_config: str | None = None
     zenoh_prefix: str = "fisc"
