@@ -14,7 +14,7 @@ by ``feedforward_gain`` (cancelling a steady velocity shortfall), plus a PI pull
 stream towards the parcel; the integral learns a steady velocity bias of the vehicle, such as an
 estimator's heading error or a wind::
 
-    e = p - x   (across the stream)
+    e = (p - x) - ((p - x) . t) t   (its part across the stream)
     v_cmd = feedforward_gain * v_ahead(p)
             + sat(gain_1_s * e + sat(integral_gain_1_s2 * int(e dt), max_integral_m_s), max_correction_m_s)
             - b
@@ -28,7 +28,9 @@ rate of change of the reported position and the reported velocity (time constant
 velocity, not its estimate, follow the field.
 
 Along the stream there is no position feedback on purpose: the swarm's velocity field should be
-the field's own at every place, not a catch-up.  Where a slide would carry the parcel into a
+the field's own at every place, not a catch-up.  The offset is projected across the field's
+direction at the parcel even where a slide could not bring the parcel level (a staircase corner),
+and a parcel left more than ``resync_distance_m`` behind or ahead starts again at the vehicle.  Where a slide would carry the parcel into a
 place without a CV upstream of the outlet (a staircase wall cube), the axial part of the slide
 is kept and the cross-stream part dropped; downstream of the outlet the parcel coasts with the
 last velocity.
@@ -75,6 +77,9 @@ class TrackingConfig:
     lookahead_reach_m: float = 1.0
     """The look-ahead samples the field at most this far ahead and extrapolates the secant beyond it
     (a look-ahead of ``lookahead_s * speed`` metres would otherwise jump past a velocity peak) [m]."""
+    resync_distance_m: float = 1.0
+    """An along-stream offset between vehicle and parcel left after the slides larger than this (a
+    parcel blocked at a staircase corner while its vehicle flew on) moves the parcel to the vehicle [m]."""
     feedforward_gain: float = 1.0
     """Multiplies the field's command: the inverse of the vehicle's steady velocity gain (an autopilot
     whose velocity loop settles below its setpoint, e.g. against drag, flies ``gain * setpoint``)."""
@@ -85,8 +90,10 @@ class TrackingConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"tracking: {name} must be finite and >= 0, is {v!r}")
-        if not (math.isfinite(self.lookahead_reach_m) and self.lookahead_reach_m > 0):
-            raise ValueError(f"tracking: lookahead_reach_m must be > 0, is {self.lookahead_reach_m!r}")
+        for name in ("lookahead_reach_m", "resync_distance_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"tracking: {name} must be finite and > 0, is {v!r}")
         if not (math.isfinite(self.feedforward_gain) and 0.5 <= self.feedforward_gain <= 2.0):
             raise ValueError(f"tracking: feedforward_gain must be in [0.5, 2], is {self.feedforward_gain!r}")
 
@@ -217,12 +224,17 @@ class ParcelTracker:
             t_hat = _unit(v)
             p = self._slide(p, _scale(t_hat, _dot(_add(pos_m, p, -1.0), t_hat)), field)
             v = self._field_at(p, field) or v
+        t_hat = _unit(v)
+        if abs(_dot(_add(pos_m, p, -1.0), t_hat)) > cfg.resync_distance_m:
+            v_here = field(*pos_m)
+            if v_here is not None:  # the parcel is stuck behind a corner: a new parcel at the vehicle
+                p, v = pos_m, v_here
+                t_hat = _unit(v)
         self._v_last = v
         v_ff = self._ahead(p, v, field)
         lag_m: Vec = ZERO
         if deviation is not None:
             dev = deviation(p)
-            t_hat = _unit(v)
             cross = _add(dev, t_hat, -_dot(dev, t_hat))
             if dt > 0.0:
                 p = self._slide(p, _scale(cross, dt), field)
@@ -232,6 +244,7 @@ class ParcelTracker:
             lag_m = _scale(cross, cfg.lookahead_s)
         self.parcel_m = p
         e = _add(_add(p, lag_m, -1.0), pos_m, -1.0)
+        e = _add(e, t_hat, -_dot(e, t_hat))  # across the stream only: no along-stream catch-up
         if dt > 0.0:
             self.integral_m_s = saturate(_add(self.integral_m_s, e, cfg.integral_gain_1_s2 * dt),
                                          cfg.max_integral_m_s)

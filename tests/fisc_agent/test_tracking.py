@@ -85,11 +85,33 @@ def test_a_slide_into_a_wall_cube_keeps_its_axial_part_and_the_parcel_coasts_pas
     assert tr.parcel_m[0] > 5.0
 
 
+def test_a_parcel_blocked_at_a_corner_never_pulls_back_along_the_stream_and_resyncs_when_far_behind():
+    """Flow along +x; beyond x = 2 only the strip 0.5 <= y <= 1 is open (a staircase step).  The
+    parcel on the axis cannot slide past the step while its vehicle flies on through the strip."""
+    def step_duct(x, y, z):
+        open_ = 0.0 <= x < 2.0 and abs(y) <= 1.0 or 2.0 <= x < 6.0 and 0.5 <= y <= 1.0
+        return (1.0, 0.0, 0.0) if open_ and abs(z) <= 1.0 else None
+
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.5, bias_time_constant_s=0.0, resync_distance_m=1.0)
+    tr = ParcelTracker(cfg)
+    tr.reset((1.9, 0.0, 0.0), 0.0)
+    v = tr.step(0.1, (2.5, 0.7, 0.0), step_duct)                 # 0.6 m past the blocked parcel
+    assert tr.parcel_m == pytest.approx((1.9, 0.0, 0.0))
+    assert v[0] == pytest.approx(1.0)                            # the field's speed: no pull backwards
+    assert v[1] == pytest.approx(-0.7 - 0.5 * 0.1 * 0.7)         # the cross-stream pull stays
+    assert tr.integral_m_s[0] == 0.0
+    v = tr.step(0.2, (3.2, 0.7, 0.0), step_duct)                 # 1.3 m past it: a new parcel at the vehicle
+    assert tr.parcel_m == pytest.approx((3.2, 0.7, 0.0))
+    assert v[0] == pytest.approx(1.0)
+
+
 def test_config_rejects_nonsense():
     with pytest.raises(ValueError, match="gain_1_s"):
         TrackingConfig(gain_1_s=-1.0)
     with pytest.raises(ValueError, match="feedforward_gain"):
         TrackingConfig(feedforward_gain=math.nan)
+    with pytest.raises(ValueError, match="resync_distance_m"):
+        TrackingConfig(resync_distance_m=0.0)
 
 
 def test_a_kinetic_deviation_moves_the_parcel_across_the_stream_and_is_flown_as_feedforward():
