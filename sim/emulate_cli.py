@@ -83,6 +83,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--mcap", default=None, metavar="FILE",
                    help="also write the flight as a Foxglove/MCAP flight log (the emulators' true states as "
                         "telemetry, the channels of fisc-ground monitor --record)")
+    p.add_argument("--flight-logs", default=None, metavar="DIR",
+                   help="write each agent's own flight log to DIR/agent_<id>.csv (the CSV of fisc-agent "
+                        "--flight-log: state, reported position/velocity, setpoint, CV, tracking parcel per tick)")
     return p
 
 
@@ -100,7 +103,8 @@ def config_from_args(args: argparse.Namespace):
                          compare=not args.no_compare, figures=not args.no_figures, seed=args.seed,
                          reference_seeds=args.reference_seeds,
                          swarm=args.swarm, zenoh_config=args.zenoh_config, zenoh_prefix=args.zenoh_prefix,
-                         telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key, mcap=args.mcap)
+                         telemetry_rate_hz=args.telemetry_rate, trusted_key=args.trusted_key, mcap=args.mcap,
+                         flight_logs=args.flight_logs)
 
 
 def run(args: argparse.Namespace) -> int:

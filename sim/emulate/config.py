@@ -113,6 +113,10 @@ class EmulateConfig:
     trusted_key: str | None = None
     """Ground Ed25519 public key (.pub) the agents trust for maps and fleet commands over Zenoh
     (required with ``swarm``, as on a real fleet)."""
+    flight_logs: str | None = None
+    """Directory for each emulated agent's own flight log, ``agent_<id>.csv`` (the CSV of ``fisc-agent
+    --flight-log``: state, reported position and velocity, setpoint, CV, tracking parcel per tick);
+    None: none."""
     mcap: str | None = None
     """Also write the flight as a Foxglove/MCAP flight log to this path: the emulators' true states
     (map frame) and the agents' mission states as telemetry, one fleet sample every

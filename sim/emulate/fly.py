@@ -102,7 +102,8 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
                             log_level=config.worker_log_level, tracking=config.tracking,
                             entry_radius_fraction=config.entry_radius_fraction, swarm=config.swarm,
                             zenoh_config=config.zenoh_config, zenoh_prefix=config.zenoh_prefix,
-                            telemetry_rate_hz=config.telemetry_rate_hz, trusted_key=config.trusted_key)
+                            telemetry_rate_hz=config.telemetry_rate_hz, trusted_key=config.trusted_key,
+                            flight_log_dir=config.flight_logs)
             p = ctx.Process(target=_agent_worker, args=(child, job), name="fisc-agents", daemon=True)
             p.start()
             child.close()

@@ -114,6 +114,8 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
 
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if config.flight_logs is not None:
+        Path(config.flight_logs).mkdir(parents=True, exist_ok=True)
     map_path, cmap = prepare_map(config.map, out, config.preset)
     transform = DeploymentTransform(DEFAULT_ORIGIN_NED_M, 0.0)
     cf = CommandField.from_map(cmap)

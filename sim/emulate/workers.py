@@ -11,6 +11,7 @@ import resource
 import time
 import traceback
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -64,6 +65,7 @@ class _AgentJob:
     zenoh_prefix: str = "fisc"
     telemetry_rate_hz: float = 5.0
     trusted_key: str | None = None
+    flight_log_dir: str | None = None
 
 
 class _LoopLog:
@@ -281,15 +283,18 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         from fisc_agent.adapters import CommandLong
         from fisc_agent.endpoints import parse_endpoint
         from fisc_agent.link import MavlinkLink
+        from fisc_agent.flightlog import FlightLog
         from fisc_agent.runner import Runner
 
         _raise_fd_limit()
         cmap = load_map(job.map_path)
-        runners = []
+        runners, logs = [], []
         for aid, port in zip(job.agent_ids, job.ports):
             cfg = agent_config(job, int(aid), port)
             link = MavlinkLink(parse_endpoint(cfg.mavlink_url), position_rate_hz=job.position_rate_hz)
-            runners.append(Runner(cfg, link, cmap))
+            if job.flight_log_dir is not None:
+                logs.append(FlightLog(Path(job.flight_log_dir) / f"agent_{int(aid)}.csv"))
+            runners.append(Runner(cfg, link, cmap, on_tick=logs[-1].write if logs else None))
         # lean telemetry: once the autopilot is found, switch its streams other than HEARTBEAT and
         # LOCAL_POSITION_NED off, one command per tick (what a bandwidth-conscious companion does)
         trims = [CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(mid), -1.0, 0, 0, 0, 0, 0), f"stream {mid} off")
@@ -342,6 +347,8 @@ def _agent_worker(conn, job: _AgentJob) -> None:
                 "transitions": [(float(tr.t_s - t0), tr.src.value, tr.dst.value, tr.reason) for tr in m.transitions],
             })
             r.link.close()
+        for log in logs:
+            log.close()
         for zl in zlinks:
             zl.close()
         if session is not None:

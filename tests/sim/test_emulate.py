@@ -239,10 +239,11 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
     emulate_cli.add_parser(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["emulate", "--agents", "7", "--duration", "12", "--mode", "slot", "--autopilot",
                               "ardupilot", "--no-compare", "-o", str(tmp_path), "--mcap", "f.mcap", "--open-loop",
-                              "--entry-radius-fraction", "0.8"])
+                              "--entry-radius-fraction", "0.8", "--flight-logs", "logs"])
     cfg = emulate_cli.config_from_args(args)
     assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap, cfg.tracking,
-            cfg.entry_radius_fraction) == (7, 12.0, "slot", "ardupilot", False, str(tmp_path), "f.mcap", False, 0.8)
+            cfg.entry_radius_fraction, cfg.flight_logs) == (7, 12.0, "slot", "ardupilot", False, str(tmp_path),
+                                                            "f.mcap", False, 0.8, "logs")
 
 
 @pytest.mark.slow
@@ -250,13 +251,21 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     from sim.emulate import run
 
     cfg = EmulateConfig(out_dir=str(tmp_path), agents=3, duration_s=22.0, figures=False, compare=True,
-                        mcap=str(tmp_path / "flight.mcap"))
+                        mcap=str(tmp_path / "flight.mcap"), flight_logs=str(tmp_path / "logs"))
     res = run(cfg)
     # the mission went through the Case 2 entry: ground -> arm -> takeoff -> join -> flow
     flown = [a for a in res.swarm.agents if any(dst == "FLOW" for _, _, dst, _ in a["transitions"])]
     assert flown, [a["transitions"] for a in res.swarm.agents]
     states = iter(dst for _, _, dst, _ in flown[0]["transitions"])
     assert all(s in states for s in ("ARM", "TAKEOFF", "JOIN", "FLOW")), flown[0]["transitions"]  # in this order
+    # each agent wrote its own flight log (fisc-agent --flight-log's CSV): the flown one has FLOW ticks
+    # with a setpoint and its tracking parcel
+    from fisc_agent.flightlog import read_flight_log
+
+    logs = {a["agent_id"]: read_flight_log(tmp_path / "logs" / f"agent_{a['agent_id']}.csv") for a in res.swarm.agents}
+    assert all(len(rows) > 0 for rows in logs.values())
+    flow_rows = [r for r in logs[flown[0]["agent_id"]] if r["state"] == "FLOW"]
+    assert flow_rows and all(r["sp_x_m_s"] and r["parcel_x_m"] for r in flow_rows)
     # the ground truth saw vehicles inside CVs, moving downstream
     rows = list(csv.DictReader(open(tmp_path / "fields.csv")))
     assert len(rows) == res.run_result.cmap.n_cv
