@@ -34,7 +34,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="a .fiscmap file, or a reference (built-in name or CFD file) fitted now; default: the embedded "
                         "default map (written to OUT/map.fiscmap for the agents)")
     p.add_argument("--agents", type=int, required=True, help="number of vehicles N (emulator + agent pairs)")
-    p.add_argument("--duration", type=float, default=60.0, help="real seconds flown from the first launch")
+    p.add_argument("--duration", type=float, default=EmulateConfig.duration_s,
+                   help=f"real seconds flown from the first launch (default {EmulateConfig.duration_s:g})")
     p.add_argument("--mode", choices=COMMAND_MODES, default=None,
                    help="agent command mode (default: the map's recommended mode)")
     p.add_argument("--lookahead", type=float, default=None, metavar="SECONDS",
@@ -57,8 +58,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="agents leaving the CVs sideways: return (fly back to the nearest CV, as fisc-sim run's "
                         "return policy) or hold")
     p.add_argument("--rate", type=float, default=20.0, help="agent setpoint rate [Hz]")
-    p.add_argument("--average-window", type=float, default=100.0,
-                   help="time-average the fields over the last S seconds (as fisc-sim run)")
+    p.add_argument("--average-window", type=float, default=EmulateConfig.average_window_s,
+                   help="time-average the fields over the last S seconds, as fisc-sim run "
+                        f"(default {EmulateConfig.average_window_s:g})")
     p.add_argument("--telemetry", choices=("full", "lean"), default="full",
                    help="full: the autopilots' default streams; lean: agents switch all but HEARTBEAT and "
                         "LOCAL_POSITION_NED off")

@@ -32,8 +32,10 @@ class EmulateConfig:
     """Command map: ``.fiscmap`` path, a reference spec to fit now, or None for the embedded default."""
     agents: int = 50
     """Number of emulated vehicles N (one autopilot emulator + one agent each)."""
-    duration_s: float = 60.0
-    """Real (wall-clock) time flown, from the launch of the first vehicle [s]."""
+    duration_s: float = 120.0
+    """Real (wall-clock) time flown, from the launch of the first vehicle [s].  The first vehicle
+    reaches the inlet after ~11 s and the looping swarm takes another ~30 s to settle, so the default
+    leaves a steady minute to average (``average_window_s``)."""
     mode: str | None = None
     """Command mode of the agents (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended one."""
     lookahead_s: float | None = None
@@ -68,7 +70,7 @@ class EmulateConfig:
     telemetry: str = "full"
     """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
     and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""
-    average_window_s: float = 100.0
+    average_window_s: float = 60.0
     """Fields are time-averaged over the last this many seconds of the run (as ``fisc-sim run``) [s]."""
     sample_interval_s: float = 0.1
     """Interval between ground-truth samples of the average (``fisc-sim run``'s default) [s]."""

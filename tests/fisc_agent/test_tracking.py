@@ -105,6 +105,18 @@ def test_a_parcel_blocked_at_a_corner_never_pulls_back_along_the_stream_and_resy
     assert v[0] == pytest.approx(1.0)
 
 
+def test_the_integral_does_not_learn_while_kinetic_deviations_are_flown():
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.5, bias_time_constant_s=0.0)
+    kinetic, plain = ParcelTracker(cfg), ParcelTracker(cfg)
+    for tr in (kinetic, plain):
+        tr.reset((1.0, 0.0, 0.0), 0.0)
+    for k in range(1, 41):  # a vehicle 0.2 m off its parcel for 2 s
+        kinetic.step(0.05 * k, (1.0, 0.2, 0.0), uniform, lambda p: (0.0, 0.0, 0.3))
+        plain.step(0.05 * k, (1.0, 0.2, 0.0), uniform)
+    assert kinetic.integral_m_s == (0.0, 0.0, 0.0)
+    assert plain.integral_m_s[1] < -0.1
+
+
 def test_config_rejects_nonsense():
     with pytest.raises(ValueError, match="gain_1_s"):
         TrackingConfig(gain_1_s=-1.0)
