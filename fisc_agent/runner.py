@@ -361,7 +361,9 @@ class Runner:
             sp = clamp_velocity(out.velocity_m_s, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
             link.send_velocity_ned(*tf.vel_map_to_ned_xyz(*sp))
             self._last_sp, self._last_sp_t = sp, now
-            if vel is not None and pos_age <= self.cfg.stale_timeout_s:
+            if vel is not None and pos_age <= self.cfg.stale_timeout_s and mode == out.want_mode:
+                # only while the autopilot flies our setpoints: after a fleet resume PX4 streams them
+                # for ~1.5 s in its hold mode before it takes OFFBOARD, which read as a 1.27 s lag
                 self.mission.observe_response(now, sp, vel)
         else:
             self._stream_start = None
