@@ -205,7 +205,7 @@ def point_map(point: SweepPoint):
         from fisc_agent.mapfile import encode_map
 
         file, func = spec.rsplit(":", 1)
-        field = _load_function(file, func)()
+        field = load_case_function(file, func)()
         meta, arrays = build_map(field, fit)
         return decode_map(encode_map(meta, arrays), source=spec)
     if not point.fit:
@@ -213,7 +213,8 @@ def point_map(point: SweepPoint):
     return build_map_from_reference(spec or DEFAULT_REFERENCE, fit)
 
 
-def _load_function(file: str, func: str):
+def load_case_function(file: str, func: str):
+    """The function ``func`` of the Python case file ``file`` (a ``FILE.py:FUNCTION`` map spec)."""
     spec = importlib.util.spec_from_file_location(f"fisc_sweep_case_{Path(file).stem}", file)
     if spec is None or spec.loader is None:
         raise ValueError(f"{file}: cannot load a Python case file")
