@@ -30,10 +30,10 @@ velocity, not its estimate, follow the field.
 Along the stream there is no position feedback on purpose: the swarm's velocity field should be
 the field's own at every place, not a catch-up.  The offset is projected across the field's
 direction at the parcel even where a slide could not bring the parcel level (a staircase corner),
-and a parcel left more than ``resync_distance_m`` behind or ahead starts again at the vehicle.  Where a slide would carry the parcel into a
-place without a CV upstream of the outlet (a staircase wall cube), the axial part of the slide
-is kept and the cross-stream part dropped; downstream of the outlet the parcel coasts with the
-last velocity.
+and a parcel left more than ``resync_distance_m`` behind or ahead starts again at the vehicle.
+Where a slide would carry the parcel into a place without a CV upstream of the outlet (a
+staircase wall cube), the axial part of the slide is kept and the cross-stream part dropped;
+downstream of the outlet the parcel coasts with the last velocity.
 
 Only the agent's own position and the map are used: no inter-agent messages.  With
 ``gain_1_s = 0`` the mission does not track at all: it flies the simulator's own command

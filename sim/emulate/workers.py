@@ -282,8 +282,8 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         logging.basicConfig(level=job.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         from fisc_agent.adapters import CommandLong
         from fisc_agent.endpoints import parse_endpoint
-        from fisc_agent.link import MavlinkLink
         from fisc_agent.flightlog import FlightLog
+        from fisc_agent.link import MavlinkLink
         from fisc_agent.runner import Runner
 
         _raise_fd_limit()
