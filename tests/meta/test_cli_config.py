@@ -60,6 +60,7 @@ RUN = {
 
 EMULATE = {
     "--mcap": "EmulateConfig.mcap",
+    "--flight-logs": "EmulateConfig.flight_logs",
     "--map": "EmulateConfig.map", "--agents": "EmulateConfig.agents", "--duration": "EmulateConfig.duration_s",
     "--mode": "EmulateConfig.mode", "--lookahead": "EmulateConfig.lookahead_s", "--preset": "EmulateConfig.preset",
     "--autopilot": "EmulateConfig.personality", "--plant": "EmulateConfig.plant",
