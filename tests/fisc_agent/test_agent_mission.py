@@ -34,9 +34,9 @@ class SimVehicle:
         self.takeoff_to = None
         self.modes = []
         self.velocity_bias = (0.0, 0.0, 0.0)
+        """Added to the real motion in ``bias_states``, not to the reported velocity: an estimator's velocity bias."""
         self.bias_states = (State.FLOW,)
         """Mission states in which the vehicle really moves ``velocity_bias`` off what it reports."""
-        """Added to the real motion in FLOW, not to the reported velocity: an estimator's velocity bias."""
 
     def status(self):
         if not self.drop_position and not self.mute:

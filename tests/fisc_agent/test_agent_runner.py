@@ -46,18 +46,22 @@ class MemoryLink(RecordingVehicle):
         self._t = clock()
         self._fix = None
 
+    def _respond(self, target, dt):
+        """The velocity the vehicle flies for the commanded ``target`` (at once here)."""
+        return list(target)
+
     def poll(self):
         now = self.clock()
         dt, self._t = now - self._t, now
         mode = self.vehicle_mode
         if mode == ModeClass.OFFBOARD and self.armed and self.setpoints:
-            self.vel = list(self.setpoints[-1][1:])
+            self.vel = self._respond(self.setpoints[-1][1:], dt)
         elif mode == ModeClass.LAND and self.armed:
             self.vel = [0.0, 0.0, 1.0]
             if self.pos[2] >= 0.0:
                 self.armed = False
         else:
-            self.vel = [0.0, 0.0, 0.0]
+            self.vel = self._respond((0.0, 0.0, 0.0), dt)
         for i in range(3):
             self.pos[i] += self.vel[i] * dt
         self.pos[2] = min(self.pos[2], 0.0)
@@ -97,13 +101,13 @@ class MemoryLink(RecordingVehicle):
         self.closed = True
 
 
-def make(**kw):
+def make(link=MemoryLink, **kw):
     clock = Clock()
     base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
                 max_speed_m_s=3.0, max_accel_m_s2=2.0, join_speed_m_s=2.5, climb_speed_m_s=1.0)
     base.update(kw)
     cfg = AgentConfig(**base)
-    link = MemoryLink(clock)
+    link = link(clock)
     r = Runner(cfg, link, decode_map(tunnel_map_bytes()), clock=clock, sleep=clock.sleep, wall_clock=lambda: 1.7e9)
     return cfg, clock, link, r
 
@@ -300,9 +304,11 @@ class LaggingLink(MemoryLink):
     """A vehicle with a first-order velocity lag whose autopilot takes ``mode_delay_s`` to enter a
     mode it is asked for (PX4 wants a setpoint stream before it takes OFFBOARD) and hovers meanwhile."""
 
-    def __init__(self, clock, lag_s=0.5, mode_delay_s=1.5):
+    lag_s = 0.5
+    mode_delay_s = 1.5
+
+    def __init__(self, clock):
         super().__init__(clock)
-        self.lag_s, self.mode_delay_s = lag_s, mode_delay_s
         self._pending = None
 
     def set_mode(self, mode):
@@ -310,34 +316,20 @@ class LaggingLink(MemoryLink):
         if mode != self.vehicle_mode and (self._pending is None or self._pending[1] != mode):
             self._pending = (self.clock() + self.mode_delay_s, mode)  # repeated requests do not restart it
 
-    def poll(self):
-        now = self.clock()
-        if self._pending is not None and now >= self._pending[0]:
-            self.vehicle_mode, self._pending = self._pending[1], None
-        dt, self._t = now - self._t, now
-        if self.vehicle_mode == ModeClass.OFFBOARD and self.armed and self.setpoints:
-            target = self.setpoints[-1][1:]
-        else:
-            target = (0.0, 0.0, 0.0)
+    def _respond(self, target, dt):
         k = min(1.0, dt / self.lag_s)
-        self.vel = [v + k * (s - v) for v, s in zip(self.vel, target)]
-        for i in range(3):
-            self.pos[i] += self.vel[i] * dt
-        self.pos[2] = min(self.pos[2], 0.0)
-        self.last_heartbeat_t = now
-        self._fix = PositionSample(now, tuple(self.pos), tuple(self.vel))
-        return 1
+        return [v + k * (s - v) for v, s in zip(self.vel, target)]
+
+    def poll(self):
+        if self._pending is not None and self.clock() >= self._pending[0]:
+            self.vehicle_mode, self._pending = self._pending[1], None
+        return super().poll()
 
 
 def test_identification_uses_only_ticks_flown_in_the_mode_asked_for():
     """A fleet hold during the join, then resume: the autopilot sits in its hold mode for 1.5 s while
     the join's setpoints stream again.  Those ticks are not the vehicle's response to them."""
-    clock = Clock()
-    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(-6.0, 0.0, -3.0),
-                      takeoff_alt_m=1.0, max_speed_m_s=3.0, max_accel_m_s2=2.0, join_speed_m_s=2.5,
-                      climb_speed_m_s=1.0, hold_grace_s=0.5)
-    link = LaggingLink(clock, lag_s=0.5, mode_delay_s=1.5)
-    r = Runner(cfg, link, decode_map(tunnel_map_bytes()), clock=clock, sleep=clock.sleep, wall_clock=lambda: 1.7e9)
+    cfg, clock, link, r = make(LaggingLink, origin_ned_m=(-6.0, 0.0, -3.0), hold_grace_s=0.5)
     tick_until(r, clock, lambda: r.mission.state == State.JOIN)
     r.fleet_command("hold")
     tick_until(r, clock, lambda: link.vehicle_mode == ModeClass.HOLD, max_s=5.0)
