@@ -131,10 +131,10 @@ class Mission:
         self.response = resp
         self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=resp.lookahead_s,
                                    feedforward_gain=resp.feedforward_gain)
-        log.info("velocity response identified from %d samples: lag %.2f s, dead time %.2f s, gain %.2f, rise time "
-                 "%.2f s, max accel %.1f m/s^2 -> look-ahead %.2f s, feed-forward gain %.2f", resp.n_samples,
-                 resp.lag_s, resp.dead_time_s, resp.gain, resp.rise_time_s, resp.max_accel_m_s2, resp.lookahead_s,
-                 resp.feedforward_gain)
+        log.info("velocity response identified from %d samples: lag %.2f s, dead time %.2f s, gain %.2f (bound over "
+                 "halves %.2f), rise time %.2f s, max accel %.1f m/s^2 -> look-ahead %.2f s, feed-forward gain %.2f",
+                 resp.n_samples, resp.lag_s, resp.dead_time_s, resp.gain, resp.gain_bound, resp.rise_time_s,
+                 resp.max_accel_m_s2, resp.lookahead_s, resp.feedforward_gain)
 
     def command(self, name: MissionCommand | str) -> None:
         """Queue a fleet command (``hold``, ``resume``, ``land``); applied at the next step."""

@@ -32,6 +32,22 @@ def test_recovers_lag_dead_time_and_gain(lag, dead, gain):
     assert resp.rise_time_s == pytest.approx(dead + lag * np.log(9), rel=0.05)
 
 
+def test_the_feedforward_takes_only_the_shortfall_both_halves_of_the_window_agree_on():
+    """A vehicle whose response is gain 1 in one half and 0.8 in the other (real PX4 SITL joins fit
+    this inconsistently): the whole window says ~0.9, the feed-forward stays 1."""
+    t, u, v = simulate(0.5, 0.1, 1.0, seed=1)
+    _, _, v_short = simulate(0.5, 0.1, 0.8, seed=1)
+    half = len(t) // 2
+    v = np.concatenate([v[:half], v_short[half:]])
+    resp = fit_response(t, u, v)
+    assert 0.8 < resp.gain < 0.97
+    assert resp.gain_bound == pytest.approx(1.0, abs=0.03)
+    assert resp.feedforward_gain == pytest.approx(1.0, abs=0.03)
+    short = fit_response(*simulate(0.5, 0.1, 0.8, seed=1))                   # consistently short: cancelled
+    assert short.gain_bound == pytest.approx(0.8, rel=0.02)
+    assert short.feedforward_gain == pytest.approx(1.25, rel=0.02)
+
+
 def test_noisy_measurements_still_give_the_lag_within_fifteen_percent():
     resp = fit_response(*simulate(0.7, 0.1, 0.85, noise=0.02))
     assert resp.lookahead_s == pytest.approx(0.8, rel=0.15)
