@@ -347,7 +347,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
 def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> RunResult:
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
-    paper = settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
+    settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
     telemetry = None
     if config.mcap is not None:
         telemetry = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=config.sample_interval,
