@@ -21,7 +21,7 @@ when the setpoints did not move enough to excite the response or the fit is not 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -69,10 +69,6 @@ class VehicleResponse:
         applied 1 / gain (1.02-1.20) crossed the duct in 17.3-20.5 s on the same airframe, and one
         caught up with the vehicle that had entered 2.4 s before it (0.41 m)."""
         return min(1.5, max(1.0, 1.0 / self.gain_bound))
-
-    def as_dict(self) -> dict:
-        """JSON-ready fields plus the derived look-ahead and feed-forward gain."""
-        return {**asdict(self), "lookahead_s": self.lookahead_s, "feedforward_gain": self.feedforward_gain}
 
 
 def _fit_lag(t: np.ndarray, u: np.ndarray, v: np.ndarray, h: float,
