@@ -323,15 +323,19 @@ class DeviationState:
     """(m,) int64 index of the persistence interval the current direction belongs to (-1: none yet)."""
     sign: np.ndarray
     """(m, 3) float +-1 per axis: wall reflections of the direction within the current interval."""
+    direction: np.ndarray
+    """(m, 3) unit direction of interval ``epoch`` before reflections: a cache of
+    ``deviation_direction`` (a function of agent id and interval), hashed again only when the
+    interval changes."""
 
     @classmethod
     def new(cls, m: int) -> "DeviationState":
         """State of ``m`` agents that have not flown yet."""
-        return cls(np.full(m, -1, dtype=np.int64), np.ones((m, 3)))
+        return cls(np.full(m, -1, dtype=np.int64), np.ones((m, 3)), np.zeros((m, 3)))
 
     def take(self, index: np.ndarray) -> "DeviationState":
         """The state of the agents ``index`` (a new object)."""
-        return DeviationState(self.epoch[index].copy(), self.sign[index].copy())
+        return DeviationState(self.epoch[index].copy(), self.sign[index].copy(), self.direction[index].copy())
 
 
 def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
@@ -351,9 +355,15 @@ def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float)
     hashed phase (the swarm does not switch in step) and the direction is uniform on the sphere, a
     hash of (agent id, interval).  Any fixed component of it is uniform on [-1, 1]."""
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
-    epoch = np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+    epoch = deviation_epoch(ids, t_s, persistence_s)
     return _unit_from_hash(ids, epoch), epoch
+
+
+def deviation_epoch(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
+    """(m,) index of each agent's persistence interval at ``t_s`` (staggered by a hashed phase)."""
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
+    return np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
 
 
 def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
@@ -374,9 +384,14 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     before, made agents stall there: first slices 1.2x their designed density).
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
-    d, epoch = deviation_direction(agent_ids, t_s, persistence_s)
-    sign = np.where((epoch != state.epoch)[:, None], 1.0, state.sign)
-    d *= sign
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    epoch = deviation_epoch(ids, t_s, persistence_s)
+    fresh = epoch != state.epoch
+    direction = state.direction.copy()
+    if fresh.any():
+        direction[fresh] = _unit_from_hash(ids[fresh], epoch[fresh])
+    sign = np.where(fresh[:, None], 1.0, state.sign)
+    d = direction * sign
     f = (pts - field.origin_m) / field.cell_size_m
     cell = np.floor(f).astype(np.int64)
     frac = f - cell
@@ -394,7 +409,7 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     flip = toward & wall_ahead
     sign[flip] *= -1.0
     d[flip] *= -1.0
-    return d, DeviationState(epoch, sign)
+    return d, DeviationState(epoch, sign, direction)
 
 
 def return_pull(field: CommandField, points_m: np.ndarray, near_cv: np.ndarray,

@@ -185,7 +185,7 @@ class Swarm:
     # ---------------------------------------------------------------- state buffers
     def _alloc(self, cap: int) -> None:
         n = getattr(self, "n", 0)
-        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign")}
+        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir")}
         self._pos = np.zeros((cap, 3))
         self._vel = np.zeros((cap, 3))
         self._thr = np.zeros((cap, 3))
@@ -197,8 +197,9 @@ class Swarm:
         self._cellbuf = np.zeros(cap, dtype=np.int64)
         self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.lookup.DeviationState)
         self._sign = np.ones((cap, 3))
+        self._dir = np.zeros((cap, 3))
         if old["pos"] is not None and n:
-            for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign"):
+            for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir"):
                 getattr(self, "_" + k)[:n] = old[k][:n]
 
     @property
@@ -312,7 +313,7 @@ class Swarm:
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign) + (
+        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign, self._dir) + (
             (self._cmd,) if self._cmd_ready else ())
         for buf in bufs:
             buf[holes] = buf[src]
@@ -420,10 +421,10 @@ class Swarm:
         mode's deviation state included).  For tests comparing the simulator with the agent."""
         cv = self.assign()
         n = self.n
-        epoch, sign = self._epoch[:n].copy(), self._sign[:n].copy()
+        epoch, sign, direction = self._epoch[:n].copy(), self._sign[:n].copy(), self._dir[:n].copy()
         cmd = np.zeros((n, 3))
         self._select_commands(cv, cmd, self.t_s, into_buffer=False)
-        self._epoch[:n], self._sign[:n] = epoch, sign
+        self._epoch[:n], self._sign[:n], self._dir[:n] = epoch, sign, direction
         out = cmd * MAP_TO_NED
         out[cv < 0] = np.nan
         return out
@@ -432,12 +433,13 @@ class Swarm:
         """Commands of every agent from ``fisc_agent.lookup.flight_command`` (the onboard agent's
         function, vectorised), rows outside the CVs 0 (the return policy fills them)."""
         n = self.n
-        state = DeviationState(self._epoch[:n], self._sign[:n])
+        state = DeviationState(self._epoch[:n], self._sign[:n], self._dir[:n])
         cmd, _, new = flight_command(self.field, self.pos_m, self.velocity_map(), self.ids, t_s,
                                      self.config.flight_settings, state, cv_ids=cv)
         if new is not None:
             self._epoch[:n] = new.epoch
             self._sign[:n] = new.sign
+            self._dir[:n] = new.direction
         np.multiply(np.nan_to_num(cmd), MAP_TO_NED, out=cmd_ned)
 
     def _lookahead_commands(self, cv: np.ndarray, cmd_ned: np.ndarray) -> None:
