@@ -82,6 +82,9 @@ class PositionSample:
     """Position [m]."""
     vel_ned_m_s: tuple[float, float, float]
     """Velocity [m/s]."""
+    autopilot_t_s: float | None = None
+    """The autopilot's own time of the fix (the message's ``time_boot_ms``) [s]; None when the source
+    gives none (MAVSDK's callbacks)."""
 
 
 @runtime_checkable
@@ -282,11 +285,13 @@ class MavlinkLink:
             return
         if mtype == "LOCAL_POSITION_NED":
             if self.anchor is None:
-                self._offer_position(PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz)))
+                self._offer_position(PositionSample(self.clock(), (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz),
+                                                    msg.time_boot_ms * 1e-3))
         elif mtype == "GLOBAL_POSITION_INT":
             if self.anchor is not None:
                 ned = self.anchor.geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-                self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01)))
+                self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
+                                                    msg.time_boot_ms * 1e-3))
         elif mtype == "COMMAND_ACK":
             self._acks.append((int(msg.command), int(msg.result)))
             del self._acks[:-MAX_ACKS_KEPT]  # bounded even if nobody pops them

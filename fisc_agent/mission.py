@@ -218,9 +218,12 @@ class Mission:
 
         # -- failsafes in the air ------------------------------------------------------------
         if pos is not None and s.vel_m_s is not None and s.position_age_s <= cfg.stale_timeout_s:
-            # at the fix's own time: the ticks and the autopilot's messages run on different clocks,
-            # and a fix seen by two ticks would otherwise read as a stop followed by a jump
-            self.tracker.observe(t - s.position_age_s, pos, s.vel_m_s)
+            # at the fix's own time, the autopilot's where it gives one: the ticks and the autopilot's
+            # messages run on different clocks (a fix seen by two ticks would read as a stop and a
+            # jump), and an autopilot whose clock runs slow against ours (PX4 SITL on a loaded host
+            # ran at ~0.75 x real time) would read as a velocity bias of a quarter of the speed
+            fix_t = s.fix_t_s if s.fix_t_s is not None else t - s.position_age_s
+            self.tracker.observe(fix_t, pos, s.vel_m_s)
         if self.state in FLYING or self.state == State.HOLD:
             if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
                 self._go(t, State.DONE, Reason(Cause.DISARMED_IN_FLIGHT))

@@ -119,6 +119,9 @@ class VehicleStatus(NamedTuple):
     ``other`` or ``unknown``."""
     wall_time_s: float = 0.0
     """UNIX time [s] (the shared clock of the entry slots; GNSS/NTP-disciplined on real vehicles)."""
+    fix_t_s: float | None = None
+    """The autopilot's own time of the newest fix [s] (``PositionSample.autopilot_t_s``), None when the
+    link gives none: the velocity-estimate bias is learnt on this clock, else on the fix's receive time."""
 
 
 class MissionOutput(NamedTuple):

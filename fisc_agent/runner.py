@@ -346,7 +346,7 @@ class Runner:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
             self._link_was_ok = link_ok
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
-                               link.armed, mode, self.wall_clock())
+                               link.armed, mode, self.wall_clock(), None if sample is None else sample.autopilot_t_s)
         out = self.mission.step(status)
 
         sp: Vec | None = None

@@ -353,7 +353,8 @@ def test_fuzz_the_udp_input_path_never_raises_and_the_next_fix_gets_through(udp_
     # far jumps are gated; move the reference slowly so every fix here is plausible
     link.position_gate = PositionGate(link.position_gate.cfg)
     _deliver(link, tx, [ap.heartbeat_encode(2, 12, 1, 0, 3).pack(ap),
-                        ap.local_position_ned_encode(0, x, 1.0, -2.0, 0.0, 0.0, 0.0).pack(ap)])
+                        ap.local_position_ned_encode(1234, x, 1.0, -2.0, 0.0, 0.0, 0.0).pack(ap)])
     fix = link.latest_position()
     assert fix is not None and fix.pos_ned_m[0] == pytest.approx(x, abs=1e-4)
+    assert fix.autopilot_t_s == pytest.approx(1.234)                  # the autopilot's own clock (time_boot_ms)
     assert link.target_system == 1 and link.target_component == 1
