@@ -23,8 +23,8 @@ estimator's heading error or a wind::
 autopilot's position estimate is anchored to GNSS while its velocity estimate can drift (PX4 SIH
 shows up to 1 m/s with a 10-15 degree heading error early in a flight), and its velocity loop
 holds the *estimated* velocity at the setpoint.  ``b`` is the low-passed difference between the
-rate of change of the reported position (between successive fixes, at their own times) and the
-reported velocity (time constant
+rate of change of the reported position (between successive fixes, on the autopilot's clock where
+the link gives it) and the reported velocity (time constant
 ``bias_time_constant_s``), bounded by ``max_bias_m_s``; subtracting it makes the vehicle's real
 velocity, not its estimate, follow the field.
 
