@@ -153,8 +153,8 @@ class ParcelTracker:
     def observe(self, t_s: float, pos_m: Vec, vel_m_s: Vec) -> None:
         """Update the velocity-estimate bias from one reported fix (call every tick while flying).
 
-        ``t_s`` is the fix's own time (its receive time), not the tick's: a fix seen again by the
-        next tick (``dt`` 0) is skipped."""
+        ``t_s`` is the fix's own time (the autopilot's clock where the link gives it, else the
+        receive time), not the tick's: a fix seen again by the next tick (``dt`` 0) is skipped."""
         tau = self.cfg.bias_time_constant_s
         prev, self._prev = self._prev, (t_s, pos_m)
         if tau <= 0.0 or prev is None:

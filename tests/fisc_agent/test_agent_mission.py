@@ -507,7 +507,7 @@ def test_fixes_slower_than_the_ticks_teach_no_velocity_bias(default_sfield):
 
 
 def test_an_autopilot_clock_slower_than_the_agents_is_no_velocity_bias(default_sfield):
-    """The autopilot runs at 0.7 x the agent's clock (PX4 SITL on a loaded CI host ran at ~0.75): per
+    """The autopilot runs at 0.7 x the agent's clock (PX4 SITL on a loaded host ran at ~0.7): per
     agent-second its position advances 0.7 x its reported velocity.  Learnt on the fixes' own
     timestamps the bias stays near zero; on the agent's clock it would be 0.3 x the speed, flown as
     an overspeed (that PX4 SITL flight crossed at up to 2.08 m/s where the map asks 1.77)."""
