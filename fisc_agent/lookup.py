@@ -184,19 +184,38 @@ class CommandField:
                 out[..., a, side] = g & ~nb
         return out
 
+    def walls_of_cells(self, cells: np.ndarray) -> np.ndarray:
+        """(m, 3, 2) ``wall_faces`` of integer grid cells (m, 3), clipped into the grid (in place)."""
+        _, _, shape, strides = self._padded_cv
+        np.maximum(cells, 0, out=cells)
+        np.minimum(cells, shape - 1, out=cells)
+        return self.wall_faces.reshape(-1, 3, 2).take(cells @ strides, axis=0)
+
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
         return np.floor((np.asarray(points_m, dtype=float) - self.origin_m) / self.cell_size_m).astype(np.int64)
 
+    @functools.cached_property
+    def _padded_cv(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``grid_cv`` with a border of -1 cells, flattened, and its strides; the grid's shape and
+        flat-index strides (C order)."""
+        g = np.asarray(self.grid_cv)
+        pad = np.full(tuple(s + 2 for s in g.shape), -1, dtype=np.int64)
+        pad[1:-1, 1:-1, 1:-1] = g
+        strides = np.array([g.shape[1] * g.shape[2], g.shape[2], 1], dtype=np.int64)
+        return pad.ravel(), np.array(pad.strides, dtype=np.int64) // pad.itemsize, np.asarray(g.shape), strides
+
     def cv_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m,) CV id of each point, -1 outside the map's CVs."""
-        cells = self.cell_of(np.atleast_2d(points_m))
-        shape = np.asarray(self.grid_cv.shape)
-        inside = np.all((cells >= 0) & (cells < shape), axis=1)
-        ids = np.full(cells.shape[0], -1, dtype=np.int64)
-        c = cells[inside]
-        ids[inside] = self.grid_cv[c[:, 0], c[:, 1], c[:, 2]]
-        return ids
+        return self._cv_of_cells(self.cell_of(np.atleast_2d(points_m)))
+
+    def _cv_of_cells(self, cells: np.ndarray) -> np.ndarray:
+        """(m,) CV id of integer grid cells (m, 3), -1 outside (``cells`` is clipped in place): cells
+        beyond the grid fall on the padded grid's border of -1."""
+        flat, strides, shape, _ = self._padded_cv
+        np.maximum(cells, -1, out=cells)
+        np.minimum(cells, shape, out=cells)
+        return flat.take(cells @ strides + int(strides.sum()))
 
     def nearest_cv_within(self, points_m: np.ndarray, radius_cells: int = 2) -> np.ndarray:
         """(m,) nearest existing CV (by centre distance) within ``radius_cells`` grid cells, else -1."""
@@ -232,7 +251,8 @@ class CommandField:
         elif mode == "interpolated":
             out[ok] = self._interpolate(pts[ok], cv[ok])
         elif mode in FACE_MODES:
-            out[ok] = self._staggered(pts[ok])
+            out = self._staggered(pts)  # rows outside: the clipped cell's faces, NaN below
+            out[~ok] = np.nan
         else:
             raise ValueError(f"unknown command mode {mode!r}; choose one of {', '.join(COMMAND_MODES)}")
         return out
@@ -264,22 +284,35 @@ class CommandField:
         out[good] = acc[good] / wsum[good, None]
         return out
 
-    def _staggered(self, pts: np.ndarray) -> np.ndarray:
-        """Each component linear between the two faces of the point's cell (the MAC-grid rule)."""
+    @functools.cached_property
+    def _cell_faces(self) -> np.ndarray:
+        """(nx * ny * nz, 6) face velocities of every grid cell, (lower, upper) per axis, rows in
+        ``grid_cv``'s flat order: one gather per point in ``_staggered``."""
         if self.face_u_m_s is None:
             raise ValueError("modes staggered/kinetic need a map with face velocities (schema version 2)")
+        fx, fy, fz = self.face_u_m_s
+        return np.stack([fx[:-1], fx[1:], fy[:, :-1], fy[:, 1:], fz[:, :, :-1], fz[:, :, 1:]],
+                        axis=-1).reshape(-1, 6).astype(float)
+
+    def _cell_and_fraction(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) flat index of each point's grid cell, clipped into the grid, and (m, 3) the point's
+        position within it in [0, 1] per axis."""
         f = (pts - self.origin_m) / self.cell_size_m
         c = np.floor(f).astype(np.int64)
-        shape = np.asarray(self.grid_cv.shape) - 1
-        np.clip(c, 0, shape, out=c)
-        t = np.clip(f - c, 0.0, 1.0)
-        i, j, k = c[:, 0], c[:, 1], c[:, 2]
-        fx, fy, fz = self.face_u_m_s
-        out = np.empty((pts.shape[0], 3))
-        out[:, 0] = (1.0 - t[:, 0]) * fx[i, j, k] + t[:, 0] * fx[i + 1, j, k]
-        out[:, 1] = (1.0 - t[:, 1]) * fy[i, j, k] + t[:, 1] * fy[i, j + 1, k]
-        out[:, 2] = (1.0 - t[:, 2]) * fz[i, j, k] + t[:, 2] * fz[i, j, k + 1]
-        return out
+        _, _, shape, strides = self._padded_cv
+        np.maximum(c, 0, out=c)
+        np.minimum(c, shape - 1, out=c)
+        t = f - c
+        np.maximum(t, 0.0, out=t)
+        np.minimum(t, 1.0, out=t)
+        return c @ strides, t
+
+    def _staggered(self, pts: np.ndarray) -> np.ndarray:
+        """Each component linear between the two faces of the point's cell (the MAC-grid rule)."""
+        faces = self._cell_faces
+        cell, t = self._cell_and_fraction(pts)
+        fc = faces.take(cell, axis=0)
+        return (1.0 - t) * fc[:, 0::2] + t * fc[:, 1::2]
 
 
 # ---- the one flight-command function (simulator, emulator and onboard agent) -------------------
@@ -395,20 +428,20 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     f = (pts - field.origin_m) / field.cell_size_m
     cell = np.floor(f).astype(np.int64)
     frac = f - cell
-    c = np.clip(cell, 0, np.asarray(field.grid_cv.shape) - 1)
-    walls = field.wall_faces[c[:, 0], c[:, 1], c[:, 2]]          # (m, 3, 2)
+    walls = field.walls_of_cells(cell)                            # (m, 3, 2)
     up = d >= 0
     wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
-    zone = np.full(frac.shape, WALL_ZONE)
+    zone = WALL_ZONE
     if velocity_m_s is not None and BRAKE_S > 0:
         # a vehicle heading for a face at v_n turns once the face is within v_n * BRAKE_S
         v = np.atleast_2d(velocity_m_s)
-        v_n = np.where(up, np.maximum(v, 0.0), np.maximum(-v, 0.0))
+        v_n = np.where(up, v, -v)
+        np.maximum(v_n, 0.0, out=v_n)
         zone = np.maximum(zone, v_n * BRAKE_S / field.cell_size_m)
     toward = np.where(up, frac >= 1.0 - zone, frac < zone)
     flip = toward & wall_ahead
-    sign[flip] *= -1.0
-    d[flip] *= -1.0
+    np.negative(sign, out=sign, where=flip)
+    np.negative(d, out=d, where=flip)
     return d, DeviationState(epoch, sign, direction)
 
 
@@ -462,6 +495,5 @@ def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.n
         return cmd, cv, state
     st = DeviationState.new(len(pts)) if state is None else state
     d, st = kinetic_deviation(field, pts, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
-    ok = look_cv >= 0
-    cmd[ok] += field.spread_m_s[look_cv[ok], None] * d[ok]
+    cmd += field.spread_m_s.take(np.maximum(look_cv, 0))[:, None] * d  # rows outside stay NaN
     return cmd, cv, st

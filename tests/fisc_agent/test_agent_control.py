@@ -1,5 +1,6 @@
 """Control core: the scalar fast path agrees with lookup.CommandField; clamps; entry and join plans."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -153,11 +154,11 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
 
 def test_check_map_accepts_good_and_names_bad(field):
     assert check_map(field, "slot") == []
-    bad = CommandField(**{**field.__dict__, "mean_cmd_m_s": np.where(np.arange(field.n_cv)[:, None] == 3, np.nan,
-                                                                      field.mean_cmd_m_s)})
+    bad = dataclasses.replace(field, mean_cmd_m_s=np.where(np.arange(field.n_cv)[:, None] == 3, np.nan,
+                                                           field.mean_cmd_m_s))
     with pytest.raises(MapError, match="commands: non-finite mean command in CV 3"):
         check_map(bad, "mean")
-    bad = CommandField(**{**field.__dict__, "n_star": np.zeros(field.n_cv, dtype=np.int32)})
+    bad = dataclasses.replace(field, n_star=np.zeros(field.n_cv, dtype=np.int32))
     with pytest.raises(MapError, match="n_star"):
         check_map(bad, "slot")
     with pytest.raises(MapError, match="mode"):
