@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from fisc_ground import plots
+from fisc_ground.figure_workers import FigureJob, render_figures
 from fisc_ground.metrics import centreline_profiles
 
 
@@ -30,8 +32,18 @@ def _bymax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_run_figures(run: Any, out_dir: Path) -> dict[str, Path]:
-    """Write the PNGs of a ``fisc_ground.field_run.FieldRun`` into ``out_dir``; returns name -> path."""
+def write_run_figures(run: Any, out_dir: Path, parallel: bool = True) -> dict[str, Path]:
+    """Write the PNGs of a ``fisc_ground.field_run.FieldRun`` into ``out_dir``; returns name -> path.
+
+    ``parallel``: draw them on two processes (``fisc_ground.figure_workers``)."""
+    jobs = run_figure_jobs(run, out_dir)
+    light = [n for n in jobs if n.startswith("snapshot_")]  # drawn last: both processes end together
+    paths = render_figures({n: jobs[n] for n in [*(n for n in jobs if n not in light), *light]}, parallel)
+    return {n: paths[n] for n in jobs}
+
+
+def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
+    """The figures of ``write_run_figures`` as jobs, name -> job, in the paper's order."""
     cmap, f = run.cmap, run.fields
     c = np.asarray(cmap["cv_center_m"], dtype=float)
     l = cmap.cell_size_m
@@ -40,11 +52,11 @@ def write_run_figures(run: Any, out_dir: Path) -> dict[str, Path]:
     everywhere = np.ones(c.shape[0], dtype=bool)
     tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
     fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
-    paths: dict[str, Path] = {}
+    jobs: dict[str, FigureJob] = {}
     tag = f"{run.scenario}, {run.mode}{', collisions' if run.collisions else ''}"
     for t, pos in run.snapshots:  # fig. 4
         name = f"snapshot_{run.scenario}_{t:05.1f}s".replace(".", "_")
-        paths[name] = plots.plot_swarm_snapshot(pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
+        jobs[name] = partial(plots.plot_swarm_snapshot, pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
     swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
     # a companion run of the paper's preset on the same CVs (``sim.run``): a fourth panel / curve
     pf = run.companion.fields if run.companion is not None else None
@@ -53,27 +65,27 @@ def write_run_figures(run: Any, out_dir: Path) -> dict[str, Path]:
     u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
                if pf is not None else {})
     r_extra = {"(d) swarm density (paper preset)": _minmax(pf.rho_s_kg_m3, pok)} if pf is not None else {}
-    paths["velocity_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 5
-        c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
+    jobs["velocity_cfd_fit_swarm"] = partial(  # fig. 5
+        plots.plot_xz_comparison, c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
             "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
             f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra},
         l, "Axial velocity normalised by the field maximum, XZ plane", out_dir / "velocity_cfd_fit_swarm.png",
         label="u / max u", wall_radius=wall)
-    paths["pressure_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 7
-        c, {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
+    jobs["pressure_cfd_fit_swarm"] = partial(  # fig. 7
+        plots.plot_xz_comparison, c, {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
             "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
             f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok), **p_extra},
         l, "Pressure, min-max normalised, XZ plane", out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm",
         label="(P - min) / (max - min)", wall_radius=wall)
     rho_fit = np.asarray(cmap["n_star"], dtype=float) * float(cmap.body.get("agent_mass_kg", 1.0)) / l ** 3
-    paths["density_cfd_fit_swarm"] = plots.plot_xz_comparison(  # fig. 8
-        c, {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
+    jobs["density_cfd_fit_swarm"] = partial(  # fig. 8
+        plots.plot_xz_comparison, c, {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
             "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
             f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok), **r_extra},
         l, "Density, min-max normalised, XZ plane", out_dir / "density_cfd_fit_swarm.png",
         label="(rho - min) / (max - min)", wall_radius=wall)
-    paths["density_velocity_swarm"] = plots.plot_density_with_vectors(  # fig. 9
-        c, np.where(ok, f.rho_s_kg_m3, np.nan), np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l,
+    jobs["density_velocity_swarm"] = partial(  # fig. 9
+        plots.plot_density_with_vectors, c, np.where(ok, f.rho_s_kg_m3, np.nan), np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l,
         out_dir / "density_velocity_swarm.png", title=f"Time-averaged swarm density and velocity ({tag})",
         wall_radius=wall)
     prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
@@ -85,6 +97,6 @@ def write_run_figures(run: Any, out_dir: Path) -> dict[str, Path]:
             c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
             np.asarray(cmap["target_density_kg_m3"], dtype=float), pf.u_axial_m_s, pf.p_dispersion_pa,
             pf.rho_s_kg_m3, pf.samples, run.min_samples).swarm}
-    paths["centreline"] = plots.plot_centreline_profiles(  # fig. 10
-        prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})", extra_swarm=extra)
-    return paths
+    jobs["centreline"] = partial(  # fig. 10
+        plots.plot_centreline_profiles, prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})", extra_swarm=extra)
+    return jobs

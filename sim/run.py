@@ -30,6 +30,7 @@ from fisc_agent.safe_files import read_head
 from fisc_ground.field_report import write_fields_csv
 from fisc_ground.field_run import FieldRun, FieldSource
 from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
+from fisc_ground.forked import ForkedCall, can_fork
 from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
 from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
 from sim import report
@@ -344,32 +345,50 @@ def simulate(config: RunConfig, cmap: CommandMap,
         collisions=None if collider is None else collider.stats.as_dict())
 
 
+def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
+    """The ``--preset paper`` run beside a run of ``config`` on ``cmap`` (its map, if a map file was
+    given; else the paper's schema-1 fit of the same reference), with its metrics."""
+    pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
+    pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
+        load_command_map(config.map, config.max_speed_m_s, "paper")
+    paper = simulate(pcfg, pmap)
+    paper.metrics = report.compute_metrics(paper)
+    return paper
+
+
 def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> RunResult:
-    """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``."""
+    """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``.
+
+    The paper companion (``paper_companion``) flies in a forked process beside the main run where
+    that is possible (``fisc_ground.forked``), else after it; the results are the same."""
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
     settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
+    companion = config.compare_paper and not settings_are_paper
+    beside = ForkedCall(paper_companion, config, cmap, name="fisc-paper-companion") \
+        if companion and can_fork() else None
     telemetry = None
-    if config.mcap is not None:
-        telemetry = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=config.sample_interval,
-                                                             stale_after_s=1.5 * config.sample_interval,
-                                                             source="fisc-sim run"), mcap_path=config.mcap),
-                                       cmap, map_bytes(cmap))
     try:
+        if config.mcap is not None:
+            telemetry = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=config.sample_interval,
+                                                                 stale_after_s=1.5 * config.sample_interval,
+                                                                 source="fisc-sim run"), mcap_path=config.mcap),
+                                           cmap, map_bytes(cmap))
         result = simulate(config, cmap, None if progress is None else (lambda f: progress(0.85 * f)), telemetry)
+    except BaseException:
+        if beside is not None:
+            beside.cancel()
+        raise
     finally:
         if telemetry is not None:
             telemetry.close()
     if telemetry is not None:
         result.paths["mcap"] = Path(config.mcap)
-    paper = None
-    if config.compare_paper and not settings_are_paper:
-        pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
-        pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
-            load_command_map(config.map, config.max_speed_m_s, "paper")
-        paper = simulate(pcfg, pmap)
-        paper.metrics = report.compute_metrics(paper)
+    if companion:
+        paper = beside.result() if beside is not None else paper_companion(config, cmap)
         result.paper = paper
         result.field_run = replace(result.field_run, companion=paper.field_run)
+    if progress is not None:
+        progress(0.9)
     out = Path(config.out_dir)
     out.mkdir(parents=True, exist_ok=True)
     result.metrics = report.compute_metrics(result)
@@ -380,5 +399,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
 
         result.paths.update(figures.write_run_figures(result.field_run, out))
     result.paths["report"] = report.write_report_md(result, out / "report.md")
+    if progress is not None:
+        progress(1.0)
     log.info("run written to %s", out)
     return result

@@ -259,3 +259,34 @@ def test_cli_run_mcap_flag_writes_the_flight_log(tmp_path, map_file):
     from fisc_ground.recording import read_recording
 
     assert read_recording(tmp_path / "run.mcap").n_messages > 0
+
+
+def test_the_paper_companion_flies_beside_the_run_in_a_forked_process_with_the_same_result(tmp_path, monkeypatch):
+    """``sim.run.run``: the companion runs in a second process where it can fork, else after the
+    main run here; the report's numbers are the same either way."""
+    import os
+
+    import sim.run as sim_run
+    from fisc_ground.forked import can_fork
+
+    if not can_fork():
+        pytest.skip("fork not available here")
+    real = sim_run.paper_companion
+    pids = tmp_path / "companion.pids"
+
+    def recording(config, cmap):
+        with pids.open("a") as f:
+            f.write(f"{os.getpid()}\n")
+        return real(config, cmap)
+
+    monkeypatch.setattr(sim_run, "paper_companion", recording)
+    cfg = RunConfig(duration_s=20.0, average_window_s=10.0, figures=False)
+    beside = sim_run.run(replace(cfg, out_dir=str(tmp_path / "beside")))
+    monkeypatch.setattr(sim_run, "can_fork", lambda: False)
+    after = sim_run.run(replace(cfg, out_dir=str(tmp_path / "after")))
+    forked_pid, own_pid = (int(line) for line in pids.read_text().split())
+    assert forked_pid != os.getpid() and own_pid == os.getpid()
+    assert beside.paper.field_run.cmap.schema_version == 1
+    for key in ("nrmse_velocity", "nrmse_pressure", "nrmse_density", "pearson_density", "agents"):
+        assert beside.paper.metrics[key] == after.paper.metrics[key]
+    assert np.array_equal(beside.paper.fields.rho_s_kg_m3, after.paper.fields.rho_s_kg_m3)

@@ -1,0 +1,78 @@
+"""Wall time of the README's main job, ``fisc-sim run -o DIR`` (issue 9: under 10 s on 2 cores).
+
+Runs the command as a user does (a fresh process each time): once cold (an empty numba cache, so
+its kernels compile) and then ``--runs`` times warm, and prints each run's wall time with the
+simulation loops' times (``metrics.json``: ``wall_time_s`` of the default run and of the paper
+companion, which flies beside it in a forked process).  Then, in this process, the run's figures drawn one after the other and on two
+processes (``fisc_ground.figure_workers``), alternately, with their ratio.  The host's load moves
+all of these; compare numbers from one invocation.
+
+    python benchmarks/bench_main_job.py            # 1 cold + 3 warm runs, 3 figure rounds
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _fisc_sim() -> list[str]:
+    exe = Path(sys.executable).with_name("fisc-sim")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "sim.cli"]
+
+
+def time_run(out: Path, env: dict[str, str]) -> tuple[float, dict]:
+    """Wall time of one ``fisc-sim run -o out`` and its metrics.json."""
+    t0 = time.perf_counter()
+    subprocess.run(_fisc_sim() + ["run", "-o", str(out)],
+                   env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())
+
+
+def time_figures(rounds: int) -> tuple[list[float], list[float]]:
+    """Serial and two-process wall times of one run's figures, alternating."""
+    from fisc_ground.field_figures import write_run_figures
+    from sim.run import RunConfig, run
+
+    with tempfile.TemporaryDirectory() as tmp:
+        res = run(RunConfig(out_dir=tmp, figures=False))
+        serial, parallel = [], []
+        for _ in range(rounds):
+            for flag, into in ((False, serial), (True, parallel)):
+                t0 = time.perf_counter()
+                write_run_figures(res.field_run, Path(tmp), parallel=flag)
+                into.append(time.perf_counter() - t0)
+    return serial, parallel
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=3, help="warm runs after the cold one (default 3)")
+    ap.add_argument("--figure-rounds", type=int, default=3, help="serial/parallel figure rounds (default 3)")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba-cache"))
+        rows = []
+        for k in range(1 + args.runs):
+            wall, m = time_run(Path(tmp) / f"run{k}", env)
+            paper = m.get("paper_preset", {}).get("wall_time_s")
+            rows.append(wall)
+            print(f"{'cold' if k == 0 else 'warm'} run {k}: {wall:5.2f} s wall; simulation loop {m['wall_time_s']:.2f} s"
+                  + (f" + paper companion {paper:.2f} s" if paper is not None else ""), flush=True)
+        if args.runs:
+            print(f"warm median {statistics.median(rows[1:]):.2f} s, cold {rows[0]:.2f} s (aim: under 10 s)")
+    serial, parallel = time_figures(args.figure_rounds)
+    print(f"figures: serial median {statistics.median(serial):.2f} s, two processes {statistics.median(parallel):.2f} s"
+          f" (ratio {statistics.median(parallel) / statistics.median(serial):.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
