@@ -65,29 +65,29 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
     u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
                if pf is not None else {})
     r_extra = {"(d) swarm density (paper preset)": _minmax(pf.rho_s_kg_m3, pok)} if pf is not None else {}
+    velocity = {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
+                "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
+                f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra}
     jobs["velocity_cfd_fit_swarm"] = partial(  # fig. 5
-        plots.plot_xz_comparison, c, {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
-            "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
-            f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra},
-        l, "Axial velocity normalised by the field maximum, XZ plane", out_dir / "velocity_cfd_fit_swarm.png",
-        label="u / max u", wall_radius=wall)
+        plots.plot_xz_comparison, c, velocity, l, "Axial velocity normalised by the field maximum, XZ plane",
+        out_dir / "velocity_cfd_fit_swarm.png", label="u / max u", wall_radius=wall)
+    pressure = {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
+                "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
+                f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok), **p_extra}
     jobs["pressure_cfd_fit_swarm"] = partial(  # fig. 7
-        plots.plot_xz_comparison, c, {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
-            "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
-            f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok), **p_extra},
-        l, "Pressure, min-max normalised, XZ plane", out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm",
-        label="(P - min) / (max - min)", wall_radius=wall)
+        plots.plot_xz_comparison, c, pressure, l, "Pressure, min-max normalised, XZ plane",
+        out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm", label="(P - min) / (max - min)", wall_radius=wall)
     rho_fit = np.asarray(cmap["n_star"], dtype=float) * float(cmap.body.get("agent_mass_kg", 1.0)) / l ** 3
+    density = {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
+               "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
+               f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok), **r_extra}
     jobs["density_cfd_fit_swarm"] = partial(  # fig. 8
-        plots.plot_xz_comparison, c, {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
-            "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
-            f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok), **r_extra},
-        l, "Density, min-max normalised, XZ plane", out_dir / "density_cfd_fit_swarm.png",
-        label="(rho - min) / (max - min)", wall_radius=wall)
+        plots.plot_xz_comparison, c, density, l, "Density, min-max normalised, XZ plane",
+        out_dir / "density_cfd_fit_swarm.png", label="(rho - min) / (max - min)", wall_radius=wall)
     jobs["density_velocity_swarm"] = partial(  # fig. 9
-        plots.plot_density_with_vectors, c, np.where(ok, f.rho_s_kg_m3, np.nan), np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l,
-        out_dir / "density_velocity_swarm.png", title=f"Time-averaged swarm density and velocity ({tag})",
-        wall_radius=wall)
+        plots.plot_density_with_vectors, c, np.where(ok, f.rho_s_kg_m3, np.nan),
+        np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l, out_dir / "density_velocity_swarm.png",
+        title=f"Time-averaged swarm density and velocity ({tag})", wall_radius=wall)
     prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
                                np.asarray(cmap["target_density_kg_m3"], dtype=float), f.u_axial_m_s,
                                f.p_dispersion_pa, f.rho_s_kg_m3, f.samples, run.min_samples)
@@ -98,5 +98,6 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
             np.asarray(cmap["target_density_kg_m3"], dtype=float), pf.u_axial_m_s, pf.p_dispersion_pa,
             pf.rho_s_kg_m3, pf.samples, run.min_samples).swarm}
     jobs["centreline"] = partial(  # fig. 10
-        plots.plot_centreline_profiles, prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})", extra_swarm=extra)
+        plots.plot_centreline_profiles, prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})",
+        extra_swarm=extra)
     return jobs
