@@ -3,9 +3,9 @@
 Runs the command as a user does (a fresh process each time): once cold (an empty numba cache, so
 its kernels compile) and then ``--runs`` times warm, and prints each run's wall time with the
 simulation loops' times (``metrics.json``: ``wall_time_s`` of the default run and of the paper
-companion, which flies beside it in a forked process).  Then, in this process, the run's figures drawn one after the other and on two
-processes (``fisc_ground.figure_workers``), alternately, with their ratio.  The host's load moves
-all of these; compare numbers from one invocation.
+companion, which flies beside it in a forked process).  Then, in this process, the run's figures
+drawn one after the other and on two processes (``fisc_ground.figure_workers``), alternately,
+with their ratio.  The host's load moves all of these; compare numbers from one invocation.
 
     python benchmarks/bench_main_job.py            # 1 cold + 3 warm runs, 3 figure rounds
 """

@@ -184,12 +184,13 @@ class CommandField:
                 out[..., a, side] = g & ~nb
         return out
 
-    def walls_of_cells(self, cells: np.ndarray) -> np.ndarray:
-        """(m, 3, 2) ``wall_faces`` of integer grid cells (m, 3), clipped into the grid (in place)."""
+    def grid_index(self, cells: np.ndarray) -> np.ndarray:
+        """(m,) flat (C-order) index into ``grid_cv`` of integer grid cells (m, 3), clipped into the
+        grid (in place): rows of ``wall_faces.reshape(-1, 3, 2)`` and of the per-cell face table."""
         _, _, shape, strides = self._padded_cv
         np.maximum(cells, 0, out=cells)
         np.minimum(cells, shape - 1, out=cells)
-        return self.wall_faces.reshape(-1, 3, 2).take(cells @ strides, axis=0)
+        return cells @ strides
 
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
@@ -299,13 +300,11 @@ class CommandField:
         position within it in [0, 1] per axis."""
         f = (pts - self.origin_m) / self.cell_size_m
         c = np.floor(f).astype(np.int64)
-        _, _, shape, strides = self._padded_cv
-        np.maximum(c, 0, out=c)
-        np.minimum(c, shape - 1, out=c)
+        cell = self.grid_index(c)
         t = f - c
         np.maximum(t, 0.0, out=t)
         np.minimum(t, 1.0, out=t)
-        return c @ strides, t
+        return cell, t
 
     def _staggered(self, pts: np.ndarray) -> np.ndarray:
         """Each component linear between the two faces of the point's cell (the MAC-grid rule)."""
@@ -428,7 +427,7 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     f = (pts - field.origin_m) / field.cell_size_m
     cell = np.floor(f).astype(np.int64)
     frac = f - cell
-    walls = field.walls_of_cells(cell)                            # (m, 3, 2)
+    walls = field.wall_faces.reshape(-1, 3, 2).take(field.grid_index(cell), axis=0)  # (m, 3, 2)
     up = d >= 0
     wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
     zone = WALL_ZONE
