@@ -15,6 +15,7 @@ from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, 
                                    missing_dependency_message, missing_extra, setup_logging, sig3)
 from fisc_agent.lookup import COMMAND_MODES
 from sim.plant_fit import PLANT_PRESETS
+from sim.run import RESERVOIR_WINDOW_S
 
 
 def _agents(text: str):
@@ -41,8 +42,8 @@ def _add_run(sub) -> None:
     p.add_argument("--duration", type=float, default=None,
                    help="simulated seconds (default: 300 for reservoir, 20 for seed)")
     p.add_argument("--average-window", type=float, default=None,
-                   help="time-average the fields over the last S seconds (default: 100 for reservoir, "
-                        "the whole run for seed)")
+                   help=f"time-average the fields over the last S seconds (default: {RESERVOIR_WINDOW_S:g} for "
+                        "reservoir, the whole run for seed)")
     p.add_argument("--plant", choices=tuple(PLANT_PRESETS), default="paper",
                    help="vehicle model: the paper's quadrotor, or px4-sih (fitted to real PX4 SITL flights; "
                         "sim.plant_fit)")
