@@ -18,7 +18,6 @@ import numpy as np
 
 from fisc_agent.lookup import (
     COMMAND_MODES,
-    DEFAULT_PERSISTENCE_S,
     FACE_MODES,
     PAPER_SETTINGS,
     CommandField,
@@ -114,8 +113,9 @@ class RunConfig:
     """Command look-ahead t_lead [s] (``SwarmConfig.lookahead_s``): agents fly the command at
     x + u t_lead to compensate the plant lag; 0 = the paper's Algorithm 1; None: the map's
     recommended value (the preset's)."""
-    persistence_s: float = DEFAULT_PERSISTENCE_S
-    """Mode ``kinetic``: how long an agent keeps one deviation direction [s]."""
+    persistence_s: float | None = None
+    """Mode ``kinetic``: how long an agent keeps one deviation direction [s]; None: the map's
+    recommended value (the preset's), as ``fisc-agent`` flies it."""
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
     snapshot_times_s: tuple[float, ...] = PAPER_SNAPSHOT_TIMES_S
@@ -162,7 +162,7 @@ class RunConfig:
         base = PAPER_SETTINGS if self.preset == "paper" else map_flight_settings(cmap)
         return FlightSettings(base.mode if self.mode is None else self.mode,
                               base.lookahead_s if self.lookahead_s is None else float(self.lookahead_s),
-                              self.persistence_s)
+                              base.persistence_s if self.persistence_s is None else float(self.persistence_s))
 
     def as_dict(self) -> dict:
         """JSON-ready dict of the configuration (inf -> "inf"; defaults of duration and window applied)."""

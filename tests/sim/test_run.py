@@ -101,6 +101,23 @@ def test_bad_config_is_refused():
         RunConfig(scenario="vortex")
 
 
+def test_the_run_flies_the_maps_persistence_as_the_agent_does():
+    """The kinetic persistence is a flight setting of the map: ``fisc-sim run`` flies the map's value
+    unless told otherwise, as ``fisc-agent`` does (``ScalarField.settings``)."""
+    import dataclasses
+
+    from fisc_agent.control import ScalarField
+    from fisc_agent.lookup import CommandField
+    from sim.run import load_command_map
+
+    cmap = load_command_map(None)
+    body = {**cmap.body, "flight": {**cmap.body["flight"], "persistence_s": 3.5}}
+    slow = dataclasses.replace(cmap, body=body)
+    agent = ScalarField(CommandField.from_map(slow)).settings()
+    assert RunConfig().flight_settings(slow) == agent and agent.persistence_s == 3.5
+    assert RunConfig(persistence_s=1.0).flight_settings(slow).persistence_s == 1.0
+
+
 def test_run_defaults_are_the_papers_population_and_speed_regime():
     """No options: ~10^3 agents (N* scaled to 1000) on the default reference fitted for a 2 m/s
     speed limit (the paper's S = 0.1 x 22.4 m/s regime), as a schema-2 map flown with its recommended
