@@ -15,18 +15,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fisc_agent.hashing import slot_hash_int
+from fisc_agent.kinetic import DeviationState, kinetic_deviation
 from fisc_agent.lookup import (
     COMMAND_MODES,
     FACE_MODES,
     PAPER_SETTINGS,
     RETURN_RADIUS_CELLS,
     CommandField,
-    DeviationState,
     FlightSettings,
     flight_command,
-    kinetic_deviation,
     return_command,
-    slot_hash_int,
 )
 from fisc_agent.mapfile import MapError, MapErrorKind
 
@@ -101,7 +100,7 @@ class ScalarField:
 
     def deviation(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float) -> Vec:
         """This vehicle's ``kinetic`` deviation at ``pos`` [m/s]: the CV's fitted spread times the
-        persistent, wall-reflected direction of ``fisc_agent.lookup.kinetic_deviation`` (the
+        persistent, wall-reflected direction of ``fisc_agent.kinetic.kinetic_deviation`` (the
         simulator's rule; its state is kept here, shared with ``flight``).  Zero outside the CVs or
         on a map without a fitted spread.  Streamline tracking adds it to its parcel
         (``fisc_agent.tracking.ParcelTracker.step``)."""

@@ -12,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from fisc_agent.lookup import DEFAULT_PERSISTENCE_S, PAPER_SETTINGS, FlightSettings
+from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S
+from fisc_agent.lookup import PAPER_SETTINGS, FlightSettings
 from fisc_agent.mapfile import CommandMap, decode_map, encode_map, load_map
 from fisc_ground.fitting import fit_rmse, fit_velocities
 from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field

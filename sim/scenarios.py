@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField, deviation_direction
+from fisc_agent.kinetic import deviation_direction
+from fisc_agent.lookup import CommandField
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:

@@ -36,19 +36,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fisc_agent.hashing import slot_hash
+from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState
 from fisc_agent.lookup import (
     COMMAND_MODES,
-    DEFAULT_PERSISTENCE_S,
-    CommandField,
     RETURN_GAIN_1_S,
     RETURN_RADIUS_CELLS,
     RETURN_SPEED_FRACTION,
-    DeviationState,
+    CommandField,
     FlightSettings,
     flight_command,
     lookahead_point,
     return_pull,
-    slot_hash,
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
 from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
@@ -90,7 +89,7 @@ class SwarmConfig:
 
     persistence_s: float = DEFAULT_PERSISTENCE_S
     """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
-    (``fisc_agent.lookup.kinetic_deviation``)."""
+    (``fisc_agent.kinetic.kinetic_deviation``)."""
 
     @property
     def flight_settings(self) -> FlightSettings:
@@ -195,7 +194,7 @@ class Swarm:
         self._out = np.zeros(cap)
         self._cvbuf = np.zeros(cap, dtype=np.int64)
         self._cellbuf = np.zeros(cap, dtype=np.int64)
-        self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.lookup.DeviationState)
+        self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.kinetic.DeviationState)
         self._sign = np.ones((cap, 3))
         self._dir = np.zeros((cap, 3))
         if old["pos"] is not None and n:

@@ -8,7 +8,8 @@ import pytest
 
 from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
                                 goto_velocity, join_waypoints, max_command_speed)
-from fisc_agent.lookup import CommandField, slot_hash, slot_hash_int
+from fisc_agent.hashing import slot_hash, slot_hash_int
+from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import MapError
 
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField, slot_hash, slot_hash_int, slot_index
+from fisc_agent.hashing import slot_hash, slot_hash_int, slot_index
+from fisc_agent.lookup import CommandField
 from fisc_agent.mapfile import load_map
 from sim.kernels import cell_and_slot_helpers
 
@@ -56,7 +57,7 @@ def test_slot_hash_fixed_vectors_in_every_copy(pair):
 
 
 def test_numba_slot_twin_equals_the_pure_hash_on_1e5_inputs():
-    """``sim.kernels``' jitted slot index is a twin of ``lookup.slot_mix``: equal on 10^5 inputs
+    """``sim.kernels``' jitted slot index is a twin of ``fisc_agent.hashing.slot_mix``: equal on 10^5 inputs
     spanning the whole 32-bit id range (and ids beyond it, reduced the same way)."""
     rng = np.random.default_rng(11)
     n = 100_000

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField, slot_index
+from fisc_agent.hashing import slot_index
+from fisc_agent.lookup import CommandField
 
 
 def field_from_mask(mask: np.ndarray, cell: float = 0.5, origin=(0.0, -1.0, -1.0), n_max: int = 4, seed: int = 0):

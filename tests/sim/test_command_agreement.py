@@ -7,16 +7,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.control import ScalarField
-from fisc_agent.lookup import (
-    COMMAND_MODES,
-    WALL_ZONE,
-    CommandField,
-    DeviationState,
-    FlightSettings,
-    flight_command,
-    kinetic_deviation,
-    kinetic_spread,
-)
+from fisc_agent.kinetic import WALL_ZONE, DeviationState, kinetic_deviation, kinetic_spread
+from fisc_agent.lookup import COMMAND_MODES, CommandField, FlightSettings, flight_command
 from fisc_ground.mapbuild import FitConfig, build_map_from_reference
 from sim.swarm import Swarm, SwarmConfig
 

@@ -1,0 +1,144 @@
+"""The ``kinetic`` command mode: a persistent per-agent deviation on top of the staggered field.
+
+Each agent keeps a direction for a persistence interval and flies it at the CV's spread (the
+fitted spread at the designed density, ``kinetic_spread``), so the swarm carries the CFD pressure
+as the paper's pressure analogue P = 2/3 rho <v'^2> (the kinetic picture of a gas).  Components
+heading for a staircase wall are reflected, and the reflection is forgotten where the wall steps
+outward.  The state is explicit (``DeviationState``, passed in and returned); time is passed in.
+Numpy only: the onboard agent flies the same functions as the simulator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fisc_agent.hashing import slot_hash
+
+if TYPE_CHECKING:
+    from fisc_agent.lookup import CommandField
+
+#: Kinetic mode: depth of the zone next to a wall face in which a deviation toward the wall is
+#: reflected [cells] (thin, so the reflection itself empties little of the wall cube).
+WALL_ZONE = 0.25
+#: Kinetic mode: a vehicle heading for a wall face at normal speed v_n reflects once the face is
+#: within v_n * BRAKE_S (if that is deeper than ``WALL_ZONE``): the lag-proportional turning
+#: distance that keeps the reflection scale-free (a 5 m/s map deviates 2.5x faster than a 2 m/s one).
+BRAKE_S = 0.25
+#: Default persistence time of the kinetic deviation [s] (several plant time constants of ~0.6 s).
+DEFAULT_PERSISTENCE_S = 2.0
+
+
+def kinetic_spread(fitted_spread_m_s: np.ndarray, design_density: np.ndarray) -> np.ndarray:
+    """The ``kinetic`` deviation's rms per CV: the fitted spread sigma_j scaled to the designed density,
+    sigma_j sqrt(mean(rho_d) / rho_d,j).
+
+    The fit gives each CV the spread that carries the CFD pressure at the fitted (uniform) agent
+    density, P_j = 2/3 rho sigma_j^2 (DESIGN.md section 3).  A swarm designed to be thinner in a CV
+    must be hotter there for the same pressure (an ideal gas: sigma^2 ~ P / rho).  Measured (Case 2,
+    seeds 0 / 1 / 2 on cd_nozzle_inviscid): pressure nRMSE 0.196 / 0.210 / 0.233 against 0.257 /
+    0.249 / 0.239 with the fitted spread alone, density 0.251 / 0.262 / 0.254 against 0.256 / 0.269 /
+    0.260 (docs/simulation.md)."""
+    rho = np.asarray(design_density, dtype=float)
+    if rho.shape != np.shape(fitted_spread_m_s) or not np.all(rho > 0):
+        raise ValueError("design density must be > 0 with one value per CV")
+    return np.asarray(fitted_spread_m_s, dtype=float) * np.sqrt(rho.mean() / rho)
+
+
+@dataclass(frozen=True)
+class DeviationState:
+    """Per-agent state of the ``kinetic`` mode (explicit: passed in and returned, no clocks inside)."""
+
+    epoch: np.ndarray
+    """(m,) int64 index of the persistence interval the current direction belongs to (-1: none yet)."""
+    sign: np.ndarray
+    """(m, 3) float +-1 per axis: wall reflections of the direction within the current interval."""
+    direction: np.ndarray
+    """(m, 3) unit direction of interval ``epoch`` before reflections: a cache of
+    ``deviation_direction`` (a function of agent id and interval), hashed again only when the
+    interval changes."""
+
+    @classmethod
+    def new(cls, m: int) -> "DeviationState":
+        """State of ``m`` agents that have not flown yet."""
+        return cls(np.full(m, -1, dtype=np.int64), np.ones((m, 3)), np.zeros((m, 3)))
+
+    def take(self, index: np.ndarray) -> "DeviationState":
+        """The state of the agents ``index`` (a new object)."""
+        return DeviationState(self.epoch[index].copy(), self.sign[index].copy(), self.direction[index].copy())
+
+
+def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
+    """(m, 3) unit vectors, uniform on the sphere, a deterministic function of (agent id, epoch)."""
+    h1 = slot_hash(agent_ids, epoch).astype(np.float64) / 4294967296.0
+    h2 = slot_hash(np.asarray(agent_ids, dtype=np.int64) ^ 0x5BD1E995, epoch).astype(np.float64) / 4294967296.0
+    z = 2.0 * h1 - 1.0
+    phi = 2.0 * np.pi * h2
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 3) unit deviation directions before any wall reflection, and (m,) their interval index.
+
+    Each agent keeps a direction for ``persistence_s``; the intervals are staggered per agent by a
+    hashed phase (the swarm does not switch in step) and the direction is uniform on the sphere, a
+    hash of (agent id, interval).  Any fixed component of it is uniform on [-1, 1]."""
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    epoch = deviation_epoch(ids, t_s, persistence_s)
+    return _unit_from_hash(ids, epoch), epoch
+
+
+def deviation_epoch(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
+    """(m,) index of each agent's persistence interval at ``t_s`` (staggered by a hashed phase)."""
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
+    return np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+
+
+def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
+                      persistence_s: float, state: DeviationState,
+                      velocity_m_s: np.ndarray | None = None) -> tuple[np.ndarray, DeviationState]:
+    """(m, 3) unit deviation directions at time ``t_s`` and the new state.
+
+    Each agent keeps a direction for ``persistence_s`` (intervals staggered per agent by a hashed
+    phase, so the swarm does not switch in step), drawn uniformly on the sphere from a hash of
+    (agent id, interval).  A component pointing at a staircase face without a neighbour CV (a wall)
+    is reflected while the agent is within ``WALL_ZONE`` cells of that face, or within its turning
+    distance v_n ``BRAKE_S`` when ``velocity_m_s`` is given (the zone absorbs the vehicle's lag,
+    which would otherwise carry it across): the kinetic picture of a gas whose
+    molecules bounce off the walls.  The inlet is an open boundary to the reservoir, not a wall:
+    an agent whose deviation carries it upstream out of the first slice leaves the CVs there (the
+    simulator's reservoir admits entering agents flux-weighted by their deviation,
+    ``sim.scenarios.Reservoir.admit``; a fade-out of upstream components over the first cell, as
+    before, made agents stall there: first slices 1.2x their designed density).
+    """
+    pts = np.atleast_2d(np.asarray(points_m, dtype=float))
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    epoch = deviation_epoch(ids, t_s, persistence_s)
+    fresh = epoch != state.epoch
+    direction = state.direction.copy()
+    if fresh.any():
+        direction[fresh] = _unit_from_hash(ids[fresh], epoch[fresh])
+    sign = np.where(fresh[:, None], 1.0, state.sign)
+    d = direction * sign
+    f = (pts - field.origin_m) / field.cell_size_m
+    cell = np.floor(f).astype(np.int64)
+    frac = f - cell
+    walls = field.wall_faces.reshape(-1, 3, 2).take(field.grid_index(cell), axis=0)  # (m, 3, 2)
+    up = d >= 0
+    wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
+    zone = WALL_ZONE
+    if velocity_m_s is not None and BRAKE_S > 0:
+        # a vehicle heading for a face at v_n turns once the face is within v_n * BRAKE_S
+        v = np.atleast_2d(velocity_m_s)
+        v_n = np.where(up, v, -v)
+        np.maximum(v_n, 0.0, out=v_n)
+        zone = np.maximum(zone, v_n * BRAKE_S / field.cell_size_m)
+    toward = np.where(up, frac >= 1.0 - zone, frac < zone)
+    flip = toward & wall_ahead
+    np.negative(sign, out=sign, where=flip)
+    np.negative(d, out=d, where=flip)
+    return d, DeviationState(epoch, sign, direction)
