@@ -127,6 +127,18 @@ class CommandField:
                 out[..., a, side] = g & ~nb
         return out
 
+    @functools.cached_property
+    def stepped_out_faces(self) -> np.ndarray:
+        """(nx, ny, nz, 3, 2) bool: a lateral face (axis y or z, lower/upper) of a CV's cell that has a
+        neighbour CV where the same face of the CV upstream (x - 1) is a staircase wall: the faces
+        where the staircase steps outward (``fisc_agent.kinetic.kinetic_deviation``)."""
+        w = self.wall_faces
+        g = np.asarray(self.grid_cv) >= 0
+        out = np.zeros_like(w)
+        both = (g[1:] & g[:-1])[..., None, None]
+        out[1:, :, :, 1:, :] = both & ~w[1:, :, :, 1:, :] & w[:-1, :, :, 1:, :]
+        return out
+
     def grid_index(self, cells: np.ndarray) -> np.ndarray:
         """(m,) flat (C-order) index into ``grid_cv`` of integer grid cells (m, 3), clipped into the
         grid (in place): rows of ``wall_faces.reshape(-1, 3, 2)`` and of the per-cell face table."""
