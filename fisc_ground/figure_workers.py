@@ -33,15 +33,17 @@ def _take_jobs(jobs: Mapping[str, FigureJob], names: list[str], counter) -> dict
 def render_figures(jobs: Mapping[str, FigureJob], parallel: bool = True) -> dict[str, Path]:
     """Run every job once (in ``jobs``' order, heaviest first balances best); name -> path.
 
-    With ``parallel`` (and ``can_fork``) a forked process shares the jobs.  A job that fails in
-    either process raises here."""
+    With ``parallel`` (and ``can_fork``) a forked process shares the jobs: this process draws the
+    first job, the forked one starts on the second, and then each takes the next one left.  A job
+    that fails in either process raises here."""
     names = list(jobs)
     if not (parallel and len(names) > 1 and can_fork()):
         return {n: jobs[n]() for n in names}
-    counter = multiprocessing.get_context("fork").Value("i", 0)
+    counter = multiprocessing.get_context("fork").Value("i", 1)
     other = ForkedCall(_take_jobs, jobs, names, counter, name="fisc-figures")
     try:
-        paths = _take_jobs(jobs, names, counter)
+        paths = {names[0]: jobs[names[0]]()}
+        paths.update(_take_jobs(jobs, names, counter))
     except BaseException:
         other.cancel()
         raise

@@ -41,6 +41,7 @@ def test_two_processes_share_the_jobs_and_every_job_runs_once(tmp_path):
         assert paths[f"fig{i}"] == tmp_path / f"fig{i}.txt" and text == str(i)
         pids.add(int(pid))
     assert os.getpid() in pids and len(pids) == 2  # eight 0.2 s jobs: the forked process took some
+    assert paths["fig0"].read_text().split(" ")[-1] == str(os.getpid())  # the first job is drawn here
 
 
 def test_without_parallel_every_job_runs_here(tmp_path):
@@ -50,7 +51,7 @@ def test_without_parallel_every_job_runs_here(tmp_path):
 
 @needs_fork
 def test_a_job_failing_in_the_second_process_raises_here_with_its_traceback(tmp_path):
-    # the parent is busy with the slow first job, so the forked process takes the failing one
+    # this process draws the first job, the forked one starts on the second
     jobs = {"slow": partial(_write, tmp_path / "slow.txt", "slow", 1.0), "bad": partial(_fail, tmp_path / "bad.png")}
     with pytest.raises(ValueError, match="no data for bad.png") as err:
         render_figures(jobs)
@@ -60,6 +61,7 @@ def test_a_job_failing_in_the_second_process_raises_here_with_its_traceback(tmp_
 
 @needs_fork
 def test_a_job_failing_here_raises_its_own_error_and_stops_the_other_process(tmp_path):
+    # the failing first job is drawn here while the forked process sleeps in the second
     jobs = {"bad": partial(_fail, tmp_path / "bad.png"), "slow": partial(_write, tmp_path / "slow.txt", "slow", 5.0)}
     t0 = time.monotonic()
     with pytest.raises(ValueError, match="no data for bad.png"):
