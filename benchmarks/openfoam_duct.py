@@ -26,7 +26,8 @@ from pathlib import Path
 
 log = logging.getLogger("openfoam_duct")
 
-#: R(x) = Rt + (Rin - Rt)/2 (1 + cos(pi x / xt)) up to the throat, then Rt + (Rout - Rt)/2 (1 - cos(...)) (make_case.radius).
+#: The geometry (make_case.radius): R = Rt + (Rin - Rt)/2 (1 + cos(pi x / xt)) up to the throat,
+#: then Rt + (Rout - Rt)/2 (1 - cos(pi (x - xt) / (L - xt))).
 DUCT_C = dict(L=14.0, Rin=1.6, Rt=0.9, xt=7.0, Rout=1.4, Uin=3.0, Nx=280, Nr=60)
 NAME = "duct_c"
 OPENFOAM_STEPS = (
