@@ -1,0 +1,197 @@
+"""Where a run's swarm density departs from its design, slice by slice (a diagnostic, not a test).
+
+Reads a run's ``fields.csv`` and the schema-2 map it flew, and prints, per axial slice of CVs:
+
+* the CFD density, the designed density rho_d and the realised swarm density, each min-max
+  normalised over all compared CVs (the DESIGN.md section 4 normalisation), as slice means;
+* realised / designed density (both relative to their mean over the compared CVs);
+* the swarm's axial velocity (agent-weighted over the slice), the staggered field's (the mean of
+  each cube's two x-face velocities) and the CFD's (scaled by the map's S).  In steady state every
+  slice passes the same number flux, so a slice the swarm crosses faster than the field holds less
+  than its designed density, and one it crosses slower holds more;
+
+then the within-slice scatter by wall class of the cube (interior, one or two side walls, closed
+upstream or downstream face) and two "what if" scores: the realised density given the design's
+slice profile (each CV keeping its ratio to its slice mean), and the design itself.  Numbers from
+this script are in docs/simulation.md ("What limits each metric")::
+
+    fisc-sim run -o out/run
+    python benchmarks/density_profile.py out/run/fields.csv
+    python benchmarks/density_profile.py out/duct/fields.csv --map out/duct/map.fiscmap
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fisc_agent.lookup import CommandField
+from fisc_agent.mapfile import load_map
+from fisc_ground.mapbuild import default_map_path
+from fisc_ground.metrics import normalise_min_max
+from fisc_ground.metrics import nrmse
+from fisc_ground.metrics import pearson
+
+COLUMNS = ("cv_id", "cv_x", "target_density", "target_u_axial", "swarm_density", "swarm_u_axial", "samples")
+
+
+def read_fields(path: Path) -> dict[str, np.ndarray]:
+    """The columns this diagnostic needs from a run's ``fields.csv`` (empty cells as NaN)."""
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    if not rows:
+        raise ValueError(f"{path}: no rows")
+    missing = [c for c in COLUMNS if c not in rows[0]]
+    if missing:
+        raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
+    return {c: np.array([float(r[c]) if r[c] else np.nan for r in rows]) for c in COLUMNS}
+
+
+def wall_classes(field: CommandField) -> dict[str, np.ndarray]:
+    """(n_cv,) masks of the CVs' wall classes on the staircase."""
+    grid = np.asarray(field.grid_cv)
+    cells = np.argwhere(grid >= 0)
+    walls = np.zeros((cells.shape[0], 3, 2), dtype=bool)
+    walls[grid[grid >= 0]] = field.wall_faces[cells[:, 0], cells[:, 1], cells[:, 2]]
+    up, down, side = walls[:, 0, 0], walls[:, 0, 1], walls[:, 1:, :].sum(axis=(1, 2))
+    open_x = ~up & ~down
+    return {"interior": open_x & (side == 0), "one side wall": open_x & (side == 1),
+            "two side walls": open_x & (side >= 2), "closed upstream face": up, "closed downstream face": down}
+
+
+def field_u_axial_m_s(field: CommandField) -> np.ndarray:
+    """(n_cv,) mean of each cube's two x-face velocities of the staggered field [m/s]."""
+    grid = np.asarray(field.grid_cv)
+    cells = np.argwhere(grid >= 0)
+    fx = field.face_u_m_s[0]
+    out = np.empty(cells.shape[0])
+    i, j, k = cells.T
+    out[grid[grid >= 0]] = 0.5 * (fx[i, j, k] + fx[i + 1, j, k])
+    return out
+
+
+@dataclass(frozen=True)
+class Score:
+    """A fidelity pair of DESIGN.md section 4."""
+
+    nrmse: float
+    """nRMSE of the min-max normalised fields [-]."""
+    pearson: float
+    """Pearson correlation of the raw fields [-]."""
+
+    @classmethod
+    def of(cls, a: np.ndarray, b: np.ndarray) -> "Score":
+        """The score of ``a`` against ``b``."""
+        return cls(nrmse(normalise_min_max(a), normalise_min_max(b)), pearson(a, b))
+
+
+@dataclass(frozen=True)
+class DensityProfile:
+    """The diagnostic of one run (per axial slice arrays share one order, x ascending)."""
+
+    x_m: np.ndarray
+    """(k,) slice centres [m]."""
+    n_cv: np.ndarray
+    """(k,) compared CVs per slice."""
+    cfd: np.ndarray
+    """(k,) slice mean of the min-max normalised CFD density [-]."""
+    design: np.ndarray
+    """(k,) slice mean of the min-max normalised designed density [-]."""
+    swarm: np.ndarray
+    """(k,) slice mean of the min-max normalised realised density [-]."""
+    realised_over_designed: np.ndarray
+    """(k,) slice mean of realised / designed density, each relative to its mean over the CVs [-]."""
+    u_swarm_m_s: np.ndarray
+    """(k,) agent-weighted slice mean of the swarm's axial velocity [m/s]."""
+    u_field_m_s: np.ndarray
+    """(k,) slice mean of the staggered field's axial velocity [m/s]."""
+    u_cfd_m_s: np.ndarray
+    """(k,) slice mean of the CFD's axial velocity times the map's S [m/s]."""
+    within_slice_sd: float
+    """Standard deviation of each CV's realised / designed over its slice mean [-]."""
+    classes: dict[str, tuple[int, float, float]]
+    """Wall class -> (CVs, mean, sd of realised / designed)."""
+    realised: Score
+    """The realised density against the CFD's (the run's density figures)."""
+    with_design_profile: Score
+    """The design's slice profile with this run's within-slice scatter, against the CFD."""
+    design_score: Score
+    """The designed density against the CFD's."""
+
+
+def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
+    """The diagnostic of the run that wrote ``fields_csv`` flying the schema-2 map ``map_path``."""
+    cmap = load_map(map_path)
+    if "cv_design_density" not in cmap.arrays:
+        raise ValueError(f"{map_path}: a schema-1 map has no designed density")
+    f = read_fields(fields_csv)
+    ids = f["cv_id"].astype(np.int64)
+    if ids.size != cmap.n_cv or np.any(ids != np.arange(cmap.n_cv)):
+        raise ValueError(f"{fields_csv}: its CVs are not the {cmap.n_cv} CVs of {map_path} (another map?)")
+    field = CommandField.from_map(cmap)
+    use = (f["samples"] > 0) & np.isfinite(f["swarm_density"]) & np.isfinite(f["target_density"])
+    x = f["cv_x"][use]
+    cfd, swarm = f["target_density"][use], f["swarm_density"][use]
+    design = np.asarray(cmap["cv_design_density"], dtype=float)[use]
+    ratio = (swarm / swarm.mean()) / (design / design.mean())
+    xs, slice_of = np.unique(x, return_inverse=True)
+
+    def slice_mean(v: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+        w = np.ones_like(v) if w is None else w
+        return np.bincount(slice_of, v * w) / np.bincount(slice_of, w)
+
+    within = ratio / slice_mean(ratio)[slice_of]
+    classes = {name: (int(m[use].sum()), float(ratio[m[use]].mean()), float(ratio[m[use]].std()))
+               for name, m in wall_classes(field).items() if m[use].any()}
+    return DensityProfile(
+        x_m=xs, n_cv=np.bincount(slice_of), cfd=slice_mean(normalise_min_max(cfd)),
+        design=slice_mean(normalise_min_max(design)), swarm=slice_mean(normalise_min_max(swarm)),
+        realised_over_designed=slice_mean(ratio), u_swarm_m_s=slice_mean(f["swarm_u_axial"][use], swarm),
+        u_field_m_s=slice_mean(field_u_axial_m_s(field)[use]),
+        u_cfd_m_s=slice_mean(f["target_u_axial"][use] * cmap.scale),
+        within_slice_sd=float(within.std()), classes=classes, realised=Score.of(swarm, cfd),
+        with_design_profile=Score.of(design * within, cfd), design_score=Score.of(design, cfd))
+
+
+def markdown(p: DensityProfile) -> str:
+    """The diagnostic as markdown tables."""
+    lines = ["| x [m] | CVs | CFD (norm.) | design (norm.) | swarm (norm.) | realised / designed | "
+             "u swarm [m/s] | u field [m/s] | u CFD x S [m/s] |", "|" + "---|" * 9]
+    cols = (p.cfd, p.design, p.swarm, p.realised_over_designed, p.u_swarm_m_s, p.u_field_m_s, p.u_cfd_m_s)
+    for i, xv in enumerate(p.x_m):
+        lines.append(f"| {xv:.2f} | {p.n_cv[i]} | " + " | ".join(f"{c[i]:.3f}" for c in cols) + " |")
+    lines += ["", f"Within-slice scatter of realised / designed: sd {p.within_slice_sd:.3f}.", "",
+              "| wall class | CVs | realised / designed (mean) | sd |", "|---|---|---|---|"]
+    lines += [f"| {name} | {n} | {mean:.3f} | {sd:.3f} |" for name, (n, mean, sd) in p.classes.items()]
+    lines.append("")
+    for what, s in (("realised against the CFD", p.realised),
+                    ("realised with the design's slice profile", p.with_design_profile),
+                    ("the design against the CFD", p.design_score)):
+        lines.append(f"* {what}: nRMSE {s.nrmse:.3f}, r {s.pearson:.2f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("fields_csv", type=Path, help="a run's fields.csv (fisc-sim run -o DIR writes DIR/fields.csv)")
+    ap.add_argument("--map", type=Path, default=None,
+                    help="the schema-2 map the run flew (default: the embedded default map)")
+    a = ap.parse_args(argv)
+    map_path = a.map if a.map is not None else default_map_path()
+    try:
+        profile = density_profile(a.fields_csv, map_path)
+    except (OSError, ValueError) as exc:
+        print(f"density_profile: {exc}", file=sys.stderr)
+        return 2
+    print(f"`{a.fields_csv}` against `{map_path}`\n")
+    print(markdown(profile))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
