@@ -17,7 +17,9 @@ this script are in docs/simulation.md ("What limits each metric")::
 
     fisc-sim run -o out/run
     python benchmarks/density_profile.py out/run/fields.csv
-    python benchmarks/density_profile.py out/duct/fields.csv --map out/duct/map.fiscmap
+    fisc-ground fit cd_nozzle -o out/cd_nozzle.fiscmap
+    fisc-sim run --map out/cd_nozzle.fiscmap -o out/cd_nozzle
+    python benchmarks/density_profile.py out/cd_nozzle/fields.csv --map out/cd_nozzle.fiscmap
 """
 
 from __future__ import annotations
@@ -49,7 +51,14 @@ def read_fields(path: Path) -> dict[str, np.ndarray]:
     missing = [c for c in COLUMNS if c not in rows[0]]
     if missing:
         raise ValueError(f"{path}: missing column(s) {', '.join(missing)}")
-    return {c: np.array([float(r[c]) if r[c] else np.nan for r in rows]) for c in COLUMNS}
+    out = {c: np.full(len(rows), np.nan) for c in COLUMNS}
+    for line, r in enumerate(rows, start=2):
+        for c in COLUMNS:
+            try:
+                out[c][line - 2] = float(r[c]) if r[c] else np.nan
+            except ValueError:
+                raise ValueError(f"{path}, line {line}, column {c}: {r[c]!r} is not a number") from None
+    return out
 
 
 def wall_classes(field: CommandField) -> dict[str, np.ndarray]:

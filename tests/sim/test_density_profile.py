@@ -63,3 +63,8 @@ def test_a_schema_1_map_or_another_maps_fields_are_refused_by_name(tool, short_r
     bad.write_text(short_run.read_text().replace("swarm_density,", "swarm_dens,", 1))
     assert tool.main([str(bad)]) == 2
     assert "missing column(s) swarm_density" in capsys.readouterr().err
+    rows = short_run.read_text().splitlines()
+    rows[3] = rows[3].replace(",", ",x", 1)  # the cv_x cell of the third CV
+    bad.write_text("\n".join(rows) + "\n")
+    assert tool.main([str(bad)]) == 2
+    assert "line 4, column cv_x: 'x" in capsys.readouterr().err
