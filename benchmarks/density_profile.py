@@ -61,12 +61,18 @@ def read_fields(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def _cv_cells(field: CommandField) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Grid cell indices (i, j, k) of every CV cell and the CV id each holds."""
+    grid = np.asarray(field.grid_cv)
+    i, j, k = np.nonzero(grid >= 0)
+    return i, j, k, grid[i, j, k]
+
+
 def wall_classes(field: CommandField) -> dict[str, np.ndarray]:
     """(n_cv,) masks of the CVs' wall classes on the staircase."""
-    grid = np.asarray(field.grid_cv)
-    cells = np.argwhere(grid >= 0)
-    walls = np.zeros((cells.shape[0], 3, 2), dtype=bool)
-    walls[grid[grid >= 0]] = field.wall_faces[cells[:, 0], cells[:, 1], cells[:, 2]]
+    i, j, k, cv = _cv_cells(field)
+    walls = np.zeros((cv.size, 3, 2), dtype=bool)
+    walls[cv] = field.wall_faces[i, j, k]
     up, down, side = walls[:, 0, 0], walls[:, 0, 1], walls[:, 1:, :].sum(axis=(1, 2))
     open_x = ~up & ~down
     return {"interior": open_x & (side == 0), "one side wall": open_x & (side == 1),
@@ -75,12 +81,10 @@ def wall_classes(field: CommandField) -> dict[str, np.ndarray]:
 
 def field_u_axial_m_s(field: CommandField) -> np.ndarray:
     """(n_cv,) mean of each cube's two x-face velocities of the staggered field [m/s]."""
-    grid = np.asarray(field.grid_cv)
-    cells = np.argwhere(grid >= 0)
+    i, j, k, cv = _cv_cells(field)
     fx = field.face_u_m_s[0]
-    out = np.empty(cells.shape[0])
-    i, j, k = cells.T
-    out[grid[grid >= 0]] = 0.5 * (fx[i, j, k] + fx[i + 1, j, k])
+    out = np.empty(cv.size)
+    out[cv] = 0.5 * (fx[i, j, k] + fx[i + 1, j, k])
     return out
 
 

@@ -68,3 +68,6 @@ def test_a_schema_1_map_or_another_maps_fields_are_refused_by_name(tool, short_r
     bad.write_text("\n".join(rows) + "\n")
     assert tool.main([str(bad)]) == 2
     assert "line 4, column cv_x: 'x" in capsys.readouterr().err
+    bad.write_text("\n".join(short_run.read_text().splitlines()[:-1]) + "\n")  # one CV short: another map's
+    assert tool.main([str(bad)]) == 2
+    assert "(another map?)" in capsys.readouterr().err
