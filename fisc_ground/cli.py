@@ -16,6 +16,7 @@ from pathlib import Path
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
                                    missing_dependency_message, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
+from fisc_ground.staggered import DEFAULT_CONTINUITY_WEIGHT, DEFAULT_DENSITY_AMPLITUDE
 
 log = logging.getLogger("fisc_ground")
 
@@ -41,9 +42,14 @@ def fit_config_from_args(args: argparse.Namespace):
     from fisc_ground.mapbuild import FitConfig
 
     n_min, n_max = _n_range(args.n_range)
+    design = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude}
+    design = {k: v for k, v in design.items() if v is not None}
+    if design and args.preset == "paper":
+        flags = ", ".join("--" + k.replace("_", "-") for k in design)
+        raise ValueError(f"{flags}: the paper's schema-1 map has no designed density (drop --preset paper)")
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                      max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
-                     min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper")
+                     min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper", **design)
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -227,6 +233,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map with the continuity-consistent staggered field, the designed "
                         "swarm density and recommended flight settings; paper: the paper's schema-1 map")
+    p.add_argument("--continuity-weight", type=float, default=None, metavar="BETA",
+                   help="designed density: 0 = the CFD's density pattern, 1 = the pattern continuity allows at "
+                        f"the CFD velocity (default {DEFAULT_CONTINUITY_WEIGHT:g})")
+    p.add_argument("--density-amplitude", type=float, default=None, metavar="K",
+                   help="designed density contrast over the staircase's own (default "
+                        f"{DEFAULT_DENSITY_AMPLITUDE:g}); above 1 the density follows the CFD more closely and "
+                        "the velocity less (docs/simulation.md, 'Velocity against density')")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

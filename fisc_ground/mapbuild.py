@@ -21,6 +21,7 @@ from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
 from fisc_ground.staggered import (
     DEFAULT_CONTINUITY_WEIGHT,
+    DEFAULT_DENSITY_AMPLITUDE,
     DEFAULT_WEIGHT_EXPONENT,
     StaggeredConfig,
     build_staggered,
@@ -83,6 +84,9 @@ class FitConfig:
     False writes the paper's schema-1 map (``--preset paper``)."""
     continuity_weight: float = DEFAULT_CONTINUITY_WEIGHT
     """beta of the designed swarm density (``fisc_ground.staggered.design_density``)."""
+    density_amplitude: float = DEFAULT_DENSITY_AMPLITUDE
+    """k of the designed swarm density: its contrast over the staircase's own
+    (``fisc_ground.staggered.StaggeredConfig.density_amplitude``; above 1 trades velocity for density fidelity)."""
     weight_exponent: float = DEFAULT_WEIGHT_EXPONENT
     """p of the projection's lateral face weights (``fisc_ground.staggered.project``)."""
     flight_mode: str = DEFAULT_FLIGHT.mode
@@ -93,6 +97,12 @@ class FitConfig:
     """Recommended persistence of the kinetic deviation [s] written into a schema-2 map."""
 
     @property
+    def staggered_config(self) -> StaggeredConfig:
+        """The staggered field's settings of this build (``fisc_ground.staggered``)."""
+        return StaggeredConfig(continuity_weight=self.continuity_weight, weight_exponent=self.weight_exponent,
+                               density_amplitude=self.density_amplitude)
+
+    @property
     def flight(self) -> FlightSettings:
         """The recommended flight settings this build writes (the paper's for a schema-1 map)."""
         if not self.staggered:
@@ -101,7 +111,7 @@ class FitConfig:
 
     def __post_init__(self) -> None:
         FlightSettings(self.flight_mode, self.lookahead_s, self.persistence_s)  # validates
-        StaggeredConfig(self.continuity_weight, self.weight_exponent)
+        self.staggered_config  # validates
 
 
 
@@ -155,17 +165,17 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
     }
     extra = {}
     if config.staggered:
+        sc = config.staggered_config
         st = build_staggered(cvs.grid_cv, cvs.target_velocity_m_s, cvs.target_density_kg_m3,
-                             cvs.target_pressure_gauge_pa, arrays["cv_open_fraction"],
-                             StaggeredConfig(config.continuity_weight, config.weight_exponent))
+                             cvs.target_pressure_gauge_pa, arrays["cv_open_fraction"], sc)
         arrays.update(face_u_x_m_s=st.face_u_x_m_s, face_u_y_m_s=st.face_u_y_m_s, face_u_z_m_s=st.face_u_z_m_s,
                       cv_design_density=st.design_density)
         f = config.flight
         extra = {"schema_version": 2,
                  "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
-                 "staggered": {"max_divergence": st.max_divergence, "continuity_weight": config.continuity_weight,
-                               "weight_exponent": config.weight_exponent,
-                               "axial_weight": StaggeredConfig().axial_weight}}
+                 "staggered": {"max_divergence": st.max_divergence, "continuity_weight": sc.continuity_weight,
+                               "weight_exponent": sc.weight_exponent, "axial_weight": sc.axial_weight,
+                               "density_amplitude": sc.density_amplitude}}
     else:
         extra = {"schema_version": 1}
     now = datetime.now(timezone.utc)

@@ -27,7 +27,9 @@ Inside a cube an agent interpolates each component linearly between the cube's t
 (``fisc_agent.lookup.CommandField``, mode ``staggered``), so the field is continuous across
 faces in its normal component and tracers keep the designed density.
 
-Ground side only (scipy.sparse); the agent reads the resulting arrays from the map.
+Ground side only; the agent reads the resulting arrays from the map.  scipy.sparse (the ``ground``
+extra) is imported by ``project`` alone, so the settings and their defaults load without it (the
+``fisc-ground`` parser shows them in ``--help``).
 """
 
 from __future__ import annotations
@@ -35,9 +37,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
-import scipy.sparse.linalg as spla
 
 #: Default blend beta of the designed density (see ``design_density``).
 DEFAULT_CONTINUITY_WEIGHT = 0.5
@@ -47,6 +46,8 @@ DEFAULT_WEIGHT_EXPONENT = 0.0
 DEFAULT_AXIAL_WEIGHT = 100.0
 #: Smallest open fraction used in the weights (keeps W invertible).
 WEIGHT_FLOOR = 0.02
+#: Default factor k on the designed density's amplitude (see ``design_density``): the staircase's own contrast.
+DEFAULT_DENSITY_AMPLITUDE = 1.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,12 @@ class StaggeredConfig:
     it needs spreads over about sqrt(1 / axial_weight) slices instead of one.  Large values (the
     default) keep each plane's CFD flux pattern: spreading cost more velocity fidelity (static field
     0.128 at 1/9 against 0.070) than it gained in density."""
+    density_amplitude: float = DEFAULT_DENSITY_AMPLITUDE
+    """k of ``design_density``: the designed density's contrast is k times the staircase's own (1, the
+    default, is the contrast continuity allows at the CFD velocity).  Above 1 the swarm's density
+    pattern stands further above its sampling noise and wall-cube scatter, at the cost of velocity
+    fidelity: by continuity, n u A is the same through every slice, so a deeper density dip makes the
+    swarm faster than the CFD there (docs/simulation.md, "Velocity against density")."""
 
     def __post_init__(self) -> None:
         if not (self.axial_weight > 0 and np.isfinite(self.axial_weight)):
@@ -74,6 +81,8 @@ class StaggeredConfig:
             raise ValueError(f"StaggeredConfig.continuity_weight must lie in [0, 1], got {self.continuity_weight!r}")
         if not (self.weight_exponent >= 0 and np.isfinite(self.weight_exponent)):
             raise ValueError(f"StaggeredConfig.weight_exponent must be finite and >= 0, got {self.weight_exponent!r}")
+        if not (self.density_amplitude > 0 and np.isfinite(self.density_amplitude)):
+            raise ValueError(f"StaggeredConfig.density_amplitude must be finite and > 0, got {self.density_amplitude!r}")
 
 
 @dataclass(frozen=True)
@@ -131,19 +140,27 @@ def slice_flux_area(grid_cv: np.ndarray, target_velocity_m_s: np.ndarray) -> np.
 
 
 def design_density(grid_cv: np.ndarray, target_velocity_m_s: np.ndarray, target_density: np.ndarray,
-                   target_pressure: np.ndarray, continuity_weight: float) -> np.ndarray:
+                   target_pressure: np.ndarray, continuity_weight: float,
+                   density_amplitude: float = DEFAULT_DENSITY_AMPLITUDE) -> np.ndarray:
     """Designed swarm density rho_d (mean 1) per CV.
 
-    rho_d = 1 - A (1 - f), f = (1 - beta) f_cfd + beta f_cont: a blend of the CFD's density pattern
+    rho_d = 1 - k A (1 - f), f = (1 - beta) f_cfd + beta f_cont: a blend of the CFD's density pattern
     ``f_cfd`` (``cfd_pattern``) and the pattern ``f_cont`` = min-max of 1 / s (``slice_flux_area``)
     that continuity forces on a swarm flying exactly the CFD velocity.  The amplitude A = 1 -
-    min(1/s) / max(1/s) is the staircase's own contrast, so beta = 1 gives the density at which the
-    CFD velocity is continuity-consistent, beta = 0 the CFD's density pattern at that amplitude
-    (the swarm then trades velocity fidelity for it).  Nothing here is fitted to a particular duct.
+    min(1/s) / max(1/s) is the staircase's own contrast, so beta = 1 and k = 1 give the density at
+    which the CFD velocity is continuity-consistent, beta = 0 the CFD's density pattern at that
+    amplitude (the swarm then trades velocity fidelity for it); k (``density_amplitude``) scales the
+    contrast, again at the cost of velocity fidelity.  Nothing here is fitted to a particular duct.
+    ValueError if k A >= 1 (the densest-to-thinnest ratio would not be finite and positive).
     """
     f_cfd = cfd_pattern(target_density, target_pressure)
     inv_s = 1.0 / slice_flux_area(grid_cv, target_velocity_m_s)
-    amp = 1.0 - float(inv_s.min() / inv_s.max())
+    contrast = 1.0 - float(inv_s.min() / inv_s.max())
+    amp = density_amplitude * contrast
+    if not amp < 1.0:
+        raise ValueError(f"density_amplitude {density_amplitude:g} times the staircase's contrast {contrast:.3f} "
+                         f"is >= 1, so the designed density would reach 0; use a density_amplitude below "
+                         f"{1.0 / contrast:.3g}")
     f = (1.0 - continuity_weight) * f_cfd + continuity_weight * _min_max(inv_s)
     rho = 1.0 - amp * (1.0 - f)
     return rho / rho.mean()
@@ -185,6 +202,10 @@ def project(grid_cv: np.ndarray, target_velocity_m_s: np.ndarray, density: np.nd
     ``grid_cv`` (nx, ny, nz) CV ids (-1: no CV); ``target_velocity_m_s`` (n_cv, 3) CFD velocity per CV;
     ``density`` (n_cv,) designed density (> 0); ``open_fraction`` (n_cv,) in (0, 1] (lateral weights).
     """
+    import scipy.sparse as sp
+    import scipy.sparse.csgraph as csgraph
+    import scipy.sparse.linalg as spla
+
     g = np.asarray(grid_cv, dtype=np.int64)
     u = np.asarray(target_velocity_m_s, dtype=float)
     n_cv = int(u.shape[0])
@@ -273,5 +294,6 @@ def build_staggered(grid_cv: np.ndarray, target_velocity_m_s: np.ndarray, target
                     target_pressure: np.ndarray, open_fraction: np.ndarray,
                     config: StaggeredConfig = StaggeredConfig()) -> StaggeredField:
     """Designed density (``design_density``) then the projection (``project``)."""
-    rho = design_density(grid_cv, target_velocity_m_s, target_density, target_pressure, config.continuity_weight)
+    rho = design_density(grid_cv, target_velocity_m_s, target_density, target_pressure, config.continuity_weight,
+                         config.density_amplitude)
     return project(grid_cv, target_velocity_m_s, rho, open_fraction, config.weight_exponent, config.axial_weight)

@@ -53,6 +53,33 @@ def test_fit_preset_paper_writes_the_schema_1_map(tmp_path):
     assert cmap.schema_version == 1 and "face_u_x_m_s" not in cmap.arrays and "flight" not in cmap.body
 
 
+def test_fit_density_options_reach_the_map(tmp_path):
+    plain, deep = tmp_path / "plain.fiscmap", tmp_path / "deep.fiscmap"
+    assert main(["fit", "analytic", "-o", str(plain)]) == 0
+    assert main(["fit", "analytic", "-o", str(deep), "--density-amplitude", "1.3", "--continuity-weight", "0.25"]) == 0
+    header = load_map(deep).body["staggered"]
+    assert header["density_amplitude"] == 1.3 and header["continuity_weight"] == 0.25
+    assert load_map(plain).body["staggered"]["density_amplitude"] == 1.0
+
+    def ratio(path):
+        rho = load_map(path)["cv_design_density"]
+        return float(np.max(rho) / np.min(rho))
+
+    assert ratio(deep) > ratio(plain) > 1.0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--preset", "paper", "--density-amplitude", "1.2"], "--density-amplitude: the paper's schema-1 map"),
+    (["--density-amplitude", "5"], "use a density_amplitude below"),
+    (["--continuity-weight", "1.5"], "continuity_weight must lie in"),
+])
+def test_fit_refuses_bad_density_options_and_writes_nothing(tmp_path, args, message):
+    out = tmp_path / "m.fiscmap"
+    res = fisc_ground("fit", "analytic", "-o", str(out), *args)
+    assert res.returncode == 2 and message in res.stderr, res.stderr
+    assert not out.exists()
+
+
 def test_signed_map_round_trip_and_refusals(tmp_path, default_map):
     assert main(["keygen", "-o", str(tmp_path / "ground")]) == 0
     assert main(["keygen", "-o", str(tmp_path / "stranger")]) == 0

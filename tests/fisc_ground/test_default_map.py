@@ -16,6 +16,8 @@ def test_shipped_default_map_matches_a_fresh_fit():
     # schema 2: the staggered field, the designed density and the recommended flight settings
     assert shipped.schema_version == fresh.schema_version == 2
     assert shipped.body["flight"] == fresh.body["flight"]
+    for key in ("continuity_weight", "weight_exponent", "axial_weight", "density_amplitude"):
+        assert shipped.body["staggered"][key] == fresh.body["staggered"][key], key
     for name in ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s", "cv_design_density"):
         np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-9, err_msg=name)
 

@@ -81,6 +81,23 @@ def test_designed_density_follows_continuity_and_cfd_pattern():
         design_density(grid, u, np.array([1.0, 2.0, np.nan, 1.0]), np.array([1.0, 2.0, np.nan, 1.0]), 0.5)
 
 
+def test_density_amplitude_scales_the_designed_contrast():
+    # 4-CV duct, u = 1, 2, 2, 1: s = 1, 2, 2, 1, so the staircase's contrast A = 1 - min(1/s)/max(1/s) = 0.5
+    # and at beta = 1, rho ~ 1 - k A (1 - f_cont) = 1, 1 - k/2, 1 - k/2, 1
+    grid = np.arange(4).reshape(4, 1, 1)
+    u = np.array([[1.0, 0, 0], [2.0, 0, 0], [2.0, 0, 0], [1.0, 0, 0]])
+    flat = np.full(4, 1.2)
+    for k in (0.5, 1.0, 1.5):
+        rho = design_density(grid, u, flat, flat, 1.0, density_amplitude=k)
+        assert rho.mean() == pytest.approx(1.0)
+        assert rho.min() / rho.max() == pytest.approx(1.0 - 0.5 * k)
+    with pytest.raises(ValueError, match="below 2"):  # k A = 1: the thinnest CV would be empty
+        design_density(grid, u, flat, flat, 1.0, density_amplitude=2.0)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="density_amplitude"):
+            FitConfig(density_amplitude=bad)
+
+
 def test_schema_2_map_roundtrip_and_version_1_still_loads():
     field = analytic_nozzle()
     meta, arrays = build_map(field, FitConfig())

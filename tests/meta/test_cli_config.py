@@ -80,6 +80,7 @@ FIT = {
     "--cell-size": "FitConfig.cell_size_m", "--n-range": "FitConfig.n_min FitConfig.n_max", "--scale": "FitConfig.scale",
     "--max-speed": "FitConfig.max_speed_m_s", "--kappa": "FitConfig.kappa", "--agent-mass": "FitConfig.agent_mass_kg",
     "--min-nodes": "FitConfig.min_nodes", "--seed": "FitConfig.seed", "--preset": "FitConfig.staggered",
+    "--continuity-weight": "FitConfig.continuity_weight", "--density-amplitude": "FitConfig.density_amplitude",
 }
 FIT_NO_FIELD = {
     "-o": "the map file written (run_fit's output), not a fit setting",
