@@ -15,7 +15,7 @@ from pathlib import Path
 
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
                                    missing_dependency_message, setup_logging, sig3)
-from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
+from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
 from fisc_ground.staggered import DEFAULT_CONTINUITY_WEIGHT, DEFAULT_DENSITY_AMPLITUDE
 
 log = logging.getLogger("fisc_ground")
@@ -48,8 +48,9 @@ def fit_config_from_args(args: argparse.Namespace):
         flags = ", ".join("--" + k.replace("_", "-") for k in design)
         raise ValueError(f"{flags}: the paper's schema-1 map has no designed density (drop --preset paper)")
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
-                     max_speed_m_s=args.max_speed, kappa=args.kappa, agent_mass_kg=args.agent_mass,
-                     min_nodes=args.min_nodes, seed=args.seed, staggered=args.preset != "paper", **design)
+                     max_speed_m_s=args.max_speed, kappa=args.kappa, dispersion_ratio=args.dispersion_ratio,
+                     agent_mass_kg=args.agent_mass, min_nodes=args.min_nodes, seed=args.seed,
+                     staggered=args.preset != "paper", **design)
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -224,6 +225,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-speed", type=float, default=DEFAULT_MAX_SPEED_M_S, metavar="V",
                    help=f"agent speed limit [m/s] (default {DEFAULT_MAX_SPEED_M_S:g}, as fisc-sim run)")
     p.add_argument("--kappa", type=float, default=None, help="pressure mapping factor (default: auto)")
+    p.add_argument("--dispersion-ratio", type=float, default=None, metavar="R",
+                   help="with --kappa auto: the largest rms velocity spread the fit may ask for, as a ratio of the "
+                        f"peak target speed (default {KINETIC_DISPERSION_RATIO:g}; {DEFAULT_DISPERSION_RATIO:g} with "
+                        "--preset paper); a hotter swarm trades velocity for pressure and density fidelity "
+                        "(docs/simulation.md, 'Velocity against density')")
     p.add_argument("--agent-mass", type=float, default=1.0, metavar="KG", help="agent mass (default 1 kg)")
     p.add_argument("--min-nodes", type=int, default=1, help="reference nodes a CV needs to exist (default 1)")
     p.add_argument("--pressure-kind", choices=["auto", "gauge", "absolute"], default="auto",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
@@ -26,7 +27,8 @@ from fisc_ground.staggered import (
     StaggeredConfig,
     build_staggered,
 )
-from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
+from fisc_ground.scaling import (DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO, choose_kappa,
+                                 choose_scale, default_max_dispersion, swarm_pressure_target)
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +38,6 @@ DEFAULT_MAP_FILE = "default.fiscmap"
 
 #: Recommended flight settings of the maps this project builds (docs/simulation.md, "Fidelity").
 DEFAULT_FLIGHT = FlightSettings("kinetic", 0.5, DEFAULT_PERSISTENCE_S)
-#: Dispersion ratio of schema-2 maps (``FitConfig.dispersion_ratio``).
-KINETIC_DISPERSION_RATIO = 0.75
 #: ``--preset paper``: the fit settings of the paper's schema-1 map.
 PAPER_PRESET = "paper"
 
@@ -63,7 +63,7 @@ class FitConfig:
     """Largest rms per-agent velocity dispersion the fit may ask for, before scaling [m/s];
     None = ``dispersion_ratio`` x the peak target speed (``scaling.default_max_dispersion``)."""
     dispersion_ratio: float | None = None
-    """Ratio of that dispersion to the peak target speed; None: ``KINETIC_DISPERSION_RATIO`` (0.75)
+    """Ratio of that dispersion to the peak target speed; None: ``scaling.KINETIC_DISPERSION_RATIO`` (0.75)
     for a schema-2 map, whose kinetic mode realises the spread as a persistent deviation and needs it
     to dominate the tracking error near the throat (docs/simulation.md); 0.25
     (``scaling.DEFAULT_DISPERSION_RATIO``) for the paper's map."""
@@ -112,6 +112,9 @@ class FitConfig:
     def __post_init__(self) -> None:
         FlightSettings(self.flight_mode, self.lookahead_s, self.persistence_s)  # validates
         self.staggered_config  # validates
+        ratio = self.dispersion_ratio
+        if ratio is not None and not (math.isfinite(ratio) and ratio > 0):
+            raise ValueError(f"dispersion_ratio must be positive and finite, got {self.dispersion_ratio!r}")
 
 
 

@@ -33,6 +33,9 @@ import numpy as np
 DEFAULT_MAX_SPEED_M_S = 2.0
 #: Default largest per-agent rms velocity deviation, as a fraction of the largest target speed.
 DEFAULT_DISPERSION_RATIO = 0.25
+#: The same for schema-2 maps (``FitConfig.dispersion_ratio``): their kinetic mode realises the spread
+#: as a persistent deviation, which must dominate the tracking error near the throat.
+KINETIC_DISPERSION_RATIO = 0.75
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import pytest
 
 from fisc_agent.mapfile import load_map
 from fisc_ground.cli import main
+from fisc_ground.scaling import KINETIC_DISPERSION_RATIO
 
 
 
@@ -68,10 +69,23 @@ def test_fit_density_options_reach_the_map(tmp_path):
     assert ratio(deep) > ratio(plain) > 1.0
 
 
+def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
+    """kappa maps the CFD pressure onto the spread sigma = R x the peak target speed; P ~ sigma^2."""
+    plain, hot = tmp_path / "plain.fiscmap", tmp_path / "hot.fiscmap"
+    assert main(["fit", "analytic", "-o", str(plain)]) == 0
+    assert main(["fit", "analytic", "-o", str(hot), "--dispersion-ratio", "1.5"]) == 0
+    a, b = load_map(plain).body, load_map(hot).body
+    assert b["provenance"]["config"]["dispersion_ratio"] == 1.5
+    assert a["provenance"]["config"]["dispersion_ratio"] is None
+    assert b["kappa"] / a["kappa"] == pytest.approx((1.5 / KINETIC_DISPERSION_RATIO) ** 2, rel=1e-9)
+
+
 @pytest.mark.parametrize("args, message", [
     (["--preset", "paper", "--density-amplitude", "1.2"], "--density-amplitude: the paper's schema-1 map"),
     (["--density-amplitude", "5"], "use a density_amplitude below"),
     (["--continuity-weight", "1.5"], "continuity_weight must lie in"),
+    (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
+    (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),
 ])
 def test_fit_refuses_bad_density_options_and_writes_nothing(tmp_path, args, message):
     out = tmp_path / "m.fiscmap"
