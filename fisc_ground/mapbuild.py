@@ -114,7 +114,7 @@ class FitConfig:
         self.staggered_config  # validates
         ratio = self.dispersion_ratio
         if ratio is not None and not (math.isfinite(ratio) and ratio > 0):
-            raise ValueError(f"dispersion_ratio must be positive and finite, got {self.dispersion_ratio!r}")
+            raise ValueError(f"dispersion_ratio must be positive and finite, got {ratio!r}")
 
 
 

@@ -87,7 +87,7 @@ def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
     (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
     (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),
 ])
-def test_fit_refuses_bad_density_options_and_writes_nothing(tmp_path, args, message):
+def test_fit_refuses_bad_design_options_and_writes_nothing(tmp_path, args, message):
     out = tmp_path / "m.fiscmap"
     res = fisc_ground("fit", "analytic", "-o", str(out), *args)
     assert res.returncode == 2 and message in res.stderr, res.stderr
