@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import CommandField, cube_mean_u_axial_m_s
 from fisc_agent.mapfile import load_map
 from fisc_ground.mapbuild import default_map_path
 from fisc_ground.metrics import normalise_min_max
@@ -77,15 +77,6 @@ def wall_classes(field: CommandField) -> dict[str, np.ndarray]:
     open_x = ~up & ~down
     return {"interior": open_x & (side == 0), "one side wall": open_x & (side == 1),
             "two side walls": open_x & (side >= 2), "closed upstream face": up, "closed downstream face": down}
-
-
-def field_u_axial_m_s(field: CommandField) -> np.ndarray:
-    """(n_cv,) mean of each cube's two x-face velocities of the staggered field [m/s]."""
-    i, j, k, cv = _cv_cells(field)
-    fx = field.face_u_m_s[0]
-    out = np.empty(cv.size)
-    out[cv] = 0.5 * (fx[i, j, k] + fx[i + 1, j, k])
-    return out
 
 
 @dataclass(frozen=True)
@@ -165,7 +156,7 @@ def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
         x_m=xs, n_cv=np.bincount(slice_of), cfd=slice_mean(normalise_min_max(cfd)),
         design=slice_mean(normalise_min_max(design)), swarm=slice_mean(normalise_min_max(swarm)),
         realised_over_designed=slice_mean(ratio), u_swarm_m_s=slice_mean(f["swarm_u_axial"][use], swarm),
-        u_field_m_s=slice_mean(field_u_axial_m_s(field)[use]),
+        u_field_m_s=slice_mean(cube_mean_u_axial_m_s(field.grid_cv, field.face_u_m_s[0])[use]),
         u_cfd_m_s=slice_mean(f["target_u_axial"][use] * cmap.scale),
         within_slice_sd=float(within.std()), classes=classes, realised=Score.of(swarm, cfd),
         with_design_profile=Score.of(design * within, cfd), design_score=Score.of(design, cfd))

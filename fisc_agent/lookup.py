@@ -269,6 +269,16 @@ class CommandField:
         return (1.0 - t) * fc[:, 0::2] + t * fc[:, 1::2]
 
 
+def cube_mean_u_axial_m_s(grid_cv: np.ndarray, face_u_x_m_s: np.ndarray) -> np.ndarray:
+    """(n_cv,) each CV's cube-mean axial velocity of the staggered field (``CommandField``'s rule,
+    linear between the x faces a, b, averaged over the cube: (a + b) / 2), in the faces' units."""
+    grid = np.asarray(grid_cv)
+    i, j, k = np.nonzero(grid >= 0)
+    out = np.empty(i.size)
+    out[grid[i, j, k]] = 0.5 * (face_u_x_m_s[i, j, k] + face_u_x_m_s[i + 1, j, k])
+    return out
+
+
 # ---- the one flight-command function (simulator, emulator and onboard agent) -------------------
 @dataclass(frozen=True)
 class FlightSettings:

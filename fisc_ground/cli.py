@@ -16,7 +16,7 @@ from pathlib import Path
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
                                    missing_dependency_message, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
-from fisc_ground.staggered import DEFAULT_CONTINUITY_WEIGHT, DEFAULT_DENSITY_AMPLITUDE
+from fisc_ground.staggered import AUTO_DENSITY_AMPLITUDES, DEFAULT_CONTINUITY_WEIGHT, STATIC_VELOCITY_BUDGET
 
 log = logging.getLogger("fisc_ground")
 
@@ -37,16 +37,27 @@ def _scale(text: str) -> float | None:
     return value
 
 
+def _amplitude(text: str) -> float | str:
+    """``--density-amplitude``: a number or ``auto`` (range checks: ``FitConfig``)."""
+    if text == "auto":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--density-amplitude must be a number or 'auto', got {text!r}") from None
+
+
 def fit_config_from_args(args: argparse.Namespace):
     """The ``fisc_ground.mapbuild.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
     from fisc_ground.mapbuild import FitConfig
 
     n_min, n_max = _n_range(args.n_range)
-    design = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude}
-    design = {k: v for k, v in design.items() if v is not None}
-    if design and args.preset == "paper":
-        flags = ", ".join("--" + k.replace("_", "-") for k in design)
+    given = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude}
+    given = {k: v for k, v in given.items() if v is not None}
+    if given and args.preset == "paper":
+        flags = ", ".join("--" + k.replace("_", "-") for k in given)
         raise ValueError(f"{flags}: the paper's schema-1 map has no designed density (drop --preset paper)")
+    design = {k: None if v == "auto" else v for k, v in given.items()}
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                      max_speed_m_s=args.max_speed, kappa=args.kappa, dispersion_ratio=args.dispersion_ratio,
                      agent_mass_kg=args.agent_mass, min_nodes=args.min_nodes, seed=args.seed,
@@ -242,10 +253,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--continuity-weight", type=float, default=None, metavar="BETA",
                    help="designed density: 0 = the CFD's density pattern, 1 = the pattern continuity allows at "
                         f"the CFD velocity (default {DEFAULT_CONTINUITY_WEIGHT:g})")
-    p.add_argument("--density-amplitude", type=float, default=None, metavar="K",
-                   help="designed density contrast over the staircase's own (default "
-                        f"{DEFAULT_DENSITY_AMPLITUDE:g}); above 1 the density follows the CFD more closely and "
-                        "the velocity less (docs/simulation.md, 'Velocity against density')")
+    p.add_argument("--density-amplitude", type=_amplitude, default=None, metavar="K|auto",
+                   help="designed density contrast over the staircase's own; above 1 the density follows the CFD "
+                        "more closely and the velocity less (docs/simulation.md, 'Velocity against density'). "
+                        f"Default auto: the largest of {', '.join(f'{k:g}' for k in AUTO_DENSITY_AMPLITUDES)} whose "
+                        f"static field keeps the velocity nRMSE within {STATIC_VELOCITY_BUDGET:g}")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

@@ -22,7 +22,6 @@ from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
 from fisc_ground.staggered import (
     DEFAULT_CONTINUITY_WEIGHT,
-    DEFAULT_DENSITY_AMPLITUDE,
     DEFAULT_WEIGHT_EXPONENT,
     StaggeredConfig,
     build_staggered,
@@ -84,9 +83,10 @@ class FitConfig:
     False writes the paper's schema-1 map (``--preset paper``)."""
     continuity_weight: float = DEFAULT_CONTINUITY_WEIGHT
     """beta of the designed swarm density (``fisc_ground.staggered.design_density``)."""
-    density_amplitude: float = DEFAULT_DENSITY_AMPLITUDE
+    density_amplitude: float | None = None
     """k of the designed swarm density: its contrast over the staircase's own
-    (``fisc_ground.staggered.StaggeredConfig.density_amplitude``; above 1 trades velocity for density fidelity)."""
+    (``fisc_ground.staggered.StaggeredConfig.density_amplitude``; above 1 trades velocity for density
+    fidelity).  None: chosen by the build within the static field's velocity budget."""
     weight_exponent: float = DEFAULT_WEIGHT_EXPONENT
     """p of the projection's lateral face weights (``fisc_ground.staggered.project``)."""
     flight_mode: str = DEFAULT_FLIGHT.mode
@@ -173,12 +173,18 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                              cvs.target_pressure_gauge_pa, arrays["cv_open_fraction"], sc)
         arrays.update(face_u_x_m_s=st.face_u_x_m_s, face_u_y_m_s=st.face_u_y_m_s, face_u_z_m_s=st.face_u_z_m_s,
                       cv_design_density=st.design_density)
+        log.info("designed density: amplitude %g (%s), static field velocity nRMSE %.3f (budget %g)",
+                 st.density_amplitude, "given" if sc.density_amplitude is not None else "auto",
+                 st.static_velocity_nrmse, sc.velocity_budget)
         f = config.flight
         extra = {"schema_version": 2,
                  "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
                  "staggered": {"max_divergence": st.max_divergence, "continuity_weight": sc.continuity_weight,
                                "weight_exponent": sc.weight_exponent, "axial_weight": sc.axial_weight,
-                               "density_amplitude": sc.density_amplitude}}
+                               "density_amplitude": st.density_amplitude,
+                               "density_amplitude_mode": "fixed" if sc.density_amplitude is not None else "auto",
+                               "velocity_budget": sc.velocity_budget,
+                               "static_velocity_nrmse": st.static_velocity_nrmse}}
     else:
         extra = {"schema_version": 1}
     now = datetime.now(timezone.utc)

@@ -13,6 +13,7 @@ import pytest
 from fisc_agent.mapfile import load_map
 from fisc_ground.cli import main
 from fisc_ground.scaling import KINETIC_DISPERSION_RATIO
+from fisc_ground.staggered import AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET
 
 
 
@@ -60,7 +61,14 @@ def test_fit_density_options_reach_the_map(tmp_path):
     assert main(["fit", "analytic", "-o", str(deep), "--density-amplitude", "1.3", "--continuity-weight", "0.25"]) == 0
     header = load_map(deep).body["staggered"]
     assert header["density_amplitude"] == 1.3 and header["continuity_weight"] == 0.25
-    assert load_map(plain).body["staggered"]["density_amplitude"] == 1.0
+    assert header["density_amplitude_mode"] == "fixed"
+    auto = load_map(plain).body["staggered"]  # no flag: chosen within the static velocity budget
+    assert auto["density_amplitude_mode"] == "auto" and auto["density_amplitude"] in AUTO_DENSITY_AMPLITUDES
+    assert auto["velocity_budget"] == STATIC_VELOCITY_BUDGET
+    assert auto["static_velocity_nrmse"] <= STATIC_VELOCITY_BUDGET or auto["density_amplitude"] == 1.0
+    explicit = tmp_path / "auto.fiscmap"
+    assert main(["fit", "analytic", "-o", str(explicit), "--density-amplitude", "auto"]) == 0
+    assert load_map(explicit).body["staggered"]["density_amplitude"] == auto["density_amplitude"]
 
     def ratio(path):
         rho = load_map(path)["cv_design_density"]
@@ -83,6 +91,8 @@ def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--preset", "paper", "--density-amplitude", "1.2"], "--density-amplitude: the paper's schema-1 map"),
     (["--density-amplitude", "5"], "use a density_amplitude below"),
+    (["--density-amplitude", "deep"], "--density-amplitude must be a number or 'auto', got 'deep'"),
+    (["--preset", "paper", "--density-amplitude", "auto"], "--density-amplitude: the paper's schema-1 map"),
     (["--continuity-weight", "1.5"], "continuity_weight must lie in"),
     (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
     (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),

@@ -9,7 +9,10 @@ from fisc_agent.lookup import CommandField, map_flight_settings, PAPER_SETTINGS
 from fisc_agent.mapfile import MapError, decode_map, encode_map
 from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
 from fisc_ground.reference.analytic import analytic_nozzle
-from fisc_ground.staggered import design_density, project
+from fisc_ground.partition import cv_open_fraction, partition_field
+from fisc_ground.reference.load import load_reference
+from fisc_ground.staggered import (AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET, StaggeredConfig, build_staggered,
+                                   design_density, project, static_velocity_nrmse)
 
 
 def _net_outflow(grid, fx, fy, fz, rho):
@@ -71,14 +74,14 @@ def test_designed_density_follows_continuity_and_cfd_pattern():
     u = np.array([[1.0, 0, 0], [2.0, 0, 0], [2.0, 0, 0], [1.0, 0, 0]])
     cfd = np.array([1.0, 0.0, 0.0, 1.0])  # CFD density low where the flow is fast
     for beta in (0.0, 0.5, 1.0):
-        rho = design_density(grid, u, cfd, cfd, beta)
+        rho = design_density(grid, u, cfd, cfd, beta, 1.0)
         assert rho.mean() == pytest.approx(1.0)
         assert rho[1] < rho[0] and rho[2] < rho[3]
     # beta = 1: n u is constant along the duct (continuity at the CFD velocity)
-    rho = design_density(grid, u, np.full(4, 1.2), np.full(4, 3.0), 1.0)
+    rho = design_density(grid, u, np.full(4, 1.2), np.full(4, 3.0), 1.0, density_amplitude=1.0)
     np.testing.assert_allclose(rho * u[:, 0], rho[0] * u[0, 0])
     with pytest.raises(ValueError, match="CV 2"):
-        design_density(grid, u, np.array([1.0, 2.0, np.nan, 1.0]), np.array([1.0, 2.0, np.nan, 1.0]), 0.5)
+        design_density(grid, u, np.array([1.0, 2.0, np.nan, 1.0]), np.array([1.0, 2.0, np.nan, 1.0]), 0.5, 1.0)
 
 
 def test_density_amplitude_scales_the_designed_contrast():
@@ -130,3 +133,40 @@ def test_bad_schema_2_maps_are_refused_naming_the_problem(mutate, message):
     mutate(arrays, meta)
     with pytest.raises(MapError, match=message):
         decode_map(encode_map(meta, arrays))
+
+
+def test_static_velocity_nrmse_is_zero_where_the_field_is_the_cfd():
+    grid = np.arange(4 * 2 * 2).reshape(4, 2, 2)
+    u = np.tile([2.0, 0.0, 0.0], (16, 1))
+    st = project(grid, u, np.ones(16), np.ones(16))
+    assert static_velocity_nrmse(grid, st.face_u_x_m_s, u) == pytest.approx(0.0, abs=1e-12)
+    # a CFD twice as fast in one CV: the field's own figure against it is no longer 0
+    u2 = u.copy()
+    u2[5, 0] = 4.0
+    assert static_velocity_nrmse(grid, st.face_u_x_m_s, u2) > 0.1
+
+
+def test_automatic_amplitude_stays_within_the_static_velocity_budget():
+    """No amplitude given: the largest of AUTO_DENSITY_AMPLITUDES whose static field keeps the velocity
+    nRMSE within the budget (the tunnel: the largest), and 1 when even 1 misses it."""
+    cvs = partition_field(load_reference("cd_nozzle_inviscid"), cell_size_m=0.5)
+
+    def build(**kw):
+        return build_staggered(cvs.grid_cv, cvs.target_velocity_m_s, cvs.target_density_kg_m3,
+                               cvs.target_pressure_gauge_pa, cv_open_fraction(cvs), StaggeredConfig(**kw))
+
+    fixed = {k: build(density_amplitude=k) for k in AUTO_DENSITY_AMPLITUDES}
+    static = {k: st.static_velocity_nrmse for k, st in fixed.items()}
+    assert all(fixed[k].density_amplitude == k for k in fixed)
+    assert [static[k] for k in sorted(static)] == sorted(static.values())  # contrast costs velocity
+    top = AUTO_DENSITY_AMPLITUDES[0]
+    auto = build()
+    assert auto.density_amplitude == top and static[top] <= STATIC_VELOCITY_BUDGET
+    np.testing.assert_array_equal(auto.face_u_x_m_s, fixed[top].face_u_x_m_s)
+    np.testing.assert_array_equal(auto.design_density, fixed[top].design_density)
+    between = 0.5 * (static[AUTO_DENSITY_AMPLITUDES[1]] + static[top])
+    assert build(velocity_budget=between).density_amplitude == AUTO_DENSITY_AMPLITUDES[1]
+    tight = build(velocity_budget=0.5 * static[1.0])
+    assert tight.density_amplitude == 1.0 and tight.static_velocity_nrmse == static[1.0]
+    with pytest.raises(ValueError, match="velocity_budget"):
+        StaggeredConfig(velocity_budget=0.0)
