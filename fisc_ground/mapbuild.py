@@ -174,7 +174,7 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         arrays.update(face_u_x_m_s=st.face_u_x_m_s, face_u_y_m_s=st.face_u_y_m_s, face_u_z_m_s=st.face_u_z_m_s,
                       cv_design_density=st.design_density)
         log.info("designed density: amplitude %g (%s), static field velocity nRMSE %.3f (budget %g)",
-                 st.density_amplitude, "given" if sc.density_amplitude is not None else "auto",
+                 st.density_amplitude, "fixed" if sc.density_amplitude is not None else "auto",
                  st.static_velocity_nrmse, sc.velocity_budget)
         f = config.flight
         extra = {"schema_version": 2,
