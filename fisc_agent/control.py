@@ -141,9 +141,10 @@ class ScalarField:
 
     def return_command(self, pos: Vec) -> Vec | None:
         """The geofence ``return`` command at a point outside the CVs (``fisc_agent.lookup.return_command``,
-        the simulator's rule): rejoin the flow of the nearest CV within ``RETURN_RADIUS_CELLS`` cells;
-        None when no CV is that close (the caller flies straight back instead)."""
-        near = self.field.nearest_cv_within(np.array([pos], dtype=float), RETURN_RADIUS_CELLS)
+        the simulator's rule): rejoin the flow of the nearest CV within ``RETURN_RADIUS_CELLS`` cells,
+        passing over stagnant ones (``CommandField.return_cv_within``); None when no CV is that close
+        (the caller flies straight back instead)."""
+        near = self.field.return_cv_within(np.array([pos], dtype=float), RETURN_RADIUS_CELLS)
         if near[0] < 0:
             return None
         cmd = return_command(self.field, np.array([pos], dtype=float), near)[0]

@@ -27,9 +27,10 @@ class CVLookup:
     Identical to ``CommandField.cv_of`` (floor of (x - origin) / l, half-open cells, -1 outside
     the map's CVs) but on a copy of ``grid_cv`` with a border of ``margin`` (>= 1) cells, so that
     one clip replaces the bounds test, with reusable scratch buffers (no big temporaries per
-    step).  The same padded grid holds, for every cell without a CV, the nearest CV (centre to
-    cell centre) within ``margin`` cells (``nearest``, -1 if none): the O(1) table of the return
-    policy, computed once with ``CommandField.nearest_cv_within``.
+    step).  The same padded grid holds, for every cell without a CV, the CV the return policy
+    steers towards (``nearest``): the nearest (centre to cell centre) within ``margin`` cells that
+    is not stagnant, else the nearest stagnant one, -1 if none; the O(1) table of the return
+    policy, computed once with ``CommandField.return_cv_within``.
     """
 
     def __init__(self, field: CommandField, margin: int = 2) -> None:
@@ -46,7 +47,7 @@ class CVLookup:
         empty = np.flatnonzero(near < 0)
         if empty.size and margin > 0:
             centres = np.asarray(field.origin_m) + (idx[empty] - m + 0.5) * l
-            near[empty] = field.nearest_cv_within(centres, int(margin))
+            near[empty] = field.return_cv_within(centres, int(margin))
         near[empty[near[empty] < 0]] = -1
         # the outermost ring stands for "everything further out": never steered back
         border = np.any((idx == 0) | (idx == np.asarray(shape) - 1), axis=1)

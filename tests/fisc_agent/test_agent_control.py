@@ -9,7 +9,7 @@ import pytest
 from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
                                 goto_velocity, join_waypoints, max_command_speed)
 from fisc_agent.hashing import slot_hash, slot_hash_int
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import CommandField, return_command
 from fisc_agent.mapfile import MapError
 
 
@@ -169,3 +169,20 @@ def test_check_map_accepts_good_and_names_bad(field):
 def test_max_command_speed(field):
     assert max_command_speed(field, "mean") == pytest.approx(np.linalg.norm(field.mean_cmd_m_s, axis=1).max())
     assert max_command_speed(field, "slot") >= max_command_speed(field, "mean") - 1e-9
+
+
+def test_onboard_return_rejoins_a_flowing_cv_not_a_stagnant_neighbour(field):
+    # the onboard geofence return passes over stagnant CVs (the simulator's table too: tests/sim/test_swarm.py)
+    g = np.asarray(field.grid_cv)
+    i, j, k = np.argwhere(g >= 0)[0]
+    pos = field.origin_m + (np.array([i, j, k]) + 0.5) * field.cell_size_m
+    pos[2] -= field.cell_size_m  # the cell below a CV of the first slice
+    assert field.cv_of(pos[None])[0] == -1
+    near = int(field.nearest_cv_within(pos[None])[0])
+    mean = np.asarray(field.mean_cmd_m_s, dtype=float).copy()
+    mean[near] *= 1e-3
+    stagnant = dataclasses.replace(field, mean_cmd_m_s=mean)
+    target = int(stagnant.return_cv_within(pos[None])[0])
+    assert target >= 0 and target != near and not stagnant.stagnant[target]
+    got = ScalarField(stagnant).return_command(tuple(pos))
+    np.testing.assert_allclose(got, return_command(stagnant, pos[None], [target])[0])

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from fisc_agent.hashing import slot_index
-from fisc_agent.lookup import CommandField
+from fisc_agent.lookup import RETURN_SPEED_FRACTION, RETURN_STAGNANT_FRACTION, CommandField, return_pull
 
 
 def field_from_mask(mask: np.ndarray, cell: float = 0.5, origin=(0.0, -1.0, -1.0), n_max: int = 4, seed: int = 0):
@@ -100,3 +102,34 @@ def test_interpolation_at_a_centre_is_that_cvs_command(ball_field):
 def test_unknown_mode_is_a_clear_error(ball_field):
     with pytest.raises(ValueError, match="unknown command mode 'fast'"):
         ball_field.command(ball_field.centers_m[:1], [0], "fast")
+
+
+def test_return_target_passes_over_a_stagnant_cv_while_another_is_in_reach(ball_field):
+    at = np.array([[2.0, 0.0, 2.3]])  # just above the ball (no CV in its cell)
+    assert ball_field.cv_of(at)[0] == -1
+    near = int(ball_field.nearest_cv_within(at)[0])
+    assert near >= 0 and ball_field.return_cv_within(at)[0] == near  # nothing stagnant: the nearest
+    mean = ball_field.mean_cmd_m_s.copy()
+    mean[near] *= 1e-3  # a stagnant CV (a boundary layer's, a separation's)
+    f = dataclasses.replace(ball_field, mean_cmd_m_s=mean)
+    speed = np.linalg.norm(mean, axis=1)
+    np.testing.assert_array_equal(f.stagnant, speed < RETURN_STAGNANT_FRACTION * np.median(speed))
+    assert f.stagnant[near] and f.nearest_cv_within(at)[0] == near
+    target = int(f.return_cv_within(at)[0])
+    others = np.flatnonzero(~f.stagnant)
+    d = np.linalg.norm(f.centers_m[others] - at, axis=1)
+    assert target == others[np.argmin(d)]  # the nearest CV that flows
+
+
+def test_return_target_is_a_stagnant_cv_only_when_no_other_is_in_reach():
+    mask = np.zeros((8, 1, 1), dtype=bool)
+    mask[:6] = True  # a row of six CVs along x
+    f = field_from_mask(mask, origin=(0.0, 0.0, 0.0))
+    mean = np.tile([1.0, 0.0, 0.0], (6, 1))
+    mean[5] = [1e-3, 0.0, 0.0]  # the last one stagnant
+    f = dataclasses.replace(f, mean_cmd_m_s=mean)
+    beyond = np.array([[3.25, 0.25, 0.25]])  # cell 6: no CV
+    assert f.return_cv_within(beyond, radius_cells=1)[0] == 5  # only the stagnant CV in reach
+    assert f.return_cv_within(beyond, radius_cells=2)[0] == 4  # a flowing one in reach: that one
+    assert f.nearest_cv_within(beyond, radius_cells=2)[0] == 5
+    assert f.return_cv_within(beyond, radius_cells=0)[0] == -1

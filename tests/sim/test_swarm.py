@@ -1,5 +1,7 @@
 """Algorithm 1 stepping core: CV assignment, commands, bookkeeping, return/escape policy."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -86,6 +88,23 @@ def test_sideways_agent_is_steered_back_within_grace(field):
     for _ in range(60):
         sw.step()
     assert sw.assign()[0] >= 0 and sw.counters.escaped == 0 and sw.counters.returned > 0
+
+
+@pytest.mark.parametrize("backend", ["numpy", "auto"])
+def test_agent_beside_a_stagnant_cv_is_steered_back(field, backend):
+    at = np.array([[1.0, 0.8, 0.8]])  # corner cell without a CV
+    near = CVLookup(field).nearest(at)[0]
+    mean = field.mean_cmd_m_s.copy()
+    mean[near] *= 1e-3  # its nearest CV barely moves (a boundary layer, a separation)
+    stagnant = dataclasses.replace(field, mean_cmd_m_s=mean)
+    centre = field.origin_m + (field.cell_of(at) + 0.5) * field.cell_size_m  # the table's point
+    assert CVLookup(stagnant).nearest(at)[0] == stagnant.return_cv_within(centre)[0] != near
+    sw = Swarm(stagnant, config=SwarmConfig(escape_grace_s=5.0, lookup_backend=backend))
+    sw.add_agents(at, vel_map_m_s=np.zeros((1, 3)))
+    for _ in range(60):
+        sw.step()
+    # a pull capped at a fraction of the stagnant CV's own speed (1 mm/s) would leave it outside
+    assert sw.assign()[0] >= 0 and sw.counters.escaped == 0
 
 
 def test_agent_outside_too_long_escapes(field):
