@@ -355,9 +355,10 @@ def return_command(field: CommandField, points_m: np.ndarray, near_cv: np.ndarra
                    gain_1_s: float = RETURN_GAIN_1_S, speed_fraction: float = RETURN_SPEED_FRACTION) -> np.ndarray:
     """(m, 3) map-frame command of agents just outside the CVs (the geofence ``return`` policy of the
     simulator and of ``fisc-agent`` near the map): the mean command of the CV ``near_cv`` it rejoins
-    (``CommandField.return_cv_within``) plus ``return_pull``.  The agent rejoins the flow moving with it; flying straight back to a CV centre
-    instead turns a vehicle that overshot a closed staircase face round against the flow, and it
-    re-enters slow and backwards (measured in ``fisc-sim emulate``: the pressure's top CVs)."""
+    (``CommandField.return_cv_within``) plus ``return_pull``.  The agent rejoins the flow moving with
+    it; flying straight back to a CV centre instead turns a vehicle that overshot a closed staircase
+    face round against the flow, and it re-enters slow and backwards (measured in ``fisc-sim
+    emulate``: the pressure's top CVs)."""
     near = np.asarray(near_cv, dtype=np.int64)
     return np.asarray(field.mean_cmd_m_s)[near] + return_pull(field, points_m, near, gain_1_s, speed_fraction)
 
