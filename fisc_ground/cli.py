@@ -16,7 +16,8 @@ from pathlib import Path
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
                                    missing_dependency_message, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
-from fisc_ground.staggered import AUTO_DENSITY_AMPLITUDES, DEFAULT_CONTINUITY_WEIGHT, STATIC_VELOCITY_BUDGET
+from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+                                   STATIC_VELOCITY_LIMIT)
 
 log = logging.getLogger("fisc_ground")
 
@@ -37,14 +38,16 @@ def _scale(text: str) -> float | None:
     return value
 
 
-def _amplitude(text: str) -> float | str:
-    """``--density-amplitude``: a number or ``auto`` (range checks: ``FitConfig``)."""
-    if text == "auto":
-        return text
-    try:
-        return float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--density-amplitude must be a number or 'auto', got {text!r}") from None
+def _number_or_auto(flag: str):
+    """The argparse type of ``flag``: a number or ``auto`` (range checks: ``FitConfig``)."""
+    def parse(text: str) -> float | str:
+        if text == "auto":
+            return text
+        try:
+            return float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a number or 'auto', got {text!r}") from None
+    return parse
 
 
 def fit_config_from_args(args: argparse.Namespace):
@@ -250,10 +253,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map with the continuity-consistent staggered field, the designed "
                         "swarm density and recommended flight settings; paper: the paper's schema-1 map")
-    p.add_argument("--continuity-weight", type=float, default=None, metavar="BETA",
+    p.add_argument("--continuity-weight", type=_number_or_auto("--continuity-weight"), default=None,
+                   metavar="BETA|auto",
                    help="designed density: 0 = the CFD's density pattern, 1 = the pattern continuity allows at "
-                        f"the CFD velocity (default {DEFAULT_CONTINUITY_WEIGHT:g})")
-    p.add_argument("--density-amplitude", type=_amplitude, default=None, metavar="K|auto",
+                        "the CFD velocity; higher follows the CFD velocity more closely and its density less. "
+                        f"Default auto: the lowest of {', '.join(f'{b:g}' for b in AUTO_CONTINUITY_WEIGHTS)} whose "
+                        f"static field at amplitude 1 keeps the velocity nRMSE within {STATIC_VELOCITY_LIMIT:g}")
+    p.add_argument("--density-amplitude", type=_number_or_auto("--density-amplitude"), default=None,
+                   metavar="K|auto",
                    help="designed density contrast over the staircase's own; above 1 the density follows the CFD "
                         "more closely and the velocity less (docs/simulation.md, 'Velocity against density'). "
                         f"Default auto: the largest of {', '.join(f'{k:g}' for k in AUTO_DENSITY_AMPLITUDES)} whose "

@@ -21,7 +21,6 @@ from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_fi
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
 from fisc_ground.staggered import (
-    DEFAULT_CONTINUITY_WEIGHT,
     DEFAULT_WEIGHT_EXPONENT,
     StaggeredConfig,
     build_staggered,
@@ -81,8 +80,9 @@ class FitConfig:
     staggered: bool = True
     """Build the continuity-consistent face field and write a schema-2 map (``fisc_ground.staggered``);
     False writes the paper's schema-1 map (``--preset paper``)."""
-    continuity_weight: float = DEFAULT_CONTINUITY_WEIGHT
-    """beta of the designed swarm density (``fisc_ground.staggered.design_density``)."""
+    continuity_weight: float | None = None
+    """beta of the designed swarm density (``fisc_ground.staggered.design_density``).  None: chosen by
+    the build within the static field's velocity limit (``StaggeredConfig.continuity_weight``)."""
     density_amplitude: float | None = None
     """k of the designed swarm density: its contrast over the staircase's own
     (``fisc_ground.staggered.StaggeredConfig.density_amplitude``; above 1 trades velocity for density
@@ -117,6 +117,11 @@ class FitConfig:
             raise ValueError(f"dispersion_ratio must be positive and finite, got {ratio!r}")
 
 
+
+
+def _mode(setting: float | None) -> str:
+    """How a design setting of the map header came about: "auto" (None, chosen by the build) or "fixed"."""
+    return "auto" if setting is None else "fixed"
 
 
 def _software_version() -> str:
@@ -173,17 +178,19 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                              cvs.target_pressure_gauge_pa, arrays["cv_open_fraction"], sc)
         arrays.update(face_u_x_m_s=st.face_u_x_m_s, face_u_y_m_s=st.face_u_y_m_s, face_u_z_m_s=st.face_u_z_m_s,
                       cv_design_density=st.design_density)
-        log.info("designed density: amplitude %g (%s), static field velocity nRMSE %.3f (budget %g)",
-                 st.density_amplitude, "fixed" if sc.density_amplitude is not None else "auto",
-                 st.static_velocity_nrmse, sc.velocity_budget)
+        log.info("designed density: continuity weight %g (%s), amplitude %g (%s), static field velocity nRMSE "
+                 "%.3f (budget %g, limit %g)", st.continuity_weight, _mode(sc.continuity_weight),
+                 st.density_amplitude, _mode(sc.density_amplitude), st.static_velocity_nrmse, sc.velocity_budget,
+                 sc.velocity_limit)
         f = config.flight
         extra = {"schema_version": 2,
                  "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
-                 "staggered": {"max_divergence": st.max_divergence, "continuity_weight": sc.continuity_weight,
+                 "staggered": {"max_divergence": st.max_divergence, "continuity_weight": st.continuity_weight,
+                               "continuity_weight_mode": _mode(sc.continuity_weight),
                                "weight_exponent": sc.weight_exponent, "axial_weight": sc.axial_weight,
                                "density_amplitude": st.density_amplitude,
-                               "density_amplitude_mode": "fixed" if sc.density_amplitude is not None else "auto",
-                               "velocity_budget": sc.velocity_budget,
+                               "density_amplitude_mode": _mode(sc.density_amplitude),
+                               "velocity_budget": sc.velocity_budget, "velocity_limit": sc.velocity_limit,
                                "static_velocity_nrmse": st.static_velocity_nrmse}}
     else:
         extra = {"schema_version": 1}

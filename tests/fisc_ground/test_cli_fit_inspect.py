@@ -13,7 +13,8 @@ import pytest
 from fisc_agent.mapfile import load_map
 from fisc_ground.cli import main
 from fisc_ground.scaling import KINETIC_DISPERSION_RATIO
-from fisc_ground.staggered import AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET
+from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+                                   STATIC_VELOCITY_LIMIT)
 
 
 
@@ -61,14 +62,18 @@ def test_fit_density_options_reach_the_map(tmp_path):
     assert main(["fit", "analytic", "-o", str(deep), "--density-amplitude", "1.3", "--continuity-weight", "0.25"]) == 0
     header = load_map(deep).body["staggered"]
     assert header["density_amplitude"] == 1.3 and header["continuity_weight"] == 0.25
-    assert header["density_amplitude_mode"] == "fixed"
-    auto = load_map(plain).body["staggered"]  # no flag: chosen within the static velocity budget
+    assert header["density_amplitude_mode"] == header["continuity_weight_mode"] == "fixed"
+    auto = load_map(plain).body["staggered"]  # no flag: chosen within the static velocity budget / limit
     assert auto["density_amplitude_mode"] == "auto" and auto["density_amplitude"] in AUTO_DENSITY_AMPLITUDES
-    assert auto["velocity_budget"] == STATIC_VELOCITY_BUDGET
+    assert auto["continuity_weight_mode"] == "auto" and auto["continuity_weight"] in AUTO_CONTINUITY_WEIGHTS
+    assert auto["velocity_budget"] == STATIC_VELOCITY_BUDGET and auto["velocity_limit"] == STATIC_VELOCITY_LIMIT
     assert auto["static_velocity_nrmse"] <= STATIC_VELOCITY_BUDGET or auto["density_amplitude"] == 1.0
     explicit = tmp_path / "auto.fiscmap"
-    assert main(["fit", "analytic", "-o", str(explicit), "--density-amplitude", "auto"]) == 0
-    assert load_map(explicit).body["staggered"]["density_amplitude"] == auto["density_amplitude"]
+    assert main(["fit", "analytic", "-o", str(explicit), "--density-amplitude", "auto",
+                 "--continuity-weight", "auto"]) == 0
+    chosen = load_map(explicit).body["staggered"]
+    assert (chosen["density_amplitude"], chosen["continuity_weight"]) == (auto["density_amplitude"],
+                                                                          auto["continuity_weight"])
 
     def ratio(path):
         rho = load_map(path)["cv_design_density"]
@@ -94,6 +99,8 @@ def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
     (["--density-amplitude", "deep"], "--density-amplitude must be a number or 'auto', got 'deep'"),
     (["--preset", "paper", "--density-amplitude", "auto"], "--density-amplitude: the paper's schema-1 map"),
     (["--continuity-weight", "1.5"], "continuity_weight must lie in"),
+    (["--continuity-weight", "half"], "--continuity-weight must be a number or 'auto', got 'half'"),
+    (["--preset", "paper", "--continuity-weight", "auto"], "--continuity-weight: the paper's schema-1 map"),
     (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
     (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),
 ])

@@ -11,7 +11,8 @@ from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
 from fisc_ground.reference.analytic import analytic_nozzle
 from fisc_ground.partition import cv_open_fraction, partition_field
 from fisc_ground.reference.load import load_reference
-from fisc_ground.staggered import (AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET, StaggeredConfig, build_staggered,
+from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+                                   STATIC_VELOCITY_LIMIT, StaggeredConfig, build_staggered,
                                    design_density, project, static_velocity_nrmse)
 
 
@@ -170,3 +171,33 @@ def test_automatic_amplitude_stays_within_the_static_velocity_budget():
     assert tight.density_amplitude == 1.0 and tight.static_velocity_nrmse == static[1.0]
     with pytest.raises(ValueError, match="velocity_budget"):
         StaggeredConfig(velocity_budget=0.0)
+
+
+def test_automatic_continuity_weight_is_raised_only_where_the_static_field_misses_the_limit():
+    """No beta given: the lowest of AUTO_CONTINUITY_WEIGHTS whose static field at k = 1 keeps the velocity
+    nRMSE within the limit (the tunnel: the lowest, 0.5), a higher one when the limit is tighter, the
+    last when none does; the amplitude is then chosen at that beta.  A given beta is kept as it is."""
+    cvs = partition_field(load_reference("cd_nozzle_inviscid"), cell_size_m=0.5)
+
+    def build(**kw):
+        return build_staggered(cvs.grid_cv, cvs.target_velocity_m_s, cvs.target_density_kg_m3,
+                               cvs.target_pressure_gauge_pa, cv_open_fraction(cvs), StaggeredConfig(**kw))
+
+    at_k1 = {b: build(continuity_weight=b, density_amplitude=1.0).static_velocity_nrmse
+             for b in AUTO_CONTINUITY_WEIGHTS}
+    assert [at_k1[b] for b in AUTO_CONTINUITY_WEIGHTS] == sorted(at_k1.values(), reverse=True)  # beta buys velocity
+    lowest, second = AUTO_CONTINUITY_WEIGHTS[:2]
+    assert at_k1[lowest] <= STATIC_VELOCITY_LIMIT
+    auto = build()
+    assert auto.continuity_weight == lowest
+    fixed = build(continuity_weight=lowest)
+    np.testing.assert_array_equal(auto.face_u_x_m_s, fixed.face_u_x_m_s)
+    assert fixed.density_amplitude == auto.density_amplitude
+    tighter = build(velocity_limit=0.5 * (at_k1[lowest] + at_k1[second]))
+    assert tighter.continuity_weight == second
+    same = build(continuity_weight=second, density_amplitude=tighter.density_amplitude)
+    np.testing.assert_array_equal(tighter.design_density, same.design_density)
+    assert build(velocity_limit=1e-6).continuity_weight == AUTO_CONTINUITY_WEIGHTS[-1]
+    assert build(continuity_weight=0.25, velocity_limit=1e-6).continuity_weight == 0.25
+    with pytest.raises(ValueError, match="velocity_limit"):
+        StaggeredConfig(velocity_limit=float("nan"))
