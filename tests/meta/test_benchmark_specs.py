@@ -13,7 +13,8 @@ SPECS = sorted(BENCH.glob("*.toml"))
 
 
 def test_there_are_specs():
-    assert {p.name for p in SPECS} >= {"fidelity_table.toml", "duct_family.toml", "duct_family_beta.toml"}
+    assert {p.name for p in SPECS} >= {"fidelity_table.toml", "duct_family.toml", "duct_family_beta.toml",
+                                       "duct_fresh.toml"}
 
 
 @pytest.mark.parametrize("path", SPECS, ids=[p.name for p in SPECS])
