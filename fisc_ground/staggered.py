@@ -42,10 +42,10 @@ from fisc_agent.lookup import cube_mean_u_axial_m_s
 
 #: Candidates of the automatic blend beta of the designed density (``design_density``), lowest first: the
 #: lowest whose static field keeps the velocity nRMSE within ``STATIC_VELOCITY_LIMIT`` is used
-#: (``build_staggered``).  0.5, the middle of the blend, is what every reference but the long duct of
-#: benchmarks/duct_family.py gets; higher beta moves the design towards the staircase's continuity pattern,
-#: buying velocity fidelity with density correlation (docs/simulation.md, "Ducts not seen when the defaults
-#: were chosen").
+#: (``build_staggered``).  0.5 is the middle of the blend; a duct whose static field misses the limit there
+#: gets more (the long duct of benchmarks/duct_family.py 0.6, its double throat 0.75): higher beta moves the
+#: design towards the staircase's continuity pattern, buying velocity fidelity with density correlation
+#: (docs/simulation.md, "Ducts not seen when the defaults were chosen").
 AUTO_CONTINUITY_WEIGHTS = (0.5, 0.6, 0.75, 1.0)
 #: Largest velocity nRMSE of the static field at amplitude k = 1 for which the automatic beta may stay at
 #: its lowest candidate.  Flown, a swarm scores 0.6-0.75 of its static field's figure (the long duct: 0.077
