@@ -116,6 +116,10 @@ def run_score_flight(args: argparse.Namespace) -> int:
 
 def inspect_summary(cmap) -> dict:
     """The ``inspect --json`` object (its keys are a contract)."""
+    import dataclasses
+
+    from fisc_agent.lookup import map_flight_settings
+
     body = cmap.body
     return {
         "n_cv": cmap.n_cv,
@@ -139,6 +143,8 @@ def inspect_summary(cmap) -> dict:
         "reference": body.get("provenance", {}).get("reference"),
         "n_star_histogram": {str(int(k)): int(v) for k, v in zip(*_unique(cmap["n_star"]))},
         "reversed_flow_cvs": int((cmap["target_velocity_m_s"][:, 0] < 0).sum()),
+        "flight": dataclasses.asdict(map_flight_settings(cmap)),
+        "design": body.get("staggered"),
     }
 
 
@@ -172,7 +178,26 @@ def run_inspect(args: argparse.Namespace) -> int:
           f"{summary['fit_velocity_rmse']:.3e} m/s, pressure RMSE {summary['fit_pressure_rmse']:.3e}")
     print(f"  reversed flow: {summary['reversed_flow_cvs']} CVs; created {summary['created_utc']} "
           f"by fisc {summary['software_version']}; map version {summary['map_version']}")
+    flight = summary["flight"]
+    print(f"  flight       : {flight['mode']}, look-ahead {flight['lookahead_s']:g} s"
+          + (f", persistence {flight['persistence_s']:g} s" if flight["mode"] == "kinetic" else "")
+          + (" (recommended)" if summary["schema_version"] >= 2 else " (schema 1: the paper's Algorithm 1)"))
+    print(f"  design       : {_design_line(summary['design'])}")
     return 0
+
+
+def _design_line(design: dict | None) -> str:
+    """The designed density of a schema-2 map's ``staggered`` table in one line."""
+    if not design:
+        return "none (no staggered field)"
+    parts = []
+    for key, label in (("continuity_weight", "continuity weight"), ("density_amplitude", "density amplitude")):
+        if design.get(key) is not None:
+            parts.append(f"{label} {design[key]:g} ({design.get(key + '_mode', 'fixed')})")
+    if design.get("static_velocity_nrmse") is not None:
+        parts.append(f"static field velocity nRMSE {design['static_velocity_nrmse']:.3f}")
+    parts.append(f"max divergence {design['max_divergence']:.1e}")
+    return ", ".join(parts)
 
 
 def run_keygen(args: argparse.Namespace) -> int:
@@ -268,8 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",
-                       description="Verify a map (structure, schema version, sha256, signature) and summarise it. "
-                                   "Any failed check exits 2 with the reason.")
+                       description="Verify a map (structure, schema version, sha256, signature) and summarise it: "
+                                   "the reference, CVs, scaling, fit, the recommended flight settings and the "
+                                   "designed density (schema 2). Any failed check exits 2 with the reason.")
     p.add_argument("map", metavar="MAP", type=Path)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--compact", action="store_true", help="with --json: one line")

@@ -47,6 +47,23 @@ def test_inspect_json_has_the_contract_keys(default_map):
         assert key in summary, key
     assert summary["cell_size"] == 0.5 and summary["signed"] is False and summary["schema_version"] == 2
     assert summary["fit_velocity_rmse"] < 1e-6
+    assert summary["flight"] == {"mode": "kinetic", "lookahead_s": 0.5, "persistence_s": 2.0}
+    design = summary["design"]
+    assert design["continuity_weight"] == 0.5 and design["continuity_weight_mode"] == "auto"
+    assert design["density_amplitude"] == 1.1 and design["density_amplitude_mode"] == "auto"
+
+
+def test_inspect_text_names_the_flight_settings_and_the_design(tmp_path, default_map):
+    res = fisc_ground("inspect", str(default_map))
+    assert res.returncode == 0, res.stderr
+    assert "flight       : kinetic, look-ahead 0.5 s, persistence 2 s (recommended)" in res.stdout
+    assert ("design       : continuity weight 0.5 (auto), density amplitude 1.1 (auto), static field velocity "
+            "nRMSE 0.075") in res.stdout
+    paper = tmp_path / "paper.fiscmap"
+    assert main(["fit", "analytic", "-o", str(paper), "--preset", "paper"]) == 0
+    res = fisc_ground("inspect", str(paper))
+    assert "flight       : mean, look-ahead 0 s (schema 1: the paper's Algorithm 1)" in res.stdout
+    assert "design       : none (no staggered field)" in res.stdout
 
 
 def test_fit_preset_paper_writes_the_schema_1_map(tmp_path):
