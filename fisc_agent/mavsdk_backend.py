@@ -54,6 +54,7 @@ def autopilot_time(stamp: tuple[float, float] | None, now_s: float) -> float | N
     gap = now_s - stamp[0]
     return stamp[1] + gap if 0.0 <= gap <= ODOMETRY_STAMP_MAX_AGE_S else None
 
+
 #: MAVSDK telemetry FlightMode name -> mode class (every other flight mode is OTHER).
 MODE_CLASS_OF = {"OFFBOARD": ModeClass.OFFBOARD, "HOLD": ModeClass.HOLD, "LAND": ModeClass.LAND}
 
