@@ -73,12 +73,18 @@ class DeviationState:
 
 def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
     """(m, 3) unit vectors, uniform on the sphere, a deterministic function of (agent id, epoch)."""
-    h1 = slot_hash(agent_ids, epoch).astype(np.float64) / 4294967296.0
-    h2 = slot_hash(np.asarray(agent_ids, dtype=np.int64) ^ 0x5BD1E995, epoch).astype(np.float64) / 4294967296.0
-    z = 2.0 * h1 - 1.0
-    phi = 2.0 * np.pi * h2
+    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
+    e = np.asarray(epoch).reshape(-1)
+    h = slot_hash(np.concatenate([ids, ids ^ 0x5BD1E995]), np.concatenate([e, e])) * (1.0 / 4294967296.0)
+    m = ids.size
+    z = 2.0 * h[:m] - 1.0
+    phi = 2.0 * np.pi * h[m:]
     r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+    out = np.empty((m, 3))
+    np.multiply(r, np.cos(phi), out=out[:, 0])
+    np.multiply(r, np.sin(phi), out=out[:, 1])
+    out[:, 2] = z
+    return out
 
 
 def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +101,7 @@ def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float)
 def deviation_epoch(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
     """(m,) index of each agent's persistence interval at ``t_s`` (staggered by a hashed phase)."""
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    phase = slot_hash(ids, 0x2545F491).astype(np.float64) / 4294967296.0
+    phase = slot_hash(ids, 0x2545F491) * (1.0 / 4294967296.0)
     return np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
 
 
@@ -122,23 +128,31 @@ def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.n
     ``sim.scenarios.Reservoir.admit``; a fade-out of upstream components over the first cell, as
     before, made agents stall there: first slices 1.2x their designed density).
     """
-    pts = np.atleast_2d(np.asarray(points_m, dtype=float))
+    rows, frac, _ = field.locate(points_m)
+    return deviation_in_cells(field, rows, frac, agent_ids, t_s, persistence_s, state, velocity_m_s)
+
+
+def deviation_in_cells(field: CommandField, rows: np.ndarray, frac: np.ndarray, agent_ids: np.ndarray, t_s: float,
+                       persistence_s: float, state: DeviationState,
+                       velocity_m_s: np.ndarray | None = None) -> tuple[np.ndarray, DeviationState]:
+    """``kinetic_deviation`` for points already located on the grid (``CommandField.locate``: ``rows``
+    (m,) their cells' rows in the per-cell tables, ``frac`` (m, 3) their positions within them).
+    ``flight_command`` locates each point once for the command and the deviation."""
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
     epoch = deviation_epoch(ids, t_s, persistence_s)
     fresh = epoch != state.epoch
-    direction = state.direction.copy()
+    sign = state.sign.copy()
+    direction = state.direction
     if fresh.any():
+        direction = direction.copy()
         direction[fresh] = _unit_from_hash(ids[fresh], epoch[fresh])
-    sign = np.where(fresh[:, None], 1.0, state.sign)
-    f = (pts - field.origin_m) / field.cell_size_m
-    cell = np.floor(f).astype(np.int64)
-    frac = f - cell
-    rows = field.grid_index(cell)
+        sign[fresh] = 1.0
+    faces = field.kinetic_faces.take(rows, axis=0)  # (m, 2, 3, 2): wall faces, stepped-out faces
     # where the wall a component was reflected from steps outward, the drawn direction returns
-    stepped = field.stepped_out_faces.reshape(-1, 3, 2).take(rows, axis=0)  # (m, 3, 2)
+    stepped = faces[:, 1]
     np.copyto(sign, 1.0, where=(sign < 0) & np.where(direction >= 0, stepped[:, :, 1], stepped[:, :, 0]))
     d = direction * sign
-    walls = field.wall_faces.reshape(-1, 3, 2).take(rows, axis=0)  # (m, 3, 2)
+    walls = faces[:, 0]
     up = d >= 0
     wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
     zone = WALL_ZONE

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_agent.hashing import slot_index
-from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, kinetic_deviation, kinetic_spread
+from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_in_cells, kinetic_spread
 from fisc_agent.mapfile import FACE_ARRAYS, CommandMap
 
 #: Command modes (DESIGN.md section 3).  ``mean``: the paper's Algorithm 1; ``slot``: fitted vector
@@ -142,39 +142,41 @@ class CommandField:
         out[1:, :, :, 1:, :] = both & ~w[1:, :, :, 1:, :] & w[:-1, :, :, 1:, :]
         return out
 
-    def grid_index(self, cells: np.ndarray) -> np.ndarray:
-        """(m,) flat (C-order) index into ``grid_cv`` of integer grid cells (m, 3), clipped into the
-        grid (in place): rows of ``wall_faces.reshape(-1, 3, 2)`` and of the per-cell face table."""
-        _, _, shape, strides = self._padded_cv
-        np.maximum(cells, 0, out=cells)
-        np.minimum(cells, shape - 1, out=cells)
-        return cells @ strides
+    @functools.cached_property
+    def kinetic_faces(self) -> np.ndarray:
+        """(cells of the padded grid, 2, 3, 2) bool: ``wall_faces`` and ``stepped_out_faces`` side by
+        side per cell, rows as ``locate`` gives them (one gather per point in the kinetic deviation)."""
+        return self._on_padded_grid(np.stack([self.wall_faces, self.stepped_out_faces], axis=3))
 
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
         return np.floor((np.asarray(points_m, dtype=float) - self.origin_m) / self.cell_size_m).astype(np.int64)
 
     @functools.cached_property
-    def _padded_cv(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``grid_cv`` with a border of -1 cells, flattened, and its strides; the grid's shape and
-        flat-index strides (C order)."""
-        g = np.asarray(self.grid_cv)
-        pad = np.full(tuple(s + 2 for s in g.shape), -1, dtype=np.int64)
-        pad[1:-1, 1:-1, 1:-1] = g
-        strides = np.array([g.shape[1] * g.shape[2], g.shape[2], 1], dtype=np.int64)
-        return pad.ravel(), np.array(pad.strides, dtype=np.int64) // pad.itemsize, np.asarray(g.shape), strides
+    def _padded_shape(self) -> tuple[int, int, int]:
+        """Shape of the grid with a border of one cell on every side."""
+        return tuple(int(s) + 2 for s in np.shape(self.grid_cv))
+
+    @functools.cached_property
+    def _padded_cv(self) -> np.ndarray:
+        """``grid_cv`` on the padded grid, flat, its border -1 (no CV beyond the grid)."""
+        return np.pad(np.asarray(self.grid_cv, dtype=np.int64), 1, constant_values=-1).ravel()
+
+    def _on_padded_grid(self, per_cell: np.ndarray) -> np.ndarray:
+        """A per-cell table (nx, ny, nz, ...) on the padded grid, flat over the cells: the border
+        repeats the nearest cell of the grid, so a point beyond it reads the cell it clips to."""
+        pad = [(1, 1)] * 3 + [(0, 0)] * (per_cell.ndim - 3)
+        return np.pad(per_cell, pad, mode="edge").reshape((-1,) + per_cell.shape[3:])
+
+    def _padded_index(self, cells: np.ndarray) -> np.ndarray:
+        """(m,) flat index on the padded grid of integer grid cells (m, 3) (shifted in place), cells
+        beyond the grid clipped onto its border."""
+        cells += 1
+        return np.ravel_multi_index(cells.T, self._padded_shape, mode="clip")
 
     def cv_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m,) CV id of each point, -1 outside the map's CVs."""
-        return self._cv_of_cells(self.cell_of(np.atleast_2d(points_m)))
-
-    def _cv_of_cells(self, cells: np.ndarray) -> np.ndarray:
-        """(m,) CV id of integer grid cells (m, 3), -1 outside (``cells`` is clipped in place): cells
-        beyond the grid fall on the padded grid's border of -1."""
-        flat, strides, shape, _ = self._padded_cv
-        np.maximum(cells, -1, out=cells)
-        np.minimum(cells, shape, out=cells)
-        return flat.take(cells @ strides + int(strides.sum()))
+        return self._padded_cv.take(self._padded_index(self.cell_of(np.atleast_2d(points_m))))
 
     def nearest_cv_within(self, points_m: np.ndarray, radius_cells: int = 2) -> np.ndarray:
         """(m,) nearest existing CV (by centre distance) within ``radius_cells`` grid cells, else -1."""
@@ -269,31 +271,38 @@ class CommandField:
 
     @functools.cached_property
     def _cell_faces(self) -> np.ndarray:
-        """(nx * ny * nz, 6) face velocities of every grid cell, (lower, upper) per axis, rows in
-        ``grid_cv``'s flat order: one gather per point in ``_staggered``."""
+        """(cells of the padded grid, 6) face velocities of every cell, (lower, upper) per axis, rows
+        as ``locate`` gives them: one gather per point in ``staggered_at``."""
         if self.face_u_m_s is None:
             raise ValueError("modes staggered/kinetic need a map with face velocities (schema version 2)")
         fx, fy, fz = self.face_u_m_s
-        return np.stack([fx[:-1], fx[1:], fy[:, :-1], fy[:, 1:], fz[:, :, :-1], fz[:, :, 1:]],
-                        axis=-1).reshape(-1, 6).astype(float)
+        return self._on_padded_grid(np.stack([fx[:-1], fx[1:], fy[:, :-1], fy[:, 1:], fz[:, :, :-1], fz[:, :, 1:]],
+                                             axis=-1).astype(float))
 
-    def _cell_and_fraction(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(m,) flat index of each point's grid cell, clipped into the grid, and (m, 3) the point's
-        position within it in [0, 1] per axis."""
-        f = (pts - self.origin_m) / self.cell_size_m
+    def locate(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Where points (m, 3) lie on the grid, computed once for every lookup that needs it: (m,) the
+        row of each point's cell in the per-cell tables (``_cell_faces``, ``kinetic_faces``; a point
+        beyond the grid reads the cell it clips to), (m, 3) the point's position within its own cell
+        per axis (in [0, 1) for points inside the grid) and (m,) its CV id (-1 outside the CVs, as
+        ``cv_of``)."""
+        f = (np.atleast_2d(np.asarray(points_m, dtype=float)) - self.origin_m) / self.cell_size_m
         c = np.floor(f).astype(np.int64)
-        cell = self.grid_index(c)
-        t = f - c
-        np.maximum(t, 0.0, out=t)
-        np.minimum(t, 1.0, out=t)
-        return cell, t
+        frac = f - c
+        rows = self._padded_index(c)
+        return rows, frac, self._padded_cv.take(rows)
+
+    def staggered_at(self, rows: np.ndarray, frac: np.ndarray) -> np.ndarray:
+        """(m, 3) the staggered field at cells ``rows`` and positions ``frac`` within them (``locate``):
+        each component linear between the two faces of the cell (the MAC-grid rule), ``frac``
+        clipped into [0, 1]."""
+        t = np.clip(frac, 0.0, 1.0)
+        fc = self._cell_faces.take(rows, axis=0)
+        return (1.0 - t) * fc[:, 0::2] + t * fc[:, 1::2]
 
     def _staggered(self, pts: np.ndarray) -> np.ndarray:
-        """Each component linear between the two faces of the point's cell (the MAC-grid rule)."""
-        faces = self._cell_faces
-        cell, t = self._cell_and_fraction(pts)
-        fc = faces.take(cell, axis=0)
-        return (1.0 - t) * fc[:, 0::2] + t * fc[:, 1::2]
+        """``staggered_at`` the points (m, 3)."""
+        rows, frac, _ = self.locate(pts)
+        return self.staggered_at(rows, frac)
 
 
 def cube_mean_u_axial_m_s(grid_cv: np.ndarray, face_u_x_m_s: np.ndarray) -> np.ndarray:
@@ -377,18 +386,31 @@ def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.n
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    cv = field.cv_of(pts) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
-    look, look_cv = pts, cv
+    if settings.mode not in FACE_MODES:
+        cv = field.cv_of(pts) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
+        look, look_cv = pts, cv
+        if settings.lookahead_s > 0:
+            ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
+            acv = field.cv_of(ahead)
+            keep = acv < 0
+            look = np.where(keep[:, None], pts, ahead)
+            look_cv = np.where(keep, cv, acv)
+        return field.command(look, ids, settings.mode, cv_ids=look_cv), cv, state
+    # face modes: each point's grid cell found once, for the command and the kinetic deviation
+    rows, frac, own_cv = field.locate(pts)
+    cv = own_cv if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
+    look_rows, look_frac, look_cv = rows, frac, cv
     if settings.lookahead_s > 0:
-        ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
-        acv = field.cv_of(ahead)
+        a_rows, a_frac, acv = field.locate(lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s))
         keep = acv < 0
-        look = np.where(keep[:, None], pts, ahead)
+        look_rows = np.where(keep, rows, a_rows)
+        look_frac = np.where(keep[:, None], frac, a_frac)
         look_cv = np.where(keep, cv, acv)
-    cmd = field.command(look, ids, settings.mode, cv_ids=look_cv)
+    cmd = field.staggered_at(look_rows, look_frac)
+    cmd[look_cv < 0] = np.nan
     if settings.mode != "kinetic":
         return cmd, cv, state
     st = DeviationState.new(len(pts)) if state is None else state
-    d, st = kinetic_deviation(field, pts, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
+    d, st = deviation_in_cells(field, rows, frac, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
     cmd += field.spread_m_s.take(np.maximum(look_cv, 0))[:, None] * d  # rows outside stay NaN
     return cmd, cv, st

@@ -78,9 +78,10 @@ class SwarmConfig:
     plant_backend: str = "auto"
     """Plant kernel: ``auto`` (numba when importable), ``numpy`` or ``numba``."""
     lookup_backend: str = "auto"
-    """CV lookup + command gather, removals, return commands and position update (modes
-    mean/slot): ``auto`` (fused numba kernels, ``sim.kernels``, when importable), ``numpy`` (the
-    reference path) or ``numba``; both give the same trajectories."""
+    """CV lookup (+ the command gather of modes mean/slot), removals, return commands and position
+    update: ``auto`` (fused numba kernels, ``sim.kernels``, when importable), ``numpy`` (the reference
+    path) or ``numba``; both give the same trajectories.  The other modes' commands always come from
+    ``fisc_agent.lookup.flight_command``."""
     lookahead_s: float = 0.0
     """Command look-ahead t_lead [s]: each agent flies the command of the CV at
     ``x + u t_lead`` (its own CV when that point is outside the CVs) instead of the CV at x,
@@ -173,7 +174,7 @@ class Swarm:
         self._next_id = 0
         self.n = 0
         self._kernel = None
-        if self.config.mode in ("mean", "slot") and self.config.lookup_backend != "numpy":
+        if self.config.lookup_backend != "numpy":
             self._kernel = fused_lookup_kernel()
             if self._kernel is None and self.config.lookup_backend == "numba":
                 raise RuntimeError("lookup_backend='numba' requested but numba is not installed (pip install fisc[jit])")
@@ -439,7 +440,8 @@ class Swarm:
             self._epoch[:n] = new.epoch
             self._sign[:n] = new.sign
             self._dir[:n] = new.direction
-        np.multiply(np.nan_to_num(cmd), MAP_TO_NED, out=cmd_ned)
+        cmd[np.isnan(cmd)] = 0.0
+        np.multiply(cmd, MAP_TO_NED, out=cmd_ned)
 
     def _lookahead_commands(self, cv: np.ndarray, cmd_ned: np.ndarray) -> None:
         """Fill ``cmd_ned`` with the command at the look-ahead point x + u t_lead (``lookahead_point``);

@@ -133,3 +133,30 @@ def test_return_target_is_a_stagnant_cv_only_when_no_other_is_in_reach():
     assert f.return_cv_within(beyond, radius_cells=2)[0] == 4  # a flowing one in reach: that one
     assert f.nearest_cv_within(beyond, radius_cells=2)[0] == 5
     assert f.return_cv_within(beyond, radius_cells=0)[0] == -1
+
+
+def test_locate_reads_the_cell_a_point_clips_to_and_its_own_fraction(ball_field):
+    """``CommandField.locate``: one index serves every per-cell table; a point beyond the grid reads
+    the cell it clips to (the wall and stepped-out faces, the face velocities), its CV is -1, and its
+    fraction is taken in its own (unclipped) cell."""
+    rng = np.random.default_rng(5)
+    shape = np.array(ball_field.grid_cv.shape)
+    f = dataclasses.replace(ball_field, face_u_m_s=tuple(rng.normal(size=tuple(shape + np.eye(3, dtype=int)[a]))
+                                                         for a in range(3)))
+    pts = rng.uniform([-1.0, -3.0, -3.0], [5.0, 3.0, 3.0], size=(4000, 3))  # a margin of two cells all round
+    rows, frac, cv = f.locate(pts)
+    cell = np.floor((pts - f.origin_m) / f.cell_size_m).astype(int)
+    beyond = np.any((cell < 0) | (cell >= shape), axis=1)
+    assert 1000 < beyond.sum() < 3500
+    clipped = tuple(np.clip(cell, 0, shape - 1).T)
+    np.testing.assert_array_equal(cv, np.where(beyond, -1, f.grid_cv[clipped]))
+    np.testing.assert_array_equal(cv, f.cv_of(pts))
+    np.testing.assert_allclose(frac, (pts - f.origin_m) / f.cell_size_m - cell, rtol=0, atol=1e-12)
+    faces = np.stack([f.wall_faces, f.stepped_out_faces], axis=3)[clipped]
+    np.testing.assert_array_equal(f.kinetic_faces[rows], faces)
+    fx, fy, fz = f.face_u_m_s
+    i, j, k = clipped
+    t = np.clip(frac, 0.0, 1.0)
+    lo = np.stack([fx[i, j, k], fy[i, j, k], fz[i, j, k]], axis=1)
+    hi = np.stack([fx[i + 1, j, k], fy[i, j + 1, k], fz[i, j, k + 1]], axis=1)
+    np.testing.assert_allclose(f.staggered_at(rows, frac), (1 - t) * lo + t * hi, rtol=0, atol=1e-12)

@@ -56,17 +56,31 @@ def test_move_kernel_is_x_plus_u_dt_in_the_map_frame():
     np.testing.assert_array_equal(pos, want)
 
 
-@pytest.mark.parametrize("mode", ["mean", "slot"])
-def test_fused_step_gives_the_numpy_trajectories(field, mode):
-    """Whole runs (injection, return policy, escapes, exits) agree agent by agent."""
+@pytest.fixture(scope="module")
+def default_field():
+    from fisc_ground.mapbuild import load_shipped_default_map
+
+    return CommandField.from_map(load_shipped_default_map())
+
+
+@pytest.mark.parametrize("mode", ["mean", "slot", "staggered", "kinetic"])
+def test_fused_step_gives_the_numpy_trajectories(field, default_field, mode):
+    """Whole runs (injection, return policy, escapes, exits) agree agent by agent.  Modes staggered
+    and kinetic (on the default map: they need its face velocities) take their commands from
+    ``flight_command`` on both paths; the kernels do the lookup, removals, returns and moves."""
+    if mode in ("staggered", "kinetic"):
+        field = default_field
     runs = []
     for backend in ("numpy", "numba"):
         sw = Swarm(field, PlantParams(), SwarmConfig(mode=mode, lookup_backend=backend, plant_backend=backend,
-                                                     escape_grace_s=0.5))
+                                                     escape_grace_s=0.5, lookahead_s=0.5 if mode == "kinetic" else 0.0))
         rng = np.random.default_rng(9)
         for k in range(80):
             if k % 10 == 0:
                 sw.add_agents(outside_points(field, rng, 60))
+                if field is default_field:  # a 15 m duct: agents in the last slice's CVs exit too
+                    last = field.centers_m[field.centers_m[:, 0] > field.centers_m[:, 0].max() - 0.1]
+                    sw.add_agents(last + rng.uniform(-0.25, 0.25, last.shape))
             sw.step()
         runs.append(sw)
     a, b = runs
