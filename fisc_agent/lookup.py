@@ -386,27 +386,21 @@ def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.n
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    if settings.mode not in FACE_MODES:
-        cv = field.cv_of(pts) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
-        look, look_cv = pts, cv
-        if settings.lookahead_s > 0:
-            ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
-            acv = field.cv_of(ahead)
-            keep = acv < 0
-            look = np.where(keep[:, None], pts, ahead)
-            look_cv = np.where(keep, cv, acv)
-        return field.command(look, ids, settings.mode, cv_ids=look_cv), cv, state
-    # face modes: each point's grid cell found once, for the command and the kinetic deviation
-    rows, frac, own_cv = field.locate(pts)
+    rows, frac, own_cv = field.locate(pts)  # each point located once, for the command and the deviation
     cv = own_cv if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
-    look_rows, look_frac, look_cv = rows, frac, cv
+    look_cv, keep = cv, None
     if settings.lookahead_s > 0:
-        a_rows, a_frac, acv = field.locate(lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s))
-        keep = acv < 0
-        look_rows = np.where(keep, rows, a_rows)
-        look_frac = np.where(keep[:, None], frac, a_frac)
+        ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
+        a_rows, a_frac, acv = field.locate(ahead)
+        keep = acv < 0  # no CV ahead: the agent's own point
         look_cv = np.where(keep, cv, acv)
-    cmd = field.staggered_at(look_rows, look_frac)
+    if settings.mode not in FACE_MODES:
+        look = pts if keep is None else np.where(keep[:, None], pts, ahead)
+        return field.command(look, ids, settings.mode, cv_ids=look_cv), cv, state
+    if keep is None:
+        cmd = field.staggered_at(rows, frac)
+    else:
+        cmd = field.staggered_at(np.where(keep, rows, a_rows), np.where(keep[:, None], frac, a_frac))
     cmd[look_cv < 0] = np.nan
     if settings.mode != "kinetic":
         return cmd, cv, state
