@@ -17,7 +17,7 @@ class ExitPolicy(StrEnum):
     """What an agent does once it has passed the outlet."""
 
     HOLD = "hold"
-    """Stop ``exit_clearance_m`` beyond the outlet and hold (latched)."""
+    """Stop ``exit_clearance_m`` beyond the outlet at the agent's own point (``exit_spacing_m``) and hold (latched)."""
     LAND = "land"
     """Land beyond the outlet."""
     LOOP = "loop"
@@ -114,6 +114,9 @@ class AgentConfig:
     """Number of entry windows in a stagger cycle (agents with equal ``id mod entry_slots`` share one)."""
     exit_clearance_m: float = 2.0
     """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
+    exit_spacing_m: float = 1.5
+    """With exit ``hold``/``land``: least distance between two agents' stopping points
+    (``control.hold_point``: agent i takes point i of a spiral around the tunnel's axis) [m]."""
     source_system: int | None = None
     """MAVLink system id of the agent; None = the vehicle's own id (companion convention)."""
     source_component: int = 191
@@ -138,7 +141,7 @@ class AgentConfig:
         need(2.0 < self.rate_hz <= 500.0, f"rate must be in (2, 500] Hz (PX4 needs > 2 Hz), is {self.rate_hz}")
         for name in ("max_speed_m_s", "max_accel_m_s2", "join_speed_m_s", "return_speed_m_s", "climb_speed_m_s",
                      "takeoff_alt_m", "stale_timeout_s", "link_timeout_s", "command_retry_s",
-                     "command_timeout_s", "waypoint_radius_m"):
+                     "command_timeout_s", "waypoint_radius_m", "exit_spacing_m"):
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, f"{name} must be > 0, is {v!r}")
         for name in ("hold_grace_s", "staging_m", "keepout_margin_m", "exit_clearance_m"):

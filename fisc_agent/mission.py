@@ -32,7 +32,7 @@ from typing import Callable
 from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
-                                goto_velocity, join_waypoints)
+                                goto_velocity, hold_point, join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.identify import ResponseRecorder, VehicleResponse
 from fisc_agent.lookup import POINT_MODES
@@ -195,7 +195,8 @@ class Mission:
         elif dst == State.RETURN and pos is not None:
             self._plan_return(pos)
         elif dst == State.EXIT and pos is not None and self.geom is not None:
-            self._target = (self.geom.x_outlet_m + self.cfg.exit_clearance_m, pos[1], pos[2])
+            self._target = hold_point(self.cfg.agent_id, self.geom, self.geom.x_outlet_m + self.cfg.exit_clearance_m,
+                                      self.cfg.exit_spacing_m)
         elif dst == State.TAKEOFF:  # resuming an interrupted takeoff (a hold cuts ArduPilot's climb short)
             self._climb_by_velocity = (pos is not None and self._home is not None
                                        and pos[2] > self._home[2] + AIRBORNE_ABOVE_HOME_M)
