@@ -200,6 +200,15 @@ def goto_velocity(pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0
                         (target[2] - pos[2]) * gain_1_s), speed_m_s)
 
 
+def approach_time_s(distance_m: float, speed_m_s: float, radius_m: float, gain_1_s: float = 1.0) -> float:
+    """Time ``goto_velocity`` takes to bring a vehicle that follows it exactly from ``distance_m`` to
+    within ``radius_m`` of its target: at ``speed_m_s`` down to speed / gain, then exponentially [s]."""
+    knee_m = speed_m_s / gain_1_s
+    cruise_s = max(distance_m - knee_m, 0.0) / speed_m_s
+    return cruise_s + max(math.log(min(distance_m, knee_m) / radius_m), 0.0) / gain_1_s if distance_m > radius_m \
+        else 0.0
+
+
 def distance(a: Vec, b: Vec) -> float:
     """Euclidean distance between two 3-vectors [m]."""
     return math.sqrt((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2)

@@ -31,8 +31,8 @@ from typing import Callable
 
 from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig, ExitPolicy
-from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, distance, entry_point, entry_slot_open,
-                                goto_velocity, hold_point, join_waypoints)
+from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
+                                entry_slot_open, goto_velocity, hold_point, join_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.identify import ResponseRecorder, VehicleResponse
 from fisc_agent.lookup import POINT_MODES
@@ -64,6 +64,9 @@ class Mission:
         self._climb_by_velocity = False
         self._waypoints: list[Vec] = []
         self._wp_index = 0
+        self._wait_index = 0
+        self._entry_lead_s = 0.0
+        self._wait_where_planned = False
         self._entry_cleared = False
         self._target: Vec | None = None
         self._last_want: ModeClass | None = None
@@ -182,8 +185,21 @@ class Mission:
 
     def _plan_join(self, pos: Vec) -> None:
         assert self.geom is not None and self.entry is not None
-        self._waypoints = join_waypoints(pos, self.entry, self.geom, self.cfg.staging_m, self.cfg.keepout_margin_m)
+        cfg = self.cfg
+        path = join_waypoints(pos, self.entry, self.geom, cfg.staging_m, cfg.keepout_margin_m)
+        # With a stagger, a join waits for its window where it starts (after take-off: above the
+        # vehicle's own launch point; after a hold: where it held), and leaves early by its flight to
+        # the staging point S: it reaches S as its window opens and flies on without stopping.
+        # Waiting at S, the agents stood at their entry points' (y, z), decimetres apart (PX4 SITL:
+        # 0.19 m by SIH's ground truth).  A lap's return, which starts past the outlet, waits at S.
+        here = cfg.entry_stagger_s > 0 and self._wait_where_planned
+        self._waypoints = ([pos] if here else []) + path
+        self._wait_index = 0 if here else len(self._waypoints) - 2
+        legs = self._waypoints[self._wait_index:-1]
+        self._entry_lead_s = sum(approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m)
+                                 for a, b in zip(legs, legs[1:]))
         self._wp_index = 0
+        self._entry_cleared = False
 
     def _plan_return(self, pos: Vec) -> None:
         assert self.sfield is not None
@@ -191,6 +207,7 @@ class Mission:
 
     def _enter(self, t: float, dst: State, reason: Reason, pos: Vec | None) -> None:
         if dst == State.JOIN and pos is not None:
+            self._wait_where_planned = self.state not in (State.FLOW, State.RETURN)  # not a lap's return
             self._plan_join(pos)
         elif dst == State.RETURN and pos is not None:
             self._plan_return(pos)
@@ -297,17 +314,16 @@ class Mission:
             last = len(self._waypoints) - 1
             while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
                 self._wp_index += 1
-                if self._wp_index == last:
-                    self._entry_cleared = False
             waiting = False
-            if self._wp_index == last and not self._entry_cleared:  # at the staging point: wait for our slot
-                waiting = not entry_slot_open(s.wall_time_s, cfg.agent_id, cfg.entry_stagger_s, cfg.entry_slots)
+            if self._wp_index == self._wait_index + 1 and not self._entry_cleared:  # wait for our slot
+                waiting = not entry_slot_open(s.wall_time_s + self._entry_lead_s, cfg.agent_id, cfg.entry_stagger_s,
+                                              cfg.entry_slots)
                 if not waiting:
                     self._entry_cleared = True
                     if cfg.entry_stagger_s > 0:
-                        log.info("entry slot open: crossing the inlet")
+                        log.info("entry slot open: on to the inlet")
             if waiting:
-                vel = self._goto(pos, self._waypoints[last - 1], cfg.join_speed_m_s)
+                vel = self._goto(pos, self._waypoints[self._wait_index], cfg.join_speed_m_s)
             elif self._wp_index == last and cv >= 0:
                 self._go(t, State.FLOW, Reason(Cause.ENTERED_MAP, f"entered the map at CV {cv}"))
                 st = State.FLOW

@@ -7,10 +7,9 @@ must list every agent with the map's sha256; a fleet ``hold`` / ``resume`` is ac
 flown; a newer map signed by a stranger, served mid-flight, is refused by every agent, which
 keep flying.  Entries are staggered on the shared clock (``--entry-stagger``): the streamlines
 converge towards the throat.  The vehicles must stay ``MIN_SEPARATION_M`` apart by SIH's ground
-truth (not PX4's estimates, off by up to 0.5 m) in the duct and where they hold after the outlet,
-each at its own point (``AgentConfig.exit_spacing_m``).  The staging area before the inlet is not
-checked: waiting vehicles stand at their entry points' (y, z), decimetres apart (0.19 m once).
-``FISC_SITL_FLEET`` sets the fleet size (default 3).
+truth (not PX4's estimates, off by up to 0.5 m) over the whole flight: they wait for their
+windows above their own launch points and hold after the outlet each at its own point
+(``control.hold_point``).  ``FISC_SITL_FLEET`` sets the fleet size (default 3).
 """
 
 from __future__ import annotations
@@ -48,10 +47,9 @@ STAGGER_S = 4.0
 MIN_SEPARATION_M = 0.5
 
 
-def min_separation_m(tracks: list[tuple[np.ndarray, np.ndarray]], x_lo: float = 0.0) -> float:
-    """Smallest distance between two vehicles while both are at ``x >= x_lo`` (in the duct, or past
-    the outlet where they hold), at the same wall-clock instant.  ``tracks``: (wall_s, pos_m) pairs,
-    interpolated onto a common 0.05 s grid."""
+def min_separation_m(tracks: list[tuple[np.ndarray, np.ndarray]]) -> float:
+    """Smallest distance between two vehicles at the same wall-clock instant.  ``tracks``:
+    (wall_s, pos_m) pairs, interpolated onto a common 0.05 s grid."""
     best = np.inf
     for (wa, pa_m), (wb, pb_m) in itertools.combinations(tracks, 2):
         t0, t1 = max(wa[0], wb[0]), min(wa[-1], wb[-1])
@@ -60,9 +58,7 @@ def min_separation_m(tracks: list[tuple[np.ndarray, np.ndarray]], x_lo: float = 
         grid = np.arange(t0, t1, 0.05)
         pa = np.column_stack([np.interp(grid, wa, pa_m[:, k]) for k in range(3)])
         pb = np.column_stack([np.interp(grid, wb, pb_m[:, k]) for k in range(3)])
-        both = (pa[:, 0] >= x_lo) & (pb[:, 0] >= x_lo)
-        if both.any():
-            best = min(best, float(np.min(np.linalg.norm(pa[both] - pb[both], axis=1))))
+        best = min(best, float(np.min(np.linalg.norm(pa - pb, axis=1))))
     return best
 
 

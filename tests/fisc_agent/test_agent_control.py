@@ -153,6 +153,18 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
         assert not _segment_enters_box(a, b, g, 0.5), (a, b)
 
 
+@pytest.mark.parametrize("dist", [0.2, 0.8, 1.9, 6.0])
+def test_approach_time_is_the_time_goto_velocity_takes(dist):
+    from fisc_agent.control import approach_time_s
+
+    pos, target, dt, t = (0.0, 0.0, 0.0), (dist, 0.0, 0.0), 1e-3, 0.0
+    while math.dist(pos, target) >= 0.3:
+        v = goto_velocity(pos, target, 2.0)
+        pos = tuple(p + dt * u for p, u in zip(pos, v))
+        t += dt
+    assert approach_time_s(dist, 2.0, 0.3) == pytest.approx(t, abs=2 * dt)
+
+
 def test_check_map_accepts_good_and_names_bad(field):
     assert check_map(field, "slot") == []
     bad = dataclasses.replace(field, mean_cmd_m_s=np.where(np.arange(field.n_cv)[:, None] == 3, np.nan,

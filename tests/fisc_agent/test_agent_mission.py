@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity
+from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity, distance
 from fisc_agent.lookup import CommandField, return_command
 from fisc_agent.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.tracking import TrackingConfig
@@ -595,6 +595,43 @@ def test_a_staged_agent_waits_for_its_window_then_enters(sfield):
     entered_at.append(next(t.t_s for t in m.transitions if t.dst == State.FLOW))
     phase = (wall0 + entered_at[0]) % 8.0
     assert 2.0 <= phase < 5.0, phase     # crossed the inlet plane after its window opened (1.5 m from staging)
+
+
+def test_staggered_agents_wait_above_their_launch_points_and_enter_the_windows_they_own(sfield):
+    """Three agents launched 3 m apart, 4 s windows: each waits for its window above its own launch
+    point, leaves early by its own flight to the staging point, and so crosses the inlet the same
+    time after its window opens as the others do, without stopping on the way; neighbouring
+    windows' entries are >= 3 s apart."""
+    wall0, stagger = 1_000_000.0 * 12.0, 4.0   # a cycle (3 windows of 4 s) starts at wall0
+    entered, waited_at, moved_after = {}, {}, {}
+    for agent_id in range(3):
+        cfg, m, v = make(sfield, agent_id=agent_id, entry_stagger_s=stagger, entry_slots=3, lookahead_auto=False)
+        v.pos = [0.0, 3.0 * agent_id, -3.0]
+        v.ground_z = -3.0
+        track = []
+
+        def status():
+            return v.status()._replace(wall_time_s=wall0 + v.t)
+
+        while v.t < 60.0 and m.state != State.FLOW:
+            out = m.step(status())
+            v.apply(out, cfg)
+            track.append((v.t, m.state, tuple(v.pos), math.hypot(*v.vel)))
+        assert m.state == State.FLOW
+        entered[agent_id] = wall0 + next(t.t_s for t in m.transitions if t.dst == State.FLOW)
+        join = [(t, p, speed) for t, st, p, speed in track if st == State.JOIN]
+        first = np.array(join[0][1])
+        waiting = [t for t, p, speed in join if np.linalg.norm(np.array(p) - first) < 0.3]
+        waited_at[agent_id] = waiting[-1] - waiting[0]
+        moved_after[agent_id] = min(speed for t, p, speed in join if t > waiting[-1] + 1.0 and p[0] < -0.5)
+        assert abs(first[1] - 3.0 * agent_id) < 0.1      # it waited above its own launch point
+    assert max(waited_at.values()) > 2.0, waited_at      # someone had to wait for a window
+    assert min(moved_after.values()) > 0.25, moved_after  # then flew to the inlet without stopping (crawl 0.3)
+    # the time from its window's opening to the crossing is the same for all: each left early by its own flight
+    delay = [(entered[i] - wall0 - stagger * i) % (3 * stagger) for i in range(3)]
+    assert max(delay) - min(delay) < 0.5, delay
+    order = sorted(entered.values())
+    assert min(b - a for a, b in zip(order, order[1:])) >= 0.75 * stagger - 0.5, entered
 
 
 def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
