@@ -38,7 +38,7 @@ Entries in neighbouring windows are then at least ``(1 - ENTRY_OPEN_FRACTION) x 
 With one half, a late arrival in its window entered ``stagger / 2`` before the next agent: on real PX4
 (the SITL fleet test, 4 s windows) two vehicles so entered 2.3 s apart at the inlet's 0.45 m/s, and
 the one that crossed 1 s faster came within 0.27 m of the other (SIH ground truth; 0.52 m by PX4's
-estimates).  With one quarter, the same test's closest approach was 1.34-1.57 m."""
+estimates).  With one quarter, the same test's closest approach in the duct was 1.57-2.47 m."""
 
 
 class ScalarField:
@@ -203,10 +203,11 @@ def goto_velocity(pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0
 def approach_time_s(distance_m: float, speed_m_s: float, radius_m: float, gain_1_s: float = 1.0) -> float:
     """Time ``goto_velocity`` takes to bring a vehicle that follows it exactly from ``distance_m`` to
     within ``radius_m`` of its target: at ``speed_m_s`` down to speed / gain, then exponentially [s]."""
+    if distance_m <= radius_m:
+        return 0.0
     knee_m = speed_m_s / gain_1_s
     cruise_s = max(distance_m - knee_m, 0.0) / speed_m_s
-    return cruise_s + max(math.log(min(distance_m, knee_m) / radius_m), 0.0) / gain_1_s if distance_m > radius_m \
-        else 0.0
+    return cruise_s + max(math.log(min(distance_m, knee_m) / radius_m), 0.0) / gain_1_s
 
 
 def distance(a: Vec, b: Vec) -> float:
