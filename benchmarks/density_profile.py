@@ -12,7 +12,11 @@ Reads a run's ``fields.csv`` and the schema-2 map it flew, and prints, per axial
 
 then the within-slice scatter by wall class of the cube (interior, one or two side walls, closed
 upstream or downstream face) and two "what if" scores: the realised density given the design's
-slice profile (each CV keeping its ratio to its slice mean), and the design itself.  Numbers from
+slice profile (each CV keeping its ratio to its slice mean), and the design itself.  Beside the
+swarm, each class also shows what ideal tracers hold in the same field (``sim.tracers``): moving
+exactly with it (RK4), and holding each velocity for the command interval (forward Euler, 0.05 s:
+the simulator's step and ``fisc-agent``'s 20 Hz stream, a vehicle without lag).  That splits a
+departure from the design into the field's share and the flight's.  Numbers from
 this script are in docs/simulation.md ("What limits each metric")::
 
     fisc-sim run -o out/run
@@ -38,6 +42,16 @@ from fisc_ground.mapbuild import default_map_path
 from fisc_ground.metrics import normalise_min_max
 from fisc_ground.metrics import nrmse
 from fisc_ground.metrics import pearson
+from sim.tracers import Integrator, tracer_density
+
+#: Seed points per axis of every inlet face for the tracers (16 x 16: the shipped map's tracer density
+#: is then within 1 % of its design in the median CV, r 0.99).
+TRACER_SEEDS = 16
+#: RK4 step of the exact tracers [s].
+TRACER_DT_S = 0.02
+#: Interval over which the held-command tracers keep each velocity [s] (``sim.run.RunConfig.dt_s``,
+#: and the period of ``fisc-agent``'s default 20 Hz setpoint stream).
+HELD_COMMAND_S = 0.05
 
 COLUMNS = ("cv_id", "cv_x", "target_density", "target_u_axial", "swarm_density", "swarm_u_axial", "samples")
 
@@ -120,6 +134,13 @@ class DensityProfile:
     """Standard deviation of each CV's realised / designed over its slice mean [-]."""
     classes: dict[str, tuple[int, float, float]]
     """Wall class -> (CVs, mean, sd of realised / designed)."""
+    tracer_classes: dict[str, tuple[float, float]]
+    """Wall class -> mean tracer / designed density of (exact tracers, tracers holding each command for
+    ``HELD_COMMAND_S``), over the same CVs (``sim.tracers``; absolute, not relative to the mean)."""
+    tracer_pearson: tuple[float, float]
+    """Pearson correlation with the designed density of (exact tracers, held-command tracers) [-]."""
+    swarm_pearson: float
+    """Pearson correlation of the realised density with the designed density [-]."""
     realised: Score
     """The realised density against the CFD's (the run's density figures)."""
     with_design_profile: Score
@@ -150,15 +171,21 @@ def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
         return np.bincount(slice_of, v * w) / np.bincount(slice_of, w)
 
     within = ratio / slice_mean(ratio)[slice_of]
-    classes = {name: (int(m[use].sum()), float(ratio[m[use]].mean()), float(ratio[m[use]].std()))
-               for name, m in wall_classes(field).items() if m[use].any()}
+    masks = {name: m[use] for name, m in wall_classes(field).items() if m[use].any()}
+    classes = {name: (int(m.sum()), float(ratio[m].mean()), float(ratio[m].std())) for name, m in masks.items()}
+    rho_d = np.asarray(cmap["cv_design_density"], dtype=float)
+    exact, held = (tracer_density(field, rho_d, TRACER_SEEDS, dt, how).density[use] / design
+                   for dt, how in ((TRACER_DT_S, Integrator.RK4), (HELD_COMMAND_S, Integrator.EULER)))
     return DensityProfile(
         x_m=xs, n_cv=np.bincount(slice_of), cfd=slice_mean(normalise_min_max(cfd)),
         design=slice_mean(normalise_min_max(design)), swarm=slice_mean(normalise_min_max(swarm)),
         realised_over_designed=slice_mean(ratio), u_swarm_m_s=slice_mean(f["swarm_u_axial"][use], swarm),
         u_field_m_s=slice_mean(cube_mean_u_axial_m_s(field.grid_cv, field.face_u_m_s[0])[use]),
         u_cfd_m_s=slice_mean(f["target_u_axial"][use] * cmap.scale),
-        within_slice_sd=float(within.std()), classes=classes, realised=Score.of(swarm, cfd),
+        within_slice_sd=float(within.std()), classes=classes,
+        tracer_classes={name: (float(exact[m].mean()), float(held[m].mean())) for name, m in masks.items()},
+        tracer_pearson=(pearson(exact * design, design), pearson(held * design, design)),
+        swarm_pearson=pearson(swarm, design), realised=Score.of(swarm, cfd),
         with_design_profile=Score.of(design * within, cfd), design_score=Score.of(design, cfd))
 
 
@@ -170,9 +197,12 @@ def markdown(p: DensityProfile) -> str:
     for i, xv in enumerate(p.x_m):
         lines.append(f"| {xv:.2f} | {p.n_cv[i]} | " + " | ".join(f"{c[i]:.3f}" for c in cols) + " |")
     lines += ["", f"Within-slice scatter of realised / designed: sd {p.within_slice_sd:.3f}.", "",
-              "| wall class | CVs | realised / designed (mean) | sd |", "|---|---|---|---|"]
-    lines += [f"| {name} | {n} | {mean:.3f} | {sd:.3f} |" for name, (n, mean, sd) in p.classes.items()]
-    lines.append("")
+              "| wall class | CVs | realised / designed (mean) | sd | exact tracers / designed | "
+              f"tracers, commands held {HELD_COMMAND_S:g} s / designed |", "|---|---|---|---|---|---|"]
+    lines += [f"| {name} | {n} | {mean:.3f} | {sd:.3f} | {p.tracer_classes[name][0]:.3f} | {p.tracer_classes[name][1]:.3f} |"
+              for name, (n, mean, sd) in p.classes.items()]
+    lines += ["", f"* correlation with the designed density: exact tracers r {p.tracer_pearson[0]:.2f}, tracers with "
+              f"commands held {HELD_COMMAND_S:g} s r {p.tracer_pearson[1]:.2f}, the swarm r {p.swarm_pearson:.2f}"]
     for what, s in (("realised against the CFD", p.realised),
                     ("realised with the design's slice profile", p.with_design_profile),
                     ("the design against the CFD", p.design_score)):

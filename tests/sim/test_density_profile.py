@@ -49,7 +49,14 @@ def test_the_diagnostic_agrees_with_the_independent_fidelity_check(tool, short_r
     assert 0 < p.within_slice_sd < 1 and p.design_score.pearson > 0.9
     # the swarm's axial velocity tracks the field's within 20 % in every slice (steady number flux)
     assert np.all(np.abs(p.u_swarm_m_s / p.u_field_m_s - 1) < 0.2)
-    assert "| closed upstream face |" in tool.markdown(p)
+    # ideal tracers in the same field keep the design (every class within 5 %); holding each command
+    # for the 20 Hz interval empties the cubes behind the outward steps
+    assert p.tracer_pearson[0] > 0.95 and p.tracer_pearson[1] < p.tracer_pearson[0]
+    assert all(abs(exact - 1) < 0.05 for exact, _ in p.tracer_classes.values())
+    assert p.tracer_classes["closed upstream face"][1] < 0.7
+    assert -1 <= p.swarm_pearson <= 1
+    md = tool.markdown(p)
+    assert "| closed upstream face |" in md and "exact tracers / designed" in md
 
 
 def test_a_schema_1_map_or_another_maps_fields_are_refused_by_name(tool, short_run, tmp_path, capsys):
