@@ -199,8 +199,9 @@ def markdown(p: DensityProfile) -> str:
     lines += ["", f"Within-slice scatter of realised / designed: sd {p.within_slice_sd:.3f}.", "",
               "| wall class | CVs | realised / designed (mean) | sd | exact tracers / designed | "
               f"tracers, commands held {HELD_COMMAND_S:g} s / designed |", "|---|---|---|---|---|---|"]
-    lines += [f"| {name} | {n} | {mean:.3f} | {sd:.3f} | {p.tracer_classes[name][0]:.3f} | {p.tracer_classes[name][1]:.3f} |"
-              for name, (n, mean, sd) in p.classes.items()]
+    for name, (n, mean, sd) in p.classes.items():
+        exact, held = p.tracer_classes[name]
+        lines.append(f"| {name} | {n} | {mean:.3f} | {sd:.3f} | {exact:.3f} | {held:.3f} |")
     lines += ["", f"* correlation with the designed density: exact tracers r {p.tracer_pearson[0]:.2f}, tracers with "
               f"commands held {HELD_COMMAND_S:g} s r {p.tracer_pearson[1]:.2f}, the swarm r {p.swarm_pearson:.2f}"]
     for what, s in (("realised against the CFD", p.realised),
