@@ -338,6 +338,21 @@ def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1
     return wps
 
 
+def lap_return_waypoints(pos: Vec, wait_at: Vec, geom: MapGeometry, margin_m: float = 1.0) -> list[Vec]:
+    """Waypoints of a lap's return from past the outlet ``pos`` to ``wait_at``, the point above the
+    vehicle's launch point where its first join waited (exit policy ``loop`` with staggered entry).
+
+    Up at ``pos`` to ``margin_m`` above the tunnel's bounding box, back along x at that height to
+    above ``wait_at``'s x at ``pos``'s y, across to above ``wait_at``, and straight down to it.  The
+    other agents wait above their own launch points, below that height: the only leg that comes down
+    to them is the last, which descends above this vehicle's own launch point.  (Back below the tunnel
+    instead, as ``join_waypoints`` routes, a return at the waiting height would fly through them.)
+    Returns ``[..., wait_at]``."""
+    z_top = geom.hi_m[2] + margin_m
+    x, y, _ = pos
+    return [(x, y, z_top), (wait_at[0], y, z_top), (wait_at[0], wait_at[1], z_top), wait_at]
+
+
 def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:
     """May agent ``agent_id`` cross the inlet now?  Decentralised staggered entry on a shared clock.
 

@@ -32,7 +32,7 @@ from typing import Callable
 from fisc_agent.adapters import ModeClass
 from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
-                                entry_slot_open, goto_velocity, hold_point, join_waypoints)
+                                entry_slot_open, goto_velocity, hold_point, join_waypoints, lap_return_waypoints)
 from fisc_agent.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.identify import ResponseRecorder, VehicleResponse
 from fisc_agent.lookup import POINT_MODES
@@ -186,15 +186,24 @@ class Mission:
     def _plan_join(self, pos: Vec) -> None:
         assert self.geom is not None and self.entry is not None
         cfg = self.cfg
-        path = join_waypoints(pos, self.entry, self.geom, cfg.staging_m, cfg.keepout_margin_m)
         # With a stagger, a join waits for its window where it starts (after take-off: above the
         # vehicle's own launch point; after a hold: where it held), and leaves early by its flight to
         # the staging point S: it reaches S as its window opens and flies on without stopping.
         # Waiting at S, the agents stood at their entry points' (y, z), decimetres apart (PX4 SITL:
-        # 0.19 m by SIH's ground truth).  A lap's return, which starts past the outlet, waits at S.
-        here = cfg.entry_stagger_s > 0 and self._wait_where_planned
-        self._waypoints = ([pos] if here else []) + path
-        self._wait_index = 0 if here else len(self._waypoints) - 2
+        # 0.19 m by SIH's ground truth).  A lap's return waits where its first join did, above its
+        # launch point, reached over the tunnel (``lap_return_waypoints``).
+        wait_at: Vec | None = None
+        route: list[Vec] = []
+        if cfg.entry_stagger_s > 0:
+            if self._wait_where_planned:
+                wait_at = pos
+            elif self._home is not None:
+                wait_at = (self._home[0], self._home[1], self._home[2] + cfg.takeoff_alt_m)
+                route = lap_return_waypoints(pos, wait_at, self.geom, cfg.keepout_margin_m)[:-1]
+        path = join_waypoints(pos if wait_at is None else wait_at, self.entry, self.geom, cfg.staging_m,
+                              cfg.keepout_margin_m)
+        self._waypoints = route + ([] if wait_at is None else [wait_at]) + path
+        self._wait_index = len(self._waypoints) - 2 if wait_at is None else len(route)
         legs = self._waypoints[self._wait_index:-1]
         self._entry_lead_s = sum(approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m)
                                  for a, b in zip(legs, legs[1:]))
@@ -315,7 +324,7 @@ class Mission:
             while self._wp_index < last and distance(pos, self._waypoints[self._wp_index]) < cfg.waypoint_radius_m:
                 self._wp_index += 1
             waiting = False
-            if self._wp_index == self._wait_index + 1 and not self._entry_cleared:  # wait for our slot
+            if self._wp_index > self._wait_index and not self._entry_cleared:  # at the wait point (or past a copy)
                 waiting = not entry_slot_open(s.wall_time_s + self._entry_lead_s, cfg.agent_id, cfg.entry_stagger_s,
                                               cfg.entry_slots)
                 if not waiting:

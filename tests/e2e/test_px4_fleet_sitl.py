@@ -8,8 +8,10 @@ flown; a newer map signed by a stranger, served mid-flight, is refused by every 
 keep flying.  Entries are staggered on the shared clock (``--entry-stagger``): the streamlines
 converge towards the throat.  The vehicles must stay ``MIN_SEPARATION_M`` apart by SIH's ground
 truth (not PX4's estimates, off by up to 0.5 m) over the whole flight: they wait for their
-windows above their own launch points and hold after the outlet each at its own point
-(``control.hold_point``).  ``FISC_SITL_FLEET`` sets the fleet size (default 3).
+windows above their own launch points, fly ``LAPS`` passes (``--exit-policy loop``: a lap's return
+flies back over the tunnel and waits above its launch point again, ``control.lap_return_waypoints``)
+and then hold after the outlet each at its own point (``control.hold_point``).  ``FISC_SITL_FLEET``
+sets the fleet size (default 3), ``FISC_SITL_FLEET_LAPS`` the passes (default 2).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from .sitl_kit import (MAP_ANCHOR, PX4_TUNED_PARAMS, Px4Sitl, Track, ground, ok,
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
 N = int(os.environ.get("FISC_SITL_FLEET", "3"))
+LAPS = int(os.environ.get("FISC_SITL_FLEET_LAPS", "2"))
 FLEET_HOLD = os.environ.get("FISC_SITL_FLEET_HOLD", "1") != "0"
 """``FISC_SITL_FLEET_HOLD=0`` leaves out the fleet hold/resume (a clean pass, to measure crossings)."""
 SWARM = "sitl"
@@ -94,7 +97,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
                     "--swarm", SWARM, "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
                     "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", STAGGER_S, "--entry-slots", max(N, 2),
-                    "--flight-log", logs[i]])
+                    "--exit-policy", "loop", "--laps", LAPS, "--flight-log", logs[i]])
             # every agent got the signed map and reports it
             seen = poll(lambda: (lambda s: s if len(s) == N and all(a["map_sha256"] == good.sha256 for a in s.values())
                                  else None)(status()), 90.0, 0.0)
@@ -120,9 +123,9 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
                                                                          for a in s.values()) else None)(status()),
                            40.0, 0.0)
             assert refused, procs.report()
-            # everyone through and holding after the outlet
+            # everyone through its laps and holding after the outlet
             done = poll(lambda: all(s == "HOLD" for s in states()) and all(
-                any(r["state"] == "EXIT" for r in read_flight_log(p)) for p in logs), 240.0, 1.0)
+                any(r["state"] == "EXIT" for r in read_flight_log(p)) for p in logs), 240.0 + 90.0 * LAPS, 1.0)
             assert done, (states(), procs.report())
         finally:
             procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
@@ -134,7 +137,8 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
     scores = [score_track(t.t_s, t.pos_m, t.vel_m_s, t.states, ref, good.scale, wall=wall) for t in tracks]
     truths = [truth_on_wall_clock(p, t, MAP_ANCHOR) for p, t in zip(ulog_paths, tracks)]
     sep = min_separation_m([(w.wall_s, w.pos_m) for w in truths])
-    report = {"hold_ack": out, "min_separation_m": sep,
+    passes = [sum(1 for a, b in zip(t.states, t.states[1:]) if a == "JOIN" and b == "FLOW") for t in tracks]
+    report = {"hold_ack": out, "min_separation_m": sep, "passes": passes,
               "min_separation_estimated_m": min_separation_m([(t.wall_s, t.pos_m) for t in tracks]),
               "clock_fit_rms_m": [w.fit_rms_m for w in truths], "scores": [s.as_dict() for s in scores],
               "crossing_s": [s.crossing_time_s for s in scores]}
@@ -143,6 +147,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
         assert s.max_excursion_m < 0.3, (i, s)
         assert FLEET_HOLD or (s.crossed and not s.held), (i, s)
         assert s.n_samples > 50, (i, s)
+    assert passes == [LAPS] * N, report
     assert all(w.fit_rms_m < 0.1 for w in truths), report   # the clocks matched: the truth is on the wall clock
     assert sep >= MIN_SEPARATION_M, report
     for u in ulogs:

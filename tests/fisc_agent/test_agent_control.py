@@ -153,6 +153,29 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
         assert not _segment_enters_box(a, b, g, 0.5), (a, b)
 
 
+@pytest.mark.parametrize("exit_yz", [(0.0, 0.0), (1.0, -0.8), (-1.2, 1.0)])
+def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_wait_point(field, exit_yz):
+    from fisc_agent.control import lap_return_waypoints
+
+    g = MapGeometry.from_field(field)
+    pos = (g.x_outlet_m + 0.2, *exit_yz)
+    wait_at = (g.x_inlet_m - 1.0, 3.0, g.lo_m[2] - 2.0)
+    wps = lap_return_waypoints(pos, wait_at, g, margin_m=0.5)
+    assert wps[-1] == wait_at
+    top = g.hi_m[2] + 0.5
+    assert all(p[2] == top for p in wps[:-1])                        # over the tunnel's keep-out box
+    assert wps[-2][:2] == wait_at[:2]                                 # the last leg is straight down
+    path = [pos] + wps
+    for a, b in zip(path[1:-2], path[2:-1]):                          # the legs at the top stay out of the box
+        assert not _segment_enters_box(a, b, g, 0.5), (a, b)
+    # another agent waiting 3 m beside it, at its height: only the last leg comes down, 3 m away
+    other = np.array([wait_at[0], wait_at[1] - 3.0, wait_at[2]])
+    for a, b in zip(path[:-1], path[1:]):
+        s = np.linspace(0.0, 1.0, 400)[:, None]
+        seg = np.asarray(a) + s * (np.asarray(b) - np.asarray(a))
+        assert np.linalg.norm(seg - other, axis=1).min() >= 3.0 - 1e-9
+
+
 @pytest.mark.parametrize("dist", [0.2, 0.8, 1.9, 6.0])
 def test_approach_time_is_the_time_goto_velocity_takes(dist):
     from fisc_agent.control import approach_time_s

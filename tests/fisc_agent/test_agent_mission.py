@@ -634,6 +634,57 @@ def test_staggered_agents_wait_above_their_launch_points_and_enter_the_windows_t
     assert min(b - a for a, b in zip(order, order[1:])) >= 0.75 * stagger - 0.5, entered
 
 
+def test_staggered_laps_wait_for_their_window_above_their_launch_points(sfield):
+    """Exit ``loop``, 8 windows of 4 s, launch points 3 m apart: a lap's return flies back over the
+    tunnel and waits for its window where its first join waited, above its own launch point, never at
+    its staging point (those lie decimetres apart), and crosses the inlet the same time after its
+    window opens as on its first pass."""
+    geom = MapGeometry.from_field(sfield.field)
+    wall0, stagger, slots = 1_000_000.0 * 32.0, 4.0, 8
+    waited_s = {}
+    for agent_id in range(3):
+        cfg, m, v = make(sfield, agent_id=agent_id, entry_stagger_s=stagger, entry_slots=slots, exit_policy="loop",
+                         laps=2, lookahead_auto=False)
+        v.pos = [0.0, 3.0 * agent_id, -3.0]
+        v.ground_z = -3.0
+        above_launch = np.array([0.0, 3.0 * agent_id, -3.0 + cfg.takeoff_alt_m])
+        track = []
+        while v.t < 300.0 and m.laps < 2:
+            out = m.step(v.status()._replace(wall_time_s=wall0 + v.t))
+            v.apply(out, cfg)
+            track.append((v.t, m.state, m.laps, np.array(v.pos), math.hypot(*v.vel)))
+        assert m.laps == 2, m.transitions
+        lap_join = [(t, p, speed) for t, st, laps, p, speed in track if st == State.JOIN and laps == 1]
+        # the waits: stretches of >= 1 s at (almost) no speed
+        waits, run_ = [], []
+        for t, p, speed in lap_join + [(np.inf, None, np.inf)]:
+            if speed < 0.05:
+                run_.append((t, p))
+                continue
+            if run_ and run_[-1][0] - run_[0][0] >= 1.0:
+                waits.append(run_)
+            run_ = []
+        # it waited only above its launch point: never at its staging point, never past the outlet
+        assert all(np.linalg.norm(p - above_launch) < cfg.waypoint_radius_m + 0.1 for w in waits for _, p in w), \
+            (above_launch, [w[0] for w in waits])
+        waited_s[agent_id] = sum(w[-1][0] - w[0][0] for w in waits)
+        # on the way back, until it waited, it flew over the tunnel's keep-out box, and it came down
+        # only above its own launch point (the others wait above theirs, 3 m apart)
+        arrived = next(t for t, p, speed in lap_join if np.linalg.norm(p - above_launch) < cfg.waypoint_radius_m + 0.1)
+        back = [p for t, p, speed in lap_join if t < arrived and geom.x_inlet_m + 0.5 <= p[0] <= geom.x_outlet_m]
+        assert back and min(p[2] for p in back) > geom.hi_m[2] + cfg.keepout_margin_m - 0.5, min(p[2] for p in back)
+        for other in range(3):
+            if other != agent_id:
+                their_wait = np.array([0.0, 3.0 * other, -3.0 + cfg.takeoff_alt_m])
+                assert min(np.linalg.norm(p - their_wait) for t, p, speed in lap_join if t < arrived) > 2.5
+        # it crossed the inlet the same time after its window opened as on its first pass (both
+        # flights to the staging point were led by their own approach time)
+        first, second = [(wall0 + tr.t_s - stagger * agent_id) % (slots * stagger)
+                         for tr in m.transitions if tr.dst == State.FLOW][:2]
+        assert abs(second - first) < 0.5, (first, second)
+    assert max(waited_s.values()) > 1.0, waited_s                  # someone had to wait for a window
+
+
 def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
     """A vehicle that gives too little excitation (a hover-like join) is not identified; the agent
     says so once and flies on with the given look-ahead (no warning per tick of the final leg)."""
