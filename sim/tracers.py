@@ -12,7 +12,7 @@ Why: ``fisc_ground.staggered.project`` makes the discrete divergence of rho_d u 
 and inside a cube each component runs linearly between its two faces.  Whether tracers then keep
 the designed density is a property of the field alone; this module measures it, so that the swarm's
 departures from the design can be split into what the field does and what the vehicles do
-(``benchmarks/tracer_density.py``, docs/simulation.md).  The forward-Euler integrator holds each
+(``benchmarks/density_profile.py``, docs/simulation.md).  The forward-Euler integrator holds each
 velocity over its step, as a vehicle without lag flying commands streamed every ``dt_s``.
 
 Pure numerics: arrays in, arrays out; vectorised over tracers (numpy).
@@ -116,9 +116,9 @@ def tracer_density(field: CommandField, design_density: np.ndarray, seeds_per_ax
     rank = (np.arange(flux.size) % m2) * PHASE_STRIDE % m2
     step = dt_s * ((rank + 0.5) / m2)[:, None]
     p, q = pts, flux
+    rows, frac, cv = field.locate(p)
     t = 0.0
     while q.size and t < max_time_s:
-        rows, frac, cv = field.locate(p)
         if t > 0:
             booked += np.bincount(cv, weights=q, minlength=field.n_cv) * dt_s
         k1 = field.staggered_at(rows, frac)
@@ -130,9 +130,10 @@ def tracer_density(field: CommandField, design_density: np.ndarray, seeds_per_ax
             k4 = velocity(p + step * k3)
             p = p + (step / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
         t += dt_s
-        inside = field.locate(p)[2] >= 0
+        rows, frac, cv = field.locate(p)  # where the next step starts
+        inside = cv >= 0
         lost += float(q[~inside & (p[:, 0] < x_out)].sum())
-        p, q = p[inside], q[inside]
+        p, q, rows, frac, cv = p[inside], q[inside], rows[inside], frac[inside], cv[inside]
         step = np.full((q.size, 1), dt_s)
     lost += float(q.sum())
     total = float(flux.sum())
