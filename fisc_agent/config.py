@@ -116,7 +116,8 @@ class AgentConfig:
     """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
     exit_spacing_m: float = 1.5
     """With exit ``hold``/``land``: least distance between two agents' stopping points
-    (``control.hold_point``: agent i takes point i of a spiral around the tunnel's axis) [m]."""
+    (``control.hold_point``: agent i takes point i of a spiral around the tunnel's axis, skipping points
+    below the tunnel) [m]."""
     source_system: int | None = None
     """MAVLink system id of the agent; None = the vehicle's own id (companion convention)."""
     source_component: int = 191

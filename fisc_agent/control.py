@@ -299,18 +299,29 @@ VOGEL_MIN_SPACING = 1.546
 
 def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float) -> Vec:
     """Agent ``agent_id``'s own hold point in the plane ``x = x_m``, at least ``spacing_m`` from any
-    other agent's: point ``agent_id`` of an unbounded Vogel spiral around the tunnel's axis.
+    other agent's: the ``agent_id``-th point of an unbounded Vogel spiral around the tunnel's axis
+    that lies no lower than the tunnel's lowest CV (``geom.lo_m[2]``).
 
     Agents leave the outlet within a few decimetres of each other; held where they left it, two PX4
     SITL vehicles hovered 0.11-0.30 m apart (SIH ground truth).  The spiral's radius grows as
-    sqrt(id): 1000 agents at 1.5 m spacing hold within 31 m of the axis.
+    sqrt(id), so a whole spiral would put large fleets below the tunnel (1000 agents at 1.5 m
+    spacing reach 31 m from the axis, under ground at a 10 m axis height); points below the tunnel's
+    floor are skipped, so every hold point is at least as high as the tunnel the vehicles just flew
+    (1000 agents on the default map: up to 42 m above its axis).  The layout depends only on the map,
+    so every agent computes the same one.
     """
-    k = int(agent_id)
-    if k < 0:
+    if int(agent_id) < 0:
         raise ValueError(f"hold_point: agent id must be >= 0, got {agent_id}")
-    r = spacing_m / VOGEL_MIN_SPACING * math.sqrt(k + 0.5)
+    scale = spacing_m / VOGEL_MIN_SPACING
     cy, cz = geom.inlet_center_yz_m
-    return (float(x_m), cy + r * math.cos(k * GOLDEN_ANGLE_RAD), cz + r * math.sin(k * GOLDEN_ANGLE_RAD))
+    floor_z = geom.lo_m[2]
+    k, kept = -1, -1
+    while kept < int(agent_id):   # the spiral is unbounded and at least half of it lies above the floor
+        k += 1
+        r = scale * math.sqrt(k + 0.5)
+        y, z = cy + r * math.cos(k * GOLDEN_ANGLE_RAD), cz + r * math.sin(k * GOLDEN_ANGLE_RAD)
+        kept += z >= floor_z
+    return (float(x_m), y, z)
 
 
 def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1.5,

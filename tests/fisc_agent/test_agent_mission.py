@@ -155,7 +155,7 @@ def test_px4_full_pass_then_exit_hold(sfield):
 
 
 def test_agents_hold_after_the_outlet_at_their_own_points_spaced_apart(sfield):
-    from fisc_agent.control import hold_point
+    from fisc_agent.control import GOLDEN_ANGLE_RAD, VOGEL_MIN_SPACING, hold_point
 
     geom = MapGeometry.from_field(sfield.field)
     held = {}
@@ -171,6 +171,14 @@ def test_agents_hold_after_the_outlet_at_their_own_points_spaced_apart(sfield):
     pts = np.array([hold_point(k, geom, 0.0, 1.5)[1:] for k in range(5000)])
     nearest = cKDTree(pts).query(pts, 2)[0][:, 1].min()
     assert 1.5 - 1e-3 <= nearest <= 1.5 * 1.01   # VOGEL_MIN_SPACING holds for 5000 agents, and is not loose
+    # never below the tunnel's floor (a whole spiral of 1000 puts 40 % of them lower, under ground at
+    # a 10 m axis height): the spiral's points above the floor, in order
+    cy, cz = geom.inlet_center_yz_m
+    r = 1.5 / VOGEL_MIN_SPACING * np.sqrt(np.arange(3000) + 0.5)
+    ang = np.arange(3000) * GOLDEN_ANGLE_RAD
+    whole = np.column_stack([cy + r * np.cos(ang), cz + r * np.sin(ang)])
+    assert np.allclose(pts[:1000], whole[whole[:, 1] >= geom.lo_m[2]][:1000], rtol=0, atol=1e-9)
+    assert (whole[:1000, 1] < geom.lo_m[2]).mean() > 0.3 and pts[:, 1].min() >= geom.lo_m[2]
 
 
 def test_ardupilot_takes_off_by_command_without_setpoints(sfield):
