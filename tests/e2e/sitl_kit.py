@@ -5,7 +5,8 @@ API link on udp 14540+i, ground-station link on 14550), with the run state in a 
 
 - ``Px4Sitl`` / ``ArduPilotSitl``: context managers that start N vehicles, wait until they are
   ready (PX4: "Ready for takeoff" in each console log; ArduPilot: its pre-arm checks pass),
-  and stop them, leaving their flight logs (ULog / DataFlash) in ``run_dir``.
+  and stop them, leaving their flight logs (ULog / DataFlash) in ``run_dir``; they hold
+  ``MachineLock`` meanwhile (one set of vehicles per machine: fixed ports and sockets).
 - The shared PX4 folder is read-only and its ``bin/px4-<module>`` command links arrive as plain
   files that name their target (``px4``); PX4's startup scripts call those commands, so
   ``px4_install`` lays a shadow install in the run folder: a copy of the ``px4`` binary, real
@@ -16,6 +17,7 @@ API link on udp 14540+i, ground-station link on 14550), with the run state in a 
 
 from __future__ import annotations
 
+import fcntl
 import glob
 import os
 import shutil
@@ -42,6 +44,45 @@ PX4_TUNED_PARAMS = {"MPC_XY_VEL_P_ACC": 3.5, "MPC_XY_VEL_I_ACC": 1.5}
 """PX4's horizontal velocity loop tuned for SIH's airframe (docs/deployment.md): with the stock
 gains (1.8 / 0.4) the loop settles at 0.80-0.85 of its setpoint against SIH's linear drag
 (SIH_KDV = 1) until the integrator catches up, identified in flight as a 0.85-0.9 s lag."""
+
+
+MACHINE_LOCK = Path("/tmp/fisc-sitl.lock")
+"""One set of SITL vehicles per machine at a time: both autopilots' instances use fixed ports
+(udp 14540+i, 14550, PX4's 18570+i and 4560+i) and PX4 its command sockets ``/tmp/px4-sock-<i>``,
+so a second test session (a second CI clone, a developer's run) would otherwise talk to the first
+one's vehicles.  Held from start to stop; a second session waits for it."""
+
+
+class MachineLock:
+    """Exclusive ``flock`` on ``path`` (``MACHINE_LOCK``), waited for up to ``timeout_s``; the error names
+    the holder's pid."""
+
+    def __init__(self, timeout_s: float = 300.0, path: Path = MACHINE_LOCK) -> None:
+        self.timeout_s, self.path = timeout_s, path
+        self._fd: int | None = None
+
+    def acquire(self) -> None:
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        end = time.monotonic() + self.timeout_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > end:
+                    holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+                    os.close(fd)
+                    raise RuntimeError(f"SITL vehicles of another test session (pid {holder}) still hold "
+                                       f"{self.path} after {self.timeout_s:.0f} s: stop that session first") from None
+                time.sleep(1.0)
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)   # closing drops the flock
+            self._fd = None
 
 
 def ensure_ports_quiet(ports: list[int], listen_s: float = 1.0) -> None:
@@ -117,6 +158,16 @@ class SitlRun:
     n: int
 
 
+def _started(sitl: "Px4Sitl | ArduPilotSitl", start) -> SitlRun:
+    """Take the machine lock and ``start()`` the vehicles; on any failure stop them and let the lock go."""
+    sitl._lock.acquire()
+    try:
+        return start()
+    except BaseException:
+        sitl.__exit__(None, None, None)
+        raise
+
+
 class Px4Sitl:
     """``with Px4Sitl(shared/sitl/px4, tmp, n) as run:`` N PX4 SIH vehicles, ready to arm."""
 
@@ -126,6 +177,7 @@ class Px4Sitl:
         self.run_dir = work / "px4-run"
         self.n, self.spacing_m, self.params = n, spacing_m, dict(params or {})
         self.ready_timeout_s = ready_timeout_s
+        self._lock = MachineLock()
 
     def _env(self) -> dict[str, str]:
         env = dict(os.environ, PX4_SITL_RUN=str(self.run_dir))
@@ -140,22 +192,26 @@ class Px4Sitl:
         return p.read_text(errors="replace") if p.exists() else ""
 
     def __enter__(self) -> SitlRun:
+        return _started(self, self._start)
+
+    def _start(self) -> SitlRun:
         ensure_ports_quiet([14540 + i for i in range(self.n)] + [14550])
         out = subprocess.run([str(self.install / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
                              text=True, timeout=60)
         if out.returncode != 0:
-            self.__exit__(None, None, None)
             raise RuntimeError(f"PX4 SITL did not start: {out.stdout}{out.stderr}\n{self.console(0)[-2000:]}")
         ready = _wait(lambda: all("Ready for takeoff" in self.console(i) for i in range(self.n)),
                       self.ready_timeout_s)
         if not ready:
             logs = "\n".join(self.console(i)[-1500:] for i in range(self.n))
-            self.__exit__(None, None, None)
             raise RuntimeError(f"PX4 SITL not ready for takeoff within {self.ready_timeout_s:.0f} s:\n{logs}")
         return SitlRun(self.run_dir, self.n)
 
     def __exit__(self, *exc) -> None:
-        subprocess.run([str(self.install / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+        try:
+            subprocess.run([str(self.install / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+        finally:
+            self._lock.release()
 
 
 class ArduPilotSitl:
@@ -167,6 +223,7 @@ class ArduPilotSitl:
         self.run_dir = work / "ap-run"
         self.n, self.spacing_m = n, spacing_m
         self.ready_timeout_s = ready_timeout_s
+        self._lock = MachineLock()
 
     def _env(self) -> dict[str, str]:
         env = dict(os.environ, AP_SITL_RUN=str(self.run_dir))
@@ -175,6 +232,9 @@ class ArduPilotSitl:
         return env
 
     def __enter__(self) -> SitlRun:
+        return _started(self, self._start)
+
+    def _start(self) -> SitlRun:
         from pymavlink import mavutil
 
         ensure_ports_quiet([14540 + i for i in range(self.n)] + [14550])
@@ -200,7 +260,6 @@ class ArduPilotSitl:
                 elif m.get_type() == "SYS_STATUS" and m.onboard_control_sensors_health & 0x10000000:
                     ready.add(sysid)
             if len(ready) < self.n:
-                self.__exit__(None, None, None)
                 raise RuntimeError(f"ArduPilot pre-arm checks not passing within {self.ready_timeout_s:.0f} s "
                                    f"(ready: {sorted(ready)})")
         finally:
@@ -208,7 +267,10 @@ class ArduPilotSitl:
         return SitlRun(self.run_dir, self.n)
 
     def __exit__(self, *exc) -> None:
-        subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+        try:
+            subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+        finally:
+            self._lock.release()
 
 
 # ---- the autopilots' own logs ------------------------------------------------------------

@@ -1,8 +1,13 @@
 """The SITL harness's own logic that needs no autopilot (fast)."""
 
-import numpy as np
+import subprocess
+import sys
+import time
 
-from .sitl_kit import pass_states
+import numpy as np
+import pytest
+
+from .sitl_kit import MachineLock, pass_states
 
 
 def _takeoff_join_pass():
@@ -28,3 +33,23 @@ def test_the_pass_begins_at_the_inlet_not_at_a_takeoff_that_drifts_forward():
 def test_no_forward_motion_in_the_duct_means_no_pass():
     pos, vel, first = _takeoff_join_pass()
     assert np.all(pass_states(pos[:first], vel[:first], 0.0, 15.0, 3.0) == "JOIN")
+
+
+def test_a_second_session_waits_for_the_first_sessions_vehicles(tmp_path):
+    """Two sessions' SITL vehicles would share ports and PX4's /tmp sockets: the lock serialises them."""
+    lock = tmp_path / "sitl.lock"
+    code = ("import sys, time; from pathlib import Path; from tests.e2e.sitl_kit import MachineLock; "
+            f"MachineLock(path=Path({str(lock)!r})).acquire(); print('held', flush=True); time.sleep(60)")
+    other = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "held"
+        t0 = time.monotonic()
+        with pytest.raises(RuntimeError, match=rf"pid {other.pid}\)"):
+            MachineLock(timeout_s=1.0, path=lock).acquire()
+        assert time.monotonic() - t0 >= 1.0
+    finally:
+        other.kill()
+        other.wait()
+    mine = MachineLock(timeout_s=5.0, path=lock)
+    mine.acquire()   # the holder is gone: the lock is free again
+    mine.release()
