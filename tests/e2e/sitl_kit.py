@@ -158,17 +158,34 @@ class SitlRun:
     n: int
 
 
-def _started(sitl: "Px4Sitl | ArduPilotSitl", start) -> SitlRun:
-    """Take the machine lock and ``start()`` the vehicles; on any failure stop them and let the lock go."""
-    sitl._lock.acquire()
-    try:
-        return start()
-    except BaseException:
-        sitl.__exit__(None, None, None)
-        raise
+class _SitlSet:
+    """A set of SITL vehicles as a context manager: ``_start`` under ``MachineLock``, ``_stop`` on
+    exit or on any failure while starting, then the lock let go."""
+
+    _lock: MachineLock
+
+    def _start(self) -> SitlRun:
+        raise NotImplementedError
+
+    def _stop(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> SitlRun:
+        self._lock.acquire()
+        try:
+            return self._start()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self._stop()
+        finally:
+            self._lock.release()
 
 
-class Px4Sitl:
+class Px4Sitl(_SitlSet):
     """``with Px4Sitl(shared/sitl/px4, tmp, n) as run:`` N PX4 SIH vehicles, ready to arm."""
 
     def __init__(self, shared_px4: Path, work: Path, n: int = 1, spacing_m: float | None = None,
@@ -191,9 +208,6 @@ class Px4Sitl:
         p = self.run_dir / "logs" / f"px4_{i}.log"
         return p.read_text(errors="replace") if p.exists() else ""
 
-    def __enter__(self) -> SitlRun:
-        return _started(self, self._start)
-
     def _start(self) -> SitlRun:
         ensure_ports_quiet([14540 + i for i in range(self.n)] + [14550])
         out = subprocess.run([str(self.install / "start.sh"), str(self.n)], env=self._env(), capture_output=True,
@@ -207,14 +221,11 @@ class Px4Sitl:
             raise RuntimeError(f"PX4 SITL not ready for takeoff within {self.ready_timeout_s:.0f} s:\n{logs}")
         return SitlRun(self.run_dir, self.n)
 
-    def __exit__(self, *exc) -> None:
-        try:
-            subprocess.run([str(self.install / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
-        finally:
-            self._lock.release()
+    def _stop(self) -> None:
+        subprocess.run([str(self.install / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
 
 
-class ArduPilotSitl:
+class ArduPilotSitl(_SitlSet):
     """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters whose pre-arm checks pass."""
 
     def __init__(self, shared_ap: Path, work: Path, n: int = 1, spacing_m: float | None = None,
@@ -230,9 +241,6 @@ class ArduPilotSitl:
         if self.spacing_m is not None:
             env["SITL_SPACING_M"] = str(self.spacing_m)
         return env
-
-    def __enter__(self) -> SitlRun:
-        return _started(self, self._start)
 
     def _start(self) -> SitlRun:
         from pymavlink import mavutil
@@ -266,11 +274,8 @@ class ArduPilotSitl:
             gcs.close()
         return SitlRun(self.run_dir, self.n)
 
-    def __exit__(self, *exc) -> None:
-        try:
-            subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
-        finally:
-            self._lock.release()
+    def _stop(self) -> None:
+        subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
 
 
 # ---- the autopilots' own logs ------------------------------------------------------------
