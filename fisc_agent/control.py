@@ -297,10 +297,10 @@ VOGEL_MIN_SPACING = 1.546
 (``hold_point``), in units of its scale; checked for the first 5000 points in the tests."""
 
 
-def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float) -> Vec:
-    """Agent ``agent_id``'s own hold point in the plane ``x = x_m``, at least ``spacing_m`` from any
-    other agent's: the ``agent_id``-th point of an unbounded Vogel spiral around the tunnel's axis
-    that lies no lower than the tunnel's lowest CV (``geom.lo_m[2]``).
+def hold_points(n: int, geom: MapGeometry, x_m: float, spacing_m: float) -> np.ndarray:
+    """(n, 3) the hold points of agents 0..n-1 in the plane ``x = x_m``, each at least ``spacing_m``
+    from any other: the first n points of an unbounded Vogel spiral around the tunnel's axis that lie
+    no lower than the tunnel's lowest CV (``geom.lo_m[2]``).
 
     Agents leave the outlet within a few decimetres of each other; held where they left it, two PX4
     SITL vehicles hovered 0.11-0.30 m apart (SIH ground truth).  The spiral's radius grows as
@@ -310,18 +310,26 @@ def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float) -
     (1000 agents on the default map: up to 42 m above its axis).  The layout depends only on the map,
     so every agent computes the same one.
     """
+    if int(n) < 0:
+        raise ValueError(f"hold_points: the number of agents must be >= 0, got {n}")
+    cy, cz = geom.inlet_center_yz_m
+    m = 2 * int(n) + 16   # at least half of the spiral lies above the floor, through the axis
+    while True:
+        k = np.arange(m)
+        r = spacing_m / VOGEL_MIN_SPACING * np.sqrt(k + 0.5)
+        y, z = cy + r * np.cos(k * GOLDEN_ANGLE_RAD), cz + r * np.sin(k * GOLDEN_ANGLE_RAD)
+        keep = np.flatnonzero(z >= geom.lo_m[2])[:int(n)]
+        if keep.size == int(n):
+            return np.column_stack([np.full(keep.size, float(x_m)), y[keep], z[keep]])
+        m *= 2
+
+
+def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float) -> Vec:
+    """Agent ``agent_id``'s own hold point: row ``agent_id`` of ``hold_points``."""
     if int(agent_id) < 0:
         raise ValueError(f"hold_point: agent id must be >= 0, got {agent_id}")
-    scale = spacing_m / VOGEL_MIN_SPACING
-    cy, cz = geom.inlet_center_yz_m
-    floor_z = geom.lo_m[2]
-    k, kept = -1, -1
-    while kept < int(agent_id):   # the spiral is unbounded and at least half of it lies above the floor
-        k += 1
-        r = scale * math.sqrt(k + 0.5)
-        y, z = cy + r * math.cos(k * GOLDEN_ANGLE_RAD), cz + r * math.sin(k * GOLDEN_ANGLE_RAD)
-        kept += z >= floor_z
-    return (float(x_m), y, z)
+    x, y, z = hold_points(int(agent_id) + 1, geom, x_m, spacing_m)[-1]
+    return (float(x), float(y), float(z))
 
 
 def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1.5,

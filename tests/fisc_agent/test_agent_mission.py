@@ -155,7 +155,7 @@ def test_px4_full_pass_then_exit_hold(sfield):
 
 
 def test_agents_hold_after_the_outlet_at_their_own_points_spaced_apart(sfield):
-    from fisc_agent.control import GOLDEN_ANGLE_RAD, VOGEL_MIN_SPACING, hold_point
+    from fisc_agent.control import GOLDEN_ANGLE_RAD, VOGEL_MIN_SPACING, hold_point, hold_points
 
     geom = MapGeometry.from_field(sfield.field)
     held = {}
@@ -168,7 +168,9 @@ def test_agents_hold_after_the_outlet_at_their_own_points_spaced_apart(sfield):
         assert np.linalg.norm(held[a] - held[b]) >= 1.5 - 2 * cfg.waypoint_radius_m
     from scipy.spatial import cKDTree
 
-    pts = np.array([hold_point(k, geom, 0.0, 1.5)[1:] for k in range(5000)])
+    pts = hold_points(5000, geom, 0.0, 1.5)[:, 1:]
+    assert [hold_point(k, geom, 0.0, 1.5) for k in (0, 7, 4999)] == [tuple(hold_points(5000, geom, 0.0, 1.5)[k])
+                                                                       for k in (0, 7, 4999)]
     nearest = cKDTree(pts).query(pts, 2)[0][:, 1].min()
     assert 1.5 - 1e-3 <= nearest <= 1.5 * 1.01   # VOGEL_MIN_SPACING holds for 5000 agents, and is not loose
     # never below the tunnel's floor (a whole spiral of 1000 puts 40 % of them lower, under ground at
