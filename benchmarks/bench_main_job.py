@@ -7,7 +7,12 @@ companion, which flies beside it in a forked process).  Then, in this process, t
 drawn one after the other and on two processes (``fisc_ground.figure_workers``), alternately,
 with their ratio.  The host's load moves all of these; compare numbers from one invocation.
 
+``--baseline CHECKOUT`` times another source tree's main job too (``python -m sim.cli run`` with
+that tree first on the path, this environment's packages), in pairs alternating with this one's,
+and prints the median of the paired ratios: the way to tell a change from the host's drift.
+
     python benchmarks/bench_main_job.py            # 1 cold + 3 warm runs, 3 figure rounds
+    git worktree add /tmp/base HEAD~1 && python benchmarks/bench_main_job.py --baseline /tmp/base --pairs 8
 """
 
 from __future__ import annotations
@@ -36,6 +41,42 @@ def time_run(out: Path, env: dict[str, str]) -> tuple[float, dict]:
     return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())
 
 
+def _baseline_sim(checkout: Path) -> tuple[list[str], dict[str, str]]:
+    """The command and environment of ``fisc-sim`` from the source tree ``checkout``."""
+    if not (checkout / "sim" / "cli.py").is_file():
+        raise SystemExit(f"--baseline {checkout}: no sim/cli.py there (a checkout of this repository?)")
+    path = os.pathsep.join([str(checkout), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return [sys.executable, "-m", "sim.cli"], {"PYTHONPATH": path}
+
+
+def time_pairs(checkout: Path, pairs: int, tmp: Path) -> None:
+    """``pairs`` runs each of the baseline's and this tree's main job, alternating (after one
+    untimed run of each, which fills their numba caches); prints each pair and the medians."""
+    base_cmd, base_env = _baseline_sim(checkout)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "numba-cache"))
+    benv = dict(env, NUMBA_CACHE_DIR=str(tmp / "numba-cache-baseline"), **base_env)
+    here = _fisc_sim()
+
+    def one(cmd: list[str], run_env: dict[str, str], out: Path) -> tuple[float, float]:
+        t0 = time.perf_counter()
+        subprocess.run(cmd + ["run", "-o", str(out)], env=run_env, cwd=tmp, check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())["wall_time_s"]
+
+    one(base_cmd, benv, tmp / "warm-base")
+    one(here, env, tmp / "warm-here")
+    base, mine = [], []
+    for k in range(pairs):
+        base.append(one(base_cmd, benv, tmp / f"base{k}"))
+        mine.append(one(here, env, tmp / f"here{k}"))
+        print(f"pair {k}: baseline {base[-1][0]:5.2f} s (loop {base[-1][1]:.2f} s), "
+              f"this tree {mine[-1][0]:5.2f} s (loop {mine[-1][1]:.2f} s)", flush=True)
+    for i, what in ((0, "wall"), (1, "simulation loop")):
+        ratio = statistics.median(m[i] / b[i] for b, m in zip(base, mine))
+        print(f"{what}: baseline median {statistics.median(b[i] for b in base):.2f} s, this tree "
+              f"{statistics.median(m[i] for m in mine):.2f} s; median paired ratio {ratio:.2f}")
+
+
 def time_figures(rounds: int) -> tuple[list[float], list[float]]:
     """Serial and two-process wall times of one run's figures, alternating."""
     from fisc_ground.field_figures import write_run_figures
@@ -56,7 +97,15 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=3, help="warm runs after the cold one (default 3)")
     ap.add_argument("--figure-rounds", type=int, default=3, help="serial/parallel figure rounds (default 3)")
+    ap.add_argument("--baseline", type=Path, metavar="CHECKOUT",
+                    help="a checkout of this repository (e.g. a git worktree of an older commit): time "
+                         "its main job too, alternating with this one's, and print the paired ratios")
+    ap.add_argument("--pairs", type=int, default=6, help="alternating run pairs with --baseline (default 6)")
     args = ap.parse_args()
+    if args.baseline is not None:
+        with tempfile.TemporaryDirectory() as tmp:
+            time_pairs(args.baseline.resolve(), args.pairs, Path(tmp))
+        return 0
     with tempfile.TemporaryDirectory() as tmp:
         env = dict(os.environ, NUMBA_CACHE_DIR=str(Path(tmp) / "numba-cache"))
         rows = []

@@ -12,7 +12,7 @@ import signal
 import sys
 import threading
 
-from fisc_agent.cli_common import ExitCode, add_logging_args, setup_logging
+from fisc_agent.cli_common import ExitCode, add_logging_args, console_exit, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
@@ -229,5 +229,10 @@ def main(argv: list[str] | None = None) -> int:
     return run(cfg, stop, args.max_duration, args, args.flight_log)
 
 
+def console() -> None:
+    """The ``fisc-agent`` console script (``pyproject.toml``): ``main()`` through ``console_exit``."""
+    console_exit(main)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -60,6 +60,9 @@ class DeviationState:
     """(m, 3) unit direction of interval ``epoch`` before reflections: a cache of
     ``deviation_direction`` (a function of agent id and interval), hashed again only when the
     interval changes."""
+    phase: np.ndarray | None = None
+    """(m,) a cache of ``deviation_phase`` of these agents' ids (a function of the id alone); None:
+    not hashed yet (the next call hashes it and returns it in the new state)."""
 
     @classmethod
     def new(cls, m: int) -> "DeviationState":
@@ -68,7 +71,8 @@ class DeviationState:
 
     def take(self, index: np.ndarray) -> "DeviationState":
         """The state of the agents ``index`` (a new object)."""
-        return DeviationState(self.epoch[index].copy(), self.sign[index].copy(), self.direction[index].copy())
+        return DeviationState(self.epoch[index].copy(), self.sign[index].copy(), self.direction[index].copy(),
+                              None if self.phase is None else self.phase[index].copy())
 
 
 def _unit_from_hash(agent_ids: np.ndarray, epoch: np.ndarray) -> np.ndarray:
@@ -98,11 +102,17 @@ def deviation_direction(agent_ids: np.ndarray, t_s: float, persistence_s: float)
     return _unit_from_hash(ids, epoch), epoch
 
 
-def deviation_epoch(agent_ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
-    """(m,) index of each agent's persistence interval at ``t_s`` (staggered by a hashed phase)."""
-    ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    phase = slot_hash(ids, 0x2545F491) * (1.0 / 4294967296.0)
-    return np.floor(float(t_s) / persistence_s + phase).astype(np.int64)
+def deviation_phase(agent_ids: np.ndarray) -> np.ndarray:
+    """(m,) each agent's phase in [0, 1) of its persistence intervals (a hash of its id)."""
+    return slot_hash(np.asarray(agent_ids, dtype=np.int64).reshape(-1), 0x2545F491) * (1.0 / 4294967296.0)
+
+
+def deviation_epoch(agent_ids: np.ndarray, t_s: float, persistence_s: float,
+                    phase: np.ndarray | None = None) -> np.ndarray:
+    """(m,) index of each agent's persistence interval at ``t_s``: floor(t_s / persistence_s + phase),
+    staggered by the hashed ``deviation_phase`` (given: its cached value for these agents)."""
+    p = deviation_phase(agent_ids) if phase is None else phase
+    return np.floor(float(t_s) / persistence_s + p).astype(np.int64)
 
 
 def kinetic_deviation(field: CommandField, points_m: np.ndarray, agent_ids: np.ndarray, t_s: float,
@@ -139,22 +149,22 @@ def deviation_in_cells(field: CommandField, rows: np.ndarray, frac: np.ndarray, 
     (m,) their cells' rows in the per-cell tables, ``frac`` (m, 3) their positions within them).
     ``flight_command`` locates each point once for the command and the deviation."""
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    epoch = deviation_epoch(ids, t_s, persistence_s)
-    fresh = epoch != state.epoch
+    phase = deviation_phase(ids) if state.phase is None else state.phase
+    epoch = deviation_epoch(ids, t_s, persistence_s, phase)
+    fresh = np.flatnonzero(epoch != state.epoch)
     sign = state.sign.copy()
     direction = state.direction
-    if fresh.any():
+    if fresh.size:
         direction = direction.copy()
         direction[fresh] = _unit_from_hash(ids[fresh], epoch[fresh])
         sign[fresh] = 1.0
-    faces = field.kinetic_faces.take(rows, axis=0)  # (m, 2, 3, 2): wall faces, stepped-out faces
+    codes = field.kinetic_codes.take(rows, axis=0)  # (m, 3): wall faces bits 0-1, stepped-out faces 2-3
     # where the wall a component was reflected from steps outward, the drawn direction returns
-    stepped = faces[:, 1]
-    np.copyto(sign, 1.0, where=(sign < 0) & np.where(direction >= 0, stepped[:, :, 1], stepped[:, :, 0]))
+    stepped = (codes >> ((direction >= 0) + 2)) & 1
+    np.copyto(sign, 1.0, where=(sign < 0) & (stepped == 1))
     d = direction * sign
-    walls = faces[:, 0]
     up = d >= 0
-    wall_ahead = np.where(up, walls[:, :, 1], walls[:, :, 0])
+    wall_ahead = ((codes >> up) & 1) == 1
     zone = WALL_ZONE
     if velocity_m_s is not None and BRAKE_S > 0:
         # a vehicle heading for a face at v_n turns once the face is within v_n * BRAKE_S
@@ -166,4 +176,4 @@ def deviation_in_cells(field: CommandField, rows: np.ndarray, frac: np.ndarray, 
     flip = toward & wall_ahead
     np.negative(sign, out=sign, where=flip)
     np.negative(d, out=d, where=flip)
-    return d, DeviationState(epoch, sign, direction)
+    return d, DeviationState(epoch, sign, direction, phase)

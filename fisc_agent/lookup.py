@@ -143,10 +143,14 @@ class CommandField:
         return out
 
     @functools.cached_property
-    def kinetic_faces(self) -> np.ndarray:
-        """(cells of the padded grid, 2, 3, 2) bool: ``wall_faces`` and ``stepped_out_faces`` side by
-        side per cell, rows as ``locate`` gives them (one gather per point in the kinetic deviation)."""
-        return self._on_padded_grid(np.stack([self.wall_faces, self.stepped_out_faces], axis=3))
+    def kinetic_codes(self) -> np.ndarray:
+        """(cells of the padded grid, 3) int64 per cell and axis, rows as ``locate`` gives them: bit s
+        set where ``wall_faces`` holds for the face on side s (0 lower, 1 upper), bit 2 + s where
+        ``stepped_out_faces`` does (one gather and shifts of whole (m, 3) arrays in the kinetic
+        deviation)."""
+        codes = (self.wall_faces.astype(np.int64) << np.arange(2)).sum(axis=-1) \
+            + (self.stepped_out_faces.astype(np.int64) << np.arange(2, 4)).sum(axis=-1)
+        return self._on_padded_grid(codes)
 
     def cell_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m, 3) integer grid cell of each point (half-open cells; may be out of range)."""
@@ -168,15 +172,31 @@ class CommandField:
         pad = [(1, 1)] * 3 + [(0, 0)] * (per_cell.ndim - 3)
         return np.pad(per_cell, pad, mode="edge").reshape((-1,) + per_cell.shape[3:])
 
-    def _padded_index(self, cells: np.ndarray) -> np.ndarray:
-        """(m,) flat index on the padded grid of integer grid cells (m, 3) (shifted in place), cells
-        beyond the grid clipped onto its border."""
-        cells += 1
-        return np.ravel_multi_index(cells.T, self._padded_shape, mode="clip")
+    @functools.cached_property
+    def _row_tiles(self) -> dict[str, np.ndarray]:
+        """Memo of ``_tiled``: per-axis constants repeated over rows."""
+        return {}
+
+    def _tiled(self, name: str, row: np.ndarray, m: int) -> np.ndarray:
+        """(m, 3) ``row`` repeated m times (a view of a memoised table).  Numpy runs a (m, 3) by (3,)
+        broadcast as m inner loops of 3 elements, five times slower than two (m, 3) arrays."""
+        t = self._row_tiles.get(name)
+        if t is None or t.shape[0] < m:
+            t = self._row_tiles[name] = np.tile(np.asarray(row, dtype=float), (max(m, 1024), 1))
+        return t[:m]
+
+    @functools.cached_property
+    def _padded_rows(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """``locate``'s flat-index rule in floating point: the highest cell index per axis (the
+        border beyond it), the padded grid's strides and the offset of cell (0, 0, 0), so that
+        row = min(max(cell, -1), hi) . strides + offset (exact: the rows are far below 2**53)."""
+        shape = np.asarray(self._padded_shape, dtype=np.int64)
+        strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=float)
+        return (shape - 2).astype(float), strides, float(strides.sum())
 
     def cv_of(self, points_m: np.ndarray) -> np.ndarray:
         """(m,) CV id of each point, -1 outside the map's CVs."""
-        return self._padded_cv.take(self._padded_index(self.cell_of(np.atleast_2d(points_m))))
+        return self.locate(points_m)[2]
 
     def nearest_cv_within(self, points_m: np.ndarray, radius_cells: int = 2) -> np.ndarray:
         """(m,) nearest existing CV (by centre distance) within ``radius_cells`` grid cells, else -1."""
@@ -270,34 +290,47 @@ class CommandField:
         return out
 
     @functools.cached_property
-    def _cell_faces(self) -> np.ndarray:
-        """(cells of the padded grid, 6) face velocities of every cell, (lower, upper) per axis, rows
-        as ``locate`` gives them: one gather per point in ``staggered_at``."""
+    def _cell_faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """Face velocities of every cell of the padded grid: (cells, 3) on its lower faces and (cells,
+        3) on its upper faces, rows as ``locate`` gives them (two contiguous gathers per point in
+        ``staggered_at``)."""
         if self.face_u_m_s is None:
             raise ValueError("modes staggered/kinetic need a map with face velocities (schema version 2)")
-        fx, fy, fz = self.face_u_m_s
-        return self._on_padded_grid(np.stack([fx[:-1], fx[1:], fy[:, :-1], fy[:, 1:], fz[:, :, :-1], fz[:, :, 1:]],
-                                             axis=-1).astype(float))
+        fx, fy, fz = (np.asarray(f, dtype=float) for f in self.face_u_m_s)
+        return (self._on_padded_grid(np.stack([fx[:-1], fy[:, :-1], fz[:, :, :-1]], axis=-1)),
+                self._on_padded_grid(np.stack([fx[1:], fy[:, 1:], fz[:, :, 1:]], axis=-1)))
+
+    @functools.cached_property
+    def _spread_xyz(self) -> np.ndarray:
+        """(n_cv, 3) ``spread_m_s`` repeated per axis (one contiguous gather per point)."""
+        return np.repeat(np.asarray(self.spread_m_s, dtype=float)[:, None], 3, axis=1)
 
     def locate(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Where points (m, 3) lie on the grid, computed once for every lookup that needs it: (m,) the
-        row of each point's cell in the per-cell tables (``_cell_faces``, ``kinetic_faces``; a point
+        row of each point's cell in the per-cell tables (``_cell_faces``, ``kinetic_codes``; a point
         beyond the grid reads the cell it clips to), (m, 3) the point's position within its own cell
         per axis (in [0, 1) for points inside the grid) and (m,) its CV id (-1 outside the CVs, as
         ``cv_of``)."""
-        f = (np.atleast_2d(np.asarray(points_m, dtype=float)) - self.origin_m) / self.cell_size_m
-        c = np.floor(f).astype(np.int64)
-        frac = f - c
-        rows = self._padded_index(c)
+        pts = np.atleast_2d(np.asarray(points_m, dtype=float))
+        m = pts.shape[0]
+        f = pts - self._tiled("origin", self.origin_m, m)
+        f /= self.cell_size_m
+        c = np.floor(f)
+        with np.errstate(invalid="ignore"):  # an infinite coordinate: frac NaN, its cell the border's
+            frac = f - c
+        hi, strides, offset = self._padded_rows
+        np.fmax(c, -1.0, out=c)  # fmax/fmin: a NaN coordinate reads the lowest border cell, as an index clip
+        np.fmin(c, self._tiled("hi", hi, m), out=c)
+        rows = (c @ strides + offset).astype(np.int64)
         return rows, frac, self._padded_cv.take(rows)
 
     def staggered_at(self, rows: np.ndarray, frac: np.ndarray) -> np.ndarray:
         """(m, 3) the staggered field at cells ``rows`` and positions ``frac`` within them (``locate``):
         each component linear between the two faces of the cell (the MAC-grid rule), ``frac``
         clipped into [0, 1]."""
-        t = np.clip(frac, 0.0, 1.0)
-        fc = self._cell_faces.take(rows, axis=0)
-        return (1.0 - t) * fc[:, 0::2] + t * fc[:, 1::2]
+        t = np.minimum(np.maximum(frac, 0.0), 1.0)  # np.clip, without its Python-level overhead
+        lower, upper = self._cell_faces
+        return (1.0 - t) * lower.take(rows, axis=0) + t * upper.take(rows, axis=0)
 
     def _staggered(self, pts: np.ndarray) -> np.ndarray:
         """``staggered_at`` the points (m, 3)."""
@@ -386,25 +419,30 @@ def flight_command(field: CommandField, points_m: np.ndarray, velocity_m_s: np.n
     """
     pts = np.atleast_2d(np.asarray(points_m, dtype=float))
     ids = np.asarray(agent_ids, dtype=np.int64).reshape(-1)
-    rows, frac, own_cv = field.locate(pts)  # each point located once, for the command and the deviation
+    m = len(pts)
+    ahead = None if settings.lookahead_s <= 0 else \
+        lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
+    # every point (and its look-ahead point) located once, for the command and the deviation
+    located = field.locate(pts if ahead is None else np.concatenate([pts, ahead]))
+    rows, frac, own_cv = (a[:m] for a in located)
     cv = own_cv if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
-    look_cv, keep = cv, None
-    if settings.lookahead_s > 0:
-        ahead = lookahead_point(pts, np.atleast_2d(velocity_m_s), settings.lookahead_s)
-        a_rows, a_frac, acv = field.locate(ahead)
-        keep = acv < 0  # no CV ahead: the agent's own point
-        look_cv = np.where(keep, cv, acv)
+    look_rows, look_frac, look_cv, keep = rows, frac, cv, None
+    if ahead is not None:
+        look_rows, look_frac, look_cv = (a[m:] for a in located)
+        keep = look_cv < 0  # no CV ahead: the agent's own point
+        if keep.any():
+            look_rows, look_frac = np.where(keep, rows, look_rows), np.where(keep[:, None], frac, look_frac)
+            look_cv = np.where(keep, cv, look_cv)
     if settings.mode not in FACE_MODES:
-        look = pts if keep is None else np.where(keep[:, None], pts, ahead)
+        look = pts if ahead is None else np.where(keep[:, None], pts, ahead)
         return field.command(look, ids, settings.mode, cv_ids=look_cv), cv, state
-    if keep is None:
-        cmd = field.staggered_at(rows, frac)
-    else:
-        cmd = field.staggered_at(np.where(keep, rows, a_rows), np.where(keep[:, None], frac, a_frac))
-    cmd[look_cv < 0] = np.nan
+    cmd = field.staggered_at(look_rows, look_frac)
+    outside = look_cv < 0
+    if outside.any():
+        cmd[outside] = np.nan
     if settings.mode != "kinetic":
         return cmd, cv, state
     st = DeviationState.new(len(pts)) if state is None else state
     d, st = deviation_in_cells(field, rows, frac, ids, t_s, settings.persistence_s, st, np.atleast_2d(velocity_m_s))
-    cmd += field.spread_m_s.take(np.maximum(look_cv, 0))[:, None] * d  # rows outside stay NaN
+    cmd += field._spread_xyz.take(np.maximum(look_cv, 0), axis=0) * d  # rows outside stay NaN
     return cmd, cv, st

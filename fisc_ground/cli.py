@@ -13,8 +13,8 @@ import logging
 import sys
 from pathlib import Path
 
-from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, missing_extra,
-                                   missing_dependency_message, setup_logging, sig3)
+from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
+                                   missing_extra, missing_dependency_message, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
 from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT)
@@ -356,5 +356,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_FAILURE
 
 
+def console() -> None:
+    """The ``fisc-ground`` console script (``pyproject.toml``): ``main()`` through ``console_exit``."""
+    console_exit(main)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -12,7 +12,7 @@ import sys
 from contextlib import contextmanager
 
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, add_output_arg,
-                                   missing_dependency_message, missing_extra, setup_logging, sig3)
+                                   console_exit, missing_dependency_message, missing_extra, setup_logging, sig3)
 from fisc_agent.lookup import COMMAND_MODES
 from sim.plant_fit import PLANT_PRESETS
 from sim.run import RESERVOIR_WINDOW_S
@@ -195,5 +195,10 @@ def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     return EXIT_USAGE
 
 
+def console() -> None:
+    """The ``fisc-sim`` console script (``pyproject.toml``): ``main()`` through ``console_exit``."""
+    console_exit(main)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_agent.hashing import slot_hash
-from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState
+from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
 from fisc_agent.lookup import (
     COMMAND_MODES,
     RETURN_GAIN_1_S,
@@ -55,6 +55,9 @@ from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_ac
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
+#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow: position,
+#: velocity, thrust, id, time outside, and the kinetic state (``fisc_agent.kinetic.DeviationState``).
+_AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
 
 
 
@@ -185,7 +188,7 @@ class Swarm:
     # ---------------------------------------------------------------- state buffers
     def _alloc(self, cap: int) -> None:
         n = getattr(self, "n", 0)
-        old = {k: getattr(self, "_" + k, None) for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir")}
+        old = {k: getattr(self, "_" + k, None) for k in _AGENT_ROWS}
         self._pos = np.zeros((cap, 3))
         self._vel = np.zeros((cap, 3))
         self._thr = np.zeros((cap, 3))
@@ -198,8 +201,9 @@ class Swarm:
         self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.kinetic.DeviationState)
         self._sign = np.ones((cap, 3))
         self._dir = np.zeros((cap, 3))
+        self._phase = np.zeros(cap)
         if old["pos"] is not None and n:
-            for k in ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir"):
+            for k in _AGENT_ROWS:
                 getattr(self, "_" + k)[:n] = old[k][:n]
 
     @property
@@ -300,6 +304,7 @@ class Swarm:
         self._out[s] = 0.0
         self._epoch[s] = -1
         self._sign[s] = 1.0
+        self._phase[s] = deviation_phase(ids)
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
@@ -313,7 +318,8 @@ class Swarm:
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign, self._dir) + (
+        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign, self._dir,
+                self._phase) + (
             (self._cmd,) if self._cmd_ready else ())
         for buf in bufs:
             buf[holes] = buf[src]
@@ -433,7 +439,7 @@ class Swarm:
         """Commands of every agent from ``fisc_agent.lookup.flight_command`` (the onboard agent's
         function, vectorised), rows outside the CVs 0 (the return policy fills them)."""
         n = self.n
-        state = DeviationState(self._epoch[:n], self._sign[:n], self._dir[:n])
+        state = DeviationState(self._epoch[:n], self._sign[:n], self._dir[:n], self._phase[:n])
         cmd, _, new = flight_command(self.field, self.pos_m, self.velocity_map(), self.ids, t_s,
                                      self.config.flight_settings, state, cv_ids=cv)
         if new is not None:

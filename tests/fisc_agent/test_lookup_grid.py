@@ -153,10 +153,22 @@ def test_locate_reads_the_cell_a_point_clips_to_and_its_own_fraction(ball_field)
     np.testing.assert_array_equal(cv, f.cv_of(pts))
     np.testing.assert_allclose(frac, (pts - f.origin_m) / f.cell_size_m - cell, rtol=0, atol=1e-12)
     faces = np.stack([f.wall_faces, f.stepped_out_faces], axis=3)[clipped]
-    np.testing.assert_array_equal(f.kinetic_faces[rows], faces)
+    bits = (f.kinetic_codes[rows][:, :, None] >> np.arange(4)) & 1  # (m, axis, bit)
+    np.testing.assert_array_equal(np.stack([bits[:, :, :2], bits[:, :, 2:]], axis=1) == 1, faces)
     fx, fy, fz = f.face_u_m_s
     i, j, k = clipped
     t = np.clip(frac, 0.0, 1.0)
     lo = np.stack([fx[i, j, k], fy[i, j, k], fz[i, j, k]], axis=1)
     hi = np.stack([fx[i + 1, j, k], fy[i, j + 1, k], fz[i, j, k + 1]], axis=1)
     np.testing.assert_allclose(f.staggered_at(rows, frac), (1 - t) * lo + t * hi, rtol=0, atol=1e-12)
+
+
+def test_a_point_that_is_not_a_number_is_outside_every_cv(ball_field):
+    """A NaN or infinite coordinate (a vehicle whose estimate is lost) reads a border cell: CV -1 and
+    a row inside every per-cell table, never an index error; the points beside it are unaffected."""
+    pts = np.array([[np.nan, 0.0, 0.0], [1.0, np.inf, 0.0], [1.0, 0.0, -np.inf], [1.0, 0.1, 0.1]])
+    rows, frac, cv = ball_field.locate(pts)
+    np.testing.assert_array_equal(cv[:3], [-1, -1, -1])
+    assert cv[3] == ball_field.cv_of(pts[3:])[0] >= 0
+    assert np.all((rows >= 0) & (rows < ball_field.kinetic_codes.shape[0]))
+    np.testing.assert_array_equal(ball_field.command(pts, np.arange(4))[:3], np.full((3, 3), np.nan))

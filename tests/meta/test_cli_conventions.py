@@ -64,3 +64,39 @@ def test_missing_package_names_the_extra():
     assert "pip install 'fisc[sim]'" in missing_dependency_message("fisc-sim run", exc, umbrella="sim")
     dask = ModuleNotFoundError("No module named 'dask'", name="dask")
     assert "pip install 'fisc[sweep]'" in missing_dependency_message("fisc-sim sweep", dask, umbrella="sim")
+
+
+def test_every_console_script_ends_through_console_exit():
+    """``pyproject.toml``'s scripts are the CLIs' ``console`` functions, which end the process
+    through ``cli_common.console_exit`` (no collector passes at shutdown)."""
+    import importlib
+    import inspect
+    import tomllib
+    from pathlib import Path
+
+    scripts = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())["project"]["scripts"]
+    assert set(scripts) == {"fisc-agent", "fisc-ground", "fisc-sim"}
+    for name, target in scripts.items():
+        module, func = target.split(":")
+        assert func == "console", name
+        assert "console_exit(main)" in inspect.getsource(getattr(importlib.import_module(module), func)), name
+
+
+def test_console_exit_exits_with_mains_code_and_the_collector_frozen(tmp_path):
+    """``console_exit``: the code ``main()`` returned, ``atexit`` handlers still run, every object
+    alive by then frozen out of the shutdown collections, and output written."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "prog.py"
+    script.write_text(
+        "import atexit, gc, sys\n"
+        "from fisc_agent.cli_common import console_exit\n"
+        "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 1000, flush=True))\n"
+        "def main():\n"
+        "    print('ran', end=' ')\n"
+        "    return 3\n"
+        "console_exit(main)\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, done.stderr
+    assert done.stdout == "ran frozen True\n"
