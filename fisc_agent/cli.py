@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import sys
 import threading
 
 from fisc_agent.cli_common import ExitCode, add_logging_args, console_exit, setup_logging
