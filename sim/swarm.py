@@ -55,8 +55,9 @@ from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_ac
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
-#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow: position,
-#: velocity, thrust, id, time outside, and the kinetic state (``fisc_agent.kinetic.DeviationState``).
+#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted
+#: when agents leave: position, velocity, thrust, id, time outside, and the kinetic state
+#: (``fisc_agent.kinetic.DeviationState``).
 _AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
 
 
@@ -318,9 +319,7 @@ class Swarm:
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        bufs = (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign, self._dir,
-                self._phase) + (
-            (self._cmd,) if self._cmd_ready else ())
+        bufs = [getattr(self, "_" + k) for k in _AGENT_ROWS] + ([self._cmd] if self._cmd_ready else [])
         for buf in bufs:
             buf[holes] = buf[src]
         cv = cv.copy()
