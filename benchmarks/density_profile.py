@@ -16,7 +16,12 @@ slice profile (each CV keeping its ratio to its slice mean), and the design itse
 swarm, each class also shows what ideal tracers hold in the same field (``sim.tracers``): moving
 exactly with it (RK4), and holding each velocity for the command interval (forward Euler, 0.05 s:
 the simulator's step and ``fisc-agent``'s 20 Hz stream, a vehicle without lag).  That splits a
-departure from the design into the field's share and the flight's.  Numbers from
+departure from the design into the field's share and the flight's.
+
+Last, what the min-max nRMSE is made of: the swarm's range against the range its best affine fit to
+the CFD pattern spans (CVs beyond it stretch the normalisation and compress all others), the squared
+error by band of the normalised CFD density, and two more "what if" scores: the densest CVs at their
+slice's mean, and every CV at its slice's mean (no within-slice scatter at all).  Numbers from
 this script are in docs/simulation.md ("What limits each metric")::
 
     fisc-sim run -o out/run
@@ -24,6 +29,11 @@ this script are in docs/simulation.md ("What limits each metric")::
     fisc-ground fit cd_nozzle -o out/cd_nozzle.fiscmap
     fisc-sim run --map out/cd_nozzle.fiscmap -o out/cd_nozzle
     python benchmarks/density_profile.py out/cd_nozzle/fields.csv --map out/cd_nozzle.fiscmap
+
+Several runs of one map (other seeds: ``fisc-sim run --seed N``) are averaged CV by CV before the
+diagnostic, which separates the sampling noise from what every run shares::
+
+    python benchmarks/density_profile.py out/seed0/fields.csv out/seed1/fields.csv out/seed2/fields.csv
 """
 
 from __future__ import annotations
@@ -33,6 +43,7 @@ import csv
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -52,6 +63,10 @@ TRACER_DT_S = 0.02
 #: Interval over which the held-command tracers keep each velocity [s] (``sim.run.RunConfig.dt_s``,
 #: and the period of ``fisc-agent``'s default 20 Hz setpoint stream).
 HELD_COMMAND_S = 0.05
+#: Upper edges of the bands of normalised CFD density over which the squared error is split.
+ERROR_BANDS = (0.3, 0.7, 0.9, 1.0)
+#: How many of the densest CVs the "densest at their slice mean" what-if moves.
+DENSEST = 10
 
 COLUMNS = ("cv_id", "cv_x", "target_density", "target_u_axial", "swarm_density", "swarm_u_axial", "samples")
 
@@ -72,6 +87,24 @@ def read_fields(path: Path) -> dict[str, np.ndarray]:
                 out[c][line - 2] = float(r[c]) if r[c] else np.nan
             except ValueError:
                 raise ValueError(f"{path}, line {line}, column {c}: {r[c]!r} is not a number") from None
+    return out
+
+
+def read_runs(paths: Sequence[Path]) -> dict[str, np.ndarray]:
+    """``read_fields`` of one run, or of several runs of one map averaged CV by CV: the swarm's
+    density and axial velocity are the means over the runs, ``samples`` the fewest any run had."""
+    runs = [read_fields(p) for p in paths]
+    if not runs:
+        raise ValueError("no fields.csv given")
+    first = runs[0]
+    for p, r in zip(paths[1:], runs[1:]):
+        same = r["cv_id"].shape == first["cv_id"].shape and np.array_equal(r["cv_id"], first["cv_id"])
+        if not same or not np.allclose(r["target_density"], first["target_density"], equal_nan=True):
+            raise ValueError(f"{p}: not a run of the same map as {paths[0]} (its CVs or CFD targets differ)")
+    out = dict(first)
+    for c in ("swarm_density", "swarm_u_axial"):
+        out[c] = np.mean([r[c] for r in runs], axis=0)
+    out["samples"] = np.min([r["samples"] for r in runs], axis=0)
     return out
 
 
@@ -109,8 +142,25 @@ class Score:
 
 
 @dataclass(frozen=True)
+class ErrorBand:
+    """The share of the density's squared min-max error in one band of the normalised CFD density."""
+
+    lo: float
+    """Lower edge of the band (normalised CFD density, inclusive) [-]."""
+    hi: float
+    """Upper edge (exclusive; the last band includes 1) [-]."""
+    n_cv: int
+    """Compared CVs in the band."""
+    mean_error: float
+    """Mean of normalised swarm minus normalised CFD density over the band [-]."""
+    share: float
+    """The band's part of the summed squared error [-]."""
+
+
+@dataclass(frozen=True)
 class DensityProfile:
-    """The diagnostic of one run (per axial slice arrays share one order, x ascending)."""
+    """The diagnostic of one run, or of the mean of several (per axial slice arrays share one order, x
+    ascending)."""
 
     x_m: np.ndarray
     """(k,) slice centres [m]."""
@@ -147,17 +197,44 @@ class DensityProfile:
     """The design's slice profile with this run's within-slice scatter, against the CFD."""
     design_score: Score
     """The designed density against the CFD's."""
+    swarm_range: tuple[float, float]
+    """(min, max) of the realised density over its median CV [-]."""
+    affine_range: tuple[float, float]
+    """The realised density's least-squares fit a + b * (normalised CFD density) at 0 and 1, over the
+    median CV: the range the CFD pattern asks of this swarm [-]."""
+    error_bands: tuple[ErrorBand, ...]
+    """The squared min-max error split by band of the normalised CFD density (``ERROR_BANDS``)."""
+    densest_at_slice_mean: Score
+    """The realised density with its ``DENSEST`` densest CVs set to their slice's mean, against the CFD."""
+    slice_means_only: Score
+    """Every CV at its slice's mean realised density (no within-slice scatter), against the CFD."""
 
 
-def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
-    """The diagnostic of the run that wrote ``fields_csv`` flying the schema-2 map ``map_path``."""
+def _error_bands(swarm: np.ndarray, cfd: np.ndarray) -> tuple[ErrorBand, ...]:
+    """``ErrorBand`` s of the min-max normalised ``swarm`` against ``cfd``."""
+    c = normalise_min_max(cfd)
+    e = normalise_min_max(swarm) - c
+    total = float(np.sum(e * e))
+    bands, lo = [], 0.0
+    for hi in ERROR_BANDS:
+        m = (c >= lo) & ((c < hi) if hi < ERROR_BANDS[-1] else (c <= hi))
+        bands.append(ErrorBand(lo, hi, int(m.sum()), float(e[m].mean()) if m.any() else float("nan"),
+                               float(np.sum(e[m] ** 2)) / total if total > 0 else float("nan")))
+        lo = hi
+    return tuple(bands)
+
+
+def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> DensityProfile:
+    """The diagnostic of the run that wrote ``fields_csv`` flying the schema-2 map ``map_path`` (or of
+    several runs of it, averaged: ``read_runs``)."""
     cmap = load_map(map_path)
     if "cv_design_density" not in cmap.arrays:
         raise ValueError(f"{map_path}: a schema-1 map has no designed density")
-    f = read_fields(fields_csv)
+    paths = [fields_csv] if isinstance(fields_csv, (str, Path)) else list(fields_csv)
+    f = read_runs([Path(p) for p in paths])
     ids = f["cv_id"].astype(np.int64)
     if ids.size != cmap.n_cv or np.any(ids != np.arange(cmap.n_cv)):
-        raise ValueError(f"{fields_csv}: its CVs are not the {cmap.n_cv} CVs of {map_path} (another map?)")
+        raise ValueError(f"{paths[0]}: its CVs are not the {cmap.n_cv} CVs of {map_path} (another map?)")
     field = CommandField.from_map(cmap)
     use = (f["samples"] > 0) & np.isfinite(f["swarm_density"]) & np.isfinite(f["target_density"])
     x = f["cv_x"][use]
@@ -174,6 +251,12 @@ def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
     masks = {name: m[use] for name, m in wall_classes(field).items() if m[use].any()}
     classes = {name: (int(m.sum()), float(ratio[m].mean()), float(ratio[m].std())) for name, m in masks.items()}
     rho_d = np.asarray(cmap["cv_design_density"], dtype=float)
+    slice_level = slice_mean(swarm)[slice_of]
+    densest = swarm.copy()
+    top = np.argsort(swarm)[-DENSEST:]
+    densest[top] = slice_level[top]
+    med = float(np.median(swarm))
+    b, a = np.polyfit(normalise_min_max(cfd), swarm, 1)
     exact, held = (tracer_density(field, rho_d, TRACER_SEEDS, dt, how).density[use] / design
                    for dt, how in ((TRACER_DT_S, Integrator.RK4), (HELD_COMMAND_S, Integrator.EULER)))
     return DensityProfile(
@@ -186,7 +269,10 @@ def density_profile(fields_csv: Path, map_path: Path) -> DensityProfile:
         tracer_classes={name: (float(exact[m].mean()), float(held[m].mean())) for name, m in masks.items()},
         tracer_pearson=(pearson(exact * design, design), pearson(held * design, design)),
         swarm_pearson=pearson(swarm, design), realised=Score.of(swarm, cfd),
-        with_design_profile=Score.of(design * within, cfd), design_score=Score.of(design, cfd))
+        with_design_profile=Score.of(design * within, cfd), design_score=Score.of(design, cfd),
+        swarm_range=(float(swarm.min()) / med, float(swarm.max()) / med), affine_range=(a / med, (a + b) / med),
+        error_bands=_error_bands(swarm, cfd), densest_at_slice_mean=Score.of(densest, cfd),
+        slice_means_only=Score.of(slice_level, cfd))
 
 
 def markdown(p: DensityProfile) -> str:
@@ -208,12 +294,27 @@ def markdown(p: DensityProfile) -> str:
                     ("realised with the design's slice profile", p.with_design_profile),
                     ("the design against the CFD", p.design_score)):
         lines.append(f"* {what}: nRMSE {s.nrmse:.3f}, r {s.pearson:.2f}")
+    lo, hi = p.swarm_range
+    fit_lo, fit_hi = p.affine_range
+    lines += ["", "What the min-max density nRMSE is made of:", "",
+              f"* the swarm spans {lo:.2f}-{hi:.2f} of its median CV; its best affine fit to the CFD pattern "
+              f"spans {fit_lo:.2f}-{fit_hi:.2f}", "",
+              "| normalised CFD density | CVs | mean error (swarm - CFD) | share of the squared error |",
+              "|---|---|---|---|"]
+    for band in p.error_bands:
+        lines.append(f"| {band.lo:.1f}-{band.hi:.1f} | {band.n_cv} | {band.mean_error:+.3f} | {band.share:.2f} |")
+    lines.append("")
+    for what, s in ((f"the {DENSEST} densest CVs at their slice's mean", p.densest_at_slice_mean),
+                    ("every CV at its slice's mean", p.slice_means_only)):
+        lines.append(f"* {what}: nRMSE {s.nrmse:.3f}, r {s.pearson:.2f}")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("fields_csv", type=Path, help="a run's fields.csv (fisc-sim run -o DIR writes DIR/fields.csv)")
+    ap.add_argument("fields_csv", type=Path, nargs="+",
+                    help="a run's fields.csv (fisc-sim run -o DIR writes DIR/fields.csv); several runs of one map "
+                         "(other seeds) are averaged CV by CV")
     ap.add_argument("--map", type=Path, default=None,
                     help="the schema-2 map the run flew (default: the embedded default map)")
     a = ap.parse_args(argv)
@@ -223,7 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"density_profile: {exc}", file=sys.stderr)
         return 2
-    print(f"`{a.fields_csv}` against `{map_path}`\n")
+    runs = ", ".join(f"`{p}`" for p in a.fields_csv)
+    print(f"{runs} against `{map_path}`\n")
     print(markdown(profile))
     return 0
 

@@ -1,5 +1,6 @@
 """``benchmarks/density_profile.py``: the slice-by-slice density diagnostic quoted in docs/simulation.md."""
 
+import csv
 import importlib.util
 import sys
 from pathlib import Path
@@ -57,6 +58,7 @@ def test_the_diagnostic_agrees_with_the_independent_fidelity_check(tool, short_r
     assert -1 <= p.swarm_pearson <= 1
     md = tool.markdown(p)
     assert "| closed upstream face |" in md and "exact tracers / designed" in md
+    assert "What the min-max density nRMSE is made of" in md and "| 0.9-1.0 |" in md
 
 
 def test_a_schema_1_map_or_another_maps_fields_are_refused_by_name(tool, short_run, tmp_path, capsys):
@@ -78,3 +80,65 @@ def test_a_schema_1_map_or_another_maps_fields_are_refused_by_name(tool, short_r
     bad.write_text("\n".join(short_run.read_text().splitlines()[:-1]) + "\n")  # one CV short: another map's
     assert tool.main([str(bad)]) == 2
     assert "(another map?)" in capsys.readouterr().err
+
+
+def _with_column(src: Path, dst: Path, column: str, values) -> Path:
+    """A copy of the fields.csv ``src`` with ``column`` replaced by ``values`` (one per row)."""
+    with open(src, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    for r, v in zip(rows, values, strict=True):
+        r[column] = repr(float(v))
+    with open(dst, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    return dst
+
+
+def test_what_the_min_max_error_is_made_of_matches_an_independent_recount(tool, short_run, tmp_path):
+    checker = _load("fidelity_check", ROOT / "tests" / "sim" / "fidelity_check.py")
+    p = tool.density_profile(short_run, default_map_path())
+    f = tool.read_fields(short_run)
+    use = f["samples"] > 0
+    swarm, x = f["swarm_density"][use], f["cv_x"][use]
+    # the bands split every compared CV and the whole squared error
+    assert sum(b.n_cv for b in p.error_bands) == int(use.sum())
+    assert sum(b.share for b in p.error_bands) == pytest.approx(1.0)
+    assert [b.hi for b in p.error_bands] == list(tool.ERROR_BANDS)
+    lo, hi = p.swarm_range
+    assert lo * np.median(swarm) == pytest.approx(swarm.min()) and hi * np.median(swarm) == pytest.approx(swarm.max())
+    # "every CV at its slice's mean", recounted by the independent checker from a rewritten fields.csv
+    means = {xv: swarm[x == xv].mean() for xv in np.unique(x)}
+    flat = np.where(use, [means.get(xv, 0.0) for xv in f["cv_x"]], f["swarm_density"])
+    check = checker.fidelity_from_csv(str(_with_column(short_run, tmp_path / "flat.csv", "swarm_density", flat)))
+    assert p.slice_means_only.nrmse == pytest.approx(check["nrmse_density"], abs=1e-9)
+    assert p.slice_means_only.pearson == pytest.approx(check["pearson_density"], abs=1e-9)
+    # the densest CVs at their slice's mean likewise
+    top = np.flatnonzero(use)[np.argsort(swarm)[-tool.DENSEST:]]
+    dense = f["swarm_density"].copy()
+    dense[top] = [means[xv] for xv in f["cv_x"][top]]
+    check = checker.fidelity_from_csv(str(_with_column(short_run, tmp_path / "dense.csv", "swarm_density", dense)))
+    assert p.densest_at_slice_mean.nrmse == pytest.approx(check["nrmse_density"], abs=1e-9)
+
+
+def test_several_runs_of_one_map_are_averaged_cv_by_cv(tool, short_run, tmp_path):
+    checker = _load("fidelity_check", ROOT / "tests" / "sim" / "fidelity_check.py")
+    f = tool.read_fields(short_run)
+    other = _with_column(short_run, tmp_path / "other.csv", "swarm_density", 3.0 * f["target_density"])
+    p = tool.density_profile([short_run, other], default_map_path())
+    mean = _with_column(short_run, tmp_path / "mean.csv", "swarm_density",
+                        0.5 * (f["swarm_density"] + 3.0 * f["target_density"]))
+    check = checker.fidelity_from_csv(str(mean))
+    assert p.realised.nrmse == pytest.approx(check["nrmse_density"], abs=1e-9)
+    assert p.realised.pearson == pytest.approx(check["pearson_density"], abs=1e-9)
+    # a CV that one run never sampled is left out
+    samples = f["samples"].copy()
+    samples[np.flatnonzero(samples > 0)[0]] = 0
+    unsampled = _with_column(short_run, tmp_path / "unsampled.csv", "samples", samples)
+    assert int(tool.density_profile([short_run, unsampled], default_map_path()).n_cv.sum()) == int((samples > 0).sum())
+    # runs of another map (other CFD targets) are refused by name, as is an empty list
+    moved = _with_column(short_run, tmp_path / "moved.csv", "target_density", 2.0 * f["target_density"])
+    with pytest.raises(ValueError, match="moved.csv: not a run of the same map"):
+        tool.density_profile([short_run, moved], default_map_path())
+    with pytest.raises(ValueError, match="no fields.csv given"):
+        tool.read_runs([])
