@@ -33,11 +33,13 @@ def _fisc_sim() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "sim.cli"]
 
 
-def time_run(out: Path, env: dict[str, str]) -> tuple[float, dict]:
-    """Wall time of one ``fisc-sim run -o out`` and its metrics.json."""
+def time_run(out: Path, env: dict[str, str], cmd: list[str] | None = None,
+             cwd: Path | None = None) -> tuple[float, dict]:
+    """Wall time of one ``fisc-sim run -o out`` (``cmd``: another tree's ``fisc-sim``) and its
+    metrics.json."""
     t0 = time.perf_counter()
-    subprocess.run(_fisc_sim() + ["run", "-o", str(out)],
-                   env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run((_fisc_sim() if cmd is None else cmd) + ["run", "-o", str(out)], env=env, cwd=cwd,
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())
 
 
@@ -58,10 +60,8 @@ def time_pairs(checkout: Path, pairs: int, tmp: Path) -> None:
     here = _fisc_sim()
 
     def one(cmd: list[str], run_env: dict[str, str], out: Path) -> tuple[float, float]:
-        t0 = time.perf_counter()
-        subprocess.run(cmd + ["run", "-o", str(out)], env=run_env, cwd=tmp, check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())["wall_time_s"]
+        wall, metrics = time_run(out, run_env, cmd, cwd=tmp)
+        return wall, metrics["wall_time_s"]
 
     one(base_cmd, benv, tmp / "warm-base")
     one(here, env, tmp / "warm-here")
