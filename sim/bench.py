@@ -1,5 +1,6 @@
 """``fisc-sim bench``: speed of the swarm core (agent-steps/s, peak memory), the wall time of the
-paper's run, and the same agent-steps/s figure for RotorPy's batched multirotor simulator.
+paper's run (flown with the paper's preset and with the default), and the same agent-steps/s figure
+for RotorPy's batched multirotor simulator.
 
 Figures are printed, never asserted (speed is machine-dependent).
 """
@@ -52,12 +53,16 @@ def bench_core(cf: CommandField, n_agents: int, steps: int = 20, mode: str = "me
             "state_mib": state_bytes / 2**20}
 
 
-def bench_paper_run(cmap, agents: int = 1000, duration_s: float = 300.0) -> dict:
-    """Wall time of the paper's run: Case 2 on ``cmap``, ~``agents`` agents, ``duration_s`` simulated."""
+def bench_paper_run(cmap, preset: str = "default", agents: int = 1000, duration_s: float = 300.0) -> dict:
+    """Wall time of the paper's run (Case 2 on ``cmap``, ~``agents`` agents, ``duration_s`` simulated)
+    flown with ``preset``: ``paper`` (Algorithm 1, mean commands; give it the schema-1 map) or
+    ``default`` (the map's recommended flight, kinetic on a schema-2 map).  The simulation loop
+    only: no map fit, no figures, no paper companion."""
     from sim.run import RunConfig, simulate
 
-    res = simulate(RunConfig(agents=agents, duration_s=duration_s, figures=False), cmap)
-    return {"wall_s": res.wall_time_s, "steps": res.counters.steps, "agent_steps": res.counters.agent_steps,
+    res = simulate(RunConfig(agents=agents, duration_s=duration_s, figures=False, preset=preset), cmap)
+    return {"wall_s": res.wall_time_s, "mode": res.settings.mode, "lookahead_s": res.settings.lookahead_s,
+            "steps": res.counters.steps, "agent_steps": res.counters.agent_steps,
             "mean_alive": res.counters.agent_steps / max(res.counters.steps, 1), "alive_end": res.alive}
 
 
@@ -97,19 +102,24 @@ def run_bench(sizes: list[int], steps: int = 20, rotorpy: bool = True, paper_run
 
     cmap = load_command_map(map_spec)
     cf = CommandField.from_map(cmap)
-    yield f"map: {cmap.body.get('provenance', {}).get('reference', {}).get('name')} ({cmap.n_cv} CVs), mode mean, dt 0.05 s"
+    name = cmap.body.get("provenance", {}).get("reference", {}).get("name")
+    yield f"map: {name} ({cmap.n_cv} CVs), mode mean, dt 0.05 s"
     ours = {}
     for n in sizes:
         k = max(2, min(steps, int(2e6 // max(n, 1)) or 2))
         r = bench_core(cf, n, k)
         ours[n] = r["agent_steps_per_s"]
         yield (f"swarm core {n:>8d} agents: {r['agent_steps_per_s']:.3g} agent-steps/s "
-               f"({r['step_ms']:.2f} ms/step over {k} steps; best step {r['best_agent_steps_per_s']:.3g}), peak step memory {r['peak_step_mib']:.1f} MiB, "
-               f"state {r['state_mib']:.1f} MiB")
+               f"({r['step_ms']:.2f} ms/step over {k} steps; best step {r['best_agent_steps_per_s']:.3g}), "
+               f"peak step memory {r['peak_step_mib']:.1f} MiB, state {r['state_mib']:.1f} MiB")
     if paper_run:
-        r = bench_paper_run(cmap)
-        yield (f"paper run (Case 2, --agents 1000, 300 s = {r['steps']} steps, mean {r['mean_alive']:.0f} agents alive): "
-               f"{r['wall_s']:.2f} s wall")
+        runs = (("paper", load_command_map(map_spec, preset="paper"), "Algorithm 1, schema-1 map"),
+                ("default", cmap, "the map's flight settings"))
+        for preset, run_map, what in runs:
+            r = bench_paper_run(run_map, preset)
+            yield (f"paper run, --preset {preset} ({what}; Case 2, --agents 1000, 300 s = {r['steps']} steps, "
+                   f"mean {r['mean_alive']:.0f} agents alive; mode {r['mode']}, look-ahead {r['lookahead_s']:g} s): "
+                   f"{r['wall_s']:.2f} s wall")
     if rotorpy:
         n = min(sizes, key=lambda s: abs(s - 1000)) if sizes else 1000
         try:
