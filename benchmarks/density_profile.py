@@ -11,7 +11,9 @@ Reads a run's ``fields.csv`` and the schema-2 map it flew, and prints, per axial
   than its designed density, and one it crosses slower holds more;
 
 then the within-slice scatter by wall class of the cube (interior, one or two side walls, closed
-upstream or downstream face) and two "what if" scores: the realised density given the design's
+upstream or downstream face), the CVs furthest above their slice (with several runs: how strongly the
+runs' within-slice residuals correlate, i.e. how much of the scatter is systematic) and two "what if"
+scores: the realised density given the design's
 slice profile (each CV keeping its ratio to its slice mean), and the design itself.  Beside the
 swarm, each class also shows what ideal tracers hold in the same field (``sim.tracers``): moving
 exactly with it (RK4), and holding each velocity for the command interval (forward Euler, 0.05 s:
@@ -67,6 +69,8 @@ HELD_COMMAND_S = 0.05
 ERROR_BANDS = (0.3, 0.7, 0.9, 1.0)
 #: How many of the densest CVs the "densest at their slice mean" what-if moves.
 DENSEST = 10
+#: How many CVs the list of the largest within-slice excess shows.
+EXCESS = 10
 
 COLUMNS = ("cv_id", "cv_x", "target_density", "target_u_axial", "swarm_density", "swarm_u_axial", "samples")
 
@@ -92,7 +96,8 @@ def read_fields(path: Path) -> dict[str, np.ndarray]:
 
 def read_runs(paths: Sequence[Path]) -> dict[str, np.ndarray]:
     """``read_fields`` of one run, or of several runs of one map averaged CV by CV: the swarm's
-    density and axial velocity are the means over the runs, ``samples`` the fewest any run had."""
+    density and axial velocity are the means over the runs, ``samples`` the fewest any run had;
+    ``swarm_density_runs`` (runs, n) keeps each run's density."""
     runs = [read_fields(p) for p in paths]
     if not runs:
         raise ValueError("no fields.csv given")
@@ -102,6 +107,7 @@ def read_runs(paths: Sequence[Path]) -> dict[str, np.ndarray]:
         if not same or not np.allclose(r["target_density"], first["target_density"], equal_nan=True):
             raise ValueError(f"{p}: not a run of the same map as {paths[0]} (its CVs or CFD targets differ)")
     out = dict(first)
+    out["swarm_density_runs"] = np.array([r["swarm_density"] for r in runs])
     for c in ("swarm_density", "swarm_u_axial"):
         out[c] = np.mean([r[c] for r in runs], axis=0)
     out["samples"] = np.min([r["samples"] for r in runs], axis=0)
@@ -158,6 +164,22 @@ class ErrorBand:
 
 
 @dataclass(frozen=True)
+class Excess:
+    """A CV whose realised / designed density stands far above its slice's."""
+
+    cv_id: int
+    """The CV."""
+    centre_m: tuple[float, float, float]
+    """Its centre (map frame) [m]."""
+    wall_class: str
+    """Its wall class (``wall_classes``)."""
+    open_fraction: float
+    """The part of its cube inside the CFD's flow (the map's ``cv_open_fraction``; NaN if absent) [-]."""
+    over_slice: float
+    """Its realised / designed density over its slice's mean of that ratio (runs averaged) [-]."""
+
+
+@dataclass(frozen=True)
 class DensityProfile:
     """The diagnostic of one run, or of the mean of several (per axial slice arrays share one order, x
     ascending)."""
@@ -182,6 +204,13 @@ class DensityProfile:
     """(k,) slice mean of the CFD's axial velocity times the map's S [m/s]."""
     within_slice_sd: float
     """Standard deviation of each CV's realised / designed over its slice mean [-]."""
+    runs: int
+    """How many runs were averaged."""
+    residual_r_between_runs: float
+    """Mean over pairs of runs of the Pearson correlation of their within-slice residuals (each CV's
+    realised / designed over its slice mean): the systematic share of the scatter; NaN for one run [-]."""
+    largest_excess: tuple[Excess, ...]
+    """The ``EXCESS`` CVs furthest above their slice (the runs' mean), largest first."""
     classes: dict[str, tuple[int, float, float]]
     """Wall class -> (CVs, mean, sd of realised / designed)."""
     tracer_classes: dict[str, tuple[float, float]]
@@ -247,8 +276,22 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
         w = np.ones_like(v) if w is None else w
         return np.bincount(slice_of, v * w) / np.bincount(slice_of, w)
 
-    within = ratio / slice_mean(ratio)[slice_of]
+    def within_slice(dens: np.ndarray) -> np.ndarray:
+        r = (dens / dens.mean()) / (design / design.mean())
+        return r / slice_mean(r)[slice_of]
+
+    within = within_slice(swarm)
+    per_run = [within_slice(d[use]) for d in f["swarm_density_runs"]]
+    pairs = [pearson(a, b) for i, a in enumerate(per_run) for b in per_run[i + 1:]]
     masks = {name: m[use] for name, m in wall_classes(field).items() if m[use].any()}
+    class_of = np.full(x.size, "", dtype=object)
+    for name, m in masks.items():
+        class_of[m & (class_of == "")] = name
+    centres = np.asarray(cmap["cv_center_m"], dtype=float)[use]
+    open_frac = (np.asarray(cmap["cv_open_fraction"], dtype=float)[use] if "cv_open_fraction" in cmap.arrays
+                 else np.full(x.size, np.nan))
+    excess = tuple(Excess(int(ids[use][i]), tuple(float(v) for v in centres[i]), str(class_of[i]),
+                          float(open_frac[i]), float(within[i])) for i in np.argsort(-within)[:EXCESS])
     classes = {name: (int(m.sum()), float(ratio[m].mean()), float(ratio[m].std())) for name, m in masks.items()}
     rho_d = np.asarray(cmap["cv_design_density"], dtype=float)
     slice_level = slice_mean(swarm)[slice_of]
@@ -265,7 +308,9 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
         realised_over_designed=slice_mean(ratio), u_swarm_m_s=slice_mean(f["swarm_u_axial"][use], swarm),
         u_field_m_s=slice_mean(cube_mean_u_axial_m_s(field.grid_cv, field.face_u_m_s[0])[use]),
         u_cfd_m_s=slice_mean(f["target_u_axial"][use] * cmap.scale),
-        within_slice_sd=float(within.std()), classes=classes,
+        within_slice_sd=float(within.std()), runs=len(per_run),
+        residual_r_between_runs=float(np.mean(pairs)) if pairs else float("nan"), largest_excess=excess,
+        classes=classes,
         tracer_classes={name: (float(exact[m].mean()), float(held[m].mean())) for name, m in masks.items()},
         tracer_pearson=(pearson(exact * design, design), pearson(held * design, design)),
         swarm_pearson=pearson(swarm, design), realised=Score.of(swarm, cfd),
@@ -282,7 +327,17 @@ def markdown(p: DensityProfile) -> str:
     cols = (p.cfd, p.design, p.swarm, p.realised_over_designed, p.u_swarm_m_s, p.u_field_m_s, p.u_cfd_m_s)
     for i, xv in enumerate(p.x_m):
         lines.append(f"| {xv:.2f} | {p.n_cv[i]} | " + " | ".join(f"{c[i]:.3f}" for c in cols) + " |")
-    lines += ["", f"Within-slice scatter of realised / designed: sd {p.within_slice_sd:.3f}.", "",
+    lines += ["", f"Within-slice scatter of realised / designed: sd {p.within_slice_sd:.3f}."]
+    if p.runs > 1:
+        lines.append(f"Its residuals (realised / designed over the slice's) correlate "
+                     f"r {p.residual_r_between_runs:.2f} between the {p.runs} runs: the share every run has.")
+    lines += ["", f"The {len(p.largest_excess)} CVs furthest above their slice:", "",
+              "| CV | centre x, y, z [m] | wall class | open fraction | realised / designed over the slice's |",
+              "|---|---|---|---|---|"]
+    for e in p.largest_excess:
+        lines.append(f"| {e.cv_id} | {', '.join(f'{v:.2f}' for v in e.centre_m)} | {e.wall_class} | "
+                     f"{e.open_fraction:.2f} | {e.over_slice:.3f} |")
+    lines += ["",
               "| wall class | CVs | realised / designed (mean) | sd | exact tracers / designed | "
               f"tracers, commands held {HELD_COMMAND_S:g} s / designed |", "|---|---|---|---|---|---|"]
     for name, (n, mean, sd) in p.classes.items():

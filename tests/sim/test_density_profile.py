@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fisc_agent.lookup import CommandField
+from fisc_agent.mapfile import load_map
 from fisc_ground.mapbuild import default_map_path
 from fisc_ground.mapwrite import write_map
 from sim.run import RunConfig, run
@@ -142,3 +144,37 @@ def test_several_runs_of_one_map_are_averaged_cv_by_cv(tool, short_run, tmp_path
         tool.density_profile([short_run, moved], default_map_path())
     with pytest.raises(ValueError, match="no fields.csv given"):
         tool.read_runs([])
+
+
+def test_the_largest_within_slice_excess_and_its_share_every_run_has(tool, short_run, tmp_path):
+    cmap = load_map(default_map_path())
+    design, centres = np.asarray(cmap["cv_design_density"]), np.asarray(cmap["cv_center_m"])
+    f = tool.read_fields(short_run)
+
+    def over_slice(dens):  # recounted here: realised / designed over the slice's mean of that ratio
+        use = f["samples"] > 0
+        r = np.full(dens.size, np.nan)
+        r[use] = (dens[use] / dens[use].mean()) / (design[use] / design[use].mean())
+        for xv in np.unique(f["cv_x"][use]):
+            m = use & (f["cv_x"] == xv)
+            r[m] /= r[m].mean()
+        return r
+
+    p = tool.density_profile(short_run, default_map_path())
+    mine = over_slice(f["swarm_density"])
+    assert p.runs == 1 and np.isnan(p.residual_r_between_runs)
+    assert len(p.largest_excess) == tool.EXCESS
+    assert [e.cv_id for e in p.largest_excess] == list(np.argsort(-np.nan_to_num(mine, nan=-1.0))[:tool.EXCESS])
+    for e in p.largest_excess:
+        assert e.over_slice == pytest.approx(mine[e.cv_id]) and e.centre_m == pytest.approx(centres[e.cv_id])
+        assert e.wall_class in tool.wall_classes(CommandField.from_map(cmap)) and 0 < e.open_fraction <= 1
+    # the same run twice shares all of its scatter; a run of another pattern only what the two share
+    twice = tool.density_profile([short_run, short_run], default_map_path())
+    assert twice.runs == 2 and twice.residual_r_between_runs == pytest.approx(1.0)
+    other = 3.0 * f["target_density"] * (1.0 + 0.1 * np.sin(f["cv_id"]))
+    p2 = tool.density_profile([short_run, _with_column(short_run, tmp_path / "o.csv", "swarm_density", other)],
+                              default_map_path())
+    use = f["samples"] > 0
+    assert p2.residual_r_between_runs == pytest.approx(np.corrcoef(mine[use], over_slice(other)[use])[0, 1])
+    md = tool.markdown(p2)
+    assert "correlate r" in md and "furthest above their slice" in md
