@@ -269,15 +269,19 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
     x = f["cv_x"][use]
     cfd, swarm = f["target_density"][use], f["swarm_density"][use]
     design = np.asarray(cmap["cv_design_density"], dtype=float)[use]
-    ratio = (swarm / swarm.mean()) / (design / design.mean())
+
+    def over_design(dens: np.ndarray) -> np.ndarray:  # realised / designed, each relative to its mean
+        return (dens / dens.mean()) / (design / design.mean())
+
+    ratio = over_design(swarm)
     xs, slice_of = np.unique(x, return_inverse=True)
 
     def slice_mean(v: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         w = np.ones_like(v) if w is None else w
         return np.bincount(slice_of, v * w) / np.bincount(slice_of, w)
 
-    def within_slice(dens: np.ndarray) -> np.ndarray:
-        r = (dens / dens.mean()) / (design / design.mean())
+    def within_slice(dens: np.ndarray) -> np.ndarray:  # realised / designed over its slice's mean
+        r = over_design(dens)
         return r / slice_mean(r)[slice_of]
 
     within = within_slice(swarm)
