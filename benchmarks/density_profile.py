@@ -294,7 +294,8 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
     centres = np.asarray(cmap["cv_center_m"], dtype=float)[use]
     open_frac = (np.asarray(cmap["cv_open_fraction"], dtype=float)[use] if "cv_open_fraction" in cmap.arrays
                  else np.full(x.size, np.nan))
-    excess = tuple(Excess(int(ids[use][i]), tuple(float(v) for v in centres[i]), str(class_of[i]),
+    used_ids = ids[use]
+    excess = tuple(Excess(int(used_ids[i]), tuple(float(v) for v in centres[i]), str(class_of[i]),
                           float(open_frac[i]), float(within[i])) for i in np.argsort(-within)[:EXCESS])
     classes = {name: (int(m.sum()), float(ratio[m].mean()), float(ratio[m].std())) for name, m in masks.items()}
     rho_d = np.asarray(cmap["cv_design_density"], dtype=float)

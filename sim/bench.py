@@ -113,11 +113,10 @@ def run_bench(sizes: list[int], steps: int = 20, rotorpy: bool = True, paper_run
                f"({r['step_ms']:.2f} ms/step over {k} steps; best step {r['best_agent_steps_per_s']:.3g}), "
                f"peak step memory {r['peak_step_mib']:.1f} MiB, state {r['state_mib']:.1f} MiB")
     if paper_run:
-        runs = (("paper", load_command_map(map_spec, preset="paper"), "Algorithm 1, schema-1 map"),
-                ("default", cmap, "the map's flight settings"))
-        for preset, run_map, what in runs:
+        for preset, run_map in (("paper", load_command_map(map_spec, preset="paper")), ("default", cmap)):
             r = bench_paper_run(run_map, preset)
-            yield (f"paper run, --preset {preset} ({what}; Case 2, --agents 1000, 300 s = {r['steps']} steps, "
+            yield (f"paper run, --preset {preset} (schema-{run_map.schema_version} map; Case 2, --agents 1000, "
+                   f"300 s = {r['steps']} steps, "
                    f"mean {r['mean_alive']:.0f} agents alive; mode {r['mode']}, look-ahead {r['lookahead_s']:g} s): "
                    f"{r['wall_s']:.2f} s wall")
     if rotorpy:

@@ -75,7 +75,8 @@ def _add_bench(sub) -> None:
     p.add_argument("--sizes", default="1e3,1e4,1e5,1e6", help="comma-separated agent counts")
     p.add_argument("--steps", type=int, default=20, help="steps per size (default 20)")
     p.add_argument("--no-rotorpy", action="store_true", help="skip the RotorPy comparison")
-    p.add_argument("--no-paper-run", action="store_true", help="skip the timings of the paper's run (paper preset and default)")
+    p.add_argument("--no-paper-run", action="store_true",
+                   help="skip the timings of the paper's run (paper preset and default)")
 
 
 @contextmanager
