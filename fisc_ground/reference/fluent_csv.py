@@ -57,11 +57,6 @@ def normalise_column_name(name: str) -> str:
     return s
 
 
-def file_sha256(path: Path) -> str:
-    """sha256 (hex) of a file's bytes."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
 def read_numeric_table(path: str | Path) -> NumericTable:
     """Read a header + all-numeric CSV (comma or whitespace separated) into a float64 table.
 
