@@ -28,6 +28,7 @@ this script are in docs/simulation.md ("What limits each metric")::
 
     fisc-sim run -o out/run
     python benchmarks/density_profile.py out/run/fields.csv
+    python benchmarks/density_profile.py out/run/fields.csv --plot out/run/density_profile.png
     fisc-ground fit cd_nozzle -o out/cd_nozzle.fiscmap
     fisc-sim run --map out/cd_nozzle.fiscmap -o out/cd_nozzle
     python benchmarks/density_profile.py out/cd_nozzle/fields.csv --map out/cd_nozzle.fiscmap
@@ -36,6 +37,10 @@ Several runs of one map (other seeds: ``fisc-sim run --seed N``) are averaged CV
 diagnostic, which separates the sampling noise from what every run shares::
 
     python benchmarks/density_profile.py out/seed0/fields.csv out/seed1/fields.csv out/seed2/fields.csv
+
+``--plot PNG`` draws the slice profile: the three normalised densities per slice with the band the
+swarm's CVs span in each (the band's extremes are what the min-max normalisation sees), and the
+three axial velocities.
 """
 
 from __future__ import annotations
@@ -194,6 +199,9 @@ class DensityProfile:
     """(k,) slice mean of the min-max normalised designed density [-]."""
     swarm: np.ndarray
     """(k,) slice mean of the min-max normalised realised density [-]."""
+    swarm_band: tuple[np.ndarray, np.ndarray]
+    """(k,) lowest and (k,) highest min-max normalised realised density of each slice's CVs: the
+    within-slice scatter on the scale of the metric (its outliers set the normalisation) [-]."""
     realised_over_designed: np.ndarray
     """(k,) slice mean of realised / designed density, each relative to its mean over the CVs [-]."""
     u_swarm_m_s: np.ndarray
@@ -280,6 +288,11 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
         w = np.ones_like(v) if w is None else w
         return np.bincount(slice_of, v * w) / np.bincount(slice_of, w)
 
+    def slice_extreme(v: np.ndarray, ufunc: np.ufunc, start: float) -> np.ndarray:
+        out = np.full(xs.size, start)
+        ufunc.at(out, slice_of, v)
+        return out
+
     def within_slice(dens: np.ndarray) -> np.ndarray:  # realised / designed over its slice's mean
         r = over_design(dens)
         return r / slice_mean(r)[slice_of]
@@ -304,12 +317,14 @@ def density_profile(fields_csv: Path | Sequence[Path], map_path: Path) -> Densit
     top = np.argsort(swarm)[-DENSEST:]
     densest[top] = slice_level[top]
     med = float(np.median(swarm))
+    swarm_norm = normalise_min_max(swarm)
     b, a = np.polyfit(normalise_min_max(cfd), swarm, 1)
     exact, held = (tracer_density(field, rho_d, TRACER_SEEDS, dt, how).density[use] / design
                    for dt, how in ((TRACER_DT_S, Integrator.RK4), (HELD_COMMAND_S, Integrator.EULER)))
     return DensityProfile(
         x_m=xs, n_cv=np.bincount(slice_of), cfd=slice_mean(normalise_min_max(cfd)),
-        design=slice_mean(normalise_min_max(design)), swarm=slice_mean(normalise_min_max(swarm)),
+        design=slice_mean(normalise_min_max(design)), swarm=slice_mean(swarm_norm),
+        swarm_band=(slice_extreme(swarm_norm, np.minimum, np.inf), slice_extreme(swarm_norm, np.maximum, -np.inf)),
         realised_over_designed=slice_mean(ratio), u_swarm_m_s=slice_mean(f["swarm_u_axial"][use], swarm),
         u_field_m_s=slice_mean(cube_mean_u_axial_m_s(field.grid_cv, field.face_u_m_s[0])[use]),
         u_cfd_m_s=slice_mean(f["target_u_axial"][use] * cmap.scale),
@@ -370,6 +385,38 @@ def markdown(p: DensityProfile) -> str:
     return "\n".join(lines)
 
 
+def plot(p: DensityProfile, path: Path) -> Path:
+    """The slice profile as a figure: the CFD's, the design's and the swarm's normalised density per
+    slice with the band the swarm's CVs span in each (top), and the three axial velocities (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True, constrained_layout=True)
+    lo, hi = p.swarm_band
+    top.fill_between(p.x_m, lo, hi, step="mid", color="tab:orange", alpha=0.25,
+                     label="swarm: lowest to highest CV of the slice")
+    top.plot(p.x_m, p.cfd, "k-", label="CFD")
+    top.plot(p.x_m, p.design, "b--", label="design")
+    top.plot(p.x_m, p.swarm, "o-", color="tab:orange", ms=3, label="swarm (slice mean)")
+    top.set_ylabel("density, min-max normalised over all CVs")
+    top.set_title(f"density nRMSE {p.realised.nrmse:.3f} (r {p.realised.pearson:.2f}); "
+                  f"every CV at its slice mean: {p.slice_means_only.nrmse:.3f} (r {p.slice_means_only.pearson:.2f})",
+                  fontsize=9)
+    top.legend(fontsize=8, loc="lower left")
+    bottom.plot(p.x_m, p.u_cfd_m_s, "k-", label="CFD x S")
+    bottom.plot(p.x_m, p.u_field_m_s, "b--", label="staggered field")
+    bottom.plot(p.x_m, p.u_swarm_m_s, "o-", color="tab:orange", ms=3, label="swarm")
+    bottom.set_xlabel("x [m]")
+    bottom.set_ylabel("axial velocity, slice mean [m/s]")
+    bottom.legend(fontsize=8)
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("fields_csv", type=Path, nargs="+",
@@ -377,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
                          "(other seeds) are averaged CV by CV")
     ap.add_argument("--map", type=Path, default=None,
                     help="the schema-2 map the run flew (default: the embedded default map)")
+    ap.add_argument("--plot", type=Path, default=None, metavar="PNG",
+                    help="also draw the slice profile (densities with each slice's CV band, axial velocities)")
     a = ap.parse_args(argv)
     map_path = a.map if a.map is not None else default_map_path()
     try:
@@ -387,6 +436,8 @@ def main(argv: list[str] | None = None) -> int:
     runs = ", ".join(f"`{p}`" for p in a.fields_csv)
     print(f"{runs} against `{map_path}`\n")
     print(markdown(profile))
+    if a.plot is not None:
+        print(f"\nfigure: {plot(profile, a.plot)}")
     return 0
 
 

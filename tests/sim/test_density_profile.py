@@ -178,3 +178,19 @@ def test_the_largest_within_slice_excess_and_its_share_every_run_has(tool, short
     assert p2.residual_r_between_runs == pytest.approx(np.corrcoef(mine[use], over_slice(other)[use])[0, 1])
     md = tool.markdown(p2)
     assert "correlate r" in md and "furthest above their slice" in md
+
+
+def test_each_slices_band_and_the_figure(tool, short_run, tmp_path, capsys):
+    f = tool.read_fields(short_run)
+    use = f["samples"] > 0
+    swarm, x = f["swarm_density"][use], f["cv_x"][use]
+    norm = (swarm - swarm.min()) / (swarm.max() - swarm.min())  # recounted: min-max over every compared CV
+    p = tool.density_profile(short_run, default_map_path())
+    lo, hi = p.swarm_band
+    for i, xv in enumerate(p.x_m):
+        assert lo[i] == pytest.approx(norm[x == xv].min()) and hi[i] == pytest.approx(norm[x == xv].max())
+    assert np.all(lo <= p.swarm + 1e-12) and np.all(p.swarm <= hi + 1e-12)
+    png = tmp_path / "profile.png"
+    assert tool.main([str(short_run), "--plot", str(png)]) == 0
+    assert f"figure: {png}" in capsys.readouterr().out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
