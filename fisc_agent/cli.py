@@ -24,13 +24,20 @@ log = logging.getLogger("fisc_agent")
 
 
 
-def _seconds_or_auto(text: str) -> float | str:
-    if text == "auto":
-        return text
-    try:
-        return float(text)  # the range is checked by AgentConfig
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+def _number_or(word: str, unit: str, value: object):
+    """An argparse type: a number (its range is checked by AgentConfig), or ``word`` standing for ``value``."""
+    def parse(text: str) -> float | object:
+        if text == word:
+            return value
+        try:
+            return float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {unit} or {word!r}, got {text!r}") from None
+    return parse
+
+
+_seconds_or_auto = _number_or("auto", "seconds", "auto")
+_wall_margin = _number_or("off", "metres", None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -98,6 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default=AgentConfig.exit_policy,
                    help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
+    p.add_argument("--wall-margin", type=_wall_margin, default=AgentConfig.wall_margin_m, metavar="M|off",
+                   help="--mode kinetic under tracking: keep the deviation this far inside the duct's real wall where "
+                        "the map carries it (duct_wall_m) [m]; off: reflect at the CV staircase only, as fisc-sim run's "
+                        f"agents do (default {AgentConfig.wall_margin_m})")
     p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default=AgentConfig.geofence, help="outside the map while flowing: hold, or return (near the map rejoin the nearest CV's flow with an "
                    "inward pull, as fisc-sim run's agents do; farther fly straight back to it)")
     p.add_argument("--stale-timeout", type=float, default=AgentConfig.stale_timeout_s, help="position age that triggers a hold [s]")
@@ -128,6 +139,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
         exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
         entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
+        wall_margin_m=a.wall_margin,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system)
 
 

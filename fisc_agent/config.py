@@ -53,6 +53,14 @@ class AgentConfig:
     lookahead_s: float | None = None
     """Command look-ahead t_lead [s] (``fisc_agent.lookup.lookahead_point``); None: the map's
     recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""
+    wall_margin_m: float | None = 0.8
+    """``kinetic`` mode under streamline tracking: the deviation's outward radial component is mirrored
+    within this distance of the duct's real wall, where the map carries it (array ``duct_wall_m``,
+    ``fisc_agent.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
+    agents do (the staircase's outer cubes lie partly outside a real duct).  The margin must cover the
+    vehicle's overshoot and the error of its position estimate: on PX4 SITL (SIH) the altitude estimate
+    strayed up to 0.9 m from the ground truth, and 0.8 m kept three passes within 0.17 m of the wall
+    (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
     tracking: TrackingConfig = TrackingConfig()
     """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
@@ -135,6 +143,9 @@ class AgentConfig:
         need(self.lookahead_s is None or (isinstance(self.lookahead_s, (int, float)) and math.isfinite(self.lookahead_s)
                                           and self.lookahead_s >= 0),
              f"lookahead_s must be a finite number >= 0 seconds, is {self.lookahead_s!r}")
+        need(self.wall_margin_m is None or (isinstance(self.wall_margin_m, (int, float))
+                                            and math.isfinite(self.wall_margin_m) and self.wall_margin_m >= 0),
+             f"wall_margin_m must be a finite number >= 0 metres or None, is {self.wall_margin_m!r}")
         for name, kind in (("exit_policy", ExitPolicy), ("geofence", GeofencePolicy)):
             value = getattr(self, name)
             need(value in tuple(kind), f"{name} must be one of {', '.join(kind)}, is {value!r}")

@@ -28,6 +28,7 @@ from fisc_agent.lookup import (
     return_command,
 )
 from fisc_agent.mapfile import MapError, MapErrorKind
+from fisc_agent.wall import DuctWall, reflect_at_wall
 
 Vec = tuple[float, float, float]
 ZERO: Vec = (0.0, 0.0, 0.0)
@@ -44,8 +45,10 @@ estimates).  With one quarter, the same test's closest approach in the duct was 
 class ScalarField:
     """One-point lookups on a ``CommandField`` (map frame), without numpy in the hot path."""
 
-    def __init__(self, field: CommandField) -> None:
+    def __init__(self, field: CommandField, wall: DuctWall | None = None) -> None:
         self.field = field
+        self.wall = wall
+        """The duct's real wall where the map carries it (``fisc_agent.wall.map_wall``), else None."""
         self._ox, self._oy, self._oz = (float(v) for v in field.origin_m)
         self._l = float(field.cell_size_m)
         self._nx, self._ny, self._nz = (int(s) for s in field.grid_cv.shape)
@@ -105,12 +108,15 @@ class ScalarField:
             return None
         return (float(cmd[0, 0]), float(cmd[0, 1]), float(cmd[0, 2]))
 
-    def deviation(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float) -> Vec:
+    def deviation(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float,
+                  wall_margin_m: float | None = None) -> Vec:
         """This vehicle's ``kinetic`` deviation at ``pos`` [m/s]: the CV's fitted spread times the
         persistent, wall-reflected direction of ``fisc_agent.kinetic.kinetic_deviation`` (the
         simulator's rule; its state is kept here, shared with ``flight``).  Zero outside the CVs or
         on a map without a fitted spread.  Streamline tracking adds it to its parcel
-        (``fisc_agent.tracking.ParcelTracker.step``)."""
+        (``fisc_agent.tracking.ParcelTracker.step``).  ``wall_margin_m`` given and the map carrying
+        the duct's real wall: the outward radial part is mirrored within that distance of it
+        (``fisc_agent.wall.reflect_at_wall``)."""
         cv = self.cv_of(*pos)
         spread = self.field.spread_m_s
         if cv < 0 or spread is None:
@@ -119,6 +125,8 @@ class ScalarField:
         d, self._dev_state = kinetic_deviation(
             self.field, np.array([pos], dtype=float), np.array([agent_id]), t_s, self.settings().persistence_s, st,
             None if vel is None else np.array([vel], dtype=float))
+        if wall_margin_m is not None and self.wall is not None:
+            d = reflect_at_wall(np.array([pos], dtype=float), d, self.wall, wall_margin_m)
         s = float(spread[cv])
         return (s * float(d[0, 0]), s * float(d[0, 1]), s * float(d[0, 2]))
 

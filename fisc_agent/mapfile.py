@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from fisc_agent.wall import WALL_ARRAY, DuctWall
+
 MAGIC = b"FISCMAP\x00"
 CONTAINER_VERSION = 1
 SCHEMA = "fisc.command_map"
@@ -258,6 +260,14 @@ def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
             raise MapError(MapErrorKind.SCHEMA, f"array {name!r} has {arr.shape[0]} rows, header says n_cv={n_cv}")
     if tuple(arrays["grid_cv"].shape) != tuple(body["grid"]["shape"]):
         raise MapError(MapErrorKind.SCHEMA, "grid_cv shape differs from grid.shape")
+    if WALL_ARRAY in arrays:  # optional in every version: the duct's real wall (fisc_agent.wall)
+        wall = arrays[WALL_ARRAY]
+        try:
+            if wall.dtype.str != "<f8":
+                raise ValueError(f"must be <f8, is {wall.dtype.str}")
+            DuctWall.from_array(wall)
+        except ValueError as exc:
+            raise MapError(MapErrorKind.SCHEMA, f"array {WALL_ARRAY!r}: {exc}") from exc
     if version >= 2:
         _check_schema_2(body, arrays)
 

@@ -106,8 +106,8 @@ class Mission:
         self._kinetic = mode == "kinetic" and self.cfg.mode == "kinetic"
         if mode == "kinetic" and not self._kinetic and self.cfg.tracking.gain_1_s > 0.0:
             log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "
-                        "with an explicit --mode kinetic (they reach the staircase's outer cubes, which lie partly "
-                        "outside a real duct: docs/deployment.md); flying the map's staggered field")
+                        "with an explicit --mode kinetic (which turns them within --wall-margin of the map's real "
+                        "wall: docs/deployment.md); flying the map's staggered field")
         if self.response is None:
             self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self._lookahead_s())
         if self._last_pos is not None and self.state == State.JOIN:
@@ -439,7 +439,7 @@ class Mission:
     def _deviation_fn(self, t: float, vel: Vec | None) -> Callable[[Vec], Vec]:
         """The ``kinetic`` deviation at time ``t`` as a function of the parcel's position (for
         ``ParcelTracker.step``; the vehicle's velocity sets the wall-reflection zone)."""
-        return lambda p: self.sfield.deviation(p, vel, self.cfg.agent_id, t)
+        return lambda p: self.sfield.deviation(p, vel, self.cfg.agent_id, t, self.cfg.wall_margin_m)
 
     def _lookahead_s(self) -> float:
         """Look-ahead in use: identified in flight (``lookahead_auto``), else given, else the map's."""

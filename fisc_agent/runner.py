@@ -30,6 +30,7 @@ from fisc_agent.mission import (FLYING, Cause, HoldCause, Mission, MissionComman
                                 VehicleStatus)
 from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.ratelimit import RateLimitedLog
+from fisc_agent.wall import map_wall
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +205,10 @@ class Runner:
         if vmax > self.cfg.max_speed_m_s:
             log.warning("map commands up to %.2f m/s, above max speed %.2f m/s: setpoints will be clamped",
                         vmax, self.cfg.max_speed_m_s)
-        sfield = ScalarField(field)
+        sfield = ScalarField(field, wall=map_wall(cmap.arrays))
+        if self.cfg.mode == "kinetic" and self.cfg.wall_margin_m is not None and sfield.wall is None:
+            log.warning("map %s carries no real wall (duct_wall_m): the kinetic deviations turn at the CV "
+                        "staircase only, whose outer cubes lie partly outside a real duct", cmap.sha256[:12])
         with self._lock:  # re-check: another thread may have offered a newer map meanwhile
             if not self._newer_than_current(cmap):
                 return cmap.sha256 == self._current_map_sha()

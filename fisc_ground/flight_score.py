@@ -26,43 +26,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from fisc_agent.lookup import CommandField
+from fisc_agent.wall import DuctWall
+from fisc_ground.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.field import ReferenceField
-
-@dataclass(frozen=True)
-class DuctWall:
-    """Axisymmetric wall radius sampled along x (from a reference field's nodes)."""
-
-    x_m: np.ndarray
-    """Station centres [m], ascending."""
-    radius_m: np.ndarray
-    """Wall radius at each station [m]."""
-
-    @classmethod
-    def from_reference(cls, ref: ReferenceField, dx_m: float = 0.1) -> "DuctWall":
-        """The wall radius per axial bin of ``dx_m``: the largest radius of the reference's nodes there."""
-        p = ref.points_m
-        r = np.hypot(p[:, 1], p[:, 2])
-        x0, x1 = float(p[:, 0].min()), float(p[:, 0].max())
-        n = max(1, int(round((x1 - x0) / dx_m)) + 1)
-        idx = np.clip(np.rint((p[:, 0] - x0) / dx_m).astype(np.int64), 0, n - 1)
-        rmax = np.full(n, -np.inf)
-        np.maximum.at(rmax, idx, r)
-        ok = np.isfinite(rmax)
-        xs = x0 + dx_m * np.arange(n)
-        spacing = _node_spacing(p)
-        return cls(x_m=xs[ok], radius_m=rmax[ok] + 0.5 * spacing)
-
-    def radius_at(self, x_m: np.ndarray) -> np.ndarray:
-        """Wall radius at axial positions ``x_m`` [m] (linear between bins)."""
-        return np.interp(x_m, self.x_m, self.radius_m)
-
-
-def _node_spacing(points_m: np.ndarray) -> float:
-    """Typical distance between neighbouring nodes (median nearest-neighbour distance)."""
-    sample = points_m[:: max(1, len(points_m) // 2000)]
-    d, _ = cKDTree(points_m).query(sample, k=2)
-    return float(np.median(d[:, 1]))
-
 
 @dataclass(frozen=True)
 class FlightScore:
@@ -94,7 +60,7 @@ def score_track(time_s: np.ndarray, pos_m: np.ndarray, vel_m_s: np.ndarray, stat
                 ref: ReferenceField, scale: float, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
                 wall: DuctWall | None = None) -> FlightScore:
     """Score a pass.  ``pos_m``/``vel_m_s`` (n, 3) map frame, ``states`` (n,) mission state names."""
-    wall = wall or DuctWall.from_reference(ref)
+    wall = wall or duct_wall_from_reference(ref)
     states = np.asarray(states).astype(str)
     x = pos_m[:, 0]
     in_duct = (x >= x_lo_m) & (x <= x_hi_m)

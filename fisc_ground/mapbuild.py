@@ -16,6 +16,8 @@ import numpy as np
 from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S
 from fisc_agent.lookup import PAPER_SETTINGS, FlightSettings
 from fisc_agent.mapfile import CommandMap, decode_map, encode_map, load_map
+from fisc_agent.wall import WALL_ARRAY
+from fisc_ground.duct_wall import duct_wall_from_reference
 from fisc_ground.fitting import fit_rmse, fit_velocities
 from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field
 from fisc_ground.reference.field import ReferenceField
@@ -170,6 +172,8 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         "node_count": cvs.node_count,
         # optional (not in REQUIRED_ARRAYS): open-volume fraction A_j dx_j / l^3 of eq. swarm_density
         "cv_open_fraction": cv_open_fraction(cvs),
+        # optional: the duct's real wall, where an onboard kinetic deviation turns (fisc_agent.wall)
+        WALL_ARRAY: duct_wall_from_reference(field).as_array(),
     }
     extra = {}
     if config.staggered:

@@ -265,14 +265,16 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
 def agent_config(job: _AgentJob, agent_id: int, port: int):
     """The ``fisc_agent.config.AgentConfig`` of one emulated vehicle's agent: the job's settings, and
     streamline tracking only when ``job.tracking`` (else gain 0: the agent flies
-    ``fisc_agent.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies)."""
+    ``fisc_agent.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies).  The
+    emulated duct has no physical wall: kinetic deviations reflect at the CV staircase, as in ``fisc-sim
+    run`` (``wall_margin_m`` None), so the two compare."""
     from fisc_agent.config import AgentConfig
     from fisc_agent.tracking import TrackingConfig
 
     return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path,
                        autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
                        exit_policy=job.exit_policy, geofence=job.geofence,
-                       entry_radius_fraction=job.entry_radius_fraction,
+                       entry_radius_fraction=job.entry_radius_fraction, wall_margin_m=None,
                        tracking=TrackingConfig() if job.tracking else TrackingConfig(gain_1_s=0.0))
 
 

@@ -14,7 +14,7 @@ import pytest
 
 from fisc_agent.flightlog import read_flight_log
 from fisc_agent.mapfile import load_map
-from fisc_ground.flight_score import DuctWall, score_track
+from fisc_ground.flight_score import duct_wall_from_reference, score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
@@ -38,7 +38,7 @@ def _exit_held(log, seconds: float) -> bool:
 def _score(log, scale):
     ref = load_builtin("cd_nozzle_inviscid")
     tr = Track.read(log)
-    return tr, score_track(tr.t_s, tr.pos_m, tr.vel_m_s, tr.states, ref, scale, wall=DuctWall.from_reference(ref))
+    return tr, score_track(tr.t_s, tr.pos_m, tr.vel_m_s, tr.states, ref, scale, wall=duct_wall_from_reference(ref))
 
 
 def test_one_arducopter_from_the_ground_through_the_duct_and_out_then_brake_holds(shared_path, tmp_path):

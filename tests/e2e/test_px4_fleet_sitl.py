@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from fisc_agent.flightlog import read_flight_log
-from fisc_ground.flight_score import DuctWall, score_track
+from fisc_ground.flight_score import duct_wall_from_reference, score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
@@ -133,7 +133,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
         ulog_paths = [px4_ulog(run, i) for i in range(N)]
     ulogs = [ulog_summary(p) for p in ulog_paths]
     ref = load_builtin("cd_nozzle_inviscid")
-    wall = DuctWall.from_reference(ref)
+    wall = duct_wall_from_reference(ref)
     tracks = [Track.read(p) for p in logs]
     scores = [score_track(t.t_s, t.pos_m, t.vel_m_s, t.states, ref, good.scale, wall=wall) for t in tracks]
     truths = [truth_on_wall_clock(p, t, MAP_ANCHOR) for p, t in zip(ulog_paths, tracks)]

@@ -14,6 +14,7 @@ import pytest
 from agent_testkit import EmulatorProbe, tunnel_map_bytes
 from sim.autopilot import server
 from fisc_agent.cli import build_parser, config_from_args, main
+from fisc_agent.config import AgentConfig
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -54,12 +55,23 @@ def test_mode_and_lookahead_default_to_the_map_and_preset_paper_is_algorithm_1()
     assert not cfg.lookahead_auto and cfg.tracking.gain_1_s == 0.0    # open loop: Algorithm 1
 
 
+def test_the_wall_margin_defaults_to_the_config_and_off_reflects_at_the_staircase_only(capsys):
+    base = ["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7"]
+    assert config_from_args(build_parser().parse_args(base)).wall_margin_m == AgentConfig.wall_margin_m == 0.8
+    assert config_from_args(build_parser().parse_args(base + ["--wall-margin", "0.3"])).wall_margin_m == 0.3
+    assert config_from_args(build_parser().parse_args(base + ["--wall-margin", "off"])).wall_margin_m is None
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(base + ["--wall-margin", "near"])
+    assert exc.value.code == 2 and "--wall-margin: expected metres or 'off', got 'near'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("args, words", [
     (["--lookahead", "-0.5"], "lookahead_s"),
     (["--mavlink", "bogus://x:1"], "unknown scheme"),
     (["--origin", "1,2"], "--origin"),
     (["--rate", "1"], "rate"),
     (["--max-speed", "-1"], "max_speed"),
+    (["--wall-margin", "-0.1"], "wall_margin_m"),
 ])
 def test_invalid_options_exit_2_naming_the_problem(tmp_path, caplog, args, words):
     base = {"--map": str(tmp_path / "m.fiscmap"), "--mavlink": "udpin:127.0.0.1:0", "--id": "1"}

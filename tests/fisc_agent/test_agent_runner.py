@@ -338,3 +338,21 @@ def test_identification_uses_only_ticks_flown_in_the_mode_asked_for():
     resp = r.mission.response
     assert resp is not None
     assert resp.lag_s + resp.dead_time_s == pytest.approx(0.5, abs=0.1)
+
+
+def test_a_kinetic_agent_takes_the_maps_real_wall_and_says_when_there_is_none(caplog):
+    import numpy as np
+    from fisc_agent.mapfile import encode_map, load_map
+    from fisc_agent.wall import WALL_ARRAY
+    from fisc_ground.mapbuild import default_map_path
+
+    cmap = load_map(default_map_path())
+    body = {k: v for k, v in cmap.body.items() if k not in ("arrays", "sha256")}
+    bare = decode_map(encode_map(body, {k: np.asarray(v) for k, v in cmap.arrays.items() if k != WALL_ARRAY}))
+    for m, margin, warned in ((cmap, 0.8, False), (bare, 0.8, True), (bare, None, False)):
+        caplog.clear()
+        clock = Clock()
+        cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, mode="kinetic", wall_margin_m=margin)
+        r = Runner(cfg, MemoryLink(clock), m, clock=clock, sleep=clock.sleep, wall_clock=lambda: 1.7e9)
+        assert (r.mission.sfield.wall is not None) == (m is cmap)
+        assert ("carries no real wall" in caplog.text) == warned, caplog.text

@@ -36,6 +36,7 @@ AGENT = {
     "--join-speed": "AgentConfig.join_speed_m_s", "--return-speed": "AgentConfig.return_speed_m_s",
     "--climb-speed": "AgentConfig.climb_speed_m_s", "--takeoff-alt": "AgentConfig.takeoff_alt_m",
     "--exit-policy": "AgentConfig.exit_policy", "--laps": "AgentConfig.laps", "--geofence": "AgentConfig.geofence",
+    "--wall-margin": "AgentConfig.wall_margin_m",
     "--stale-timeout": "AgentConfig.stale_timeout_s", "--hold-grace": "AgentConfig.hold_grace_s",
     "--link-timeout": "AgentConfig.link_timeout_s", "--source-system": "AgentConfig.source_system",
 }
