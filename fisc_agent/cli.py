@@ -106,9 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
     p.add_argument("--wall-margin", type=_wall_margin, default=AgentConfig.wall_margin_m, metavar="M|off",
-                   help="--mode kinetic under tracking: keep the deviation this far inside the duct's real wall where "
-                        "the map carries it (duct_wall_m) [m]; off: reflect at the CV staircase only, as fisc-sim run's "
-                        f"agents do (default {AgentConfig.wall_margin_m})")
+                   help="--mode kinetic under tracking: keep the deviation this far inside the duct's real wall "
+                        "where the map carries it (duct_wall_m) [m]; off: reflect at the CV staircase only, as "
+                        f"fisc-sim run's agents do (default {AgentConfig.wall_margin_m})")
     p.add_argument("--geofence", choices=GEOFENCE_POLICIES, default=AgentConfig.geofence, help="outside the map while flowing: hold, or return (near the map rejoin the nearest CV's flow with an "
                    "inward pull, as fisc-sim run's agents do; farther fly straight back to it)")
     p.add_argument("--stale-timeout", type=float, default=AgentConfig.stale_timeout_s, help="position age that triggers a hold [s]")

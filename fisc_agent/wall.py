@@ -4,7 +4,7 @@ The CV staircase is the simulator's duct, but its outer cubes lie partly outside
 cubes a fit keeps are those holding any CFD node.  A deviation reflected only at the staircase
 therefore carries a real vehicle up to a cube's width outside the real wall.  The map can carry the
 wall itself (array ``duct_wall_m``: stations x and radius, the duct axisymmetric about the map's x
-axis as DESIGN.md section 2 takes it; ``fisc_ground.flight_score.duct_wall_from_reference`` derives it
+axis as DESIGN.md section 2 takes it; ``fisc_ground.duct_wall.duct_wall_from_reference`` derives it
 from the CFD nodes), and an onboard agent flying the ``kinetic`` mode keeps its deviation inside it
 (``reflect_at_wall``).  The simulator's agents fly the staircase and do not use it.
 """

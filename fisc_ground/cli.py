@@ -92,7 +92,9 @@ def run_score_flight(args: argparse.Namespace) -> int:
     """``fisc-ground score-flight``: score each flight log against the map's CFD reference."""
     from fisc_agent.flightlog import read_flight_log
     from fisc_agent.mapfile import load_map
-    from fisc_ground.flight_score import duct_wall_from_reference, score_track, track_from_rows
+    from fisc_agent.wall import map_wall
+    from fisc_ground.duct_wall import duct_wall_from_reference
+    from fisc_ground.flight_score import score_track, track_from_rows
     from fisc_ground.reference.load import load_reference
 
     cmap = load_map(args.map)
@@ -101,7 +103,7 @@ def run_score_flight(args: argparse.Namespace) -> int:
     if not spec:
         raise ValueError(f"{args.map}: the map records no reference; pass --reference")
     ref = load_reference(spec)
-    wall = duct_wall_from_reference(ref)
+    wall = map_wall(cmap.arrays) or duct_wall_from_reference(ref)  # the wall the agent turned at, where carried
     for path in args.logs:
         score = score_track(*track_from_rows(read_flight_log(path)), ref, cmap.scale, *args.x_range, wall=wall)
         if args.json:

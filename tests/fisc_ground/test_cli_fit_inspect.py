@@ -199,3 +199,34 @@ def test_plot_writes_the_paper_figures(tmp_path, default_map):
     assert len(pngs) >= 3
     for p in (tmp_path / "figs").glob("*.png"):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 10_000
+
+
+def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_map, tmp_path):
+    """`fisc-ground score-flight LOG --map MAP --json`: a synthetic pass along y = 0 at a height that
+    puts it 0.2 m outside the map's wall at the throat, inside elsewhere, flown at S x the CFD speed."""
+    from fisc_agent.flightlog import COLUMNS
+    from fisc_agent.wall import map_wall
+    from fisc_ground.reference.builtin import load_builtin
+
+    cmap = load_map(default_map)
+    wall = map_wall(cmap.arrays)
+    ref = load_builtin("cd_nozzle_inviscid")
+    throat = float(wall.x_m[np.argmin(wall.radius_m)])
+    z = float(wall.radius_at(throat)) + 0.2
+    rows = []
+    for k, x in enumerate(np.arange(-0.5, 15.6, 0.1)):
+        p = np.array([x, 0.0, z])
+        j = int(np.argmin(np.sum((ref.points_m - p) ** 2, axis=1)))
+        u = cmap.scale * float(ref.velocity_m_s[j, 0])
+        row = dict.fromkeys(COLUMNS, "")
+        row.update(time_s=f"{0.1 * k:.4f}", state="FLOW" if x < 15.0 else "EXIT", x_m=f"{x:.4f}", y_m="0.0",
+                   z_m=f"{z:.4f}", vx_m_s=f"{u:.4f}", vy_m_s="0.0", vz_m_s="0.0")
+        rows.append(row)
+    log = tmp_path / "pass.csv"
+    log.write_text(",".join(COLUMNS) + "\n" + "".join(",".join(r[c] for c in COLUMNS) + "\n" for r in rows))
+    out = fisc_ground("score-flight", str(log), "--map", str(default_map), "--json")
+    assert out.returncode == 0, out.stderr
+    score = json.loads(out.stdout.splitlines()[0])
+    assert score["crossed"] and not score["held"]
+    assert score["max_excursion_m"] == pytest.approx(0.2, abs=0.02)   # the wall's narrowest station, sampled
+    assert score["velocity_nrmse"] < 0.01                               # it flew S x the CFD at its nodes
