@@ -11,7 +11,7 @@ import logging
 import signal
 import threading
 
-from fisc_agent.cli_common import ExitCode, add_logging_args, console_exit, setup_logging
+from fisc_agent.cli_common import ExitCode, add_logging_args, console_exit, number_or, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.endpoints import EndpointError, parse_endpoint
 from fisc_agent.frames import GeodeticAnchor, parse_floats
@@ -21,23 +21,6 @@ from fisc_agent.names import prefix_arg, swarm_name_arg
 from fisc_agent.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
-
-
-
-def _number_or(word: str, unit: str, value: object):
-    """An argparse type: a number (its range is checked by AgentConfig), or ``word`` standing for ``value``."""
-    def parse(text: str) -> float | object:
-        if text == word:
-            return value
-        try:
-            return float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {unit} or {word!r}, got {text!r}") from None
-    return parse
-
-
-_seconds_or_auto = _number_or("auto", "seconds", "auto")
-_wall_margin = _number_or("off", "metres", None)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cross-stream integral gain: learns a steady velocity bias [1/s^2]")
     t.add_argument("--track-max-correction", type=float, default=TrackingConfig.max_correction_m_s,
                    help="largest feedback velocity added to the map's command [m/s]")
-    t.add_argument("--lookahead", type=_seconds_or_auto, default="auto",
+    t.add_argument("--lookahead", type=number_or("auto", "auto", "seconds"), default="auto",
                    help="evaluate the field this far ahead, compensating the vehicle's velocity lag [s]; auto: "
                         "identify the lag (and the feed-forward gain) in flight during take-off and join, the "
                         "map's recommended look-ahead until then")
@@ -105,7 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default=AgentConfig.exit_policy,
                    help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
-    p.add_argument("--wall-margin", type=_wall_margin, default=AgentConfig.wall_margin_m, metavar="M|off",
+    p.add_argument("--wall-margin", type=number_or("off", None, "metres"), default=AgentConfig.wall_margin_m,
+                   metavar="M|off",
                    help="--mode kinetic under tracking: keep the deviation this far inside the duct's real wall "
                         "where the map carries it (duct_wall_m) [m]; off: reflect at the CV staircase only, as "
                         f"fisc-sim run's agents do (default {AgentConfig.wall_margin_m})")

@@ -119,6 +119,20 @@ def add_output_arg(parser: argparse.ArgumentParser, *, aliases: tuple[str, ...] 
     return action
 
 
+def number_or(word: str, value: object, what: str = "a number") -> Callable[[str], object]:
+    """An argparse type: a number (its range is checked by the command's config dataclass), or ``word``
+    standing for ``value`` (``auto``, ``off``).  A bad value reads ``argument --flag: expected <what> or
+    '<word>', got '<text>'``."""
+    def parse(text: str) -> object:
+        if text == word:
+            return value
+        try:
+            return float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} or {word!r}, got {text!r}") from None
+    return parse
+
+
 def sig3(value: float | int | None) -> str:
     """``value`` rounded to three significant digits for a summary line (``n/a`` when missing;
     integers, which are counts, stay exact)."""

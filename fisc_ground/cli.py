@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
-                                   missing_extra, missing_dependency_message, setup_logging, sig3)
+                                   missing_extra, missing_dependency_message, number_or, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
 from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT)
@@ -36,18 +36,6 @@ def _scale(text: str) -> float | None:
     if not value > 0:
         raise argparse.ArgumentTypeError("--scale must be positive or 'auto'")
     return value
-
-
-def _number_or_auto(flag: str):
-    """The argparse type of ``flag``: a number or ``auto`` (range checks: ``FitConfig``)."""
-    def parse(text: str) -> float | str:
-        if text == "auto":
-            return text
-        try:
-            return float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{flag} must be a number or 'auto', got {text!r}") from None
-    return parse
 
 
 def fit_config_from_args(args: argparse.Namespace):
@@ -280,13 +268,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map with the continuity-consistent staggered field, the designed "
                         "swarm density and recommended flight settings; paper: the paper's schema-1 map")
-    p.add_argument("--continuity-weight", type=_number_or_auto("--continuity-weight"), default=None,
+    p.add_argument("--continuity-weight", type=number_or("auto", "auto"), default=None,
                    metavar="BETA|auto",
                    help="designed density: 0 = the CFD's density pattern, 1 = the pattern continuity allows at "
                         "the CFD velocity; higher follows the CFD velocity more closely and its density less. "
                         f"Default auto: the lowest of {', '.join(f'{b:g}' for b in AUTO_CONTINUITY_WEIGHTS)} whose "
                         f"static field at amplitude 1 keeps the velocity nRMSE within {STATIC_VELOCITY_LIMIT:g}")
-    p.add_argument("--density-amplitude", type=_number_or_auto("--density-amplitude"), default=None,
+    p.add_argument("--density-amplitude", type=number_or("auto", "auto"), default=None,
                    metavar="K|auto",
                    help="designed density contrast over the staircase's own; above 1 the density follows the CFD "
                         "more closely and the velocity less (docs/simulation.md, 'Velocity against density'). "

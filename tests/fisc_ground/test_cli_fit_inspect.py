@@ -113,10 +113,10 @@ def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["--preset", "paper", "--density-amplitude", "1.2"], "--density-amplitude: the paper's schema-1 map"),
     (["--density-amplitude", "5"], "use a density_amplitude below"),
-    (["--density-amplitude", "deep"], "--density-amplitude must be a number or 'auto', got 'deep'"),
+    (["--density-amplitude", "deep"], "--density-amplitude: expected a number or 'auto', got 'deep'"),
     (["--preset", "paper", "--density-amplitude", "auto"], "--density-amplitude: the paper's schema-1 map"),
     (["--continuity-weight", "1.5"], "continuity_weight must lie in"),
-    (["--continuity-weight", "half"], "--continuity-weight must be a number or 'auto', got 'half'"),
+    (["--continuity-weight", "half"], "--continuity-weight: expected a number or 'auto', got 'half'"),
     (["--preset", "paper", "--continuity-weight", "auto"], "--continuity-weight: the paper's schema-1 map"),
     (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
     (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),
