@@ -59,8 +59,8 @@ class AgentConfig:
     ``fisc_agent.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
     agents do (the staircase's outer cubes lie partly outside a real duct).  The margin must cover the
     vehicle's overshoot and the error of its position estimate: on PX4 SITL (SIH) the altitude estimate
-    strayed up to 0.9 m from the ground truth, and 0.8 m kept three passes within 0.17 m of the wall
-    (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
+    strayed up to 0.9 m from the ground truth, and with 0.8 m six passes went at most 0.17 m beyond the
+    wall by that truth (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
     tracking: TrackingConfig = TrackingConfig()
     """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""

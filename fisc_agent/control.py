@@ -122,11 +122,12 @@ class ScalarField:
         if cv < 0 or spread is None:
             return ZERO
         st = self._dev_state if self._dev_state is not None else DeviationState.new(1)
+        point = np.array([pos], dtype=float)
         d, self._dev_state = kinetic_deviation(
-            self.field, np.array([pos], dtype=float), np.array([agent_id]), t_s, self.settings().persistence_s, st,
+            self.field, point, np.array([agent_id]), t_s, self.settings().persistence_s, st,
             None if vel is None else np.array([vel], dtype=float))
         if wall_margin_m is not None and self.wall is not None:
-            d = reflect_at_wall(np.array([pos], dtype=float), d, self.wall, wall_margin_m)
+            d = reflect_at_wall(point, d, self.wall, wall_margin_m)
         s = float(spread[cv])
         return (s * float(d[0, 0]), s * float(d[0, 1]), s * float(d[0, 2]))
 

@@ -18,7 +18,8 @@ import pytest
 
 from fisc_agent.flightlog import read_flight_log
 from fisc_agent.lookup import CommandField
-from fisc_ground.flight_score import duct_wall_from_reference, realised_spread_ratio, score_track
+from fisc_ground.duct_wall import duct_wall_from_reference
+from fisc_ground.flight_score import realised_spread_ratio, score_track
 from fisc_agent.mapfile import load_map
 from fisc_ground.reference.builtin import load_builtin
 
