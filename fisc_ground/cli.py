@@ -16,6 +16,7 @@ from pathlib import Path
 from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
                                    missing_extra, missing_dependency_message, number_or, setup_logging, sig3)
 from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
+from fisc_ground.staircase import DEFAULT_STAIRCASE_CONTRAST
 from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT)
 
@@ -43,12 +44,13 @@ def fit_config_from_args(args: argparse.Namespace):
     from fisc_ground.mapbuild import FitConfig
 
     n_min, n_max = _n_range(args.n_range)
-    given = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude}
+    given = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude,
+             "staircase_contrast": args.staircase_contrast}
     given = {k: v for k, v in given.items() if v is not None}
     if given and args.preset == "paper":
         flags = ", ".join("--" + k.replace("_", "-") for k in given)
         raise ValueError(f"{flags}: the paper's schema-1 map has no designed density (drop --preset paper)")
-    design = {k: None if v == "auto" else v for k, v in given.items()}
+    design = {k: None if v in ("auto", "off") else v for k, v in given.items()}
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                      max_speed_m_s=args.max_speed, kappa=args.kappa, dispersion_ratio=args.dispersion_ratio,
                      agent_mass_kg=args.agent_mass, min_nodes=args.min_nodes, seed=args.seed,
@@ -180,7 +182,8 @@ def _design_line(design: dict | None) -> str:
     """The designed density of a schema-2 map's ``staggered`` table in one line."""
     if not design:
         return "none (no staggered field)"
-    parts = []
+    parts = [f"staircase contrast {design['staircase_contrast']:g}" if design.get("staircase_contrast") is not None
+             else "every covered cube"]
     for key, label in (("continuity_weight", "continuity weight"), ("density_amplitude", "density amplitude")):
         if design.get(key) is not None:
             parts.append(f"{label} {design[key]:g} ({design.get(key + '_mode', 'fixed')})")
@@ -280,6 +283,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "more closely and the velocity less (docs/simulation.md, 'Velocity against density'). "
                         f"Default auto: the largest of {', '.join(f'{k:g}' for k in AUTO_DENSITY_AMPLITUDES)} whose "
                         f"static field keeps the velocity nRMSE within {STATIC_VELOCITY_BUDGET:g}")
+    p.add_argument("--staircase-contrast", type=number_or("off", "off"), default=None, metavar="C|off",
+                   help="designed staircase: per x slice only the most covered cubes that make the swarm's density "
+                        "at the CFD velocity follow the CFD's density pattern with contrast C become CVs "
+                        f"(default {DEFAULT_STAIRCASE_CONTRAST:g}); off: every cube the reference covers "
+                        "(docs/simulation.md, 'The designed staircase')")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

@@ -42,6 +42,26 @@ def write_run_figures(run: Any, out_dir: Path, parallel: bool = True) -> dict[st
     return {n: paths[n] for n in jobs}
 
 
+def companion_on_cvs(run: Any) -> dict[str, np.ndarray]:
+    """The companion run's per-CV fields on this run's CVs, matched by grid cell: the paper's map keeps
+    every covered cube, the default's designed staircase a subset of them.  CVs the companion's map lacks
+    (or a companion on another grid) get NaN and no samples."""
+    cmap, other = run.cmap, run.companion.cmap
+    pf = run.companion.fields
+    same_grid = (tuple(cmap.grid_shape) == tuple(other.grid_shape) and cmap.cell_size_m == other.cell_size_m
+                 and np.allclose(cmap.origin_m, other.origin_m))
+    n = np.asarray(cmap["cv_center_m"]).shape[0]
+    ids = (np.asarray(other["grid_cv"])[tuple(np.asarray(cmap["cv_index"], dtype=np.int64).T)] if same_grid
+           else np.full(n, -1))
+    have = ids >= 0
+
+    def take(values: np.ndarray, missing: float) -> np.ndarray:
+        return np.where(have, np.asarray(values, dtype=float)[np.maximum(ids, 0)], missing)
+
+    return {"u": take(pf.u_axial_m_s, np.nan), "p": take(pf.p_dispersion_pa, np.nan),
+            "rho": take(pf.rho_s_kg_m3, np.nan), "samples": take(pf.samples, 0.0)}
+
+
 def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
     """The figures of ``write_run_figures`` as jobs, name -> job, in the paper's order."""
     cmap, f = run.cmap, run.fields
@@ -58,13 +78,13 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
         name = f"snapshot_{run.scenario}_{t:05.1f}s".replace(".", "_")
         jobs[name] = partial(plots.plot_swarm_snapshot, pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
     swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
-    # a companion run of the paper's preset on the same CVs (``sim.run``): a fourth panel / curve
-    pf = run.companion.fields if run.companion is not None else None
-    pok = pf.samples >= run.min_samples if pf is not None else None
-    p_extra = {"(d) swarm pressure (paper preset)": _minmax(pf.p_dispersion_pa, pok)} if pf is not None else {}
-    u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf.u_axial_m_s, np.nan), pok)}
+    # a companion run of the paper's preset (``sim.run``): a fourth panel / curve, on this map's CVs
+    pf = companion_on_cvs(run) if run.companion is not None else None
+    pok = pf["samples"] >= run.min_samples if pf is not None else None
+    p_extra = {"(d) swarm pressure (paper preset)": _minmax(pf["p"], pok)} if pf is not None else {}
+    u_extra = ({"(d) swarm u_s / max (paper preset)": _bymax(np.where(pok, pf["u"], np.nan), pok)}
                if pf is not None else {})
-    r_extra = {"(d) swarm density (paper preset)": _minmax(pf.rho_s_kg_m3, pok)} if pf is not None else {}
+    r_extra = {"(d) swarm density (paper preset)": _minmax(pf["rho"], pok)} if pf is not None else {}
     velocity = {"(a) CFD target u_x / max": _bymax(tgt_v[:, 0], everywhere),
                 "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
                 f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra}
@@ -95,8 +115,8 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
     if pf is not None:
         extra = {"swarm, paper preset": centreline_profiles(
             c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
-            np.asarray(cmap["target_density_kg_m3"], dtype=float), pf.u_axial_m_s, pf.p_dispersion_pa,
-            pf.rho_s_kg_m3, pf.samples, run.min_samples).swarm}
+            np.asarray(cmap["target_density_kg_m3"], dtype=float), pf["u"], pf["p"], pf["rho"], pf["samples"],
+            run.min_samples).swarm}
     jobs["centreline"] = partial(  # fig. 10
         plots.plot_centreline_profiles, prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})",
         extra_swarm=extra)

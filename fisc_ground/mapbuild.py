@@ -20,6 +20,7 @@ from fisc_agent.wall import WALL_ARRAY
 from fisc_ground.duct_wall import duct_wall_from_reference
 from fisc_ground.fitting import fit_rmse, fit_velocities
 from fisc_ground.partition import ControlVolumes, cv_open_fraction, partition_field
+from fisc_ground.staircase import DEFAULT_MIN_STEP_OPEN, DEFAULT_STAIRCASE_CONTRAST
 from fisc_ground.reference.field import ReferenceField
 from fisc_ground.reference.load import load_reference
 from fisc_ground.staggered import (
@@ -71,6 +72,11 @@ class FitConfig:
     """Agent mass m_i [kg] in the fitting equations (paper: 1 kg)."""
     min_nodes: int = 1
     """Minimum reference nodes for a CV to exist."""
+    staircase_contrast: float | None = DEFAULT_STAIRCASE_CONTRAST
+    """Contrast C of the designed staircase (``fisc_ground.staircase``): per axial slice, only the most
+    covered cubes that make the swarm's continuity pattern follow the CFD's density pattern become CVs.
+    None keeps every covered cube (DESIGN.md section 2).  Schema-1 maps (``staggered`` False, the paper's
+    preset) always keep every covered cube."""
     alpha: float = 1.0
     """Weight of the pressure term in the fitting objective."""
     tolerance: float = 1e-6
@@ -117,6 +123,9 @@ class FitConfig:
         ratio = self.dispersion_ratio
         if ratio is not None and not (math.isfinite(ratio) and ratio > 0):
             raise ValueError(f"dispersion_ratio must be positive and finite, got {ratio!r}")
+        c = self.staircase_contrast
+        if c is not None and not 0.0 < c < 1.0:
+            raise ValueError(f"staircase_contrast must lie in (0, 1) (None: every covered cube), got {c!r}")
 
 
 
@@ -137,7 +146,8 @@ def _software_version() -> str:
 
 def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Partition, fit and scale; returns the map header fields and arrays (ready for ``encode_map``)."""
-    cvs: ControlVolumes = partition_field(field, cell_size_m=config.cell_size_m, min_nodes=config.min_nodes)
+    cvs: ControlVolumes = partition_field(field, cell_size_m=config.cell_size_m, min_nodes=config.min_nodes,
+                                          staircase_contrast=config.staircase_contrast if config.staggered else None)
     cell_volume = config.cell_size_m ** 3
     p = cvs.target_pressure_gauge_pa
     if config.kappa is None:
@@ -195,7 +205,10 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                                "density_amplitude": st.density_amplitude,
                                "density_amplitude_mode": _mode(sc.density_amplitude),
                                "velocity_budget": sc.velocity_budget, "velocity_limit": sc.velocity_limit,
-                               "static_velocity_nrmse": st.static_velocity_nrmse}}
+                               "static_velocity_nrmse": st.static_velocity_nrmse,
+                               "staircase_contrast": cvs.staircase_contrast,
+                               "staircase_min_step_open": (None if cvs.staircase_contrast is None
+                                                           else DEFAULT_MIN_STEP_OPEN)}}
     else:
         extra = {"schema_version": 1}
     now = datetime.now(timezone.utc)

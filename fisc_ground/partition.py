@@ -12,7 +12,9 @@ Implements the paper's "Spatial Partitioning" step with the grid rules of DESIGN
   x = x_max, and likewise y_max, z_max) fold into the last slice instead of creating a slice of
   their own;
 * a CV exists where at least ``min_nodes`` nodes fall inside; its targets are the means of those
-  nodes; CVs are numbered lexicographically in (i, j, k).
+  nodes; CVs are numbered lexicographically in (i, j, k);
+* with ``staircase_contrast`` given, only the cubes of each axial slice that the designed staircase
+  keeps (``fisc_ground.staircase``: a per-slice minimum node count) become CVs.
 
 Coordinates within ``FACE_TOL`` cell sizes of a face are treated as lying on it, so that round-off
 in exported coordinates (``4.999999e-01``) does not move a lattice node into the wrong cell.
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_ground.reference.field import ReferenceField
+from fisc_ground.staircase import designed_staircase, slice_pattern
 
 #: Relative tolerance (in cell sizes) within which a coordinate counts as lying on a cell face.
 FACE_TOL = 1e-6
@@ -54,6 +57,9 @@ class ControlVolumes:
     """(n_cv,) float64 mean CFD density of the nodes in each CV [kg/m^3]; NaN if unknown."""
     grid_cv: np.ndarray
     """(nx, ny, nz) int32 CV id of every grid cell, -1 where no CV exists."""
+    staircase_contrast: float | None = None
+    """Contrast of the designed staircase that chose the CVs (``fisc_ground.staircase``); None: every cube
+    with ``min_nodes`` is a CV (none asked for, or the reference has no slice pattern to follow)."""
 
     @property
     def n_cv(self) -> int:
@@ -117,6 +123,7 @@ def partition(
     density_kg_m3: np.ndarray | None,
     cell_size_m: float = 0.5,
     min_nodes: int = 1,
+    staircase_contrast: float | None = None,
 ) -> ControlVolumes:
     """Partition nodes into cubic CVs and average the CFD fields per CV (paper: Spatial Partitioning).
 
@@ -124,8 +131,13 @@ def partition(
     nodes x inside the CV (and the same for density when given). Vectorised with
     ``np.bincount``; CVs come out in lexicographic (i, j, k) order.
 
+    ``staircase_contrast``: None keeps every cube with ``min_nodes`` (DESIGN.md section 2); a value C
+    keeps per slice the cubes ``fisc_ground.staircase.designed_staircase`` chooses for contrast C,
+    following the slice pattern of the density (of the pressure where the density is unknown or the
+    same in every slice; every cube when both are).
+
     Raises ValueError on empty or non-finite input, bad shapes, ``cell_size_m <= 0`` or
-    ``min_nodes < 1``.
+    ``min_nodes < 1``, and for a staircase that cannot be designed (``designed_staircase``).
     """
     pts = np.asarray(points_m, dtype=np.float64)
     vel = np.asarray(velocity_m_s, dtype=np.float64)
@@ -158,7 +170,19 @@ def partition(
     n_cells = nx * ny * nz
 
     counts = np.bincount(flat, minlength=n_cells)
-    occupied = np.flatnonzero(counts >= int(min_nodes))  # sorted -> lexicographic (i, j, k)
+    keep_cell = counts >= int(min_nodes)
+    pattern = None
+    if staircase_contrast is not None:
+        # the density's slice pattern, the pressure's where the density is unknown or uniform
+        for f in (rho, prs):
+            if f is not None and pattern is None:
+                pattern = slice_pattern(np.bincount(flat, weights=f, minlength=n_cells).reshape(nx, -1),
+                                        counts.reshape(nx, -1))
+    if pattern is not None:
+        covered = np.where(keep_cell, counts, 0).reshape(nx, -1)
+        u_axial = np.bincount(flat, weights=vel[:, 0], minlength=n_cells).reshape(nx, -1) / np.maximum(covered, 1)
+        keep_cell &= designed_staircase(covered, u_axial, pattern, staircase_contrast).reshape(-1)
+    occupied = np.flatnonzero(keep_cell)  # sorted -> lexicographic (i, j, k)
     n_cv = occupied.size
     grid_cv = np.full(n_cells, -1, dtype=np.int32)
     grid_cv[occupied] = np.arange(n_cv, dtype=np.int32)
@@ -188,11 +212,12 @@ def partition(
         target_pressure_gauge_pa=target_p,
         target_density_kg_m3=target_rho,
         grid_cv=grid_cv.reshape(shape),
+        staircase_contrast=None if pattern is None else float(staircase_contrast),
     )
 
 
 def partition_field(
-    field: ReferenceField, cell_size_m: float = 0.5, min_nodes: int = 1
+    field: ReferenceField, cell_size_m: float = 0.5, min_nodes: int = 1, staircase_contrast: float | None = None
 ) -> ControlVolumes:
     """``partition`` applied to a ReferenceField's nodes, velocity, gauge pressure and density."""
     return partition(
@@ -202,6 +227,7 @@ def partition_field(
         field.density_kg_m3,
         cell_size_m=cell_size_m,
         min_nodes=min_nodes,
+        staircase_contrast=staircase_contrast,
     )
 
 

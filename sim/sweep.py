@@ -20,6 +20,7 @@ A sweep spec is a TOML file::
 
     [grid.fit]                  # fit settings varied by the grid (dimension names fit.<field>)
     max_speed_m_s = [2.0, 3.0]
+    staircase_contrast = [0.4, "off"]   # "auto" and "off" stand for None, as on the fisc-ground command line
 
 ``map`` values are what ``RunConfig.map`` takes (a ``.fiscmap`` file, a built-in reference name
 or a CFD file; relative paths are relative to the spec file) or ``FILE.py:FUNCTION``, a function
@@ -83,16 +84,19 @@ class SweepSpec:
         names = [n for n, _ in self.grid]
         out = []
         for i, combo in enumerate(itertools.product(*(v for _, v in self.grid))):
-            run, fit, labels = dict(self.base), dict(self.base_fit), []
+            run, fit, labels = dict(self.base), _fit_values(self.base_fit), []
             for name, value in zip(names, combo):
                 if isinstance(value, dict):
                     entry = dict(value)
                     label = entry.pop("label", None)
                     for key, v in entry.items():
-                        (fit if key.startswith("fit.") else run)[key.removeprefix("fit.")] = v
+                        if key.startswith("fit."):
+                            fit.update(_fit_values({key.removeprefix("fit."): v}))
+                        else:
+                            run[key] = v
                     labels.append((name, label if label is not None else _compact(entry)))
                 elif name.startswith("fit."):
-                    fit[name.removeprefix("fit.")] = value
+                    fit.update(_fit_values({name.removeprefix("fit."): value}))
                     labels.append((name, value))
                 else:
                     run[name] = value
@@ -102,6 +106,11 @@ class SweepSpec:
             run["figures"] = False
             out.append(SweepPoint(i, tuple(labels), run, fit))
         return out
+
+
+def _fit_values(fit: dict[str, Any]) -> dict[str, Any]:
+    """FitConfig overrides with the command line's words ``auto`` / ``off`` read as None (TOML has no null)."""
+    return {k: None if v in ("auto", "off") else v for k, v in fit.items()}
 
 
 def _compact(entry: dict) -> str:

@@ -93,7 +93,7 @@ def inspect(path: Path, trusted: Path | None = None) -> dict:
 
 
 def fit_map(out: Path, key: Path) -> None:
-    """The small built-in tunnel (15 m, 741 CVs), signed with ``key`` (~0.5 s)."""
+    """The small built-in tunnel (15 m, 560 CVs), signed with ``key`` (~0.5 s)."""
     ok(run_cli(ground("fit", "cd_nozzle_inviscid", "--max-speed", "8", "-o", out, "--sign", key)))
 
 

@@ -29,9 +29,14 @@ def default_map(tmp_path_factory) -> Path:
     return out
 
 
-def test_fit_builtin_writes_a_verified_map(default_map):
+def test_fit_builtin_writes_a_verified_map(default_map, tmp_path):
     cmap = load_map(default_map)
-    assert 700 <= cmap.n_cv <= 800  # DESIGN.md: about 740 CVs on the shipped export (paper: 772)
+    assert cmap.n_cv == 560  # the designed staircase keeps 560 of the 741 covered cubes
+    assert cmap.body["staggered"]["staircase_contrast"] == 0.4
+    every = tmp_path / "every.fiscmap"
+    assert main(["fit", "cd_nozzle_inviscid", "-o", str(every), "--staircase-contrast", "off"]) == 0
+    assert load_map(every).n_cv == 741  # DESIGN.md: about 740 CVs on the shipped export (paper: 772)
+    assert load_map(every).body["staggered"]["staircase_contrast"] is None
     assert cmap.body["provenance"]["reference"]["name"] == "cd_nozzle_inviscid"
     assert cmap.body["n_range"] == [2, 10]
     speeds = np.linalg.norm(cmap.scale * cmap["fit_velocity_m_s"], axis=-1)
@@ -57,8 +62,8 @@ def test_inspect_text_names_the_flight_settings_and_the_design(tmp_path, default
     res = fisc_ground("inspect", str(default_map))
     assert res.returncode == 0, res.stderr
     assert "flight       : kinetic, look-ahead 0.5 s, persistence 2 s (recommended)" in res.stdout
-    assert ("design       : continuity weight 0.5 (auto), density amplitude 1.1 (auto), static field velocity "
-            "nRMSE 0.075") in res.stdout
+    assert ("design       : staircase contrast 0.4, continuity weight 0.5 (auto), density amplitude 1.1 (auto), "
+            "static field velocity nRMSE 0.053") in res.stdout
     paper = tmp_path / "paper.fiscmap"
     assert main(["fit", "analytic", "-o", str(paper), "--preset", "paper"]) == 0
     res = fisc_ground("inspect", str(paper))
@@ -119,6 +124,9 @@ def test_fit_dispersion_ratio_sets_kappa_and_is_recorded(tmp_path):
     (["--continuity-weight", "half"], "--continuity-weight: expected a number or 'auto', got 'half'"),
     (["--preset", "paper", "--continuity-weight", "auto"], "--continuity-weight: the paper's schema-1 map"),
     (["--dispersion-ratio", "0"], "dispersion_ratio must be positive and finite"),
+    (["--staircase-contrast", "1"], "staircase_contrast must lie in (0, 1)"),
+    (["--staircase-contrast", "none"], "--staircase-contrast: expected a number or 'off', got 'none'"),
+    (["--preset", "paper", "--staircase-contrast", "0.3"], "--staircase-contrast: the paper's schema-1 map"),
     (["--dispersion-ratio", "nan"], "dispersion_ratio must be positive and finite"),
 ])
 def test_fit_refuses_bad_design_options_and_writes_nothing(tmp_path, args, message):
@@ -172,8 +180,12 @@ def test_unknown_builtin_lists_the_known_names(tmp_path):
 
 
 def test_rans_builtin_keeps_reversed_flow_cvs(tmp_path):
-    out = tmp_path / "rans.fiscmap"
-    assert main(["fit", "cd_nozzle", "-o", str(out)]) == 0
+    """With every covered cube a CV; the designed staircase leaves out the separated wall cubes (they
+    are the least covered of their slices), so the default map of cd_nozzle has none."""
+    out, designed = tmp_path / "rans.fiscmap", tmp_path / "designed.fiscmap"
+    assert main(["fit", "cd_nozzle", "-o", str(designed)]) == 0
+    assert not (load_map(designed)["target_velocity_m_s"][:, 0] < 0).any()
+    assert main(["fit", "cd_nozzle", "-o", str(out), "--staircase-contrast", "off"]) == 0
     cmap = load_map(out)
     reversed_cvs = cmap["target_velocity_m_s"][:, 0] < 0
     assert reversed_cvs.any()  # separation on the diverging wall (x = 10.5-14.8 m)

@@ -8,7 +8,7 @@ from fisc_ground.mapbuild import build_default_map, load_shipped_default_map
 
 def test_shipped_default_map_matches_a_fresh_fit():
     shipped, fresh = load_shipped_default_map(), build_default_map()
-    assert shipped.n_cv == fresh.n_cv == 741
+    assert shipped.n_cv == fresh.n_cv == 560  # the designed staircase's CVs of the 741 covered cubes
     for key in ("grid", "n_range", "scale", "kappa", "agent_mass_kg"):
         assert shipped.body[key] == fresh.body[key], key
     for name in REQUIRED_ARRAYS:
@@ -16,7 +16,8 @@ def test_shipped_default_map_matches_a_fresh_fit():
     # schema 2: the staggered field, the designed density and the recommended flight settings
     assert shipped.schema_version == fresh.schema_version == 2
     assert shipped.body["flight"] == fresh.body["flight"]
-    for key in ("continuity_weight", "weight_exponent", "axial_weight", "density_amplitude"):
+    for key in ("continuity_weight", "weight_exponent", "axial_weight", "density_amplitude", "staircase_contrast",
+                "staircase_min_step_open"):
         assert shipped.body["staggered"][key] == fresh.body["staggered"][key], key
     for name in ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s", "cv_design_density"):
         np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-9, err_msg=name)

@@ -134,7 +134,7 @@ def ground_keys(tmp_path_factory) -> Keys_:
 
 
 def tunnel_map(version: int, seed: bytes | None) -> bytes:
-    """The built-in default tunnel (15 m, 741 CVs) as map bytes of ``map_version`` ``version``."""
+    """The built-in default tunnel (15 m, 560 CVs) as map bytes of ``map_version`` ``version``."""
     import field_maps
     from fisc_agent.mapfile import load_map
     from fisc_agent.mapfile import encode_map

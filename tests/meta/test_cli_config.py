@@ -82,7 +82,7 @@ FIT = {
     "--max-speed": "FitConfig.max_speed_m_s", "--kappa": "FitConfig.kappa", "--agent-mass": "FitConfig.agent_mass_kg",
     "--min-nodes": "FitConfig.min_nodes", "--seed": "FitConfig.seed", "--preset": "FitConfig.staggered",
     "--continuity-weight": "FitConfig.continuity_weight", "--density-amplitude": "FitConfig.density_amplitude",
-    "--dispersion-ratio": "FitConfig.dispersion_ratio",
+    "--dispersion-ratio": "FitConfig.dispersion_ratio", "--staircase-contrast": "FitConfig.staircase_contrast",
 }
 FIT_NO_FIELD = {
     "-o": "the map file written (run_fit's output), not a fit setting",

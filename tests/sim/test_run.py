@@ -307,3 +307,23 @@ def test_the_paper_companion_flies_beside_the_run_in_a_forked_process_with_the_s
     for key in ("nrmse_velocity", "nrmse_pressure", "nrmse_density", "pearson_density", "agents"):
         assert beside.paper.metrics[key] == after.paper.metrics[key]
     assert np.array_equal(beside.paper.fields.rho_s_kg_m3, after.paper.fields.rho_s_kg_m3)
+
+
+def test_the_main_job_draws_the_paper_companion_on_the_designed_staircase(tmp_path):
+    """The default map keeps a designed subset of the cubes the paper's map covers (fisc_ground.staircase):
+    the run still writes every figure, and the paper preset's fields drawn beside it are the companion
+    run's at the same grid cells."""
+    import sim.run as sim_run
+    from fisc_ground.field_figures import companion_on_cvs
+
+    r = sim_run.run(RunConfig(duration_s=12.0, average_window_s=6.0, out_dir=str(tmp_path / "run")))
+    main_map, paper_map = r.cmap, r.paper.field_run.cmap
+    assert main_map.n_cv < paper_map.n_cv and paper_map.schema_version == 1
+    for name in ("velocity_cfd_fit_swarm", "pressure_cfd_fit_swarm", "density_cfd_fit_swarm", "centreline"):
+        assert (tmp_path / "run" / f"{name}.png").stat().st_size > 0, name
+    ids = np.asarray(paper_map["grid_cv"])[tuple(np.asarray(main_map["cv_index"]).T)]
+    assert np.all(ids >= 0)
+    np.testing.assert_allclose(np.asarray(paper_map["cv_center_m"])[ids], main_map["cv_center_m"])
+    shown = companion_on_cvs(r.field_run)
+    np.testing.assert_array_equal(shown["rho"], r.paper.fields.rho_s_kg_m3[ids])
+    np.testing.assert_array_equal(shown["samples"], r.paper.fields.samples[ids])
