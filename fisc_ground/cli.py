@@ -41,7 +41,7 @@ def _scale(text: str) -> float | None:
 
 def fit_config_from_args(args: argparse.Namespace):
     """The ``fisc_ground.mapbuild.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
-    from fisc_ground.mapbuild import FitConfig
+    from fisc_ground.mapbuild import FitConfig, fit_overrides
 
     n_min, n_max = _n_range(args.n_range)
     given = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude,
@@ -50,7 +50,7 @@ def fit_config_from_args(args: argparse.Namespace):
     if given and args.preset == "paper":
         flags = ", ".join("--" + k.replace("_", "-") for k in given)
         raise ValueError(f"{flags}: the paper's schema-1 map has no designed density (drop --preset paper)")
-    design = {k: None if v in ("auto", "off") else v for k, v in given.items()}
+    design = fit_overrides(given)
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                      max_speed_m_s=args.max_speed, kappa=args.kappa, dispersion_ratio=args.dispersion_ratio,
                      agent_mass_kg=args.agent_mass, min_nodes=args.min_nodes, seed=args.seed,

@@ -130,6 +130,12 @@ class FitConfig:
 
 
 
+def fit_overrides(values: dict[str, Any]) -> dict[str, Any]:
+    """``FitConfig`` overrides with the words ``auto`` and ``off`` read as None (chosen by the build, or
+    switched off): how ``fisc-ground fit`` flags and ``fisc-sim sweep`` specs (TOML has no null) say it."""
+    return {k: None if v in ("auto", "off") else v for k, v in values.items()}
+
+
 def _mode(setting: float | None) -> str:
     """How a design setting of the map header came about: "auto" (None, chosen by the build) or "fixed"."""
     return "auto" if setting is None else "fixed"

@@ -81,22 +81,24 @@ class SweepSpec:
 
     def points(self) -> list[SweepPoint]:
         """Every point of the grid, in product order (the last dimension varies fastest)."""
+        from fisc_ground.mapbuild import fit_overrides
+
         names = [n for n, _ in self.grid]
         out = []
         for i, combo in enumerate(itertools.product(*(v for _, v in self.grid))):
-            run, fit, labels = dict(self.base), _fit_values(self.base_fit), []
+            run, fit, labels = dict(self.base), fit_overrides(self.base_fit), []
             for name, value in zip(names, combo):
                 if isinstance(value, dict):
                     entry = dict(value)
                     label = entry.pop("label", None)
                     for key, v in entry.items():
                         if key.startswith("fit."):
-                            fit.update(_fit_values({key.removeprefix("fit."): v}))
+                            fit.update(fit_overrides({key.removeprefix("fit."): v}))
                         else:
                             run[key] = v
                     labels.append((name, label if label is not None else _compact(entry)))
                 elif name.startswith("fit."):
-                    fit.update(_fit_values({name.removeprefix("fit."): value}))
+                    fit.update(fit_overrides({name.removeprefix("fit."): value}))
                     labels.append((name, value))
                 else:
                     run[name] = value
@@ -106,11 +108,6 @@ class SweepSpec:
             run["figures"] = False
             out.append(SweepPoint(i, tuple(labels), run, fit))
         return out
-
-
-def _fit_values(fit: dict[str, Any]) -> dict[str, Any]:
-    """FitConfig overrides with the command line's words ``auto`` / ``off`` read as None (TOML has no null)."""
-    return {k: None if v in ("auto", "off") else v for k, v in fit.items()}
 
 
 def _compact(entry: dict) -> str:
