@@ -15,7 +15,7 @@ from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, 
                                    console_exit, missing_dependency_message, missing_extra, setup_logging, sig3)
 from fisc_agent.lookup import COMMAND_MODES
 from sim.plant_fit import PLANT_PRESETS
-from sim.run import RESERVOIR_WINDOW_S
+from sim.run import RESERVOIR_DURATION_S, RESERVOIR_WINDOW_S
 
 
 def _agents(text: str):
@@ -40,7 +40,7 @@ def _add_run(sub) -> None:
                    help="population target N: N* scaled by N / sum N* (seed: exactly N seeded; reservoir: source "
                         "rate scaled alike), or 'fitted' for N* as fitted. Default 1000 (the paper's population)")
     p.add_argument("--duration", type=float, default=None,
-                   help="simulated seconds (default: 300 for reservoir, 20 for seed)")
+                   help=f"simulated seconds (default: {RESERVOIR_DURATION_S:g} for reservoir, 20 for seed)")
     p.add_argument("--average-window", type=float, default=None,
                    help=f"time-average the fields over the last S seconds (default: {RESERVOIR_WINDOW_S:g} for "
                         "reservoir, the whole run for seed)")

@@ -28,7 +28,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                     "control loops talking real MAVLink over loopback UDP fly the paper's Case 2 (vehicles take off "
                     "on the ground upstream of the inlet, join at the inlet at the source rate, flow, loop back) in "
                     "real time; writes the fisc-sim run outputs (fields.csv, metrics.json, figures, report.md) plus "
-                    "emulation.json and comparison.json (difference to fisc-sim run on the same map).",
+                    "emulation.json and comparison.json (difference to fisc-sim run on the same map with as many agents flowing).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--map", default=None,
                    help="a .fiscmap file, or a reference (built-in name or CFD file) fitted now; default: the embedded "

@@ -21,7 +21,8 @@ vectorised simulator does.  The outputs (fields.csv, metrics.json, figures, repo
 written with ``fisc_ground.field_report``/``field_figures``, so they have the format of ``fisc-sim run``; in
 addition ``emulation.json`` (timing, real-time figures, per-agent mission outcome) and, unless
 disabled, ``comparison.json`` (the metric differences against ``fisc-sim run`` on the same
-map, duration, population and mode) are written, and report.md gets an "Emulation" section.
+map, duration and mode, at the population that flies as many agents in the tunnel as the emulation
+flew vehicles, and at the launched population N) are written, and report.md gets an "Emulation" section.
 
 Modules: ``config`` (EmulateConfig), ``plan`` (launch plan, map), ``workers`` (the emulator and
 agent processes), ``fly`` (start them, collect a ``SwarmRun``), ``analysis`` (fields, arrivals,
@@ -33,8 +34,10 @@ from sim.emulate.analysis import (  # noqa: F401
     compare_fields,
     entry_statistics,
     flowing,
+    flowing_vehicles,
     ground_truth_fields,
     loop_stats,
+    matched_population,
     realtime_summary,
     sample_window,
     steady_start_s,

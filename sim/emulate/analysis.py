@@ -170,6 +170,28 @@ def _num(v) -> float | None:
     return None if v is None or not math.isfinite(float(v)) else float(v)
 
 
+def flowing_vehicles(fields) -> float:
+    """Mean number of vehicles (agents) inside the CVs per time sample of a ``SwarmFields`` average."""
+    return float(np.sum(fields.count))
+
+
+def matched_population(n_agents: int, emulated_flowing: float, launched_flowing: float) -> int:
+    """Population target of the ``fisc-sim run`` reference that flies as many agents in the tunnel as
+    the emulation flew vehicles: ``n_agents * emulated_flowing / launched_flowing``, rounded, at least 1
+    (``n_agents`` itself when the launched run flew nobody).
+
+    ``emulated_flowing``: the emulation's mean number of vehicles flowing in the CVs over the window
+    (``flowing_vehicles``); ``launched_flowing``: the same of ``fisc-sim run --agents n_agents``.  The
+    two differ because N looping vehicles are not N agents fed by an endless reservoir: after each lap a
+    vehicle flies back to the inlet for 15-20 s, so about 30 of 50 emulated vehicles fly the field at a
+    time against about 43 of the run's 50.  Fewer agents give fewer samples per CV, and the min-max
+    normalised metrics grow with that sampling noise (docs/emulation.md), so the comparison of the
+    command chain flies the reference at the emulation's own population."""
+    if not (math.isfinite(emulated_flowing) and math.isfinite(launched_flowing)) or launched_flowing <= 0.0:
+        return int(n_agents)
+    return max(1, int(round(n_agents * emulated_flowing / launched_flowing)))
+
+
 def compare_fields(emu_metrics: dict, run_metrics: Sequence[dict], emu_fields, run_fields, min_samples: int) -> dict:
     """Metric differences (emulate - run) and a direct comparison of the two swarm fields.
 

@@ -89,7 +89,9 @@ class EmulateConfig:
     agent_workers: int = 0
     """Processes hosting the agents (0: automatic, 1 per 300 vehicles, at most one per CPU)."""
     compare: bool = True
-    """Also run ``fisc-sim run`` (vectorised) on the same map/duration/agents/mode and write comparison.json."""
+    """Also run ``fisc-sim run`` (vectorised) on the same map/duration/mode and write comparison.json: at the
+    population that flies as many agents in the tunnel as the emulation flew vehicles
+    (``sim.emulate.analysis.matched_population``), and at the launched population ``agents``."""
     figures: bool = True
     """Write the PNG figures."""
     seed: int = 0

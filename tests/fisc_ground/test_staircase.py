@@ -7,34 +7,46 @@ import pytest
 from fisc_ground.partition import partition, partition_field
 from fisc_ground.reference.builtin import load_builtin
 from fisc_ground.staggered import cfd_pattern, slice_flux_area
-from fisc_ground.staircase import DEFAULT_STAIRCASE_CONTRAST, designed_staircase, slice_pattern
+from fisc_ground.staircase import DEFAULT_STAIRCASE_CONTRAST, axial_pockets, designed_staircase, slice_pattern
 
-# three slices of four cells: two full cubes, one 48 % and one 24 % open; open area 2.72 cubes -> m >= 3
-COUNTS = np.array([[125, 125, 60, 30]] * 3)
-U = np.ones((3, 4))
+# four slices of four cells: two full cubes, one 48 % and one 24 % open; open area 2.72 cubes -> m >= 3
+COUNTS = np.array([[125, 125, 60, 30]] * 4)
+U = np.ones((4, 4))
+DIP = np.array([1.0, 0.0, 0.0, 1.0])
 
 
 def test_the_flux_area_follows_the_pattern():
-    """Pattern (1, 0, 1) at contrast 0.25 asks for flux areas in the ratio 1 : 4/3 : 1, i.e. 3, 4, 3 cubes."""
-    keep = designed_staircase(COUNTS, U, np.array([1.0, 0.0, 1.0]), 0.25, min_step_open=0.0)
-    np.testing.assert_array_equal(keep.sum(axis=1), [3, 4, 3])
+    """Pattern (1, 0, 0, 1) at contrast 0.25 asks for flux areas in the ratio 1 : 4/3 : 4/3 : 1, i.e. 3, 4,
+    4, 3 cubes."""
+    keep = designed_staircase(COUNTS, U, DIP, 0.25, min_step_open=0.0)
+    np.testing.assert_array_equal(keep.sum(axis=1), [3, 4, 4, 3])
     # the most covered cubes are kept first
-    assert keep[:, :3].all() and not keep[0, 3] and keep[1, 3]
+    assert keep[:, :3].all() and not keep[0, 3] and keep[1, 3] and keep[2, 3]
 
 
 def test_no_step_outwards_into_a_barely_open_cube():
-    """The 24 %-open cube of the middle slice would step out (its upstream neighbour is not kept): below
-    min_step_open it is not eligible, at or above it is."""
-    pattern = np.array([1.0, 0.0, 1.0])
-    np.testing.assert_array_equal(designed_staircase(COUNTS, U, pattern, 0.25, 0.25).sum(axis=1), [3, 3, 3])
-    np.testing.assert_array_equal(designed_staircase(COUNTS, U, pattern, 0.25, 0.24).sum(axis=1), [3, 4, 3])
+    """The 24 %-open cube of the second slice would step out (its upstream neighbour is not kept): below
+    min_step_open it is not eligible (nor, then, the third slice's), at or above it is."""
+    np.testing.assert_array_equal(designed_staircase(COUNTS, U, DIP, 0.25, 0.25).sum(axis=1), [3, 3, 3, 3])
+    np.testing.assert_array_equal(designed_staircase(COUNTS, U, DIP, 0.25, 0.24).sum(axis=1), [3, 4, 4, 3])
     # the inlet slice has no upstream: every covered cube is eligible there
-    first = designed_staircase(COUNTS, U, np.array([0.0, 1.0, 1.0]), 0.25, 0.9)
+    first = designed_staircase(COUNTS, U, np.array([0.0, 0.0, 1.0, 1.0]), 0.25, 0.9)
     assert first[0].sum() == 4
 
 
+def test_a_cube_with_neither_axial_neighbour_kept_is_dropped():
+    """Pattern (1, 0, 1) alone would keep the 24 %-open cube in the middle slice only: a pocket the flow
+    cannot pass through (no axial neighbour), so it is dropped; the inlet and outlet slices' cubes are not
+    pockets (their missing neighbour is the inlet or the outlet)."""
+    keep = designed_staircase(COUNTS[:3], U[:3], np.array([1.0, 0.0, 1.0]), 0.25, min_step_open=0.0)
+    np.testing.assert_array_equal(keep.sum(axis=1), [3, 3, 3])
+    mask = np.array([[1, 0, 1], [0, 1, 0], [1, 0, 0], [0, 0, 1]], dtype=bool)
+    np.testing.assert_array_equal(axial_pockets(mask), [[0, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, 0]])
+    assert not axial_pockets(np.ones((3, 2), dtype=bool)).any()
+
+
 def test_a_uniform_pattern_keeps_every_slice_alike_and_at_least_the_open_area():
-    keep = designed_staircase(COUNTS, U, np.ones(3), 0.4)
+    keep = designed_staircase(COUNTS, U, np.ones(4), 0.4)
     assert np.all(keep.sum(axis=1) == keep.sum(axis=1)[0]) and keep.sum(axis=1)[0] >= 3
 
 
@@ -49,12 +61,13 @@ def test_slice_pattern_is_the_min_max_of_the_node_weighted_slice_means():
     ({"contrast": 1.0}, "contrast must lie in"),
     ({"min_step_open": 1.5}, "min_step_open"),
     ({"pattern": np.ones(2)}, "must be equal"),
-    ({"u": np.full((3, 4), np.nan)}, "finite"),
-    ({"counts": np.array([[125, 0], [0, 0], [125, 0]]), "u": np.ones((3, 2))}, "x slice 1 has no covered cube"),
-    ({"u": -np.ones((3, 4))}, "no net CFD flow"),
+    ({"u": np.full((4, 4), np.nan)}, "finite"),
+    ({"counts": np.array([[125, 0], [0, 0], [125, 0], [125, 0]]), "u": np.ones((4, 2))},
+     "x slice 1 has no covered cube"),
+    ({"u": -np.ones((4, 4))}, "no net CFD flow"),
 ])
 def test_refusals_name_the_problem(kwargs, match):
-    args = {"counts": COUNTS, "u": U, "pattern": np.array([1.0, 0.0, 1.0]), "contrast": 0.3, "min_step_open": 0.0}
+    args = {"counts": COUNTS, "u": U, "pattern": DIP, "contrast": 0.3, "min_step_open": 0.0}
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
         designed_staircase(args["counts"], args["u"], args["pattern"], args["contrast"], args["min_step_open"])

@@ -126,6 +126,20 @@ def test_comparison_takes_the_mean_and_spread_of_the_run_references():
         compare_fields(emu, [], f, f, 10)
 
 
+def test_the_reference_flies_as_many_agents_in_the_tunnel_as_the_emulation_flew_vehicles():
+    from types import SimpleNamespace
+
+    from sim.emulate import flowing_vehicles, matched_population
+
+    # 50 vehicles of which 30 flew the field on average; `fisc-sim run --agents 50` keeps 43 flowing
+    assert flowing_vehicles(SimpleNamespace(count=np.array([10.0, 12.5, 7.5]))) == pytest.approx(30.0)
+    assert matched_population(50, 30.0, 43.0) == 35  # 34.88 rounded
+    assert matched_population(50, 43.0, 43.0) == 50
+    assert matched_population(50, 0.0, 43.0) == 1  # never an empty reference
+    assert matched_population(50, 30.0, 0.0) == 50  # nothing to scale by: the launched population
+    assert matched_population(50, float("nan"), 43.0) == 50
+
+
 def _flow_from(t_s: float, agent_id: int, until_s: float | None = None) -> dict:
     """An agent record whose mission entered FLOW at ``t_s`` (and left it for JOIN at ``until_s``)."""
     tr = [(0.0, "WAIT_POSITION", "JOIN", "test"), (t_s, "JOIN", "FLOW", "entered")]
@@ -283,6 +297,11 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert set(comparison["metrics"]) >= {"nrmse_velocity", "nrmse_pressure", "nrmse_density"}
     assert comparison["run_reference"]["seeds"] == [0, 1, 2, 3, 4]
     assert len(comparison["metrics"]["nrmse_velocity"]["run_seeds"]) == 5
+    # the reference's population matches the vehicles flowing; the launched population's run is kept beside
+    ref = comparison["run_reference"]
+    assert ref["launched_population"] == 3 and ref["population"] >= 1
+    assert ref["flowing_vehicles"]["emulate"] == pytest.approx(float(res.run_result.fields.count.sum()))
+    assert len(comparison["launched_population"]["nrmse_velocity"]["run_seeds"]) == 5
     assert (tmp_path / "run_reference" / "metrics.json").is_file()
     assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "map.fiscmap").is_file()
