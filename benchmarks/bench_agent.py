@@ -34,18 +34,18 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
-from fisc_agent.adapters import ModeClass  # noqa: E402
+from fisc_agent.mavlink.adapters import ModeClass  # noqa: E402
 from fisc_agent.config import AgentConfig  # noqa: E402
-from fisc_agent.control import ScalarField, clamp_velocity  # noqa: E402
-from fisc_agent.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
-from fisc_agent.lookup import CommandField  # noqa: E402
-from fisc_agent.mission import State  # noqa: E402
+from fisc_agent.flight.control import ScalarField, clamp_velocity  # noqa: E402
+from fisc_agent.mavlink.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
+from fisc_agent.map.lookup import CommandField  # noqa: E402
+from fisc_agent.flight.mission import State  # noqa: E402
 from fisc_agent.runner import Runner  # noqa: E402
 
 
 def load_map(which: str):
     if which == "default":
-        from fisc_ground.mapbuild import build_default_map
+        from fisc_ground.maps.build import build_default_map
 
         return build_default_map()
     from pathlib import Path
@@ -53,7 +53,7 @@ def load_map(which: str):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "fisc_agent"))
     from conftest import tunnel_map_bytes
 
-    from fisc_agent.mapfile import decode_map
+    from fisc_agent.map.codec import decode_map
 
     return decode_map(tunnel_map_bytes(length_m=15.0, radius_m=1.5))
 
@@ -201,7 +201,7 @@ def _agent_worker(conn, port: int, agent_id: int, map_choice: str, rate_hz: floa
     """Child process: one agent (MavlinkLink + Runner); reports its CPU over the window."""
     import logging
 
-    from fisc_agent.link import MavlinkLink
+    from fisc_agent.mavlink.link import MavlinkLink
 
     logging.getLogger("fisc_agent").setLevel(logging.ERROR)  # the shutdown's "hold not confirmed" is expected
     cmap = load_map(map_choice)

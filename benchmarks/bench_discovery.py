@@ -25,8 +25,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fisc_agent.zenoh_session import PORT_ENV  # noqa: E402
-from fisc_ground.recording import iter_messages, read_recording  # noqa: E402
+from fisc_agent.zenoh.session import PORT_ENV  # noqa: E402
+from fisc_ground.monitor.recording import iter_messages, read_recording  # noqa: E402
 from tests.ports import free_tcp_port as free_port  # noqa: E402
 
 

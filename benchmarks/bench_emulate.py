@@ -23,8 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from fisc_agent.frames import DeploymentTransform
-from fisc_agent.lookup import CommandField
+from fisc_agent.flight.frames import DeploymentTransform
+from fisc_agent.map.lookup import CommandField
 from sim.emulate import EmulateConfig, fly_swarm, launch_plan, prepare_map, realtime_summary, steady_start_s
 
 

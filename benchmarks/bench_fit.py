@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_ground.fitting import DEFAULT_CHUNK_CVS, fit_cv_reference, fit_rmse, fit_velocities
-from fisc_ground.partition import partition, partition_field
-from fisc_ground.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
+from fisc_ground.fit.fitting import DEFAULT_CHUNK_CVS, fit_cv_reference, fit_rmse, fit_velocities
+from fisc_ground.fit.partition import partition, partition_field
+from fisc_ground.fit.scaling import choose_kappa, choose_scale, default_max_dispersion, swarm_pressure_target
 
 SHARED_CSV = Path(__file__).resolve().parents[2] / "shared/reference/cd_nozzle_inviscid/fluent_export_3d.csv"
 

@@ -4,7 +4,7 @@ Runs the command as a user does (a fresh process each time): once cold (an empty
 its kernels compile) and then ``--runs`` times warm, and prints each run's wall time with the
 simulation loops' times (``metrics.json``: ``wall_time_s`` of the default run and of the paper
 companion, which flies beside it in a forked process).  Then, in this process, the run's figures
-drawn one after the other and on two processes (``fisc_ground.figure_workers``), alternately,
+drawn one after the other and on two processes (``fisc_ground.figures.workers``), alternately,
 with their ratio.  The host's load moves all of these; compare numbers from one invocation.
 
 ``--baseline CHECKOUT`` times another source tree's main job too (``python -m sim.cli run`` with
@@ -79,7 +79,7 @@ def time_pairs(checkout: Path, pairs: int, tmp: Path) -> None:
 
 def time_figures(rounds: int) -> tuple[list[float], list[float]]:
     """Serial and two-process wall times of one run's figures, alternating."""
-    from fisc_ground.field_figures import write_run_figures
+    from fisc_ground.figures.field_figures import write_run_figures
     from sim.run import RunConfig, run
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from sim.plant import PlantParams, numba_available, step_plant, trim_thrust_accel
+from sim.plant.model import PlantParams, numba_available, step_plant, trim_thrust_accel
 
 
 def bench(n_agents: int, backend: str, wind: bool, repeat: int, dt: float | None = None) -> float:

@@ -32,10 +32,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fisc_agent import telemetry_codec as tc  # noqa: E402
-from fisc_agent.zenoh_keys import Keys  # noqa: E402
-from fisc_agent.zenoh_link import AgentZenohLink  # noqa: E402
-from fisc_agent.zenoh_session import config_from_json, peer_config_json  # noqa: E402
+from fisc_agent.zenoh import telemetry_codec as tc  # noqa: E402
+from fisc_agent.zenoh.keys import Keys  # noqa: E402
+from fisc_agent.zenoh.link import AgentZenohLink  # noqa: E402
+from fisc_agent.zenoh.session import config_from_json, peer_config_json  # noqa: E402
 from tests.ports import free_tcp_port as free_port  # noqa: E402
 
 
@@ -48,7 +48,7 @@ def configs(port: int):
 
 
 def make_map(n_cv_target: int, n_max: int, version: int, key: bytes) -> bytes:
-    from fisc_agent.mapfile import encode_map
+    from fisc_agent.map.codec import encode_map
 
     nx = max(1, int(round((n_cv_target / 16) ** (1 / 3) * 4)))
     ny = nz = max(1, int(round(np.sqrt(n_cv_target / nx))))
@@ -70,8 +70,8 @@ def make_map(n_cv_target: int, n_max: int, version: int, key: bytes) -> bytes:
 def bench_map(n_agents: int, n_sessions: int, blob: bytes, key_pub: bytes, label: str, timeout_s: float) -> dict:
     import zenoh
 
-    from fisc_agent.mapfile import decode_map
-    from fisc_ground.zenoh_publish import MapServer
+    from fisc_agent.map.codec import decode_map
+    from fisc_ground.zenoh.publish import MapServer
 
     port = free_port()
     hub_cfg, member_cfg = configs(port)
@@ -115,7 +115,7 @@ def bench_late_joiner(blob: bytes, key_pub: bytes, label: str) -> dict:
     """An agent that starts after the map is served: session open + query + reassembly + checks."""
     import zenoh
 
-    from fisc_ground.zenoh_publish import MapServer
+    from fisc_ground.zenoh.publish import MapServer
 
     port = free_port()
     hub_cfg, member_cfg = configs(port)
@@ -163,8 +163,8 @@ def _publisher(port: int, n_agents: int, rate_hz: float, seconds: float, ready, 
 def bench_telemetry(n_agents: int, rate_hz: float, seconds: float) -> dict:
     import zenoh
 
-    from fisc_ground.flight_log import FlightLog, LogSettings
-    from fisc_ground.monitor import TelemetryAggregator, TelemetryPipe
+    from fisc_ground.monitor.flight_log import FlightLog, LogSettings
+    from fisc_ground.monitor.run import TelemetryAggregator, TelemetryPipe
 
     port = free_port()
     hub_cfg, _ = configs(port)

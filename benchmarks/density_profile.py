@@ -54,12 +54,12 @@ from typing import Sequence
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField, cube_mean_u_axial_m_s
-from fisc_agent.mapfile import load_map
-from fisc_ground.mapbuild import default_map_path
-from fisc_ground.metrics import normalise_min_max
-from fisc_ground.metrics import nrmse
-from fisc_ground.metrics import pearson
+from fisc_agent.map.lookup import CommandField, cube_mean_u_axial_m_s
+from fisc_agent.map.codec import load_map
+from fisc_ground.maps.build import default_map_path
+from fisc_ground.fields.metrics import normalise_min_max
+from fisc_ground.fields.metrics import nrmse
+from fisc_ground.fields.metrics import pearson
 from sim.tracers import Integrator, tracer_density
 
 #: Seed points per axis of every inlet face for the tracers (16 x 16: the shipped map's tracer density

@@ -1,7 +1,7 @@
 """The fidelity table of docs/simulation.md, printed as markdown (not a test).
 
 The table is the sweep spec ``benchmarks/fidelity_table.toml``; this script runs it through
-``fisc-sim sweep``'s engine (``sim.sweep``, ``sim.sweep_run``) and prints the rows::
+``fisc-sim sweep``'s engine (``sim.sweep.spec``, ``sim.sweep.run``) and prints the rows::
 
     python benchmarks/fidelity_table.py --workers 2          # on a 2-worker dask LocalCluster
     python benchmarks/fidelity_table.py --workers 0          # serially in this process
@@ -58,7 +58,7 @@ def markdown_row(r: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sim.sweep import load_spec, run_serial, with_base
+    from sim.sweep.spec import load_spec, run_serial, with_base
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", choices=("reservoir", "seed"), default="reservoir")
@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.workers > 0:
         from dask.distributed import Client
 
-        from sim.sweep_run import local_cluster, run_distributed
+        from sim.sweep.run import local_cluster, run_distributed
 
         with local_cluster(a.workers) as cluster, Client(cluster) as client:
             rows = run_distributed(spec, client)

@@ -11,14 +11,14 @@ import logging
 import signal
 import threading
 
-from fisc_agent.cli_common import ExitCode, add_logging_args, console_exit, number_or, setup_logging
+from fisc_agent.common.cli_common import ExitCode, add_logging_args, console_exit, number_or, setup_logging
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
-from fisc_agent.endpoints import EndpointError, parse_endpoint
-from fisc_agent.frames import GeodeticAnchor, parse_floats
-from fisc_agent.lookup import COMMAND_MODES
-from fisc_agent.mapfile import MapError, load_map
-from fisc_agent.names import prefix_arg, swarm_name_arg
-from fisc_agent.tracking import TrackingConfig
+from fisc_agent.mavlink.endpoints import EndpointError, parse_endpoint
+from fisc_agent.flight.frames import GeodeticAnchor, parse_floats
+from fisc_agent.map.lookup import COMMAND_MODES
+from fisc_agent.map.codec import MapError, load_map
+from fisc_agent.common.names import prefix_arg, swarm_name_arg
+from fisc_agent.flight.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=("paper",), default=None,
                    help="paper: the paper's Algorithm 1 (mean commands, open loop, no look-ahead) whatever the map "
                         "recommends")
-    t = p.add_argument_group("streamline tracking (fisc_agent.tracking; docs/deployment.md)")
+    t = p.add_argument_group("streamline tracking (fisc_agent.flight.tracking; docs/deployment.md)")
     t.add_argument("--track-gain", type=float, default=TrackingConfig.gain_1_s,
                    help="cross-stream feedback towards the agent's own streamline [1/s]; 0: fly the simulator's "
                         "command function open loop")
@@ -67,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--entry-slots", type=int, default=AgentConfig.entry_slots, help="windows per entry-stagger cycle")
     p.add_argument("--entry-radius-fraction", type=float, default=AgentConfig.entry_radius_fraction, metavar="F",
                    help="entry points spread over this fraction of the inlet radius (1: every inlet CV)")
-    p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flightlog)")
+    p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flight.flightlog)")
     p.add_argument("--rate", type=float, default=AgentConfig.rate_hz, help="setpoint rate [Hz]")
     p.add_argument("--origin", default=",".join(f"{c:g}" for c in AgentConfig.origin_ned_m), help="local NED of the map origin N,E,D [m]")
     p.add_argument("--yaw", type=float, default=AgentConfig.yaw_deg, help="map x-axis direction, clockwise from North [deg]")
@@ -130,11 +130,11 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
 def make_link(cfg: AgentConfig):
     """Open the configured backend's link to the autopilot."""
     if cfg.backend == "mavsdk":
-        from fisc_agent.mavsdk_backend import MavsdkLink
+        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
 
         return MavsdkLink(cfg.mavlink_url, anchor=cfg.geodetic_anchor)
-    from fisc_agent.link import MavlinkLink
-    from fisc_agent.position_gate import PositionGateConfig
+    from fisc_agent.mavlink.link import MavlinkLink
+    from fisc_agent.flight.position_gate import PositionGateConfig
 
     return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
                        anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz),
@@ -155,7 +155,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         log.info("map %s signed by %s", cfg.map_path, cmap.public_key)
     elif cmap is not None:
         log.warning("map %s is not signed; its integrity (sha256) is checked, its origin is not", cfg.map_path)
-    from fisc_agent.flightlog import FlightLog
+    from fisc_agent.flight.flightlog import FlightLog
 
     try:
         flog = FlightLog(flight_log) if flight_log else None
@@ -176,8 +176,8 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
     zlink = None
     try:
         if zenoh_args is not None and zenoh_args.swarm:
-            from fisc_agent.mapfile import read_public_key
-            from fisc_agent.zenoh_runner import connect_runner
+            from fisc_agent.map.codec import read_public_key
+            from fisc_agent.zenoh.runner import connect_runner
 
             try:
                 keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None

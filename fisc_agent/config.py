@@ -6,10 +6,10 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
-from fisc_agent.failsafe import GeofencePolicy
-from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
-from fisc_agent.lookup import COMMAND_MODES
-from fisc_agent.tracking import TrackingConfig
+from fisc_agent.flight.failsafe import GeofencePolicy
+from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
+from fisc_agent.map.lookup import COMMAND_MODES
+from fisc_agent.flight.tracking import TrackingConfig
 
 
 
@@ -47,22 +47,22 @@ class AgentConfig:
     backend: str = "pymavlink"
     """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
     mode: str | None = None
-    """Command mode (``fisc_agent.lookup.COMMAND_MODES``, DESIGN.md section 3); None: the map's
+    """Command mode (``fisc_agent.map.lookup.COMMAND_MODES``, DESIGN.md section 3); None: the map's
     recommended mode (``mean`` for a schema-1 map), except that under streamline tracking a
     recommended ``kinetic`` is flown as ``staggered``; ``kinetic`` given here flies its deviations."""
     lookahead_s: float | None = None
-    """Command look-ahead t_lead [s] (``fisc_agent.lookup.lookahead_point``); None: the map's
+    """Command look-ahead t_lead [s] (``fisc_agent.map.lookup.lookahead_point``); None: the map's
     recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""
     wall_margin_m: float | None = 0.8
     """``kinetic`` mode under streamline tracking: the deviation's outward radial component is mirrored
     within this distance of the duct's real wall, where the map carries it (array ``duct_wall_m``,
-    ``fisc_agent.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
+    ``fisc_agent.map.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
     agents do (the staircase's outer cubes lie partly outside a real duct).  The margin must cover the
     vehicle's overshoot and the error of its position estimate: on PX4 SITL (SIH) the altitude estimate
     strayed up to 0.9 m from the ground truth, and with 0.8 m six passes went at most 0.17 m beyond the
     wall by that truth (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
     tracking: TrackingConfig = TrackingConfig()
-    """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.tracking``);
+    """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.flight.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
     lookahead_auto: bool = True
     """Identify the vehicle's velocity response in flight (take-off and join) and set the look-ahead and
@@ -83,8 +83,8 @@ class AgentConfig:
     """Speed while flying to the inlet (JOIN, loop return) [m/s]."""
     return_speed_m_s: float = 1.0
     """Speed when flying straight back to the nearest CV (geofence ``return``) from farther than
-    ``fisc_agent.lookup.RETURN_RADIUS_CELLS`` cells; nearer, the vehicle rejoins the flow of that CV
-    (``fisc_agent.lookup.return_command``, the simulator's rule) [m/s]."""
+    ``fisc_agent.map.lookup.RETURN_RADIUS_CELLS`` cells; nearer, the vehicle rejoins the flow of that CV
+    (``fisc_agent.map.lookup.return_command``, the simulator's rule) [m/s]."""
     climb_speed_m_s: float = 1.0
     """Climb rate of a setpoint takeoff (PX4 offboard, or finishing an interrupted ArduPilot takeoff) [m/s]."""
     takeoff_alt_m: float = 2.5
@@ -94,7 +94,7 @@ class AgentConfig:
     laps: int = 0
     """With ``loop``: number of passes before applying ``hold`` (0 = loop until told otherwise)."""
     geofence: GeofencePolicy = GeofencePolicy.HOLD
-    """Leaving the map's CVs (not through the outlet) while flowing (``fisc_agent.failsafe.GeofencePolicy``;
+    """Leaving the map's CVs (not through the outlet) while flowing (``fisc_agent.flight.failsafe.GeofencePolicy``;
     its value as a string is accepted and converted)."""
     stale_timeout_s: float = 0.5
     """Position older than this is stale -> zero-velocity hold setpoints [s]."""

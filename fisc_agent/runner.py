@@ -20,17 +20,17 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from fisc_agent.adapters import Adapter, Commander, ModeClass, adapter_for
+from fisc_agent.mavlink.adapters import Adapter, Commander, ModeClass, adapter_for
 from fisc_agent.config import AgentConfig
-from fisc_agent.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
-from fisc_agent.link import PositionSample, VehicleLink
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import CommandMap, MapError, MapErrorKind
-from fisc_agent.mission import (FLYING, Cause, HoldCause, Mission, MissionCommand, MissionOutput, Reason, State,
+from fisc_agent.flight.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
+from fisc_agent.mavlink.link import PositionSample, VehicleLink
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import CommandMap, MapError, MapErrorKind
+from fisc_agent.flight.mission import (FLYING, Cause, HoldCause, Mission, MissionCommand, MissionOutput, Reason, State,
                                 VehicleStatus)
-from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
-from fisc_agent.ratelimit import RateLimitedLog
-from fisc_agent.wall import map_wall
+from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
+from fisc_agent.common.ratelimit import RateLimitedLog
+from fisc_agent.map.wall import map_wall
 
 log = logging.getLogger(__name__)
 

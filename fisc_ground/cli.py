@@ -1,7 +1,7 @@
 """``fisc-ground``: fit, sign, inspect, plot and distribute FISC command maps.
 
 Thin entry point: parse arguments, set up logging, call one ``run_*`` function.  Exit codes
-(``fisc_agent.cli_common``): 0 success, 1 runtime failure or a missing optional package, 2 bad
+(``fisc_agent.common.cli_common``): 0 success, 1 runtime failure or a missing optional package, 2 bad
 usage or invalid input (a failed map check, a bad reference file: the message says which).
 """
 
@@ -13,11 +13,11 @@ import logging
 import sys
 from pathlib import Path
 
-from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
+from fisc_agent.common.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
                                    missing_extra, missing_dependency_message, number_or, setup_logging, sig3)
-from fisc_ground.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
-from fisc_ground.staircase import DEFAULT_STAIRCASE_CONTRAST
-from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+from fisc_ground.fit.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
+from fisc_ground.fit.staircase import DEFAULT_STAIRCASE_CONTRAST
+from fisc_ground.fit.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT)
 
 log = logging.getLogger("fisc_ground")
@@ -40,8 +40,8 @@ def _scale(text: str) -> float | None:
 
 
 def fit_config_from_args(args: argparse.Namespace):
-    """The ``fisc_ground.mapbuild.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
-    from fisc_ground.mapbuild import FitConfig, fit_overrides
+    """The ``fisc_ground.maps.build.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
+    from fisc_ground.maps.build import FitConfig, fit_overrides
 
     n_min, n_max = _n_range(args.n_range)
     given = {"continuity_weight": args.continuity_weight, "density_amplitude": args.density_amplitude,
@@ -59,8 +59,8 @@ def fit_config_from_args(args: argparse.Namespace):
 
 def run_fit(args: argparse.Namespace) -> int:
     """``fisc-ground fit``: reference -> partition -> fit -> written (optionally signed) map."""
-    from fisc_ground.mapbuild import build_map
-    from fisc_ground.mapwrite import read_signing_key, write_map
+    from fisc_ground.maps.build import build_map
+    from fisc_ground.maps.write import read_signing_key, write_map
     from fisc_ground.reference.load import load_reference
 
     config = fit_config_from_args(args)
@@ -80,11 +80,11 @@ def run_fit(args: argparse.Namespace) -> int:
 
 def run_score_flight(args: argparse.Namespace) -> int:
     """``fisc-ground score-flight``: score each flight log against the map's CFD reference."""
-    from fisc_agent.flightlog import read_flight_log
-    from fisc_agent.mapfile import load_map
-    from fisc_agent.wall import map_wall
-    from fisc_ground.duct_wall import duct_wall_from_reference
-    from fisc_ground.flight_score import score_track, track_from_rows
+    from fisc_agent.flight.flightlog import read_flight_log
+    from fisc_agent.map.codec import load_map
+    from fisc_agent.map.wall import map_wall
+    from fisc_ground.maps.duct_wall import duct_wall_from_reference
+    from fisc_ground.fields.flight_score import score_track, track_from_rows
     from fisc_ground.reference.load import load_reference
 
     cmap = load_map(args.map)
@@ -110,7 +110,7 @@ def inspect_summary(cmap) -> dict:
     """The ``inspect --json`` object (its keys are a contract)."""
     import dataclasses
 
-    from fisc_agent.lookup import map_flight_settings
+    from fisc_agent.map.lookup import map_flight_settings
 
     body = cmap.body
     return {
@@ -148,12 +148,12 @@ def _unique(a):
 
 def run_inspect(args: argparse.Namespace) -> int:
     """``fisc-ground inspect``: verify a map and print its summary (text or JSON)."""
-    from fisc_agent.mapfile import load_map
+    from fisc_agent.map.codec import load_map
 
     cmap = load_map(args.map, trusted_key=args.trusted_key)
     summary = inspect_summary(cmap)
     if args.json:
-        from fisc_ground.field_report import json_safe
+        from fisc_ground.fields.field_report import json_safe
 
         print(json.dumps(json_safe(summary), indent=None if args.compact else 2, allow_nan=False))
         return 0
@@ -195,7 +195,7 @@ def _design_line(design: dict | None) -> str:
 
 def run_keygen(args: argparse.Namespace) -> int:
     """``fisc-ground keygen``: write an Ed25519 key pair."""
-    from fisc_ground.mapwrite import generate_keypair
+    from fisc_ground.maps.write import generate_keypair
 
     key_path, pub_path = generate_keypair(args.output)
     print(f"wrote {key_path} (private, keep on the ground station) and {pub_path} (give to agents)")
@@ -204,8 +204,8 @@ def run_keygen(args: argparse.Namespace) -> int:
 
 def run_plot(args: argparse.Namespace) -> int:
     """``fisc-ground plot``: write the map's CFD-vs-fit figures."""
-    from fisc_agent.mapfile import load_map
-    from fisc_ground.plots import plot_map_figures
+    from fisc_agent.map.codec import load_map
+    from fisc_ground.figures.plots import plot_map_figures
 
     cmap = load_map(args.map, trusted_key=args.trusted_key)
     out = Path(args.output)
@@ -315,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("score-flight", help="score flown passes (fisc-agent --flight-log) against the CFD",
                        description="Per flight log: crossed without a hold, largest excursion outside the duct wall, "
-                                   "axial-velocity nRMSE against S x the CFD, crossing time (fisc_ground.flight_score).")
+                                   "axial-velocity nRMSE against S x the CFD, crossing time (fisc_ground.fields.flight_score).")
     p.add_argument("logs", metavar="LOG", type=Path, nargs="+", help="flight log CSV files")
     p.add_argument("--map", required=True, type=Path, help="the map flown (its scale S and reference)")
     p.add_argument("--reference", help="reference flow (default: the one recorded in the map)")
@@ -325,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=run_score_flight)
 
     try:
-        from fisc_ground.zenoh_cli import add_parsers
+        from fisc_ground.zenoh.cli import add_parsers
     except ImportError as exc:  # the Zenoh commands need eclipse-zenoh
         log.debug("zenoh commands unavailable: %s", exc)
     else:
@@ -336,11 +336,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``fisc-ground`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
+    """``fisc-ground`` entry point; returns the exit code (``fisc_agent.common.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args)
-    from fisc_agent.mapfile import MapError
+    from fisc_agent.map.codec import MapError
 
     try:
         return int(args.func(args) or 0)

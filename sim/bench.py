@@ -13,8 +13,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
-from sim.plant import PlantParams
+from fisc_agent.map.lookup import CommandField
+from sim.plant.model import PlantParams
 from sim.scenarios import seed_positions
 from sim.swarm import Swarm, SwarmConfig
 

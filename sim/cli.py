@@ -1,7 +1,7 @@
 """``fisc-sim``: the simulator's command line (thin: argument parsing and progress only).
 
 Subcommands: ``run`` (sim.run), ``bench`` (sim.bench), ``autopilot`` (sim.autopilot.cli, the
-MAVLink autopilot emulator) and ``emulate`` (sim.emulate_cli, a swarm of emulated autopilots).
+MAVLink autopilot emulator) and ``emulate`` (sim.emulate.cli, a swarm of emulated autopilots).
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ import math
 import sys
 from contextlib import contextmanager
 
-from fisc_agent.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, add_output_arg,
+from fisc_agent.common.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, add_output_arg,
                                    console_exit, missing_dependency_message, missing_extra, setup_logging, sig3)
-from fisc_agent.lookup import COMMAND_MODES
-from sim.plant_fit import PLANT_PRESETS
+from fisc_agent.map.lookup import COMMAND_MODES
+from sim.plant.fit import PLANT_PRESETS
 from sim.run import RESERVOIR_DURATION_S, RESERVOIR_WINDOW_S
 
 
@@ -46,7 +46,7 @@ def _add_run(sub) -> None:
                         "reservoir, the whole run for seed)")
     p.add_argument("--plant", choices=tuple(PLANT_PRESETS), default="paper",
                    help="vehicle model: the paper's quadrotor, or px4-sih (fitted to real PX4 SITL flights; "
-                        "sim.plant_fit)")
+                        "sim.plant.fit)")
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map (continuity-consistent staggered field, designed density) flown "
                         "with its recommended settings; paper: the paper's Algorithm 1 (schema-1 map, mean "
@@ -144,11 +144,11 @@ def build_parser() -> argparse.ArgumentParser:
     from sim.autopilot import cli as autopilot_cli
 
     autopilot_cli.add_parser(sub)
-    # `fisc-sim emulate`: a swarm of emulated autopilots flown by real agents (sim/emulate_cli.py)
-    from sim import emulate_cli
+    # `fisc-sim emulate`: a swarm of emulated autopilots flown by real agents (sim/emulate/cli.py)
+    from sim.emulate import cli as emulate_cli
 
     emulate_cli.add_parser(sub)
-    from sim import sweep_cli  # `fisc-sim sweep`: run grids on dask (sim/sweep_cli.py)
+    from sim.sweep import cli as sweep_cli  # `fisc-sim sweep`: run grids on dask (sim/sweep/cli.py)
 
     sweep_cli.add_parser(sub)
     for p in sub.choices.values():  # the logging options also after the command's name
@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``fisc-sim`` entry point; returns the exit code (``fisc_agent.cli_common``)."""
+    """``fisc-sim`` entry point; returns the exit code (``fisc_agent.common.cli_common``)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args, fmt="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -185,11 +185,11 @@ def _dispatch(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
         return int(autopilot_cli.run(args) or 0)
     if args.command == "emulate":
-        from sim import emulate_cli
+        from sim.emulate import cli as emulate_cli
 
         return int(emulate_cli.run(args) or 0)
     if args.command == "sweep":
-        from sim import sweep_cli
+        from sim.sweep import cli as sweep_cli
 
         return sweep_cli.run(args)
     parser.error(f"unknown command {args.command}")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.lookup import CommandField
 from sim.kernels import jit_kernels
 
 
@@ -15,7 +15,7 @@ def fused_lookup_kernel():
     """Fused numba kernel: padded-grid CV lookup + command gather (mean or slot); None without numba.
 
     Same arithmetic as the numpy path (``CVLookup.__call__`` then the table gathers, and
-    ``fisc_agent.hashing.slot_hash`` for the slot index); tested equal to it.
+    ``fisc_agent.map.hashing.slot_hash`` for the slot index); tested equal to it.
     """
     jk = jit_kernels()
     return None if jk is None else jk.fused_lookup

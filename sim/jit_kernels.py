@@ -33,7 +33,7 @@ def padded_cell(pos, i, origin, inv_l, hi, strides):
 
 @numba.njit(cache=True, nogil=True, inline="always")
 def slot_of(agent_id, j, n_star_j):
-    """``fisc_agent.hashing.slot_index`` for one agent: the numba twin of ``fisc_agent.hashing.slot_mix``."""
+    """``fisc_agent.map.hashing.slot_index`` for one agent: the numba twin of ``fisc_agent.map.hashing.slot_mix``."""
     a = np.uint64(agent_id) & M32
     b = np.uint64(j) & M32
     h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & M32

@@ -35,8 +35,8 @@ def cell_and_slot_helpers():
 
     ``padded_cell(pos, i, origin, inv_l, hi, strides)``: flat index of agent ``i``'s cell on the
     padded grid, indices clipped to ``[0, hi]`` (as ``CVLookup``).  ``slot_of(agent_id, j,
-    n_star_j)``: ``fisc_agent.hashing.slot_index`` for one agent, the numba twin of the one pure
-    hash ``fisc_agent.hashing.slot_mix`` (numba types uint64 arithmetic with integer literals as
+    n_star_j)``: ``fisc_agent.map.hashing.slot_index`` for one agent, the numba twin of the one pure
+    hash ``fisc_agent.map.hashing.slot_mix`` (numba types uint64 arithmetic with integer literals as
     float64, so the mix is spelled with uint64 constants here); tests/fisc_agent/test_contracts.py
     checks the two equal on 10^5 inputs.
     """
@@ -52,7 +52,7 @@ def return_commands_kernel():
     ``CVLookup.nearest``), nearest CV ``j = near_flat[cell]`` (-1 -> 0, as the numpy path),
     ``corr = gain (centers[j] - pos[i])`` scaled by ``min(1, frac mean_speed[j] / max(|corr|,
     1e-12))``, ``cmd[i] = base + corr * map_to_ned`` with ``base`` the mean (or slot, hash as
-    ``fisc_agent.hashing.slot_hash``) NED command of ``j``; ``out_s[i] += dt_s``.  Agents with
+    ``fisc_agent.map.hashing.slot_hash``) NED command of ``j``; ``out_s[i] += dt_s``.  Agents with
     ``cv[i] >= 0`` get ``out_s[i] = 0`` (their command is untouched).  Returns the number outside.
     """
     jk = jit_kernels()

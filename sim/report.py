@@ -1,6 +1,6 @@
 """Outputs of a ``fisc-sim run`` beyond the shared field files: metrics.json and report.md.
 
-The per-CV columns, their definitions and fields.csv live in ``fisc_ground.field_report`` (shared
+The per-CV columns, their definitions and fields.csv live in ``fisc_ground.fields.field_report`` (shared
 with ``fisc-ground replay``).
 """
 
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from fisc_ground.field_report import PAPER_FIGURES, json_safe, write_json
+from fisc_ground.fields.field_report import PAPER_FIGURES, json_safe, write_json
 
 #: A ``sim.run.RunResult`` (not imported: sim.run imports this module).
 RunResult = Any
@@ -51,8 +51,8 @@ def spread_realised_over_fitted(result: RunResult, min_samples: int) -> np.ndarr
     spread sqrt(mean_k ||S v_k - S v_mean||^2) of the map (NaN where too few samples or no spread).
 
     Realised: ``swarm_pressure_random`` = 2/3 rho_s <||v - U||^2> with rho_s = m count / l^3."""
-    from fisc_agent.lookup import CommandField
-    from fisc_ground.field_report import random_pressure
+    from fisc_agent.map.lookup import CommandField
+    from fisc_ground.fields.field_report import random_pressure
 
     f = result.fields
     fitted = CommandField.from_map(result.cmap, scale=result.scale).spread_m_s

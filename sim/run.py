@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.lookup import (
+from fisc_agent.map.lookup import (
     COMMAND_MODES,
     FACE_MODES,
     PAPER_SETTINGS,
@@ -24,17 +24,17 @@ from fisc_agent.lookup import (
     FlightSettings,
     map_flight_settings,
 )
-from fisc_agent.mapfile import MAGIC, CommandMap, load_map
-from fisc_agent.safe_files import read_head
-from fisc_ground.field_report import write_fields_csv
-from fisc_ground.field_run import FieldRun, FieldSource
-from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
-from fisc_ground.forked import ForkedCall, can_fork
-from fisc_ground.scaling import DEFAULT_MAX_SPEED_M_S
-from fisc_ground.swarm_fields import FieldAccumulator, SwarmFields
+from fisc_agent.map.codec import MAGIC, CommandMap, load_map
+from fisc_agent.common.safe_files import read_head
+from fisc_ground.fields.field_report import write_fields_csv
+from fisc_ground.fields.field_run import FieldRun, FieldSource
+from fisc_ground.monitor.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
+from fisc_ground.figures.forked import ForkedCall, can_fork
+from fisc_ground.fit.scaling import DEFAULT_MAX_SPEED_M_S
+from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields
 from sim import report
 from sim.collisions import CollisionModel, CollisionParams
-from sim.plant_fit import plant_preset
+from sim.plant.fit import plant_preset
 from sim.scenarios import Reservoir, scale_for_agents, seed_positions
 from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 
@@ -93,7 +93,7 @@ class RunConfig:
     """``default``: fit a schema-2 map (staggered field, designed density) and fly its recommended
     flight settings; ``paper``: the paper's Algorithm 1 (schema-1 map, mean commands, no look-ahead)."""
     mode: str | None = None
-    """Command mode (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended mode (the
+    """Command mode (``fisc_agent.map.lookup.COMMAND_MODES``); None: the map's recommended mode (the
     preset's)."""
     collisions: bool = False
     """Enable the paper's collision layer (sim.collisions)."""
@@ -132,12 +132,12 @@ class RunConfig:
     """``run`` (not ``simulate``) also flies the paper's preset on the same reference, for report.md and
     the figures side by side (skipped when this run is the paper preset itself)."""
     plant: str = "paper"
-    """Vehicle model: a named ``sim.plant_fit.PLANT_PRESETS`` entry (``paper``: the paper's nominal
+    """Vehicle model: a named ``sim.plant.fit.PLANT_PRESETS`` entry (``paper``: the paper's nominal
     quadrotor; ``px4-sih``: fitted to real PX4 SITL flights)."""
     out_dir: str = "out/run"
     """Output directory."""
     mcap: str | None = None
-    """Also write the run as a Foxglove/MCAP flight log to this path (``fisc_ground.flight_log``: the
+    """Also write the run as a Foxglove/MCAP flight log to this path (``fisc_ground.monitor.flight_log``: the
     channels of ``fisc-ground monitor --record``, one fleet sample every ``sample_interval_s``); None: no log."""
 
     def __post_init__(self) -> None:
@@ -164,7 +164,7 @@ class RunConfig:
 
     def flight_settings(self, cmap: CommandMap) -> FlightSettings:
         """The settings flown on ``cmap``: explicit mode/look-ahead, else the preset's (paper) or the
-        map's recommended ones (``fisc_agent.lookup.map_flight_settings``)."""
+        map's recommended ones (``fisc_agent.map.lookup.map_flight_settings``)."""
         base = PAPER_SETTINGS if self.preset == "paper" else map_flight_settings(cmap)
         return FlightSettings(base.mode if self.mode is None else self.mode,
                               base.lookahead_s if self.lookahead_s is None else float(self.lookahead_s),
@@ -260,18 +260,18 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None, prese
     reference spec); None: the map builder's default (``FitConfig.max_speed_m_s``).  A
     ``.fiscmap`` file is loaded as it is.  ``preset`` ``paper`` fits the paper's schema-1 map.
     """
-    from fisc_ground.mapbuild import FitConfig
+    from fisc_ground.maps.build import FitConfig
 
     kw = {} if max_speed_m_s is None else {"max_speed_m_s": float(max_speed_m_s)}
     fit = FitConfig(staggered=preset != "paper", **kw)
     if spec is None:
-        from fisc_ground.mapbuild import build_default_map
+        from fisc_ground.maps.build import build_default_map
 
         return build_default_map(fit)
     p = Path(spec)
     if p.suffix == ".fiscmap" or (p.is_file() and read_head(p, 8, what="map or reference file") == MAGIC):
         return load_map(p)
-    from fisc_ground.mapbuild import build_map_from_reference
+    from fisc_ground.maps.build import build_map_from_reference
 
     return build_map_from_reference(spec, fit)
 
@@ -366,7 +366,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     """The ``fisc-sim run`` job: load the map, simulate, write all outputs into ``config.out_dir``.
 
     The paper companion (``paper_companion``) flies in a forked process beside the main run where
-    that is possible (``fisc_ground.forked``), else after it; the results are the same."""
+    that is possible (``fisc_ground.figures.forked``), else after it; the results are the same."""
     cmap = load_command_map(config.map, config.max_speed_m_s, config.preset)
     settings_are_paper = config.preset == "paper" or config.flight_settings(cmap) == PAPER_SETTINGS
     companion = config.compare_paper and not settings_are_paper
@@ -401,7 +401,7 @@ def run(config: RunConfig, progress: Callable[[float], None] | None = None) -> R
     result.paths["fields"] = write_fields_csv(result.field_run, out / "fields.csv")
     result.paths["metrics"] = report.write_metrics_json(result, out / "metrics.json")
     if config.figures:
-        from fisc_ground import field_figures as figures
+        from fisc_ground.figures import field_figures as figures
 
         result.paths.update(figures.write_run_figures(result.field_run, out))
     result.paths["report"] = report.write_report_md(result, out / "report.md")

@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.kinetic import deviation_direction
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.kinetic import deviation_direction
+from fisc_agent.map.lookup import CommandField
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -222,8 +222,8 @@ def synthetic_tunnel_map(nx: int = 12, radius_cells: float = 2.0, cell_size_m: f
     ``n_star`` everywhere, fitted vectors = target +/- ``spread_m_s`` along y (mean = target),
     gauge pressure from Bernoulli, density constant with a tiny Bernoulli dip.
     """
-    from fisc_agent.mapfile import decode_map
-    from fisc_agent.mapfile import encode_map
+    from fisc_agent.map.codec import decode_map
+    from fisc_agent.map.codec import encode_map
 
     l = float(cell_size_m)
     r = int(np.ceil(radius_cells))

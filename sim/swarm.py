@@ -6,10 +6,10 @@ Python):
 1. *Assign control volume* (eq. cv_assignment, nearest CV centre): the CVs are the occupied
    cells of a regular grid, so the nearest centre of a point inside an occupied cell is that
    cell's CV; the lookup is O(1) per agent through a padded copy of the map's ``grid_cv``
-   table (the same rule as ``fisc_agent.lookup.CommandField.cv_of``), never a search over CVs.
+   table (the same rule as ``fisc_agent.map.lookup.CommandField.cv_of``), never a search over CVs.
 2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already
    applies S) in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
-3. *Update the velocity* with the quadrotor plant (``sim.plant.step_plant``, NED).
+3. *Update the velocity* with the quadrotor plant (``sim.plant.model.step_plant``, NED).
 4. *Update the position* ``x += u dt`` (semi-implicit: with the new velocity).
 
 Frames.  Positions and commands live in the map (reference) frame: x along the tunnel, z up.
@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.hashing import slot_hash
-from fisc_agent.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
-from fisc_agent.lookup import (
+from fisc_agent.map.hashing import slot_hash
+from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
+from fisc_agent.map.lookup import (
     COMMAND_MODES,
     RETURN_GAIN_1_S,
     RETURN_RADIUS_CELLS,
@@ -51,13 +51,13 @@ from fisc_agent.lookup import (
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
 from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
-from sim.plant import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
+from sim.plant.model import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
 #: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted
 #: when agents leave: position, velocity, thrust, id, time outside, and the kinetic state
-#: (``fisc_agent.kinetic.DeviationState``).
+#: (``fisc_agent.map.kinetic.DeviationState``).
 _AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
 
 
@@ -85,7 +85,7 @@ class SwarmConfig:
     """CV lookup (+ the command gather of modes mean/slot), removals, return commands and position
     update: ``auto`` (fused numba kernels, ``sim.kernels``, when importable), ``numpy`` (the reference
     path) or ``numba``; both give the same trajectories.  The other modes' commands always come from
-    ``fisc_agent.lookup.flight_command``."""
+    ``fisc_agent.map.lookup.flight_command``."""
     lookahead_s: float = 0.0
     """Command look-ahead t_lead [s]: each agent flies the command of the CV at
     ``x + u t_lead`` (its own CV when that point is outside the CVs) instead of the CV at x,
@@ -94,11 +94,11 @@ class SwarmConfig:
 
     persistence_s: float = DEFAULT_PERSISTENCE_S
     """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
-    (``fisc_agent.kinetic.kinetic_deviation``)."""
+    (``fisc_agent.map.kinetic.kinetic_deviation``)."""
 
     @property
     def flight_settings(self) -> FlightSettings:
-        """The settings of ``fisc_agent.lookup.flight_command`` this configuration flies."""
+        """The settings of ``fisc_agent.map.lookup.flight_command`` this configuration flies."""
         return FlightSettings(self.mode, self.lookahead_s, self.persistence_s)
 
     def __post_init__(self) -> None:
@@ -199,7 +199,7 @@ class Swarm:
         self._out = np.zeros(cap)
         self._cvbuf = np.zeros(cap, dtype=np.int64)
         self._cellbuf = np.zeros(cap, dtype=np.int64)
-        self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.kinetic.DeviationState)
+        self._epoch = np.full(cap, -1, dtype=np.int64)  # kinetic-mode state (fisc_agent.map.kinetic.DeviationState)
         self._sign = np.ones((cap, 3))
         self._dir = np.zeros((cap, 3))
         self._phase = np.zeros(cap)
@@ -435,7 +435,7 @@ class Swarm:
         return out
 
     def _flight_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float) -> None:
-        """Commands of every agent from ``fisc_agent.lookup.flight_command`` (the onboard agent's
+        """Commands of every agent from ``fisc_agent.map.lookup.flight_command`` (the onboard agent's
         function, vectorised), rows outside the CVs 0 (the return policy fills them)."""
         n = self.n
         state = DeviationState(self._epoch[:n], self._sign[:n], self._dir[:n], self._phase[:n])
@@ -477,7 +477,7 @@ class Swarm:
         )  # fmt: skip
 
     def _return_commands(self, idx: np.ndarray, cmd_ned: np.ndarray) -> None:
-        """Return policy for agents ``idx`` outside the CVs: ``fisc_agent.lookup.return_command`` (the
+        """Return policy for agents ``idx`` outside the CVs: ``fisc_agent.map.lookup.return_command`` (the
         nearest CV's command + inward pull; ``slot`` mode: that CV's slot vector + the pull)."""
         pos = self.pos_m[idx]
         near = self.lookup.nearest(pos)

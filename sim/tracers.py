@@ -8,7 +8,7 @@ CV then holds density sum_i q_i t_ij / l^3, t_ij being the time tracer i spends 
 design's own units, so a field that carries its design gives back ``cv_design_density`` itself,
 not just its pattern.
 
-Why: ``fisc_ground.staggered.project`` makes the discrete divergence of rho_d u vanish in every CV,
+Why: ``fisc_ground.fit.staggered.project`` makes the discrete divergence of rho_d u vanish in every CV,
 and inside a cube each component runs linearly between its two faces.  Whether tracers then keep
 the designed density is a property of the field alone; this module measures it, so that the swarm's
 departures from the design can be split into what the field does and what the vehicles do
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.lookup import CommandField
 
 #: A prime that shuffles the first-step phases of a face's seeds (coprime with any seed count below it).
 PHASE_STRIDE = 7919

@@ -1,6 +1,6 @@
 """Wind for the velocity plant: a mean wind plus first-order Gauss-Markov gusts, per agent.
 
-The plant (``sim.plant``) takes any wind array; this module is one simple, seeded way to make
+The plant (``sim.plant.model``) takes any wind array; this module is one simple, seeded way to make
 one.  Each agent's gust is an Ornstein-Uhlenbeck process per axis (the first-order core of the
 Dryden model, in time rather than space): stationary RMS ``turbulence_rms_m_s``, autocorrelation
 ``exp(-|t| / correlation_time_s)``, stepped exactly for any ``dt``.

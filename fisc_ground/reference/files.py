@@ -1,6 +1,6 @@
 """Checks on CFD export files before any importer parses them (``fisc-ground fit FILE``).
 
-Built on ``fisc_agent.safe_files``: a regular file, at most ``MAX_REFERENCE_BYTES``, without
+Built on ``fisc_agent.common.safe_files``: a regular file, at most ``MAX_REFERENCE_BYTES``, without
 holes (a sparse file is no genuine export), and a plausible start: a text export has no NUL
 byte and a header line within its first ``HEAD_BYTES``; a ``.vtu`` starts with XML, a legacy
 ``.vtk`` with ``# vtk DataFile``.  So a 2 GB sparse or zero-filled file is refused in
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fisc_agent.safe_files import GIB, check_regular_file, read_head, read_regular_file
+from fisc_agent.common.safe_files import GIB, check_regular_file, read_head, read_regular_file
 from fisc_ground.reference.field import ReferenceError
 
 #: Largest CFD export read (the importers hold it in memory several times over).

@@ -45,7 +45,7 @@ def load_reference(spec: str | Path, pressure_kind: str = "auto") -> ReferenceFi
     path = Path(s)
     suffix = path.suffix.lower()
     if path.exists() and not path.is_file():  # /dev/zero, a FIFO, a directory: say what it is
-        from fisc_agent.safe_files import check_regular_file
+        from fisc_agent.common.safe_files import check_regular_file
         from fisc_ground.reference.files import MAX_REFERENCE_BYTES
 
         check_regular_file(path, what="CFD export", max_bytes=MAX_REFERENCE_BYTES, error=ReferenceError)

@@ -83,7 +83,7 @@ def read_vtk(path: str | Path, pressure_kind: str = "auto", spacing_m: float = L
         raise ReferenceError(f"{p}: file not found")
     src = str(p)
     from fisc_ground.reference.files import MAX_REFERENCE_BYTES, check_vtk_head
-    from fisc_agent.safe_files import read_regular_file
+    from fisc_agent.common.safe_files import read_regular_file
 
     check_vtk_head(p)
     raw = read_regular_file(p, what="VTK export", max_bytes=MAX_REFERENCE_BYTES, error=ReferenceError)

@@ -5,10 +5,10 @@
 * :mod:`~sim.autopilot.vehicle` - pure state machine + physics on an injected clock
 * :mod:`~sim.autopilot.faults` - packet loss, latency, position dropouts
 * :mod:`~sim.autopilot.setpoints` - SET_POSITION_TARGET_* and takeoff altitudes to local NED
-* :mod:`~sim.autopilot.telemetry` - streamed messages from a vehicle snapshot (WGS-84 via fisc_agent.frames)
+* :mod:`~sim.autopilot.telemetry` - streamed messages from a vehicle snapshot (WGS-84 via fisc_agent.flight.frames)
 * :mod:`~sim.autopilot.streams` - per-message stream intervals
 * :mod:`~sim.autopilot.framing` - MAVLink 2 encoder and per-peer parsers (pymavlink public API)
-* :mod:`~sim.autopilot.transport` - UDP/TCP sockets; endpoints parsed by fisc_agent.endpoints
+* :mod:`~sim.autopilot.transport` - UDP/TCP sockets; endpoints parsed by fisc_agent.mavlink.endpoints
 * :mod:`~sim.autopilot.server` - :class:`AutopilotEmulator`: the loop and the command handling
 * :mod:`~sim.autopilot.cli` - ``fisc-sim autopilot``
 """

@@ -14,7 +14,7 @@ import sys
 import threading
 from typing import Sequence
 
-from fisc_agent.cli_common import EXIT_CODES_EPILOG, EXIT_USAGE, add_logging_args, setup_logging
+from fisc_agent.common.cli_common import EXIT_CODES_EPILOG, EXIT_USAGE, add_logging_args, setup_logging
 from sim.autopilot.faults import parse_dropout
 from sim.autopilot.server import DEFAULT_HOME_LLA, AutopilotEmulator
 

@@ -7,7 +7,7 @@ MAVProxy) can fly it.  This module is the loop and the command handling; the lay
 :mod:`~sim.autopilot.telemetry` (messages from a vehicle snapshot), :mod:`~sim.autopilot.streams`
 (stream rates) and :mod:`~sim.autopilot.setpoints` (SET_POSITION_TARGET_* to local NED).
 
-Endpoints, as pymavlink/MAVSDK users write them (parsed by :mod:`fisc_agent.endpoints`):
+Endpoints, as pymavlink/MAVSDK users write them (parsed by :mod:`fisc_agent.mavlink.endpoints`):
 
 * ``udpin:0.0.0.0:14540`` (also ``udp:``): listen; reply to every peer that has sent something;
 * ``udpout:127.0.0.1:14550``: send to that address (e.g. MAVSDK's ``udpin://0.0.0.0:14550``);
@@ -16,7 +16,7 @@ Endpoints, as pymavlink/MAVSDK users write them (parsed by :mod:`fisc_agent.endp
 * ``tcp:127.0.0.1:5760`` (also ``tcpout:``): TCP client, reconnecting every second.
 
 Geodesy: home (``home_lla``) is the origin of local NED on the WGS-84 ellipsoid, in the agent's own
-model (:class:`fisc_agent.frames.GeodeticAnchor`).
+model (:class:`fisc_agent.flight.frames.GeodeticAnchor`).
 
 Threading: :meth:`AutopilotEmulator.start` runs the loop in a daemon thread; :meth:`poll` is one
 loop iteration (usable by a caller that multiplexes many emulators in one thread);
@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.faults import DelayLine, FaultConfig, FaultInjector
 from sim.autopilot.framing import Encoder, new_parser
 from sim.autopilot.personalities import Personality, get_personality
@@ -46,7 +46,7 @@ from sim.autopilot.telemetry import POSITION_MESSAGES, TelemetryBuilder, default
 from sim.autopilot.transport import PEER_LIMIT, Transport, open_transport, parse_emulator_endpoint
 from sim.autopilot.vehicle import Vehicle
 from sim.autopilot.vehicle_types import ACCEPTED, DENIED, UNSUPPORTED, Outcome, Setpoint, VehicleConfig, VehicleState
-from sim.plant import PlantParams, VelocityPlant
+from sim.plant.model import PlantParams, VelocityPlant
 
 __all__ = ["AutopilotEmulator", "DEFAULT_HOME_LLA"]
 

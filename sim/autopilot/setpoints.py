@@ -11,7 +11,7 @@ import math
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.vehicle_types import Setpoint
 
 __all__ = ["GLOBAL_FRAMES", "resolve_global_setpoint", "resolve_local_setpoint", "takeoff_altitude_m"]
@@ -92,7 +92,7 @@ def resolve_global_setpoint(
 ) -> Setpoint | None:
     """SET_POSITION_TARGET_GLOBAL_INT fields -> :class:`Setpoint` in local NED (None: frame unsupported).
 
-    ``anchor``: the geodetic origin of local NED (WGS-84, :class:`fisc_agent.frames.GeodeticAnchor`);
+    ``anchor``: the geodetic origin of local NED (WGS-84, :class:`fisc_agent.flight.frames.GeodeticAnchor`);
     ``home_down_m``: home's D [m], the datum of the relative-altitude frames.
     """
     if frame not in GLOBAL_FRAMES:

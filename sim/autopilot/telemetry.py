@@ -3,7 +3,7 @@
 :class:`TelemetryBuilder` turns a :class:`~sim.autopilot.vehicle_types.VehicleState` into the
 MAVLink messages a PX4 / ArduPilot Copter autopilot streams (HEARTBEAT, SYS_STATUS, positions,
 attitude, ...).  Geodetic positions come from the agent's WGS-84 model
-(:class:`fisc_agent.frames.GeodeticAnchor` at the emulator's home), so what the emulator sends in
+(:class:`fisc_agent.flight.frames.GeodeticAnchor` at the emulator's home), so what the emulator sends in
 GLOBAL_POSITION_INT is what an agent anchored there converts back to local NED.
 """
 
@@ -14,7 +14,7 @@ from typing import Callable
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.personalities import Personality
 from sim.autopilot.vehicle_types import VehicleState
 

@@ -1,7 +1,7 @@
 """Socket transports of the autopilot emulator: UDP (listening or sending) and TCP (server or client).
 
 Non-blocking; each peer is keyed so the emulator can give it a parser of its own.  Endpoints are
-parsed by :func:`fisc_agent.endpoints.parse_endpoint` (the one home of MAVLink URL syntax);
+parsed by :func:`fisc_agent.mavlink.endpoints.parse_endpoint` (the one home of MAVLink URL syntax);
 :func:`open_transport` serves the four kinds an autopilot offers:
 
 * ``udpin`` (also ``udp:``): listen; reply to every peer that has sent something (at most
@@ -18,7 +18,7 @@ import math
 import socket
 from typing import Callable
 
-from fisc_agent.endpoints import Endpoint, EndpointError, parse_endpoint
+from fisc_agent.mavlink.endpoints import Endpoint, EndpointError, parse_endpoint
 
 __all__ = ["PEER_LIMIT", "Transport", "open_transport", "parse_emulator_endpoint"]
 
@@ -32,8 +32,8 @@ EMULATOR_KINDS = ("udpin", "udpout", "tcpin", "tcp")
 
 
 def parse_emulator_endpoint(url: str) -> Endpoint:
-    """Parse ``url`` with :func:`fisc_agent.endpoints.parse_endpoint` and check that the emulator
-    can serve it.  Raises :class:`~fisc_agent.endpoints.EndpointError` (a ``ValueError``)."""
+    """Parse ``url`` with :func:`fisc_agent.mavlink.endpoints.parse_endpoint` and check that the emulator
+    can serve it.  Raises :class:`~fisc_agent.mavlink.endpoints.EndpointError` (a ``ValueError``)."""
     ep = parse_endpoint(url)
     if ep.kind not in EMULATOR_KINDS:
         raise EndpointError(

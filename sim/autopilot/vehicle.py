@@ -5,7 +5,7 @@ Pure: no sockets, no wall clock.  Every public method takes the simulated time `
 vehicle with a fake clock exactly as the MAVLink server drives it with ``time.monotonic``.
 
 Physics: a point mass in local NED.  The realised velocity comes from the paper's
-:class:`sim.plant.VelocityPlant` (velocity command in, velocity out, speed/tilt/thrust limits
+:class:`sim.plant.model.VelocityPlant` (velocity command in, velocity out, speed/tilt/thrust limits
 inside the plant); position integrates velocity.  Flat ground at ``D = 0``: the vehicle cannot
 go below it; while on the ground and not commanded to climb it sits still (landed).  A vehicle
 disarmed in the air falls.  Fixed physics step (``VehicleConfig.physics_dt_s``, zero-order hold
@@ -24,7 +24,7 @@ Rules (see docs/autopilot_emulator.md for the full list):
 
 Many vehicles: each :class:`Vehicle` owns a 1-agent plant; the state is a handful of small
 arrays and scalars, so a future batched stepper can gather them into one (N, 3)
-:class:`~sim.plant.VelocityPlant` without changing the rules.
+:class:`~sim.plant.model.VelocityPlant` without changing the rules.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ from sim.autopilot.vehicle_types import (
     VehicleConfig,
     VehicleState,
 )
-from sim.plant import PlantParams, VelocityPlant
+from sim.plant.model import PlantParams, VelocityPlant
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode
-from sim.plant import PlantParams
+from sim.plant.model import PlantParams
 
 __all__ = [
     "ACCEPTED", "DENIED", "FAILED", "TEMPORARILY_REJECTED", "UNSUPPORTED",

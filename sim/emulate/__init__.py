@@ -18,7 +18,7 @@ vehicle state (not the telemetry), sampled on the ``fisc-sim run`` sampling grid
 the map frame with the default deployment transform (map x -> North, y -> East, z -> Up, map
 origin at local NED (0, 0, -10)) and accumulated per CV with ``FieldAccumulator`` exactly as the
 vectorised simulator does.  The outputs (fields.csv, metrics.json, figures, report.md) are
-written with ``fisc_ground.field_report``/``field_figures``, so they have the format of ``fisc-sim run``; in
+written with ``fisc_ground.fields.field_report``/``field_figures``, so they have the format of ``fisc-sim run``; in
 addition ``emulation.json`` (timing, real-time figures, per-agent mission outcome) and, unless
 disabled, ``comparison.json`` (the metric differences against ``fisc-sim run`` on the same
 map, duration and mode, at the population that flies as many agents in the tunnel as the emulation

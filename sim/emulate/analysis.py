@@ -9,9 +9,9 @@ import math
 
 import numpy as np
 
-from fisc_agent.frames import DeploymentTransform
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import CommandMap
+from fisc_agent.flight.frames import DeploymentTransform
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import CommandMap
 from sim.emulate.fly import SwarmRun
 from sim.emulate.plan import LaunchPlan
 
@@ -78,7 +78,7 @@ def ground_truth_fields(swarm: SwarmRun, cmap: CommandMap, transform: Deployment
     its agents: a vehicle joining, returning, holding or looping back that passes through a CV is not
     part of the flow (cv -1 there, like vehicles outside every CV and NaN samples).
     """
-    from fisc_ground.swarm_fields import FieldAccumulator
+    from fisc_ground.fields.swarm_fields import FieldAccumulator
 
     field = CommandField.from_map(cmap)
     k, n = swarm.pos_ned_m.shape[:2]
@@ -198,7 +198,7 @@ def compare_fields(emu_metrics: dict, run_metrics: Sequence[dict], emu_fields, r
     ``run_metrics``: the metrics of one or more ``fisc-sim run`` references (seeds); each metric's
     ``run`` is their mean, ``run_sd`` their standard deviation (None for one), ``run_seeds`` the
     values.  ``run_fields``: the first reference's fields (the direct comparison)."""
-    from fisc_ground.metrics import nrmse, normalise, pearson
+    from fisc_ground.fields.metrics import nrmse, normalise, pearson
 
     if not run_metrics:
         raise ValueError("compare_fields needs at least one fisc-sim run reference")

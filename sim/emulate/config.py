@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 
 from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
-from fisc_agent.lookup import COMMAND_MODES
+from fisc_agent.map.lookup import COMMAND_MODES
 
 PERSONALITIES = ("px4", "ardupilot")
 MAP_FILE_NAME = "map.fiscmap"
@@ -37,7 +37,7 @@ class EmulateConfig:
     reaches the inlet after ~11 s and the looping swarm takes another ~30 s to settle, so the default
     leaves a steady minute to average (``average_window_s``)."""
     mode: str | None = None
-    """Command mode of the agents (``fisc_agent.lookup.COMMAND_MODES``); None: the map's recommended one."""
+    """Command mode of the agents (``fisc_agent.map.lookup.COMMAND_MODES``); None: the map's recommended one."""
     lookahead_s: float | None = None
     """Command look-ahead of the agents [s]; None: the map's recommended value."""
     preset: str = "default"
@@ -47,8 +47,8 @@ class EmulateConfig:
     exit_policy: str = "loop"
     """Agent exit policy after the outlet: ``loop`` (back to the inlet, keeps feeding), ``hold``, ``land``."""
     tracking: bool = True
-    """Agents track their streamline (``fisc_agent.tracking``), as ``fisc-agent`` does by default on a
-    real vehicle; False: gain 0, the agents fly ``fisc_agent.lookup.flight_command`` at their position,
+    """Agents track their streamline (``fisc_agent.flight.tracking``), as ``fisc-agent`` does by default on a
+    real vehicle; False: gain 0, the agents fly ``fisc_agent.map.lookup.flight_command`` at their position,
     the very command function of ``fisc-sim run`` (a like-for-like check of the command chain)."""
     entry_radius_fraction: float = 1.0
     """Fraction of the inlet radius the agents' entry points spread over (``AgentConfig.entry_radius_fraction``;
@@ -66,7 +66,7 @@ class EmulateConfig:
     physics_dt_s: float = 0.02
     """Physics step of the emulated vehicles [s] (the emulator's default; 0.05 = the simulator's dt)."""
     plant: str = "paper"
-    """Vehicle model inside the emulators: a named ``sim.plant_fit.PLANT_PRESETS`` entry."""
+    """Vehicle model inside the emulators: a named ``sim.plant.fit.PLANT_PRESETS`` entry."""
     telemetry: str = "full"
     """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
     and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""

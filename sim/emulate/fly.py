@@ -11,8 +11,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fisc_agent.lookup import map_flight_settings
-from fisc_agent.mapfile import load_map
+from fisc_agent.map.lookup import map_flight_settings
+from fisc_agent.map.codec import load_map
 from sim.emulate.config import STARTUP_TIMEOUT_S, EmulateConfig
 from sim.emulate.plan import LaunchPlan
 from sim.emulate.workers import _AgentJob, _EmulatorJob, _agent_worker, _emulator_worker

@@ -12,9 +12,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fisc_agent.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import CommandMap
+from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import CommandMap
 from sim.emulate.analysis import (compare_fields, entry_statistics, flowing_vehicles, ground_truth_fields,
                                   matched_population, position_snapshots, realtime_summary, sample_window, states_at,
                                   steady_start_s, swarm_counters)
@@ -113,8 +113,8 @@ def _fmtv(v) -> str:
 
 def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) -> EmulateResult:
     """The ``fisc-sim emulate`` job: map, launch plan, fly, fields, outputs (see the module docstring)."""
-    from fisc_ground.field_report import json_safe, write_fields_csv, write_json
-    from fisc_ground.field_run import FieldRun, FieldSource
+    from fisc_ground.fields.field_report import json_safe, write_fields_csv, write_json
+    from fisc_ground.fields.field_run import FieldRun, FieldSource
     from sim import report
     from sim.run import PAPER_SNAPSHOT_TIMES_S, RunConfig, RunResult
     from sim.run import run as sim_run
@@ -159,7 +159,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     res.paths["fields"] = write_fields_csv(fr, out / "fields.csv")
     res.paths["metrics"] = report.write_metrics_json(rr, out / "metrics.json")
     if config.figures:
-        from fisc_ground import field_figures as figures
+        from fisc_ground.figures import field_figures as figures
 
         rr.paths.update(figures.write_run_figures(fr, out))
         res.paths.update(rr.paths)
@@ -208,10 +208,10 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
 
 def write_flight_log(path: Path, swarm: SwarmRun, cmap: CommandMap, map_path: Path, transform: DeploymentTransform,
                      cv: np.ndarray, sample_interval_s: float) -> Path:
-    """The flight as a Foxglove/MCAP flight log (``fisc_ground.flight_log``): every ground-truth sample
+    """The flight as a Foxglove/MCAP flight log (``fisc_ground.monitor.flight_log``): every ground-truth sample
     (map frame) with the agents' mission states, as the telemetry a monitor would have recorded, the
     run's clock (s since launch) as receive time."""
-    from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry
+    from fisc_ground.monitor.flight_log import FlightLog, LogSettings, SimulatedTelemetry
 
     states = states_at(swarm.agents, swarm.sample_t_s)
     log_ = SimulatedTelemetry(FlightLog(LogSettings(sample_period_s=sample_interval_s,

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.control import MapGeometry, ScalarField, entry_points, join_waypoints
-from fisc_agent.frames import DeploymentTransform
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import MAGIC, CommandMap, load_map
-from fisc_agent.safe_files import read_head
+from fisc_agent.flight.control import MapGeometry, ScalarField, entry_points, join_waypoints
+from fisc_agent.flight.frames import DeploymentTransform
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import MAGIC, CommandMap, load_map
+from fisc_agent.common.safe_files import read_head
 from sim.scenarios import Reservoir, scale_for_agents
 from sim.emulate.config import LAUNCH_OVERHEAD_S, MAP_FILE_NAME
 
@@ -46,7 +46,7 @@ def launch_plan(field: CommandField, n_agents: int, transform: DeploymentTransfo
     launched within the first half of ``duration_s``, the rate is raised to N / (duration / 2).
     Vehicle i's planned arrival is i / rate; its launch is that minus its predicted travel time:
     ``overhead_s`` (arm, OFFBOARD/GUIDED, climb-out to ``takeoff_alt_m``) plus the length of its
-    join path (``fisc_agent.control.join_waypoints`` to its ``entry_point``) at ``join_speed_m_s``.
+    join path (``fisc_agent.flight.control.join_waypoints`` to its ``entry_point``) at ``join_speed_m_s``.
     Launch times are then shifted so that the earliest is 0.  Start positions: a square grid of
     ``spacing_m`` on the ground (D = 0), centred on the tunnel axis laterally, its first row
     ``gap_m`` upstream of the staging plane, filled in id order.
@@ -91,8 +91,8 @@ def prepare_map(spec: str | None, out_dir: Path, preset: str = "default") -> tup
         p = Path(spec)
         if p.suffix == ".fiscmap" or (p.is_file() and read_head(p, 8, what="map or reference file") == MAGIC):
             return p, load_map(p)
-    from fisc_ground.mapbuild import DEFAULT_REFERENCE, FitConfig, build_map
-    from fisc_ground.mapwrite import write_map
+    from fisc_ground.maps.build import DEFAULT_REFERENCE, FitConfig, build_map
+    from fisc_ground.maps.write import write_map
     from fisc_ground.reference.load import load_reference
 
     meta, arrays = build_map(load_reference(spec or DEFAULT_REFERENCE), FitConfig(staggered=preset != "paper"))

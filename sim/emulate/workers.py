@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fisc_agent.mapfile import load_map
+from fisc_agent.map.codec import load_map
 from pymavlink.dialects.v20.common import MAV_CMD_SET_MESSAGE_INTERVAL
 
 log = logging.getLogger(__name__)
@@ -138,10 +138,10 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         from sim.autopilot.personalities import FlightMode
         from sim.autopilot.server import AutopilotEmulator
         from sim.autopilot.vehicle import VehicleConfig
-        from sim.plant import VelocityPlant
+        from sim.plant.model import VelocityPlant
 
         _raise_fd_limit()
-        from sim.plant_fit import plant_preset
+        from sim.plant.fit import plant_preset
 
         vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s, plant_params=plant_preset(job.plant))
         emus = [AutopilotEmulator("udpin:127.0.0.1:0", job.personality, start, sysid=1 + aid % 250,
@@ -250,9 +250,9 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
     fleet).  Returns (session, links); (None, []) without a swarm."""
     if not job.swarm:
         return None, []
-    from fisc_agent.mapfile import read_public_key
-    from fisc_agent.zenoh_link import AgentZenohLink
-    from fisc_agent.zenoh_session import open_session
+    from fisc_agent.map.codec import read_public_key
+    from fisc_agent.zenoh.link import AgentZenohLink
+    from fisc_agent.zenoh.session import open_session
 
     keys = [read_public_key(job.trusted_key)]
     session = open_session(job.zenoh_config)
@@ -265,11 +265,11 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
 def agent_config(job: _AgentJob, agent_id: int, port: int):
     """The ``fisc_agent.config.AgentConfig`` of one emulated vehicle's agent: the job's settings, and
     streamline tracking only when ``job.tracking`` (else gain 0: the agent flies
-    ``fisc_agent.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies).  The
+    ``fisc_agent.map.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies).  The
     emulated duct has no physical wall: kinetic deviations reflect at the CV staircase, as in ``fisc-sim
     run`` (``wall_margin_m`` None), so the two compare."""
     from fisc_agent.config import AgentConfig
-    from fisc_agent.tracking import TrackingConfig
+    from fisc_agent.flight.tracking import TrackingConfig
 
     return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path,
                        autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
@@ -282,10 +282,10 @@ def _agent_worker(conn, job: _AgentJob) -> None:
     """Host ``len(job.agent_ids)`` fisc-agent runners in one thread (spawned process)."""
     try:
         logging.basicConfig(level=job.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        from fisc_agent.adapters import CommandLong
-        from fisc_agent.endpoints import parse_endpoint
-        from fisc_agent.flightlog import FlightLog
-        from fisc_agent.link import MavlinkLink
+        from fisc_agent.mavlink.adapters import CommandLong
+        from fisc_agent.mavlink.endpoints import parse_endpoint
+        from fisc_agent.flight.flightlog import FlightLog
+        from fisc_agent.mavlink.link import MavlinkLink
         from fisc_agent.runner import Runner
 
         _raise_fd_limit()

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.mapfile import encode_map
+from fisc_agent.map.codec import encode_map
 
 SEED = bytes(range(32))  # a public test seed: this key signs nothing real
 

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.flightlog import read_flight_log
-from fisc_agent.mapfile import CommandMap, load_map
-from fisc_ground.flight_score import track_from_rows
+from fisc_agent.flight.flightlog import read_flight_log
+from fisc_agent.map.codec import CommandMap, load_map
+from fisc_ground.fields.flight_score import track_from_rows
 
 from .conftest import cli, free_tcp_port, run_cli, write_zenoh_config
 
@@ -348,7 +348,7 @@ def ulog_summary(path: Path) -> UlogSummary:
 def truth_track(path: Path, map_above_start_m: float = 10.0, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
                 near_axis_m: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """SIH's ground truth (``vehicle_local_position_groundtruth``) of the pass, in the map frame, as
-    ``(t_s, pos_m, vel_m_s, states)`` for ``fisc_ground.flight_score.score_track``.
+    ``(t_s, pos_m, vel_m_s, states)`` for ``fisc_ground.fields.flight_score.score_track``.
 
     The vehicle's real motion, not PX4's estimate of it: EKF2's velocity estimate carries a bias
     that the agent's streamline tracking corrects for (measured: an estimate of 0.73-0.79 m/s
@@ -396,7 +396,7 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str) -> WallTruth:
     """
     from pyulog import ULog
 
-    from fisc_agent.frames import GeodeticAnchor
+    from fisc_agent.flight.frames import GeodeticAnchor
 
     geo = GeodeticAnchor.parse(anchor)
     tf = geo.transform()

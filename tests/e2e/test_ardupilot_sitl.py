@@ -12,10 +12,10 @@ import json
 
 import pytest
 
-from fisc_agent.flightlog import read_flight_log
-from fisc_agent.mapfile import load_map
-from fisc_ground.duct_wall import duct_wall_from_reference
-from fisc_ground.flight_score import score_track
+from fisc_agent.flight.flightlog import read_flight_log
+from fisc_agent.map.codec import load_map
+from fisc_ground.maps.duct_wall import duct_wall_from_reference
+from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from fisc_agent.mapfile import encode_map
-from fisc_ground.mapwrite import generate_keypair
+from fisc_agent.map.codec import encode_map
+from fisc_ground.maps.write import generate_keypair
 
 from .conftest import child_env, cli, free_tcp_port, free_udp_port, write_zenoh_config
 
@@ -90,7 +90,7 @@ def files(tmp_path_factory):
     from tests.zenoh.conftest import map_parts
 
     key, pub = generate_keypair(d / "ground")
-    from fisc_ground.mapwrite import read_signing_key
+    from fisc_ground.maps.write import read_signing_key
 
     good = d / "good.fiscmap"
     good.write_bytes(encode_map(*map_parts(1), read_signing_key(key)))
@@ -154,7 +154,7 @@ def test_fit_refuses_a_sparse_2gb_csv_and_vtu_at_once(tmp_path):
     for path in (csv, vtu):
         rc, wall, rss_mb, out = run_watched([*cli("fisc-ground"), "fit", path, "-o", tmp_path / "m.fiscmap"])
         print(f"\nfit on a sparse 2 GB {path.suffix}: exit {rc}, {wall:.2f} s, peak RSS {rss_mb:.0f} MB")
-        assert rc == 2, out  # invalid input (fisc_agent.cli_common)
+        assert rc == 2, out  # invalid input (fisc_agent.common.cli_common)
         assert str(path) in out and ("sparse" in out or "NUL byte" in out), out
         assert "ReadError: \n" not in out and "header only" not in out
         assert rss_mb < MAX_RSS_MB

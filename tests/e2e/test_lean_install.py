@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from .conftest import Processes, cli, free_udp_port, poll
-from fisc_agent.flightlog import read_flight_log
+from fisc_agent.flight.flightlog import read_flight_log
 
 pytestmark = pytest.mark.slow
 

@@ -2,7 +2,7 @@
 
 Marked ``sitl``: ``pytest -m "not sitl"`` runs the fast part alone.  Each test starts its own
 PX4 instances, flies real ``fisc-agent`` processes over MAVLink/UDP, scores the agents' flight
-logs against the CFD (``fisc_ground.flight_score``) and reads PX4's own ULog for the truth:
+logs against the CFD (``fisc_ground.fields.flight_score``) and reads PX4's own ULog for the truth:
 setpoint timing as PX4 received it, failsafe flags, estimator state and SIH's ground truth.
 """
 
@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.flightlog import read_flight_log
-from fisc_agent.lookup import CommandField
-from fisc_ground.duct_wall import duct_wall_from_reference
-from fisc_ground.flight_score import realised_spread_ratio, score_track
-from fisc_agent.mapfile import load_map
+from fisc_agent.flight.flightlog import read_flight_log
+from fisc_agent.map.lookup import CommandField
+from fisc_ground.maps.duct_wall import duct_wall_from_reference
+from fisc_ground.fields.flight_score import realised_spread_ratio, score_track
+from fisc_agent.map.codec import load_map
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli

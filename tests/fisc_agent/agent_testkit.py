@@ -51,7 +51,7 @@ def tunnel_arrays(length_m: float = 3.0, radius_m: float = 1.0, cell_m: float = 
 
 
 def tunnel_map_bytes(signing_key: bytes | None = None, map_version: int = 1, **kw) -> bytes:
-    from fisc_agent.mapfile import encode_map
+    from fisc_agent.map.codec import encode_map
 
     meta, arrays = tunnel_arrays(**kw)
     meta["map_version"] = map_version
@@ -133,11 +133,11 @@ class RecordingVehicle:
         self.sent.append(("takeoff", alt_m))
 
     def hold(self):
-        from fisc_agent.adapters import ModeClass
+        from fisc_agent.mavlink.adapters import ModeClass
 
         self.set_mode(ModeClass.HOLD)
 
     def land(self):
-        from fisc_agent.adapters import ModeClass
+        from fisc_agent.mavlink.adapters import ModeClass
 
         self.set_mode(ModeClass.LAND)

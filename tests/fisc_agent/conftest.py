@@ -9,7 +9,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))  # agent_testkit
 
-from fisc_agent.mapfile import decode_map  # noqa: E402
+from fisc_agent.map.codec import decode_map  # noqa: E402
 
 
 from agent_testkit import tunnel_arrays, tunnel_map_bytes  # noqa: E402,F401

@@ -3,7 +3,7 @@
 import pytest
 
 from agent_testkit import RecordingVehicle
-from fisc_agent.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
+from fisc_agent.mavlink.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
                                  MAV_CMD_SET_MESSAGE_INTERVAL, ArduPilotAdapter, CommandKind, CommandResult, Commander,
                                  ModeClass, Px4Adapter, adapter_for, autopilot_from_heartbeat, command_result,
                                  is_armed)
@@ -102,10 +102,10 @@ def test_command_acks_become_typed_results():
 def test_a_flood_of_refusing_acks_is_bounded_and_rate_limited(caplog):
     """Forged COMMAND_ACKs from the autopilot's identity: the refusal list stays bounded and the log
     gets one line per kind per 5 s, not one per ack."""
-    from fisc_agent.adapters import MAX_REFUSALS_KEPT
+    from fisc_agent.mavlink.adapters import MAX_REFUSALS_KEPT
 
     c = Commander(Px4Adapter(), RecordingVehicle())
-    with caplog.at_level("WARNING", logger="fisc_agent.adapters"):
+    with caplog.at_level("WARNING", logger="fisc_agent.mavlink.adapters"):
         for _ in range(5000):
             c.on_result(command_result(MAV_CMD_COMPONENT_ARM_DISARM, 2))
     assert len(c.refusals) == MAX_REFUSALS_KEPT

@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
+from fisc_agent.flight.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
                                 goto_velocity, join_waypoints, max_command_speed)
-from fisc_agent.hashing import slot_hash, slot_hash_int
-from fisc_agent.lookup import CommandField, return_command
-from fisc_agent.mapfile import MapError
+from fisc_agent.map.hashing import slot_hash, slot_hash_int
+from fisc_agent.map.lookup import CommandField, return_command
+from fisc_agent.map.codec import MapError
 
 
 @pytest.fixture(scope="module")
@@ -113,7 +113,7 @@ def test_entry_points_deterministic_distinct_and_inside_first_slice(field, sfiel
 def test_entry_points_over_the_whole_inlet_are_area_uniform_over_its_cvs():
     # radius fraction 1: spiral points outside the staircase are skipped, not snapped onto a CV
     # centre, so the entries spread over every inlet CV about in proportion to its area
-    from fisc_ground.mapbuild import build_default_map
+    from fisc_ground.maps.build import build_default_map
 
     f = CommandField.from_map(build_default_map())
     g, sf = MapGeometry.from_field(f), ScalarField(f)
@@ -155,7 +155,7 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
 
 @pytest.mark.parametrize("exit_yz", [(0.0, 0.0), (1.0, -0.8), (-1.2, 1.0)])
 def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_wait_point(field, exit_yz):
-    from fisc_agent.control import lap_return_waypoints
+    from fisc_agent.flight.control import lap_return_waypoints
 
     g = MapGeometry.from_field(field)
     pos = (g.x_outlet_m + 0.2, *exit_yz)
@@ -178,7 +178,7 @@ def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_w
 
 @pytest.mark.parametrize("dist", [0.2, 0.8, 1.9, 6.0])
 def test_approach_time_is_the_time_goto_velocity_takes(dist):
-    from fisc_agent.control import approach_time_s
+    from fisc_agent.flight.control import approach_time_s
 
     pos, target, dt, t = (0.0, 0.0, 0.0), (dist, 0.0, 0.0), 1e-3, 0.0
     while math.dist(pos, target) >= 0.3:

@@ -14,14 +14,14 @@ import pytest
 
 from agent_testkit import EmulatorProbe
 from fisc_agent.config import AgentConfig
-from fisc_agent.control import MapGeometry
-from fisc_agent.frames import GeodeticAnchor
-from fisc_agent.link import TYPEMASK_VELOCITY_ONLY, MavlinkLink
-from fisc_agent.lookup import CommandField
-from fisc_agent.mission import State
+from fisc_agent.flight.control import MapGeometry
+from fisc_agent.flight.frames import GeodeticAnchor
+from fisc_agent.mavlink.link import TYPEMASK_VELOCITY_ONLY, MavlinkLink
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.flight.mission import State
 from fisc_agent.runner import Runner
-from fisc_ground.flight_score import realised_spread_ratio
-from fisc_ground.mapbuild import build_default_map
+from fisc_ground.fields.flight_score import realised_spread_ratio
+from fisc_ground.maps.build import build_default_map
 from sim.autopilot import server
 
 pytestmark = pytest.mark.slow
@@ -266,7 +266,7 @@ def test_geodetic_anchor_positions_from_global_position_int(udp_port, tunnel_map
 
 def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
     pytest.importorskip("mavsdk")  # an optional backend (the `mavsdk` extra)
-    from fisc_agent.mavsdk_backend import MavsdkLink
+    from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
 
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
     try:
@@ -295,13 +295,13 @@ def _wait_for(pred, timeout_s, what, poll=None):
 def test_link_intents_move_the_emulated_px4(backend):
     """The VehicleLink's intents on both backends against the emulator over UDP: arm, hold, land
     change the vehicle's state and come back as accepted CommandResults (MAVSDK: its own actions)."""
-    from fisc_agent.adapters import CommandKind, ModeClass, Px4Adapter
+    from fisc_agent.mavlink.adapters import CommandKind, ModeClass, Px4Adapter
 
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
     url = f"udpout:127.0.0.1:{emu.local_address[1]}"
     if backend == "mavsdk":
         pytest.importorskip("mavsdk")
-        from fisc_agent.mavsdk_backend import MavsdkLink
+        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
 
         link = MavsdkLink(url)
     else:

@@ -2,7 +2,7 @@
 
 import pytest
 
-from fisc_agent.endpoints import EndpointError, parse_endpoint
+from fisc_agent.mavlink.endpoints import EndpointError, parse_endpoint
 
 
 @pytest.mark.parametrize("url, device, baud", [
@@ -65,6 +65,6 @@ def test_bad_endpoints_name_the_problem(url, words):
     ("/dev/ttyACM0:57600", "serial:///dev/ttyACM0:57600"),
 ])
 def test_mavsdk_connection_urls(url, mavsdk):
-    from fisc_agent.mavsdk_backend import mavsdk_url
+    from fisc_agent.mavlink.mavsdk_backend import mavsdk_url
 
     assert mavsdk_url(parse_endpoint(url)) == mavsdk

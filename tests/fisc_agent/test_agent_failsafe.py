@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from fisc_agent.failsafe import GeofencePolicy, GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+from fisc_agent.flight.failsafe import GeofencePolicy, GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 
 
 def test_position_health_stages():

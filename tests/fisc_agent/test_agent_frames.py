@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.frames import DeploymentTransform, GeodeticAnchor, parse_floats
+from fisc_agent.flight.frames import DeploymentTransform, GeodeticAnchor, parse_floats
 
 
 def test_default_maps_x_north_y_east_z_up_axis_10m_up():

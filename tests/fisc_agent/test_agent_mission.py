@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.control import MapGeometry, ScalarField, clamp_velocity, distance
-from fisc_agent.lookup import CommandField, return_command
-from fisc_agent.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
-from fisc_agent.tracking import TrackingConfig
+from fisc_agent.flight.control import MapGeometry, ScalarField, clamp_velocity, distance
+from fisc_agent.map.lookup import CommandField, return_command
+from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
+from fisc_agent.flight.tracking import TrackingConfig
 
 DT = 0.05
 
@@ -155,7 +155,7 @@ def test_px4_full_pass_then_exit_hold(sfield):
 
 
 def test_agents_hold_after_the_outlet_at_their_own_points_spaced_apart(sfield):
-    from fisc_agent.control import GOLDEN_ANGLE_RAD, VOGEL_MIN_SPACING, hold_point, hold_points
+    from fisc_agent.flight.control import GOLDEN_ANGLE_RAD, VOGEL_MIN_SPACING, hold_point, hold_points
 
     geom = MapGeometry.from_field(sfield.field)
     held = {}
@@ -376,7 +376,7 @@ def test_disarm_in_flight_ends_the_mission(sfield):
 
 def test_map_swap_during_join_replans(sfield, tunnel_map):
     from agent_testkit import tunnel_map_bytes
-    from fisc_agent.mapfile import decode_map
+    from fisc_agent.map.codec import decode_map
 
     cfg, m, v = make(sfield)
     run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
@@ -492,7 +492,7 @@ def test_tracking_on_an_ideal_vehicle_flies_the_field_itself(sfield):
 
 @pytest.fixture(scope="module")
 def default_sfield():
-    from fisc_ground.mapbuild import load_shipped_default_map
+    from fisc_ground.maps.build import load_shipped_default_map
 
     return ScalarField(CommandField.from_map(load_shipped_default_map()))
 
@@ -578,7 +578,7 @@ def test_join_corrects_the_velocity_estimate_bias_and_crosses_at_its_entry_point
 
 
 def test_entry_slots_stagger_agents_on_the_shared_clock():
-    from fisc_agent.control import entry_slot_open
+    from fisc_agent.flight.control import entry_slot_open
 
     open_at = {i: [t / 10 for t in range(0, 240) if entry_slot_open(1000.0 + t / 10, i, 2.0, 6)] for i in range(6)}
     assert all(open_at[i] for i in range(6))
@@ -700,7 +700,7 @@ def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
     says so once and flies on with the given look-ahead (no warning per tick of the final leg)."""
     cfg, m, v = make(sfield)
     m._recorder.max_samples = 0          # nothing recorded: the fit must refuse
-    with caplog.at_level("WARNING", logger="fisc_agent.mission"):
+    with caplog.at_level("WARNING", logger="fisc_agent.flight.mission"):
         run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
     assert m.response is None
     assert sum("not identified" in r.getMessage() for r in caplog.records) == 1

@@ -6,11 +6,11 @@ import math
 import pytest
 
 from agent_testkit import RecordingVehicle, tunnel_map_bytes
-from fisc_agent.adapters import ModeClass
+from fisc_agent.mavlink.adapters import ModeClass
 from fisc_agent.config import AgentConfig
-from fisc_agent.link import PositionSample, PositionSource, SetpointSink
-from fisc_agent.mapfile import MapError, decode_map
-from fisc_agent.mission import State
+from fisc_agent.mavlink.link import PositionSample, PositionSource, SetpointSink
+from fisc_agent.map.codec import MapError, decode_map
+from fisc_agent.flight.mission import State
 from fisc_agent.runner import AgentSnapshot, Runner
 
 
@@ -183,7 +183,7 @@ def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
 def test_offer_map_refuses_a_map_that_fails_agent_checks():
     import numpy as np
     from agent_testkit import tunnel_arrays
-    from fisc_agent.mapfile import encode_map
+    from fisc_agent.map.codec import encode_map
 
     cfg, clock, link, r = make(mode="slot")
     meta, arrays = tunnel_arrays()
@@ -342,9 +342,9 @@ def test_identification_uses_only_ticks_flown_in_the_mode_asked_for():
 
 def test_a_kinetic_agent_takes_the_maps_real_wall_and_says_when_there_is_none(caplog):
     import numpy as np
-    from fisc_agent.mapfile import encode_map, load_map
-    from fisc_agent.wall import WALL_ARRAY
-    from fisc_ground.mapbuild import default_map_path
+    from fisc_agent.map.codec import encode_map, load_map
+    from fisc_agent.map.wall import WALL_ARRAY
+    from fisc_ground.maps.build import default_map_path
 
     cmap = load_map(default_map_path())
     body = {k: v for k, v in cmap.body.items() if k not in ("arrays", "sha256")}

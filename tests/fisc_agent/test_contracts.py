@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.hashing import slot_hash, slot_hash_int, slot_index
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import load_map
+from fisc_agent.map.hashing import slot_hash, slot_hash_int, slot_index
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import load_map
 from sim.kernels import cell_and_slot_helpers
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -57,7 +57,7 @@ def test_slot_hash_fixed_vectors_in_every_copy(pair):
 
 
 def test_numba_slot_twin_equals_the_pure_hash_on_1e5_inputs():
-    """``sim.kernels``' jitted slot index is a twin of ``fisc_agent.hashing.slot_mix``: equal on 10^5 inputs
+    """``sim.kernels``' jitted slot index is a twin of ``fisc_agent.map.hashing.slot_mix``: equal on 10^5 inputs
     spanning the whole 32-bit id range (and ids beyond it, reduced the same way)."""
     rng = np.random.default_rng(11)
     n = 100_000
@@ -116,9 +116,9 @@ def test_the_version_1_map_gives_the_same_commands():
 
 def test_enums_at_the_seams_match_the_wire_tables():
     """Mission states and map-refusal kinds are the names the telemetry codes carry."""
-    from fisc_agent import telemetry_codec as tc
-    from fisc_agent.mapfile import MapErrorKind
-    from fisc_agent.mission import State
+    from fisc_agent.zenoh import telemetry_codec as tc
+    from fisc_agent.map.codec import MapErrorKind
+    from fisc_agent.flight.mission import State
 
     assert {s.value for s in State} <= set(tc.STATES)
     assert set(tc.REJECT_REASONS[1:]) <= {k.value for k in MapErrorKind}

@@ -1,9 +1,9 @@
-"""In-flight identification of the velocity response (fisc_agent.identify) on simulated data."""
+"""In-flight identification of the velocity response (fisc_agent.flight.identify) on simulated data."""
 
 import numpy as np
 import pytest
 
-from fisc_agent.identify import ResponseRecorder, fit_response
+from fisc_agent.flight.identify import ResponseRecorder, fit_response
 
 
 def simulate(lag_s, dead_s, gain, h=0.05, seconds=20.0, seed=0, noise=0.0):

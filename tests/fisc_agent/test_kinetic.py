@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fisc_agent.kinetic import DeviationState, deviation_epoch, kinetic_deviation
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.kinetic import DeviationState, deviation_epoch, kinetic_deviation
+from fisc_agent.map.lookup import CommandField
 
 CELL = 0.5
 T_S, PERSISTENCE_S = 10.0, 2.0

@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
-from fisc_agent.hashing import slot_index
-from fisc_agent.lookup import RETURN_STAGNANT_FRACTION, CommandField
+from fisc_agent.map.hashing import slot_index
+from fisc_agent.map.lookup import RETURN_STAGNANT_FRACTION, CommandField
 
 
 def field_from_mask(mask: np.ndarray, cell: float = 0.5, origin=(0.0, -1.0, -1.0), n_max: int = 4, seed: int = 0):

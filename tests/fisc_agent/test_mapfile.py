@@ -10,8 +10,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fisc_agent.mapfile import MapError, MapErrorKind, decode_map, encode_map, load_map
-from fisc_ground.mapwrite import generate_keypair, read_signing_key, write_map
+from fisc_agent.map.codec import MapError, MapErrorKind, decode_map, encode_map, load_map
+from fisc_ground.maps.write import generate_keypair, read_signing_key, write_map
 
 
 def tiny_map_parts(n_cv: int = 3, n_max: int = 4) -> tuple[dict, dict]:
@@ -127,7 +127,7 @@ def test_wrong_schema_version_is_refused_even_when_rehashed():
     body_len = struct.unpack_from("<Q", data, 12)[0]
     body = json.loads(data[20:20 + body_len])
     body["schema_version"] = 99
-    from fisc_agent.mapfile import canonical_json
+    from fisc_agent.map.codec import canonical_json
     import hashlib
 
     raw = canonical_json(body)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from fisc_agent.mavsdk_backend import ODOMETRY_STAMP_MAX_AGE_S, autopilot_time
+from fisc_agent.mavlink.mavsdk_backend import ODOMETRY_STAMP_MAX_AGE_S, autopilot_time
 
 
 def test_a_fix_is_dated_by_the_newest_odometry_stamp_plus_the_gap_since_it():

@@ -1,4 +1,4 @@
-"""The bounded file reader behind every file argument (fisc_agent.safe_files)."""
+"""The bounded file reader behind every file argument (fisc_agent.common.safe_files)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import socket
 
 import pytest
 
-from fisc_agent.mapfile import MapError, load_map, read_public_key
-from fisc_agent.safe_files import FileInputError, check_regular_file, read_head, read_regular_file
+from fisc_agent.map.codec import MapError, load_map, read_public_key
+from fisc_agent.common.safe_files import FileInputError, check_regular_file, read_head, read_regular_file
 
 
 def test_a_regular_file_within_the_cap_is_read_whole(tmp_path):

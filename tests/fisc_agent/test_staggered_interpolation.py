@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField, cube_mean_u_axial_m_s
-from fisc_ground.mapbuild import FitConfig, build_map_from_reference
+from fisc_agent.map.lookup import CommandField, cube_mean_u_axial_m_s
+from fisc_ground.maps.build import FitConfig, build_map_from_reference
 
 #: Gauss-Legendre nodes and weights on [0, 1]: exact for the polynomial shapes integrated here.
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(4)

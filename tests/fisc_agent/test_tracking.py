@@ -1,10 +1,10 @@
-"""Streamline tracking (fisc_agent.tracking) on analytic fields, on a simulated clock."""
+"""Streamline tracking (fisc_agent.flight.tracking) on analytic fields, on a simulated clock."""
 
 import math
 
 import pytest
 
-from fisc_agent.tracking import ParcelTracker, TrackingConfig
+from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
 
 
 def uniform(x, y, z):

@@ -1,17 +1,17 @@
-"""``fisc_agent.wall``: the duct's real wall a map carries, and the kinetic deviation kept inside it."""
+"""``fisc_agent.map.wall``: the duct's real wall a map carries, and the kinetic deviation kept inside it."""
 
 import math
 
 import numpy as np
 import pytest
 
-from fisc_agent.control import ScalarField
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import MapError, decode_map, encode_map, load_map
-from fisc_agent.tracking import ParcelTracker, TrackingConfig
-from fisc_agent.wall import WALL_ARRAY, DuctWall, map_wall, reflect_at_wall
-from fisc_ground.duct_wall import duct_wall_from_reference
-from fisc_ground.mapbuild import default_map_path
+from fisc_agent.flight.control import ScalarField
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import MapError, decode_map, encode_map, load_map
+from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
+from fisc_agent.map.wall import WALL_ARRAY, DuctWall, map_wall, reflect_at_wall
+from fisc_ground.maps.duct_wall import duct_wall_from_reference
+from fisc_ground.maps.build import default_map_path
 from fisc_ground.reference.builtin import load_builtin
 
 CONE = DuctWall(np.array([0.0, 10.0]), np.array([1.0, 2.0]))  # radius 1 + x / 10

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.mapfile import load_map
+from fisc_agent.map.codec import load_map
 from fisc_ground.cli import main
-from fisc_ground.scaling import KINETIC_DISPERSION_RATIO
-from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+from fisc_ground.fit.scaling import KINETIC_DISPERSION_RATIO
+from fisc_ground.fit.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT)
 
 
@@ -216,8 +216,8 @@ def test_plot_writes_the_paper_figures(tmp_path, default_map):
 def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_map, tmp_path):
     """`fisc-ground score-flight LOG --map MAP --json`: a synthetic pass along y = 0 at a height that
     puts it 0.2 m outside the map's wall at the throat, inside elsewhere, flown at S x the CFD speed."""
-    from fisc_agent.flightlog import COLUMNS
-    from fisc_agent.wall import map_wall
+    from fisc_agent.flight.flightlog import COLUMNS
+    from fisc_agent.map.wall import map_wall
     from fisc_ground.reference.builtin import load_builtin
 
     cmap = load_map(default_map)

@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from fisc_agent.mapfile import REQUIRED_ARRAYS
-from fisc_ground.mapbuild import build_default_map, load_shipped_default_map
+from fisc_agent.map.codec import REQUIRED_ARRAYS
+from fisc_ground.maps.build import build_default_map, load_shipped_default_map
 
 
 def test_shipped_default_map_matches_a_fresh_fit():

@@ -28,12 +28,12 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent import telemetry_codec as tc
-from fisc_agent.mapfile import decode_map, encode_map
-from fisc_ground.field_report import FIELD_COLUMNS
-from fisc_ground.monitor import TelemetryAggregator
-from fisc_ground.flight_log import FlightLog, LogSettings
-from fisc_ground.recording import replay
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.map.codec import decode_map, encode_map
+from fisc_ground.fields.field_report import FIELD_COLUMNS
+from fisc_ground.monitor.run import TelemetryAggregator
+from fisc_ground.monitor.flight_log import FlightLog, LogSettings
+from fisc_ground.monitor.recording import replay
 
 A_MAX = 1.2 * 9.81
 NAN = math.nan

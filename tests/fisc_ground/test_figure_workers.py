@@ -1,4 +1,4 @@
-"""``fisc_ground.figure_workers``: a run's figures shared by two processes, the same files either way."""
+"""``fisc_ground.figures.workers``: a run's figures shared by two processes, the same files either way."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from fisc_ground.figure_workers import render_figures
-from fisc_ground.forked import can_fork
+from fisc_ground.figures.workers import render_figures
+from fisc_ground.figures.forked import can_fork
 
 needs_fork = pytest.mark.skipif(not can_fork(), reason="fork-based figure process not available here")
 

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fisc_ground.fitting import (
+from fisc_ground.fit.fitting import (
     NOISE_BLOCK_CVS,
     FitResult,
     arrow_solve,

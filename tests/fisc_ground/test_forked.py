@@ -1,4 +1,4 @@
-"""``fisc_ground.forked.ForkedCall``: a call in a forked process, its result or its error here."""
+"""``fisc_ground.figures.forked.ForkedCall``: a call in a forked process, its result or its error here."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from fisc_ground.forked import ForkedCall, can_fork
+from fisc_ground.figures.forked import ForkedCall, can_fork
 
 pytestmark = pytest.mark.skipif(not can_fork(), reason="fork not available here")
 

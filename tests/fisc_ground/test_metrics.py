@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fisc_ground.metrics import (
+from fisc_ground.fields.metrics import (
     centreline_profiles,
     centreline_selection,
     fidelity_metrics,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_ground.partition import ControlVolumes, cell_of, grid_origin_and_shape, partition, partition_field
+from fisc_ground.fit.partition import ControlVolumes, cell_of, grid_origin_and_shape, partition, partition_field
 from fisc_ground.reference.field import ReferenceField
 
 
@@ -200,7 +200,7 @@ def test_reference_export_partition(reference_nodes):
 
 
 def test_open_volume_fraction_is_the_share_of_a_full_cells_nodes():
-    from fisc_ground.partition import open_volume_fraction
+    from fisc_ground.fit.partition import open_volume_fraction
 
     np.testing.assert_allclose(open_volume_fraction(np.array([125, 46, 3]), 125.0), [1.0, 46 / 125, 3 / 125])
     # more nodes than the full-cell estimate (folded outlet plane) is still a full cell
@@ -210,7 +210,7 @@ def test_open_volume_fraction_is_the_share_of_a_full_cells_nodes():
 
 
 def test_full_cell_count_is_the_slice_maximum():
-    from fisc_ground.partition import full_cell_node_counts
+    from fisc_ground.fit.partition import full_cell_node_counts
 
     got = full_cell_node_counts(np.array([125, 40, 150, 60, 7]), np.array([0, 0, 2, 2, 1]))
     np.testing.assert_array_equal(got, [125, 125, 150, 150, 7])
@@ -220,7 +220,7 @@ def test_cv_open_fraction_of_a_round_tunnel_on_a_lattice():
     """A 0.1 m lattice inside a cylinder of radius 0.75 m: the 4 near-axis cubes are full, the
     outer ones partial with their share of the 125 lattice nodes; the outlet slice folds 6
     x-planes into its cells and is still full on the axis."""
-    from fisc_ground.partition import cv_open_fraction
+    from fisc_ground.fit.partition import cv_open_fraction
 
     g = np.round(np.arange(-0.7, 0.7001, 0.1), 10)
     x = np.round(np.arange(0.0, 1.0001, 0.1), 10)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from matplotlib import image as mpimg
 
-from fisc_agent.mapfile import decode_map, encode_map
-from fisc_ground.metrics import centreline_profiles
-from fisc_ground.plots import (
+from fisc_agent.map.codec import decode_map, encode_map
+from fisc_ground.fields.metrics import centreline_profiles
+from fisc_ground.figures.plots import (
     design_tunnel_wall,
     plot_centreline,
     plot_centreline_profiles,

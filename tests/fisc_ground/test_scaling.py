@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fisc_ground.fitting import fit_velocities, initial_dispersion
-from fisc_ground.partition import partition
-from fisc_ground.scaling import (
+from fisc_ground.fit.fitting import fit_velocities, initial_dispersion
+from fisc_ground.fit.partition import partition
+from fisc_ground.fit.scaling import (
     DEFAULT_DISPERSION_RATIO,
     DEFAULT_MAX_SPEED_M_S,
     Scaling,

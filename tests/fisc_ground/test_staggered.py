@@ -1,17 +1,17 @@
-"""The continuity-consistent staggered field (fisc_ground.staggered) and schema-2 maps."""
+"""The continuity-consistent staggered field (fisc_ground.fit.staggered) and schema-2 maps."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField, map_flight_settings, PAPER_SETTINGS
-from fisc_agent.mapfile import MapError, decode_map, encode_map
-from fisc_ground.mapbuild import FitConfig, build_map, build_map_from_reference
+from fisc_agent.map.lookup import CommandField, map_flight_settings, PAPER_SETTINGS
+from fisc_agent.map.codec import MapError, decode_map, encode_map
+from fisc_ground.maps.build import FitConfig, build_map, build_map_from_reference
 from fisc_ground.reference.analytic import analytic_nozzle
-from fisc_ground.partition import cv_open_fraction, partition_field
+from fisc_ground.fit.partition import cv_open_fraction, partition_field
 from fisc_ground.reference.load import load_reference
-from fisc_ground.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
+from fisc_ground.fit.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
                                    STATIC_VELOCITY_LIMIT, StaggeredConfig, build_staggered,
                                    design_density, project, static_velocity_nrmse)
 
@@ -115,7 +115,7 @@ def test_schema_2_map_roundtrip_and_version_1_still_loads():
     assert m1.schema_version == 1 and "face_u_x_m_s" not in m1.arrays
     assert map_flight_settings(m1) == PAPER_SETTINGS
     # the shipped map of an older build is schema 1 or 2; either loads
-    from fisc_ground.mapbuild import load_shipped_default_map
+    from fisc_ground.maps.build import load_shipped_default_map
     assert load_shipped_default_map().schema_version in (1, 2)
 
 

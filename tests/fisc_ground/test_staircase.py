@@ -1,13 +1,13 @@
-"""The designed staircase (fisc_ground.staircase): hand-computed cases, its refusals, and its purpose on the
+"""The designed staircase (fisc_ground.fit.staircase): hand-computed cases, its refusals, and its purpose on the
 shipped tunnel (the swarm's continuity pattern follows the CFD's density pattern)."""
 
 import numpy as np
 import pytest
 
-from fisc_ground.partition import partition, partition_field
+from fisc_ground.fit.partition import partition, partition_field
 from fisc_ground.reference.builtin import load_builtin
-from fisc_ground.staggered import cfd_pattern, slice_flux_area
-from fisc_ground.staircase import DEFAULT_STAIRCASE_CONTRAST, axial_pockets, designed_staircase, slice_pattern
+from fisc_ground.fit.staggered import cfd_pattern, slice_flux_area
+from fisc_ground.fit.staircase import DEFAULT_STAIRCASE_CONTRAST, axial_pockets, designed_staircase, slice_pattern
 
 # four slices of four cells: two full cubes, one 48 % and one 24 % open; open area 2.72 cubes -> m >= 3
 COUNTS = np.array([[125, 125, 60, 30]] * 4)

@@ -8,8 +8,8 @@ The hand cases use cubic CVs of edge l = 0.5 m (dV = 0.125 m^3) and these agents
 import numpy as np
 import pytest
 
-from fisc_ground.swarm_equations import SwarmGasParams, interagent_spacing, sound_speed
-from fisc_ground.swarm_fields import FieldAccumulator, cv_moments, instantaneous_fields
+from fisc_ground.fields.swarm_equations import SwarmGasParams, interagent_spacing, sound_speed
+from fisc_ground.fields.swarm_fields import FieldAccumulator, cv_moments, instantaneous_fields
 
 DV = 0.125
 IDS = np.array([0, 0, 1, -1])

@@ -126,7 +126,7 @@ class Keys_:
 
 @pytest.fixture(scope="session")
 def ground_keys(tmp_path_factory) -> Keys_:
-    from fisc_ground.mapwrite import generate_keypair, read_signing_key
+    from fisc_ground.maps.write import generate_keypair, read_signing_key
 
     d = tmp_path_factory.mktemp("keys")
     key, pub = generate_keypair(d / "ground")
@@ -136,8 +136,8 @@ def ground_keys(tmp_path_factory) -> Keys_:
 def tunnel_map(version: int, seed: bytes | None) -> bytes:
     """The built-in default tunnel (15 m, 560 CVs) as map bytes of ``map_version`` ``version``."""
     import field_maps
-    from fisc_agent.mapfile import load_map
-    from fisc_agent.mapfile import encode_map
+    from fisc_agent.map.codec import load_map
+    from fisc_agent.map.codec import encode_map
 
     cm = load_map(Path(field_maps.__file__).parent / "default.fiscmap")
     meta = {k: v for k, v in cm.body.items() if k not in ("schema", "schema_version", "arrays")}
@@ -227,9 +227,9 @@ class Flight:
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory, ground_keys, request):
     """One agent flying loops through the tunnel (map version 100 over Zenoh)."""
-    from fisc_agent.zenoh_keys import Keys
-    from fisc_ground.fleet import TelemetryListener
-    from fisc_ground.zenoh_publish import MapServer
+    from fisc_agent.zenoh.keys import Keys
+    from fisc_ground.zenoh.fleet import TelemetryListener
+    from fisc_ground.zenoh.publish import MapServer
 
     d = tmp_path_factory.mktemp("flight")
     procs = Processes(d / "logs")

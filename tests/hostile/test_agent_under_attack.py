@@ -19,7 +19,7 @@ import time
 
 import pytest
 
-from fisc_agent.map_chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK, split_map
+from fisc_agent.map.chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK, split_map
 
 from .conftest import FLYING, mav_encoder, poll, rss_mb, steady, transitions, tunnel_map
 

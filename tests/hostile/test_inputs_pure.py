@@ -14,13 +14,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fisc_agent.map_chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK,
+from fisc_agent.map.chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK,
                                    AssemblyLimits, DropReason, MapAssembler, announce_message, split_map)
-from fisc_agent.mapfile import MapError
-from fisc_agent.mavlink_input import (MAX_BAD_FRAMES_PER_DATAGRAM, AutopilotTracker, HeartbeatVerdict,
+from fisc_agent.map.codec import MapError
+from fisc_agent.mavlink.framing import (MAX_BAD_FRAMES_PER_DATAGRAM, AutopilotTracker, HeartbeatVerdict,
                                       parse_datagram)
-from fisc_agent.position_gate import GateVerdict, PositionGate, PositionGateConfig
-from fisc_agent.ratelimit import OVERFLOW_KEY, RateLimitedLog
+from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
+from fisc_agent.common.ratelimit import OVERFLOW_KEY, RateLimitedLog
 
 U64 = (1 << 64) - 1
 
@@ -320,7 +320,7 @@ def udp_link():
     """A real ``MavlinkLink`` listening on a free loopback UDP port, and a sender socket."""
     import socket
 
-    from fisc_agent.link import MavlinkLink
+    from fisc_agent.mavlink.link import MavlinkLink
 
     link = MavlinkLink("udpin:127.0.0.1:0")
     tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from fisc_agent.map_chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK
-from fisc_agent.zenoh_link import AgentZenohLink
+from fisc_agent.map.chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK
+from fisc_agent.zenoh.link import AgentZenohLink
 
 from ..zenoh.conftest import wait_for
 

@@ -1,8 +1,8 @@
 """The import graph of fisc_agent, fisc_ground and sim, read from the source (ast, nothing imported).
 
 An edge A -> B means module A imports module B anywhere in its code: at the top, or inside a
-function (a lazy import is still a dependency of the design); imports under ``if TYPE_CHECKING:``
-are annotations only and left out.  ``from P import name`` is an edge to ``P.name`` when that is a
+function (a lazy import is still a dependency of the design), and under ``if TYPE_CHECKING:``
+(an annotation names a dependency too: the package has no such import).  ``from P import name`` is an edge to ``P.name`` when that is a
 module, else to ``P``.
 """
 
@@ -26,20 +26,11 @@ def module_files(packages=PACKAGES) -> dict[str, Path]:
     return out
 
 
-def _is_type_checking(test: ast.expr) -> bool:
-    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
-
-
 def _imports(tree: ast.AST, module: str, is_package: bool) -> list[tuple[str, tuple[str, ...]]]:
-    """(imported module, names taken from it) of every import statement outside TYPE_CHECKING."""
+    """(imported module, names taken from it) of every import statement."""
     found: list[tuple[str, tuple[str, ...]]] = []
 
     def visit(node: ast.AST) -> None:
-        if isinstance(node, ast.If) and _is_type_checking(node.test):
-            for child in node.orelse:
-                visit(child)
-            return
         if isinstance(node, ast.Import):
             found.extend((alias.name, ()) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):

@@ -39,5 +39,5 @@ def test_every_agent_module_imports_without_heavy_packages():
 
 def test_the_probe_sees_a_heavy_import():
     """The check can fail: importing a fisc_ground module that needs scipy shows scipy loaded."""
-    loaded = _loaded_after_importing(["fisc_ground.flight_score"])
+    loaded = _loaded_after_importing(["fisc_ground.fields.flight_score"])
     assert {"scipy", "fisc_ground"} <= loaded

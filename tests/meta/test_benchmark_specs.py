@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 
 from fisc_ground.reference.field import ReferenceField
-from sim.sweep import load_case_function, load_spec
+from sim.sweep.spec import load_case_function, load_spec
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 SPECS = sorted(BENCH.glob("*.toml"))

@@ -17,8 +17,8 @@ import textwrap
 
 import pytest
 
-COMMON = {"-h": "argparse help", "-v": "logging (fisc_agent.cli_common)", "-q": "logging and progress (fisc_agent.cli_common)",
-          "--log-level": "logging (fisc_agent.cli_common)"}
+COMMON = {"-h": "argparse help", "-v": "logging (fisc_agent.common.cli_common)", "-q": "logging and progress (fisc_agent.common.cli_common)",
+          "--log-level": "logging (fisc_agent.common.cli_common)"}
 
 AGENT = {
     "--map": "AgentConfig.map_path", "--mavlink": "AgentConfig.mavlink_url", "--id": "AgentConfig.agent_id",
@@ -43,7 +43,7 @@ AGENT = {
 AGENT_NO_FIELD = {
     "--flight-log": "an output file of the process (fisc_agent.cli.run's flight_log), not a flight setting",
     "--max-duration": "lifetime of the process (Runner.run's max_duration_s), not a flight setting",
-    "--swarm": "Zenoh link option passed to fisc_agent.zenoh_runner.connect_runner (the Zenoh link's "
+    "--swarm": "Zenoh link option passed to fisc_agent.zenoh.runner.connect_runner (the Zenoh link's "
                "arguments; the flight settings live in AgentConfig)",
     "--zenoh-config": "Zenoh link option (as --swarm)", "--zenoh-prefix": "Zenoh link option (as --swarm)",
     "--telemetry-rate": "Zenoh link option (as --swarm)", "--allow-unsigned": "Zenoh link option (as --swarm)",
@@ -86,7 +86,7 @@ FIT = {
 }
 FIT_NO_FIELD = {
     "-o": "the map file written (run_fit's output), not a fit setting",
-    "--sign": "the signing key file (fisc_ground.mapwrite.write_map's signing_key), not a fit setting",
+    "--sign": "the signing key file (fisc_ground.maps.write.write_map's signing_key), not a fit setting",
     "--pressure-kind": "an importer option of the reference file (fisc_ground.reference.load.load_reference)",
 }
 
@@ -95,15 +95,15 @@ NO_CONFIG_DATACLASS = {
     ("fisc-ground", "inspect"): "prints a map summary; options are output format and trust key",
     ("fisc-ground", "keygen"): "one option: the key file stem",
     ("fisc-ground", "plot"): "options are the map, output folder and trust key",
-    ("fisc-ground", "score-flight"): "scoring arguments of fisc_ground.flight_score.score_track",
+    ("fisc-ground", "score-flight"): "scoring arguments of fisc_ground.fields.flight_score.score_track",
     ("fisc-ground", "publish"): "Zenoh map-server options (MapServer arguments)",
     ("fisc-ground", "router"): "a Zenoh router: its configuration is a standard Zenoh config file (--config) or endpoints",
     ("fisc-ground", "cmd"): "one signed fleet command's fields",
     ("fisc-ground", "status"): "a listening window",
     ("fisc-ground", "monitor"): "monitor options: swarm, map, trust, recording and Foxglove port (arguments of run_monitor)",
-    ("fisc-ground", "replay"): "arguments of fisc_ground.recording.replay (the MCAP file and the output folder)",
+    ("fisc-ground", "replay"): "arguments of fisc_ground.monitor.recording.replay (the MCAP file and the output folder)",
     ("fisc-sim", "bench"): "benchmark sizes and switches (sim.bench.run_bench arguments)",
-    ("fisc-sim", "sweep"): "the spec file is the configuration (checked against RunConfig/FitConfig by sim.sweep)",
+    ("fisc-sim", "sweep"): "the spec file is the configuration (checked against RunConfig/FitConfig by sim.sweep.spec)",
     ("fisc-sim", "autopilot"): "keyword arguments of sim.autopilot.server.AutopilotEmulator; its defaults are "
                                "checked against that signature below",
 }
@@ -135,8 +135,8 @@ def documented_fields(cls) -> set[str]:
 
 def _classes():
     from fisc_agent.config import AgentConfig
-    from fisc_agent.tracking import TrackingConfig
-    from fisc_ground.mapbuild import FitConfig
+    from fisc_agent.flight.tracking import TrackingConfig
+    from fisc_ground.maps.build import FitConfig
     from sim.emulate import EmulateConfig
     from sim.run import RunConfig
 
@@ -199,7 +199,7 @@ def test_defaults_are_the_config_defaults():
     from fisc_agent.cli import config_from_args as agent_config
     from fisc_ground.cli import fit_config_from_args
     from sim.cli import run_config_from_args
-    from sim.emulate_cli import config_from_args as emulate_config
+    from sim.emulate.cli import config_from_args as emulate_config
 
     classes = _classes()
     a, g, s = _parsers()

@@ -1,4 +1,4 @@
-"""The conventions shared by the three CLIs (issue 10 part 5, ``fisc_agent.cli_common``)."""
+"""The conventions shared by the three CLIs (issue 10 part 5, ``fisc_agent.common.cli_common``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from fisc_agent.cli_common import log_level, missing_dependency_message, sig3
+from fisc_agent.common.cli_common import log_level, missing_dependency_message, sig3
 
 
 def _all_parsers() -> dict[str, argparse.ArgumentParser]:
@@ -91,7 +91,7 @@ def test_console_exit_exits_with_mains_code_and_the_collector_frozen(tmp_path):
     script = tmp_path / "prog.py"
     script.write_text(
         "import atexit, gc, sys\n"
-        "from fisc_agent.cli_common import console_exit\n"
+        "from fisc_agent.common.cli_common import console_exit\n"
         "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 1000, flush=True))\n"
         "def main():\n"
         "    print('ran', end=' ')\n"

@@ -8,7 +8,7 @@ import tomllib
 
 from import_graph import REPO
 
-from fisc_agent.cli_common import EXTRA_OF_MODULE
+from fisc_agent.common.cli_common import EXTRA_OF_MODULE
 
 LEAN = {"numpy", "pymavlink", "eclipse-zenoh", "pynacl"}
 
@@ -31,7 +31,7 @@ def _named_extras() -> dict[str, set[str]]:
 def test_every_named_extra_exists():
     extras = set(_project()["optional-dependencies"])
     named = _named_extras()
-    assert "jit" in named and "mavsdk" in named  # the scan finds the messages of sim/plant.py and mavsdk_backend
+    assert "jit" in named and "mavsdk" in named  # the scan finds the messages of sim/plant/model.py and mavsdk_backend
     missing = {e: sorted(files) for e, files in named.items() if e not in extras}
     assert not missing, f"extras named but not defined in pyproject.toml: {missing}"
     assert set(EXTRA_OF_MODULE.values()) <= extras

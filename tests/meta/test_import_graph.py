@@ -10,9 +10,9 @@ from import_graph import PACKAGES, cycles, import_graph
 def test_the_graph_sees_the_project():
     graph = import_graph()
     assert len(graph) > 60
-    assert "fisc_agent.mapfile" in graph["fisc_agent.runner"] or "fisc_agent.mapfile" in graph["fisc_agent.cli"]
+    assert "fisc_agent.map.codec" in graph["fisc_agent.runner"] or "fisc_agent.map.codec" in graph["fisc_agent.cli"]
     # a lazy import inside a function is an edge too (run_monitor imports zenoh_config)
-    assert "fisc_ground.zenoh_config" in graph["fisc_ground.monitor"]
+    assert "fisc_ground.zenoh.config" in graph["fisc_ground.monitor.run"]
 
 
 def test_cycle_finder_finds_a_planted_cycle():

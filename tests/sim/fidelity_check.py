@@ -1,6 +1,6 @@
 """Independent recomputation of the DESIGN.md section 4 fidelity figures from a ``fields.csv``.
 
-Deliberately shares no code with ``fisc_ground.metrics`` (standard library only), so that a test
+Deliberately shares no code with ``fisc_ground.fields.metrics`` (standard library only), so that a test
 comparing the two catches a bug in either.  CVs compared: ``samples > 0`` and finite values.
 
 * velocity: u_hat = u / max(u) of swarm and CFD separately, nRMSE = sqrt(mean((a - b)^2));

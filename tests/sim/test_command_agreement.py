@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fisc_agent.control import ScalarField
-from fisc_agent.kinetic import WALL_ZONE, DeviationState, kinetic_deviation, kinetic_spread
-from fisc_agent.lookup import COMMAND_MODES, CommandField, FlightSettings, flight_command
-from fisc_ground.mapbuild import FitConfig, build_map_from_reference
+from fisc_agent.flight.control import ScalarField
+from fisc_agent.map.kinetic import WALL_ZONE, DeviationState, kinetic_deviation, kinetic_spread
+from fisc_agent.map.lookup import COMMAND_MODES, CommandField, FlightSettings, flight_command
+from fisc_ground.maps.build import FitConfig, build_map_from_reference
 from sim.swarm import Swarm, SwarmConfig
 
 N_POINTS = 10_000
@@ -123,7 +123,7 @@ def test_kinetic_spread_is_the_fitted_spread_at_the_designed_density():
 
 
 def test_max_command_speed_bounds_the_face_modes(field):
-    from fisc_agent.control import max_command_speed
+    from fisc_agent.flight.control import max_command_speed
 
     rng = np.random.default_rng(11)
     pts, vel = _random_agents(field, rng, 20_000)

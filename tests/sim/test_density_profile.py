@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import load_map
-from fisc_ground.mapbuild import default_map_path
-from fisc_ground.mapwrite import write_map
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import load_map
+from fisc_ground.maps.build import default_map_path
+from fisc_ground.maps.write import write_map
 from sim.run import RunConfig, run
 from sim.scenarios import synthetic_tunnel_map
 

@@ -10,10 +10,10 @@ import json
 import numpy as np
 import pytest
 
-from fisc_agent.control import MapGeometry
-from fisc_agent.frames import DeploymentTransform
-from fisc_agent.lookup import CommandField
-from fisc_ground.mapbuild import build_default_map
+from fisc_agent.flight.control import MapGeometry
+from fisc_agent.flight.frames import DeploymentTransform
+from fisc_agent.map.lookup import CommandField
+from fisc_ground.maps.build import build_default_map
 from sim.emulate import (EmulateConfig, LaunchPlan, SwarmRun, entry_statistics, flowing, ground_truth_fields, launch_plan,
                          realtime_summary, sample_window)
 from sim.scenarios import Reservoir, scale_for_agents
@@ -86,7 +86,7 @@ def test_config_rejects_bad_values():
 
 
 def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
-    from fisc_agent.tracking import TrackingConfig
+    from fisc_agent.flight.tracking import TrackingConfig
     from sim.emulate.workers import _AgentJob, agent_config
 
     job = dict(agent_ids=(3,), ports=(14999,), start_time_s=(0.0,), map_path="m.fiscmap", personality="px4",
@@ -98,7 +98,7 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
     assert (agent.agent_id, agent.mode, agent.lookahead_s, agent.mavlink_url) == (
         3, "kinetic", 0.5, "udpout:127.0.0.1:14999")
     assert agent.entry_radius_fraction == 1.0  # entries over every inlet CV, as fisc-sim run injects
-    # open loop, gain 0: the mission flies fisc_agent.lookup.flight_command at the vehicle
+    # open loop, gain 0: the mission flies fisc_agent.map.lookup.flight_command at the vehicle
     # (tests/sim/test_command_agreement.py, tests/fisc_agent/test_agent_mission.py)
     assert agent_config(_AgentJob(**job, tracking=False), 3, 14999).tracking.gain_1_s == 0.0
 
@@ -247,7 +247,7 @@ def test_entry_statistics_count_join_to_flow_transitions():
 
 
 def test_cli_parser_maps_options_to_the_config(tmp_path):
-    from sim import emulate_cli
+    from sim.emulate import cli as emulate_cli
 
     parser = argparse.ArgumentParser()
     emulate_cli.add_parser(parser.add_subparsers(dest="command"))
@@ -274,7 +274,7 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert all(s in states for s in ("ARM", "TAKEOFF", "JOIN", "FLOW")), flown[0]["transitions"]  # in this order
     # each agent wrote its own flight log (fisc-agent --flight-log's CSV): the flown one has FLOW ticks
     # with a setpoint and its tracking parcel
-    from fisc_agent.flightlog import read_flight_log
+    from fisc_agent.flight.flightlog import read_flight_log
 
     logs = {a["agent_id"]: read_flight_log(tmp_path / "logs" / f"agent_{a['agent_id']}.csv") for a in res.swarm.agents}
     assert all(len(rows) > 0 for rows in logs.values())
@@ -308,8 +308,8 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     # the MCAP flight log opens with the mcap reader, every channel with its schema
     from mcap.reader import make_reader
 
-    from fisc_ground import foxglove_scene as fs
-    from fisc_ground.recording import aggregate, read_recording
+    from fisc_ground.monitor import foxglove_scene as fs
+    from fisc_ground.monitor.recording import aggregate, read_recording
 
     with open(tmp_path / "flight.mcap", "rb") as fh:
         summary = make_reader(fh).get_summary()
@@ -325,7 +325,7 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     agg = aggregate(read_recording(tmp_path / "flight.mcap"))
     assert len(agg.slots) == 3 and agg.fields().samples.sum() > 0
     # ... and exactly the estimate the log published last (its /fisc/fidelity series)
-    from fisc_ground.field_report import json_safe
+    from fisc_ground.fields.field_report import json_safe
 
     with open(tmp_path / "flight.mcap", "rb") as fh:
         series = [json.loads(m.data) for _, _, m in make_reader(fh).iter_messages(topics=[fs.TOPIC_FIDELITY])]
@@ -335,9 +335,9 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
 
 
 def test_launch_plan_start_positions_are_finite_on_the_ground_for_many_vehicles():
-    from fisc_agent.frames import DeploymentTransform
-    from fisc_agent.lookup import CommandField
-    from fisc_ground.mapbuild import load_shipped_default_map
+    from fisc_agent.flight.frames import DeploymentTransform
+    from fisc_agent.map.lookup import CommandField
+    from fisc_ground.maps.build import load_shipped_default_map
     from sim.emulate import launch_plan
 
     field = CommandField.from_map(load_shipped_default_map())

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.lookup import CommandField
 from sim.kernels import move_kernel, return_commands_kernel
-from sim.plant import PlantParams
+from sim.plant.model import PlantParams
 from sim.scenarios import seed_positions, synthetic_tunnel_map
 from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
 
@@ -58,7 +58,7 @@ def test_move_kernel_is_x_plus_u_dt_in_the_map_frame():
 
 @pytest.fixture(scope="module")
 def default_field():
-    from fisc_ground.mapbuild import load_shipped_default_map
+    from fisc_ground.maps.build import load_shipped_default_map
 
     return CommandField.from_map(load_shipped_default_map())
 

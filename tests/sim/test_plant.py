@@ -1,6 +1,6 @@
 """Specification of the quadrotor velocity plant (paper section "Individual-Agent Velocity Plant").
 
-The figure tests assert on the same ``sim.plant_checks`` functions that print the
+The figure tests assert on the same ``sim.plant.checks`` functions that print the
 "ours vs the paper" table of docs/plant.md.
 """
 
@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from sim import plant_checks as pc
-from sim.plant import (
+from sim.plant import checks as pc
+from sim.plant.model import (
     PlantParams,
     VelocityPlant,
     constrain_thrust_accel,
@@ -26,8 +26,8 @@ from sim.plant import (
     tilt_deg,
     trim_thrust_accel,
 )
-from sim.plant_kernel import BLOCK
-from sim.plant_oracle import step_single_agent
+from sim.plant.kernel import BLOCK
+from sim.plant.oracle import step_single_agent
 
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
 G = 9.81
@@ -470,7 +470,7 @@ def test_heterogeneous_fleet_behaves_per_agent():
 
 
 def test_docs_table_is_what_the_checks_measure():
-    """docs/plant.md carries the table ``python -m sim.plant_checks`` prints (regenerate it when
+    """docs/plant.md carries the table ``python -m sim.plant.checks`` prints (regenerate it when
     the plant changes)."""
     from pathlib import Path
 

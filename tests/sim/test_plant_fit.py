@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.flightlog import read_flight_log
-from sim.plant import PlantParams
-from sim.plant_fit import PLANT_PRESETS, fit_plant, flight_log_arrays, plant_preset, replay, split_segments
+from fisc_agent.flight.flightlog import read_flight_log
+from sim.plant.model import PlantParams
+from sim.plant.fit import PLANT_PRESETS, fit_plant, flight_log_arrays, plant_preset, replay, split_segments
 
 FLIGHT = Path(__file__).resolve().parents[1] / "data" / "px4_sih_flight.csv"
 """JOIN and FLOW rows of ``fisc-agent --flight-log`` on ../shared/sitl/px4 (tuned velocity loop)."""

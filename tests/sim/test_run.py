@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fisc_ground.mapwrite import write_map
+from fisc_ground.maps.write import write_map
 from sim.cli import main
 from sim.run import RunConfig, simulate
 from sim.scenarios import synthetic_tunnel_map
@@ -61,7 +61,7 @@ def _check_density_and_pressure_columns(rows, metrics):
     kinetic P_s and at least the random pressure (spread about U, its minimum); and the
     pressure and density scores in metrics.json are those of the swarm_pressure (dispersion)
     and swarm_density columns."""
-    from fisc_ground.metrics import fidelity_metrics
+    from fisc_ground.fields.metrics import fidelity_metrics
 
     col = {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
     np.testing.assert_allclose(col["swarm_density"], col["swarm_count"] * 1.0 / 0.5 ** 3, rtol=1e-12)
@@ -106,8 +106,8 @@ def test_the_run_flies_the_maps_persistence_as_the_agent_does():
     unless told otherwise, as ``fisc-agent`` does (``ScalarField.settings``)."""
     import dataclasses
 
-    from fisc_agent.control import ScalarField
-    from fisc_agent.lookup import CommandField
+    from fisc_agent.flight.control import ScalarField
+    from fisc_agent.map.lookup import CommandField
     from sim.run import load_command_map
 
     cmap = load_command_map(None)
@@ -122,8 +122,8 @@ def test_run_defaults_are_the_papers_population_and_speed_regime():
     """No options: ~10^3 agents (N* scaled to 1000) on the default reference fitted for a 2 m/s
     speed limit (the paper's S = 0.1 x 22.4 m/s regime), as a schema-2 map flown with its recommended
     settings; ``--preset paper`` flies the paper's Algorithm 1 (schema-1 map, mean, no look-ahead)."""
-    from fisc_agent.lookup import PAPER_SETTINGS, map_flight_settings
-    from fisc_ground.mapbuild import DEFAULT_FLIGHT
+    from fisc_agent.map.lookup import PAPER_SETTINGS, map_flight_settings
+    from fisc_ground.maps.build import DEFAULT_FLIGHT
     from sim.run import DEFAULT_AGENTS, SIM_MAX_SPEED_M_S, load_command_map
 
     cfg = RunConfig()
@@ -160,7 +160,7 @@ def test_lookahead_reaches_the_swarm_and_cuts_the_velocity_error():
 
 
 def test_open_volume_columns_use_the_maps_fraction_or_fall_back_to_one():
-    from fisc_ground.field_report import open_fraction, swarm_columns
+    from fisc_ground.fields.field_report import open_fraction, swarm_columns
     from sim.report import compute_metrics
 
     cmap = synthetic_tunnel_map(nx=8)
@@ -227,8 +227,8 @@ def test_main_job_default_and_paper_preset_figures_recomputed_from_fields_csv(tm
 
 
 def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, capsys):
-    from fisc_ground.mapbuild import FitConfig, build_map
-    from fisc_ground.mapwrite import write_map
+    from fisc_ground.maps.build import FitConfig, build_map
+    from fisc_ground.maps.write import write_map
     from fisc_ground.reference.analytic import analytic_nozzle
     from sim.cli import main
 
@@ -245,8 +245,8 @@ def test_cli_refuses_a_face_mode_on_a_schema_1_map_naming_the_problem(tmp_path, 
 def test_run_mcap_flight_log_replays_to_exactly_the_logged_estimate(tmp_path):
     """``RunConfig.mcap``: the run's fleet, sampled as telemetry, goes to an MCAP flight log whose
     replay gives exactly the estimate the log's own aggregator published (the monitor's path)."""
-    from fisc_ground.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
-    from fisc_ground.recording import aggregate, read_recording, replay
+    from fisc_ground.monitor.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
+    from fisc_ground.monitor.recording import aggregate, read_recording, replay
 
     cmap = synthetic_tunnel_map(nx=8)
     cfg = RunConfig(duration_s=4.0, average_window_s=2.0, sample_interval_s=0.1, agents=None, figures=False)
@@ -273,7 +273,7 @@ def test_cli_run_mcap_flag_writes_the_flight_log(tmp_path, map_file):
     rc = main(["run", "--map", str(map_file), "--duration", "1", "--average-window", "0.5", "--no-figures", "-q",
                "-o", str(out), "--mcap", str(tmp_path / "run.mcap")])
     assert rc == 0 and (tmp_path / "run.mcap").stat().st_size > 0
-    from fisc_ground.recording import read_recording
+    from fisc_ground.monitor.recording import read_recording
 
     assert read_recording(tmp_path / "run.mcap").n_messages > 0
 
@@ -284,7 +284,7 @@ def test_the_paper_companion_flies_beside_the_run_in_a_forked_process_with_the_s
     import os
 
     import sim.run as sim_run
-    from fisc_ground.forked import can_fork
+    from fisc_ground.figures.forked import can_fork
 
     if not can_fork():
         pytest.skip("fork not available here")
@@ -310,11 +310,11 @@ def test_the_paper_companion_flies_beside_the_run_in_a_forked_process_with_the_s
 
 
 def test_the_main_job_draws_the_paper_companion_on_the_designed_staircase(tmp_path):
-    """The default map keeps a designed subset of the cubes the paper's map covers (fisc_ground.staircase):
+    """The default map keeps a designed subset of the cubes the paper's map covers (fisc_ground.fit.staircase):
     the run still writes every figure, and the paper preset's fields drawn beside it are the companion
     run's at the same grid cells."""
     import sim.run as sim_run
-    from fisc_ground.field_figures import companion_on_cvs
+    from fisc_ground.figures.field_figures import companion_on_cvs
 
     r = sim_run.run(RunConfig(duration_s=12.0, average_window_s=6.0, out_dir=str(tmp_path / "run")))
     main_map, paper_map = r.cmap, r.paper.field_run.cmap

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.lookup import CommandField
 from sim.scenarios import (Reservoir, apportion, inlet_cvs, scale_for_agents, seed_counts, seed_positions,
                            source_rate, synthetic_tunnel_map)
 from sim.swarm import Swarm
@@ -107,7 +107,7 @@ def test_kinetic_admission_mean_matches_the_average_over_directions():
 def test_kinetic_reservoir_keeps_the_rate_and_admits_flux_weighted(field):
     """Admitted agents arrive at eq. source_rate on average, and their deviation classes are weighted
     by their axial speed u + sigma d_x: the flux of a gas that has the same density in every class."""
-    from fisc_agent.kinetic import deviation_direction
+    from fisc_agent.map.kinetic import deviation_direction
 
     plain = Reservoir(field, interval_s=0.05)
     kin = Reservoir(field, interval_s=0.05, kinetic_persistence_s=2.0)

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField
+from fisc_agent.map.lookup import CommandField
 from sim.scenarios import seed_positions, synthetic_tunnel_map
 from sim.cv_lookup import CVLookup
 from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
@@ -168,7 +168,7 @@ def test_fused_numba_lookup_matches_the_numpy_path(field, mode):
 
 
 def test_lookahead_point_is_position_plus_velocity_times_lead():
-    from fisc_agent.lookup import lookahead_point
+    from fisc_agent.map.lookup import lookahead_point
 
     p = np.array([[1.0, 2.0, 3.0]])
     np.testing.assert_allclose(lookahead_point(p, np.array([[2.0, 0.0, -1.0]]), 0.5), [[2.0, 2.0, 2.5]])

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from sim.sweep import METRICS, SweepSpecError, load_spec, parse_spec, rows_equal, run_serial
+from sim.sweep.spec import METRICS, SweepSpecError, load_spec, parse_spec, rows_equal, run_serial
 
 SPEC = """
 [base]
@@ -72,7 +72,7 @@ def test_bad_specs_name_the_key(text, needle):
 def test_fit_settings_reach_the_map(tmp_path):
     import tomllib
 
-    from sim.sweep import point_map
+    from sim.sweep.spec import point_map
 
     spec = parse_spec(tomllib.loads('[grid]\npreset = ["paper"]\n[grid.fit]\ncell_size_m = [0.5, 1.0]'))
     sizes = [point_map(p).cell_size_m for p in spec.points()]
@@ -83,7 +83,7 @@ def test_fit_settings_reach_the_map(tmp_path):
 def test_two_worker_local_cluster_gives_the_serial_numbers(spec_file, tmp_path):
     from dask.distributed import Client
 
-    from sim.sweep_run import local_cluster, run_distributed, write_outputs
+    from sim.sweep.run import local_cluster, run_distributed, write_outputs
 
     spec = load_spec(spec_file)
     serial = run_serial(spec)

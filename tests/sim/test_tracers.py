@@ -1,14 +1,14 @@
 """``sim.tracers``: ideal tracers through a staggered command field, against analytic densities and
-against the shipped map's design (the claim of ``fisc_ground.staggered``: tracers keep rho_d)."""
+against the shipped map's design (the claim of ``fisc_ground.fit.staggered``: tracers keep rho_d)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fisc_agent.lookup import CommandField
-from fisc_agent.mapfile import load_map
-from fisc_ground.mapbuild import default_map_path
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.map.codec import load_map
+from fisc_ground.maps.build import default_map_path
 from sim.tracers import Integrator, inlet_seeds, tracer_density
 
 CELL = 0.5
@@ -65,7 +65,7 @@ def test_inlet_seeds_carry_the_designed_number_flux():
 
 
 def test_the_shipped_map_carries_its_designed_density_for_ideal_tracers():
-    """The default map's staggered field (the projection of ``fisc_ground.staggered`` and the linear
+    """The default map's staggered field (the projection of ``fisc_ground.fit.staggered`` and the linear
     rule inside each cube) keeps the designed density for tracers that follow it exactly: the median
     CV within 1.5 %, every x slice within 4 % (measured: 3.0 %), the cubes behind outward steps within
     3 %, r >= 0.98, in absolute units (mean 1)."""

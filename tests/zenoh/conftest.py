@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import zenoh  # a dependency: missing means broken, not skipped
 
-from fisc_agent.mapfile import encode_map
-from fisc_ground.mapwrite import generate_keypair, read_signing_key
+from fisc_agent.map.codec import encode_map
+from fisc_ground.maps.write import generate_keypair, read_signing_key
 
 from ..ports import free_tcp_port as free_port  # noqa: F401 (the zenoh tests import it from here)
 

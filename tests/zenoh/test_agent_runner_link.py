@@ -9,13 +9,13 @@ import time
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.link import MavlinkLink
-from fisc_agent.mapfile import encode_map
+from fisc_agent.mavlink.link import MavlinkLink
+from fisc_agent.map.codec import encode_map
 from fisc_agent.runner import Runner
-from fisc_agent.zenoh_keys import Keys
-from fisc_agent.zenoh_runner import connect_runner
-from fisc_ground.fleet import TelemetryListener, make_command, send_command
-from fisc_ground.zenoh_publish import MapServer
+from fisc_agent.zenoh.keys import Keys
+from fisc_agent.zenoh.runner import connect_runner
+from fisc_ground.zenoh.fleet import TelemetryListener, make_command, send_command
+from fisc_ground.zenoh.publish import MapServer
 from sim.autopilot import server as server_mod
 
 from .conftest import wait_for

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from fisc_agent.zenoh_link import AgentZenohLink
+from fisc_agent.zenoh.link import AgentZenohLink
 
 from .conftest import snap, wait_for
 

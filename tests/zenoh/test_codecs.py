@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from nacl.signing import SigningKey
 
-from fisc_agent import telemetry_codec as tc
-from fisc_agent.fleet_commands import (ALL_AGENTS, CommandCheck, CommandError, CommandGate, FleetCommand, decode_command,
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.zenoh.fleet_commands import (ALL_AGENTS, CommandCheck, CommandError, CommandGate, FleetCommand, decode_command,
                                        encode_command)
-from fisc_agent.mapfile import MapError, MapErrorKind
-from fisc_agent.map_chunks import CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, split_map
-from fisc_agent.zenoh_maps import reject_code
+from fisc_agent.map.codec import MapError, MapErrorKind
+from fisc_agent.map.chunks import CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, split_map
+from fisc_agent.zenoh.maps import reject_code
 
 SHA = "0123456789abcdef" * 4
 
@@ -166,7 +166,7 @@ def test_reject_codes_name_the_failed_check():
 
 
 def test_start_at_times_are_utc_and_commands_are_stamped_increasing():
-    from fisc_ground.fleet import make_command, parse_utc
+    from fisc_ground.zenoh.fleet import make_command, parse_utc
 
     assert parse_utc("2026-05-01T12:00:00Z") == parse_utc("2026-05-01T12:00:00") == 1777636800.0
     assert parse_utc("2026-05-01T14:00:00+02:00") == 1777636800.0

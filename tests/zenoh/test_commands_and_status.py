@@ -7,11 +7,11 @@ import time
 import pytest
 from nacl.signing import SigningKey
 
-from fisc_agent import telemetry_codec as tc
-from fisc_agent.fleet_commands import encode_command
-from fisc_agent.zenoh_keys import Keys
-from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground.fleet import TelemetryListener, matching, make_command, send_command, status_report
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.zenoh.fleet_commands import encode_command
+from fisc_agent.zenoh.keys import Keys
+from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_ground.zenoh.fleet import TelemetryListener, matching, make_command, send_command, status_report
 
 from .conftest import snap, wait_for
 
@@ -97,8 +97,8 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
 
 
 def test_start_at_holds_now_and_resumes_at_the_time_and_a_later_command_cancels_it():
-    from fisc_agent.fleet_commands import FleetCommand
-    from fisc_agent.zenoh_runner import _CommandDispatcher
+    from fisc_agent.zenoh.fleet_commands import FleetCommand
+    from fisc_agent.zenoh.runner import _CommandDispatcher
 
     class FakeRunner:
         def __init__(self):

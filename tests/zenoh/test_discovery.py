@@ -19,9 +19,9 @@ from pathlib import Path
 
 import pytest
 
-from fisc_agent.zenoh_session import PORT_ENV, LabDiscovery, LabRole, lab_config_json, open_lab_session
-from fisc_agent.mapfile import encode_map
-from fisc_ground.mapwrite import generate_keypair, read_signing_key
+from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, LabRole, lab_config_json, open_lab_session
+from fisc_agent.map.codec import encode_map
+from fisc_ground.maps.write import generate_keypair, read_signing_key
 
 from .conftest import free_port, listening, map_parts, wait_for
 
@@ -39,7 +39,7 @@ def files(tmp_path_factory):
     meta, arrays = map_parts(100)
     blob = encode_map(meta, arrays, read_signing_key(key))
     (d / "m.fiscmap").write_bytes(blob)
-    from fisc_agent.mapfile import decode_map
+    from fisc_agent.map.codec import decode_map
     return {"dir": d, "key": key, "pub": pub, "map": d / "m.fiscmap", "sha": decode_map(blob, None).sha256}
 
 
@@ -183,8 +183,8 @@ def test_emulated_fleet_and_monitor_meet_in_either_order(files, tmp_path):
 
 
 def test_silence_hint_says_why_and_what_to_start():
-    from fisc_agent.zenoh_keys import Keys
-    from fisc_ground.zenoh_config import silence_hint
+    from fisc_agent.zenoh.keys import Keys
+    from fisc_ground.zenoh.config import silence_hint
 
     keys = Keys("fisc", "demo")
     assert silence_hint(0, 4.9, keys, None, 0) is None          # not yet

@@ -24,16 +24,16 @@ sys.path.insert(0, str(Path(__file__).parents[1] / "fisc_agent"))  # the agent t
 
 from test_agent_runner import MemoryLink, make, tick_until  # noqa: E402
 
-from fisc_agent import telemetry_codec as tc  # noqa: E402
-from fisc_agent.adapters import ModeClass  # noqa: E402
-from fisc_agent.link import PositionSample  # noqa: E402
-from fisc_agent.mapfile import decode_map, encode_map  # noqa: E402
-from fisc_agent.mission import State  # noqa: E402
-from fisc_agent.zenoh_keys import Keys  # noqa: E402
-from fisc_agent.zenoh_link import AgentZenohLink  # noqa: E402
-from fisc_agent.zenoh_session import PORT_ENV, LabDiscovery, open_lab_session  # noqa: E402
-from fisc_ground.mapwrite import generate_keypair, read_signing_key  # noqa: E402
-from fisc_ground.monitor import TelemetryAggregator, TelemetryPipe  # noqa: E402
+from fisc_agent.zenoh import telemetry_codec as tc  # noqa: E402
+from fisc_agent.mavlink.adapters import ModeClass  # noqa: E402
+from fisc_agent.mavlink.link import PositionSample  # noqa: E402
+from fisc_agent.map.codec import decode_map, encode_map  # noqa: E402
+from fisc_agent.flight.mission import State  # noqa: E402
+from fisc_agent.zenoh.keys import Keys  # noqa: E402
+from fisc_agent.zenoh.link import AgentZenohLink  # noqa: E402
+from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, open_lab_session  # noqa: E402
+from fisc_ground.maps.write import generate_keypair, read_signing_key  # noqa: E402
+from fisc_ground.monitor.run import TelemetryAggregator, TelemetryPipe  # noqa: E402
 
 from .conftest import free_port, map_parts, wait_for  # noqa: E402
 

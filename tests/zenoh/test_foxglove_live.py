@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fisc_agent.mapfile import decode_map
-from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground import foxglove_scene as fs
+from fisc_agent.map.codec import decode_map
+from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_ground.monitor import foxglove_scene as fs
 
 from .conftest import free_port, snap, wait_for
 
@@ -193,7 +193,7 @@ def test_arrow_quaternions_turn_x_onto_the_velocity():
 def test_a_flight_log_that_cannot_open_its_file_or_port_names_it(tmp_path):
     import socket
 
-    from fisc_ground.flight_log import FlightLog, FlightLogError, LogSettings
+    from fisc_ground.monitor.flight_log import FlightLog, FlightLogError, LogSettings
 
     with pytest.raises(FlightLogError, match="nowhere/x.mcap"):
         FlightLog(LogSettings(), mcap_path=tmp_path / "nowhere" / "x.mcap")

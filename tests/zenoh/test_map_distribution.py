@@ -6,10 +6,10 @@ import threading
 
 import pytest
 
-from fisc_agent.map_chunks import KIND_ANNOUNCE, KIND_CHUNK, parse_chunk
-from fisc_agent.mapfile import encode_map
-from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground.zenoh_publish import MapServer
+from fisc_agent.map.chunks import KIND_ANNOUNCE, KIND_CHUNK, parse_chunk
+from fisc_agent.map.codec import encode_map
+from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_ground.zenoh.publish import MapServer
 
 from .conftest import map_parts, snap, wait_for
 
@@ -102,7 +102,7 @@ def test_bad_maps_are_refused_and_the_good_map_is_kept(bad, net, sessions, agent
         blob[200] ^= 0xFF  # inside the header JSON: the content hash no longer matches
         blob = bytes(blob)
         server._chunks = []  # noqa: SLF001 - push the tampered bytes as a (compromised) server would
-        from fisc_agent.map_chunks import split_map
+        from fisc_agent.map.chunks import split_map
         for chunk in split_map(blob, 300, 4096):
             server._pub.put(chunk)  # noqa: SLF001
         reason = "sha256"

@@ -8,13 +8,13 @@ import threading
 import numpy as np
 import pytest
 
-from fisc_agent import telemetry_codec as tc
-from fisc_agent.mapfile import MapError, decode_map
-from fisc_agent.zenoh_keys import Keys
-from fisc_ground.monitor import AgentRoster, MapFollower, TelemetryAggregator, TelemetryPipe, fetch_map, render
-from fisc_ground.flight_log import FlightLog, LogSettings
-from fisc_ground.recording import read_recording
-from fisc_ground.zenoh_publish import MapServer
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.map.codec import MapError, decode_map
+from fisc_agent.zenoh.keys import Keys
+from fisc_ground.monitor.run import AgentRoster, MapFollower, TelemetryAggregator, TelemetryPipe, fetch_map, render
+from fisc_ground.monitor.flight_log import FlightLog, LogSettings
+from fisc_ground.monitor.recording import read_recording
+from fisc_ground.zenoh.publish import MapServer
 
 from .conftest import wait_for
 
@@ -176,7 +176,7 @@ def test_monitor_cli_records_its_map_file_and_refuses_an_unsigned_one(net, make_
 
 
 def test_status_listener_caps_forged_agent_ids(net, sessions):
-    from fisc_ground.fleet import TelemetryListener
+    from fisc_ground.zenoh.fleet import TelemetryListener
 
     hub, member = net
     keys = Keys("fisc", "alpha")

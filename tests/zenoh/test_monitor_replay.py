@@ -8,15 +8,15 @@ import time
 
 import numpy as np
 
-from fisc_agent import telemetry_codec as tc
-from fisc_agent.mapfile import decode_map
-from fisc_agent.zenoh_keys import Keys
-from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground.monitor import TelemetryPipe
-from fisc_ground.monitor_aggregator import NO_AGENT, TelemetryAggregator
-from fisc_ground.monitor_view import render
-from fisc_ground.flight_log import FlightLog, LogSettings
-from fisc_ground.recording import aggregate, iter_messages, read_recording, replay
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.map.codec import decode_map
+from fisc_agent.zenoh.keys import Keys
+from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_ground.monitor.run import TelemetryPipe
+from fisc_ground.monitor.aggregator import NO_AGENT, TelemetryAggregator
+from fisc_ground.monitor.view import render
+from fisc_ground.monitor.flight_log import FlightLog, LogSettings
+from fisc_ground.monitor.recording import aggregate, iter_messages, read_recording, replay
 
 from .conftest import snap, wait_for
 
@@ -174,8 +174,8 @@ def test_dashboard_shows_heat_maps_counts_and_drops(make_map):
 
 
 def test_monitor_follows_a_newer_map(net, sessions, make_map):
-    from fisc_ground.monitor import MapFollower, fetch_map
-    from fisc_ground.zenoh_publish import MapServer
+    from fisc_ground.monitor.run import MapFollower, fetch_map
+    from fisc_ground.zenoh.publish import MapServer
 
     hub, member = net
     server = MapServer(sessions(hub), "alpha", announce_period_s=0.2)

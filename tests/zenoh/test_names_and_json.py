@@ -8,14 +8,14 @@ import threading
 
 import pytest
 
-from fisc_agent import telemetry_codec as tc
+from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.cli import build_parser as agent_parser
-from fisc_agent.fleet_commands import decode_command, encode_command
-from fisc_agent.names import MAX_SWARM_NAME_BYTES, KeyNameError, check_prefix, check_swarm_name
-from fisc_agent.zenoh_keys import Keys
+from fisc_agent.zenoh.fleet_commands import decode_command, encode_command
+from fisc_agent.common.names import MAX_SWARM_NAME_BYTES, KeyNameError, check_prefix, check_swarm_name
+from fisc_agent.zenoh.keys import Keys
 from fisc_ground.cli import build_parser as ground_parser
 from fisc_ground.cli import main as ground_main
-from fisc_ground.fleet import make_command
+from fisc_ground.zenoh.fleet import make_command
 from sim.cli import build_parser as sim_parser
 
 

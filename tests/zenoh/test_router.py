@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from fisc_ground.zenoh_router import router_config
+from fisc_ground.zenoh.router import router_config
 
 from .conftest import free_port, listening, snap, wait_for
 
@@ -35,8 +35,8 @@ def test_router_config_errors_name_the_file(tmp_path):
 
 @pytest.mark.slow
 def test_router_process_connects_a_lab_agent_and_a_client_status(tmp_path):
-    from fisc_agent.zenoh_link import AgentZenohLink
-    from fisc_agent.zenoh_session import PORT_ENV, LabDiscovery, open_lab_session
+    from fisc_agent.zenoh.link import AgentZenohLink
+    from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, open_lab_session
 
     port = free_port()
     env = {**os.environ, PORT_ENV: str(port)}

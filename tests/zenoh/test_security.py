@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from fisc_agent.zenoh_keys import Keys
-from fisc_agent.zenoh_link import AgentZenohLink
-from fisc_ground.fleet import TelemetryListener
-from fisc_ground.zenoh_publish import MapServer
+from fisc_agent.zenoh.keys import Keys
+from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_ground.zenoh.fleet import TelemetryListener
+from fisc_ground.zenoh.publish import MapServer
 
 from .conftest import free_port, snap, wait_for, zenoh
 
@@ -64,7 +64,7 @@ def tls_net(pki, tmp_path):
 
 
 def test_documented_lab_configs_are_the_ones_the_code_builds():
-    from fisc_agent.zenoh_session import LabDiscovery, LabRole, lab_config_json
+    from fisc_agent.zenoh.session import LabDiscovery, LabRole, lab_config_json
 
     for block, role in (("lab-hub", LabRole.HUB), ("lab-member", LabRole.MEMBER)):
         cfg = zenoh.Config.from_json5(doc_config(block))

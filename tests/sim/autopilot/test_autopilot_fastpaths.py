@@ -20,7 +20,7 @@ from sim.autopilot.personalities import ARDUPILOT, PX4, FlightMode
 from sim.autopilot.framing import Encoder, new_parser
 from sim.autopilot.server import AutopilotEmulator
 from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
-from sim.plant import PlantParams, VelocityPlant, numba_available
+from sim.plant.model import PlantParams, VelocityPlant, numba_available
 
 BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
 

@@ -1,4 +1,4 @@
-"""The emulator's geodetic telemetry is the agent's WGS-84 model (fisc_agent.frames), to < 1 cm over 100 m."""
+"""The emulator's geodetic telemetry is the agent's WGS-84 model (fisc_agent.flight.frames), to < 1 cm over 100 m."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.framing import Encoder, new_parser
 from sim.autopilot.personalities import PX4
 from sim.autopilot.server import AutopilotEmulator

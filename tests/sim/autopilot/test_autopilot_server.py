@@ -11,7 +11,7 @@ from pymavlink import mavutil
 from autopilot_testkit import POS_ONLY_MASK, POS_VEL_MASK, Client
 
 from ...ports import free_tcp_port
-from fisc_agent.frames import GeodeticAnchor
+from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.server import AutopilotEmulator
 from sim.autopilot.setpoints import resolve_local_setpoint
 from sim.autopilot.transport import parse_emulator_endpoint as parse_endpoint

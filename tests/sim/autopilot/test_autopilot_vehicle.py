@@ -10,7 +10,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import ARDUPILOT, PX4, FlightMode
 from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
-from sim.plant import VelocityPlant
+from sim.plant.model import VelocityPlant
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED

@@ -1,0 +1,157 @@
+"""The mission's vocabulary: states, causes, reasons, fleet commands and the per-tick records
+the state machine (``fisc_agent.flight.mission``) reads and writes.  Pure types, no behaviour."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum, StrEnum
+from typing import NamedTuple
+
+from fisc_agent.mavlink.adapters import ModeClass
+from fisc_agent.flight.control import Vec
+
+
+class MissionCommand(StrEnum):
+    """A fleet command the mission obeys: hold, resume, land (the value is its name on the wire)."""
+
+    HOLD = "hold"
+    RESUME = "resume"
+    LAND = "land"
+
+    @classmethod
+    def parse(cls, name: str) -> MissionCommand:
+        """The command called ``name``; ``ValueError`` naming the choices otherwise."""
+        try:
+            return cls(name)
+        except ValueError:
+            raise ValueError(f"unknown fleet command {name!r}; choose one of "
+                             f"{', '.join(c.value for c in cls)}") from None
+
+
+class State(str, Enum):
+    """The mission's states, in flight order (their values are the flight log's and telemetry's names)."""
+    WAIT_POSITION = "WAIT_POSITION"
+    ARM = "ARM"
+    TAKEOFF = "TAKEOFF"
+    JOIN = "JOIN"
+    FLOW = "FLOW"
+    RETURN = "RETURN"
+    EXIT = "EXIT"
+    HOLD = "HOLD"
+    LAND = "LAND"
+    DONE = "DONE"
+
+
+class HoldCause(str, Enum):
+    """Why the mission holds (``Mission.hold_cause``); the value is the hold's default reason text."""
+
+    LINK_LOST = "link lost"
+    POSITION_STALE = "position stale"
+    GEOFENCE = "geofence: outside the map"
+    EXIT = "exit: holding after the outlet"
+    FLEET = "fleet hold"
+    FLEET_ON_GROUND = "fleet hold (on the ground)"
+    PILOT_OVERRIDE = "pilot override"
+
+
+class Cause(str, Enum):
+    """Why the mission entered a state other than HOLD; the value is the default reason text."""
+
+    START = "start"
+    AUTOPILOT_FOUND = "position and autopilot heartbeat received"
+    ARMED = "armed in offboard/guided"
+    ARM_FAILED = "failed: not armed in offboard/guided"
+    TAKING_OVER = "already flying: taking over"
+    TAKEOFF_DONE = "takeoff height reached"
+    ENTERED_MAP = "entered the map"
+    BACK_IN_MAP = "back in the map"
+    LAP_DONE = "lap done: back to the inlet"
+    PASSED_OUTLET = "passed the outlet"
+    GEOFENCE_RETURN = "geofence: outside the map, returning to the nearest CV"
+    EXIT_LAND = "exit: landing"
+    LANDED = "landed and disarmed"
+    DISARMED_IN_FLIGHT = "disarmed in flight (landed or killed by the autopilot/pilot)"
+    FLEET_LAND = "fleet land"
+    FLEET_LAND_DISARMED = "fleet land while disarmed"
+    FLEET_RESUME = "fleet resume"
+    POSITION_BACK = "position fix back"
+
+
+class Reason(str):
+    """Why the mission is in its state: the human text (a ``str``: logged, written to the flight
+    log and the status as before) with its typed ``cause``, which is what code decides on."""
+
+    cause: Cause | HoldCause
+    """The typed cause."""
+
+    def __new__(cls, cause: Cause | HoldCause, text: str | None = None) -> Reason:
+        obj = super().__new__(cls, cause.value if text is None else text)
+        obj.cause = cause
+        return obj
+
+    def __getnewargs__(self) -> tuple:  # pickling (emulator workers send reasons across processes)
+        return (self.cause, str(self))
+
+
+FLYING = frozenset({State.TAKEOFF, State.JOIN, State.FLOW, State.RETURN, State.EXIT})
+"""States in which the agent commands the vehicle in offboard/guided."""
+
+
+class VehicleStatus(NamedTuple):
+    """What the mission sees each tick (map frame).  Immutable (a NamedTuple: built every tick)."""
+
+    t_s: float
+    """Monotonic time [s]."""
+    pos_m: Vec | None
+    """Newest position, map frame [m]; None if never received."""
+    vel_m_s: Vec | None
+    """Newest velocity, map frame [m/s]."""
+    position_age_s: float
+    """Age of the newest position [s]; inf if none."""
+    heartbeat_age_s: float
+    """Age of the newest autopilot HEARTBEAT [s]; inf if none."""
+    autopilot: str | None
+    """``px4``, ``ardupilot`` or None while unknown."""
+    armed: bool
+    """Armed flag from the HEARTBEAT."""
+    mode: ModeClass
+    """Autopilot mode class: ``offboard`` (PX4 OFFBOARD / ArduPilot GUIDED), ``hold``, ``land``,
+    ``other`` or ``unknown``."""
+    wall_time_s: float = 0.0
+    """UNIX time [s] (the shared clock of the entry slots; GNSS/NTP-disciplined on real vehicles)."""
+    fix_t_s: float | None = None
+    """The autopilot's own time of the newest fix [s] (``PositionSample.autopilot_t_s``), None when the
+    link gives none: the velocity-estimate bias is learnt on this clock, else on the fix's receive time."""
+
+
+class MissionOutput(NamedTuple):
+    """What the mission wants this tick.  Immutable (a NamedTuple: built every tick)."""
+
+    state: State
+    """State after this step."""
+    velocity_m_s: Vec | None
+    """Map-frame velocity setpoint to stream (unclamped); None = stream nothing."""
+    want_mode: ModeClass | None
+    """``offboard``, ``hold``, ``land`` or None (leave the mode alone)."""
+    want_armed: bool | None
+    """True to arm; None = leave alone."""
+    takeoff_alt_m: float | None
+    """ArduPilot: takeoff height above home to command; None otherwise."""
+    cv_id: int
+    """CV of the vehicle, -1 outside the map (or no position/map)."""
+    reason: Reason
+    """Why the mission is in this state (last transition's reason)."""
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One logged state change."""
+
+    t_s: float
+    """Time of the change [s]."""
+    src: State
+    """State left."""
+    dst: State
+    """State entered."""
+    reason: Reason
+    """Why."""

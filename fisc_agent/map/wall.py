@@ -1,0 +1,85 @@
+"""The duct's real wall as a map carries it, and the ``kinetic`` deviation kept inside it (pure, numpy).
+
+The CV staircase is the simulator's duct, but its outer cubes lie partly outside a real one: the
+cubes a fit keeps are those holding any CFD node.  A deviation reflected only at the staircase
+therefore carries a real vehicle up to a cube's width outside the real wall.  The map can carry the
+wall itself (array ``duct_wall_m``: stations x and radius, the duct axisymmetric about the map's x
+axis as DESIGN.md section 2 takes it; ``fisc_ground.maps.duct_wall.duct_wall_from_reference`` derives it
+from the CFD nodes), and an onboard agent flying the ``kinetic`` mode keeps its deviation inside it
+(``reflect_at_wall``).  The simulator's agents fly the staircase and do not use it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+#: The map array that carries the wall: (k, 2) float64 rows (x [m], radius [m]), x strictly ascending.
+WALL_ARRAY = "duct_wall_m"
+
+
+@dataclass(frozen=True)
+class DuctWall:
+    """Axisymmetric wall radius sampled along x (map frame)."""
+
+    x_m: np.ndarray
+    """(k,) station positions along the axis [m], strictly ascending, k >= 2."""
+    radius_m: np.ndarray
+    """(k,) wall radius at each station [m], > 0."""
+
+    def __post_init__(self) -> None:
+        x, r = np.asarray(self.x_m, dtype=float), np.asarray(self.radius_m, dtype=float)
+        if x.ndim != 1 or x.shape != r.shape or x.size < 2:
+            raise ValueError(f"duct wall: need two equal 1-D arrays of >= 2 stations, got {x.shape} and {r.shape}")
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(r))):
+            raise ValueError("duct wall: stations and radii must be finite")
+        if not np.all(np.diff(x) > 0):
+            raise ValueError("duct wall: stations must be strictly ascending in x")
+        if not np.all(r > 0):
+            raise ValueError("duct wall: radii must be > 0")
+        object.__setattr__(self, "x_m", x)
+        object.__setattr__(self, "radius_m", r)
+
+    @classmethod
+    def from_array(cls, rows: np.ndarray) -> "DuctWall":
+        """From the map's (k, 2) array ``duct_wall_m``."""
+        a = np.asarray(rows, dtype=float)
+        if a.ndim != 2 or a.shape[1] != 2:
+            raise ValueError(f"duct wall: expected (k, 2) rows of x, radius, got shape {a.shape}")
+        return cls(a[:, 0].copy(), a[:, 1].copy())
+
+    def as_array(self) -> np.ndarray:
+        """The (k, 2) array ``duct_wall_m`` of a map."""
+        return np.column_stack([self.x_m, self.radius_m])
+
+    def radius_at(self, x_m: np.ndarray | float) -> np.ndarray:
+        """Wall radius at axial positions ``x_m`` [m] (linear between stations, the end radius beyond)."""
+        return np.interp(x_m, self.x_m, self.radius_m)
+
+
+def map_wall(arrays: Mapping[str, np.ndarray]) -> DuctWall | None:
+    """The wall a map's arrays carry (``duct_wall_m``, checked when the map was decoded); None without."""
+    rows = arrays.get(WALL_ARRAY)
+    return None if rows is None else DuctWall.from_array(rows)
+
+
+def reflect_at_wall(points_m: np.ndarray, deviation_m_s: np.ndarray, wall: DuctWall, margin_m: float) -> np.ndarray:
+    """(m, 3) deviations with the radial component mirrored where it heads outward within ``margin_m``
+    of the wall (radius >= wall radius - margin at the point's x); the others unchanged.
+
+    Map frame, the axis along x.  Stateless: a deviation that keeps pointing outward is mirrored at every
+    call inside the zone, so a point moved by it stays near the zone's inner edge instead of crossing
+    the wall.  On the axis (radius 0) nothing is mirrored."""
+    p = np.atleast_2d(np.asarray(points_m, dtype=float))
+    d = np.array(np.atleast_2d(deviation_m_s), dtype=float)
+    r = np.hypot(p[:, 1], p[:, 2])
+    safe = np.where(r > 0, r, 1.0)
+    ny, nz = p[:, 1] / safe, p[:, 2] / safe
+    radial = d[:, 1] * ny + d[:, 2] * nz
+    mirror = (r > 0) & (radial > 0) & (r >= wall.radius_at(p[:, 0]) - margin_m)
+    k = np.where(mirror, 2.0 * radial, 0.0)
+    d[:, 1] -= k * ny
+    d[:, 2] -= k * nz
+    return d

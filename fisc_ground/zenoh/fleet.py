@@ -1,0 +1,225 @@
+"""Fleet commands and fleet status over Zenoh (``fisc-ground cmd`` and ``fisc-ground status``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from typing import Any
+
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.zenoh.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
+from fisc_agent.zenoh.keys import Keys
+from fisc_ground.monitor.run import DEFAULT_MAX_AGENTS
+
+log = logging.getLogger(__name__)
+
+
+def parse_utc(text: str) -> float:
+    """ISO-8601 time (``2026-05-01T12:00:00Z``; naive times are UTC) -> UNIX seconds."""
+    try:
+        dt = datetime.fromisoformat(text.strip().replace("Z", "+00:00"))
+    except ValueError as exc:
+        raise ValueError(f"start-at: {text!r} is not an ISO-8601 UTC time such as 2026-05-01T12:00:00Z") from exc
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return dt.timestamp()
+
+
+def make_command(name: str, swarm: str, target_id: int | None = None, start_at_unix_s: float | None = None,
+                 now_unix_s: float | None = None) -> FleetCommand:
+    """A command stamped now; its sequence number is the issue time in microseconds (strictly
+    increasing across ground restarts as long as the ground clock is)."""
+    now = time.time() if now_unix_s is None else now_unix_s
+    return FleetCommand(name=name, swarm=swarm, seq=int(now * 1e6), issued_unix_s=now,
+                        target_id=ALL_AGENTS if target_id is None else int(target_id),
+                        start_at_unix_s=start_at_unix_s)
+
+
+class TelemetryListener:
+    """Collects the newest telemetry per agent of one swarm (for status and acknowledgements);
+    at most ``max_agents`` ids (messages from further new ids are counted in ``over_cap``)."""
+
+    def __init__(self, session: Any, keys: Keys, max_agents: int = DEFAULT_MAX_AGENTS) -> None:
+        self.keys = keys
+        self.latest: dict[int, tuple[tc.Telemetry, float]] = {}
+        self.bad = 0
+        self.max_agents = int(max_agents)
+        self.over_cap = 0
+        self._lock = threading.Lock()
+        self.started_s = time.monotonic()
+        """When the listener started listening (monotonic) [s]."""
+        self._sub = session.declare_subscriber(keys.all_telemetry, self._on_sample)
+
+    def _on_sample(self, sample: Any) -> None:
+        now = time.time()
+        key_id = self.keys.agent_of(str(sample.key_expr))
+        try:
+            t = tc.decode(sample.payload.to_bytes())
+        except tc.TelemetryError as exc:
+            self.bad += 1
+            log.debug("bad telemetry on %s: %s", sample.key_expr, exc)
+            return
+        if key_id != t.agent_id:
+            self.bad += 1
+            log.warning("telemetry on %s claims agent %d: ignored", sample.key_expr, t.agent_id)
+            return
+        with self._lock:
+            if t.agent_id not in self.latest and len(self.latest) >= self.max_agents:
+                self.over_cap += 1
+                return
+            self.latest[t.agent_id] = (t, now)
+
+    def snapshot(self) -> dict[int, tuple[tc.Telemetry, float]]:
+        """Latest telemetry and its receive time per agent id (a copy)."""
+        with self._lock:
+            return dict(self.latest)
+
+    def close(self) -> None:
+        """Undeclare the subscriber."""
+        self._sub.undeclare()
+
+
+def status_report(latest: dict[int, tuple[tc.Telemetry, float]], now_unix_s: float) -> dict:
+    """The ``status --json`` object: ``{"agents": [{"id", "state", "map_sha256", "last_seen_s", ...}]}``."""
+    agents = []
+    for aid in sorted(latest):
+        t, seen = latest[aid]
+        agents.append({
+            "id": aid, "state": t.state, "map_sha256": t.map_sha256, "last_seen_s": round(now_unix_s - seen, 3),
+            "map_version": t.map_version, "cv_index": t.cv_index,
+            "position_m": [round(v, 3) for v in t.position_m], "velocity_m_s": [round(v, 3) for v in t.velocity_m_s],
+            "flags": sorted(t.flags), "maps_rejected": t.maps_rejected, "reject_reason": t.reject_reason,
+            "ack_command": t.ack_command, "ack_seq": t.ack_seq,
+        })
+    return {"agents": agents}
+
+
+def _wait_connected(session: Any, timeout_s: float) -> bool:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        info = session.info
+        if info.peers_zid() or info.routers_zid():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """Outcome of ``send_command``."""
+
+    command: FleetCommand
+    """The command sent."""
+    matched: bool
+    """True when at least one subscriber matched before sending."""
+    acked: tuple[int, ...]
+    """Agents whose telemetry acknowledged the command's sequence number."""
+
+
+def matching(publisher: Any) -> bool:
+    """True when subscribers match ``publisher`` (zenoh returns a ``MatchingStatus``)."""
+    status = publisher.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes | None,
+                 match_timeout_s: float = 3.0, ack_timeout_s: float = 0.0,
+                 listener: TelemetryListener | None = None, settle_s: float = 1.0) -> CommandResult:
+    """Publish one command on ``<prefix>/<swarm>/cmd``; optionally wait for acknowledgements.
+
+    The targets of a fleet-wide command are the agents the listener has heard; so that a fleet
+    is not judged from the first agents heard, the wait for acknowledgements lasts at least
+    until the listener has listened for ``settle_s`` (bounded by ``ack_timeout_s``).
+    """
+    pub = session.declare_publisher(keys.cmd)
+    try:
+        end = time.monotonic() + match_timeout_s
+        while not matching(pub) and time.monotonic() < end:
+            time.sleep(0.05)
+        matched = matching(pub)
+        pub.put(encode_command(cmd, signing_key))
+        acked: set[int] = set()
+        if listener is not None and ack_timeout_s > 0:
+            end = time.monotonic() + ack_timeout_s
+            while time.monotonic() < end:
+                acked = {aid for aid, (t, _) in listener.snapshot().items() if t.ack_seq == cmd.seq}
+                targets = set(listener.snapshot()) if cmd.target_id == ALL_AGENTS else {cmd.target_id}
+                if targets and targets <= acked and time.monotonic() - listener.started_s >= settle_s:
+                    break
+                time.sleep(0.05)
+        return CommandResult(cmd, matched, tuple(sorted(acked)))
+    finally:
+        pub.undeclare()
+
+
+# --------------------------------------------------------------------------------------------
+# CLI bodies
+
+def run_cmd(args: Any) -> int:
+    """``fisc-ground cmd hold|resume|land|start-at [UTC_TIME] --swarm NAME [--id N] [--key KEYFILE]``."""
+    from fisc_ground.maps.write import read_signing_key
+    from fisc_ground.zenoh.config import open_ground_session
+
+    start_at = None
+    if args.fleet_command == "start-at":
+        if not args.time:
+            raise ValueError("cmd start-at needs a UTC time, e.g. 2026-05-01T12:00:00Z")
+        start_at = parse_utc(args.time)
+    elif args.time:
+        raise ValueError(f"cmd {args.fleet_command} takes no time argument")
+    key = read_signing_key(args.key) if args.key else None
+    if key is None:
+        log.warning("sending an UNSIGNED command: agents refuse it unless started with --allow-unsigned")
+    keys = Keys(args.prefix, args.swarm)
+    session = open_ground_session(args.zenoh_config)
+    try:
+        _wait_connected(session, args.wait)
+        listener = TelemetryListener(session, keys)
+        cmd = make_command(args.fleet_command, args.swarm, args.id, start_at)
+        res = send_command(session, keys, cmd, key, match_timeout_s=args.wait, ack_timeout_s=args.ack_wait,
+                           listener=listener)
+        listener.close()
+    finally:
+        session.close()
+    print(json.dumps({"command": cmd.name, "seq": cmd.seq, "swarm": cmd.swarm,
+                      "target": "all" if cmd.target_id == ALL_AGENTS else cmd.target_id,
+                      "subscribers_matched": res.matched, "acked": list(res.acked)}))
+    return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.common.cli_common)
+
+
+def run_status(args: Any) -> int:
+    """``fisc-ground status --swarm NAME [--zenoh-config FILE] [--json] [--wait S]``."""
+    from fisc_ground.zenoh.config import open_ground_session
+
+    keys = Keys(args.prefix, args.swarm)
+    session = open_ground_session(args.zenoh_config)
+    try:
+        listener = TelemetryListener(session, keys)
+        time.sleep(args.wait)
+        latest = listener.snapshot()
+        listener.close()
+    finally:
+        session.close()
+    report = status_report(latest, time.time())
+    if args.json:  # strict JSON: a non-finite position or velocity is null, never NaN/Infinity
+        from fisc_ground.fields.field_report import json_safe
+
+        print(json.dumps(json_safe(report), allow_nan=False))
+        return 0
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"swarm {args.swarm}: {len(report['agents'])} agents")
+    for col in ("id", "state", "map", "cv", "position [m]", "flags", "refused maps", "last seen [s]"):
+        table.add_column(col)
+    for a in report["agents"]:
+        table.add_row(str(a["id"]), a["state"], a["map_sha256"][:12] or "-", str(a["cv_index"]),
+                      " ".join(f"{v:.1f}" for v in a["position_m"]), ",".join(a["flags"]),
+                      f"{a['maps_rejected']} ({a['reject_reason']})" if a["maps_rejected"] else "0",
+                      f"{a['last_seen_s']:.1f}")
+    Console().print(table)
+    return 0
