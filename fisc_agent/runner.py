@@ -86,6 +86,14 @@ class AgentSnapshot:
     flag ``outside_map``."""
     parcel_map_m: Vec | None = None
     """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
+    authority: str = "waiting"
+    """Who is in charge (``fisc_agent.flight.mission_types.Authority`` value)."""
+    battery_pct: float | None = None
+    """Remaining battery [%] as the autopilot reports it (None: not reported)."""
+    landed: str = "unknown"
+    """Landed state (``fisc_agent.flight.health.LandedState`` value)."""
+    health_problems: tuple[str, ...] = ()
+    """What is wrong with the vehicle, short phrases ("battery 18 % < 25 %", "estimator: ..."); () healthy."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -12,11 +12,15 @@ from fisc_agent.flight.control import Vec
 
 
 class MissionCommand(StrEnum):
-    """A fleet command the mission obeys: hold, resume, land (the value is its name on the wire)."""
+    """A fleet command the mission obeys (the value is its name on the wire)."""
 
     HOLD = "hold"
     RESUME = "resume"
     LAND = "land"
+    GO = "go"
+    """Permission to arm and fly one flight (``--go`` on the command line is the same)."""
+    TAKEOVER = "takeover"
+    """Take an armed vehicle that this process did not arm (only when addressed to this agent)."""
 
     @classmethod
     def parse(cls, name: str) -> MissionCommand:
@@ -28,9 +32,43 @@ class MissionCommand(StrEnum):
                              f"{', '.join(c.value for c in cls)}") from None
 
 
+@dataclass(frozen=True)
+class FleetOrder:
+    """A fleet command as the mission receives it: what, and whether it named this agent."""
+
+    command: MissionCommand
+    """The command."""
+    addressed: bool = False
+    """True when the command named this agent (``fisc-ground cmd ... --agents N``); a swarm-wide
+    command is False.  Only an addressed command gives a vehicle back after hands-off."""
+    seq: int = 0
+    """The command's sequence number (0: from this process, e.g. ``--go``)."""
+    key_id: str = ""
+    """Which ground key signed it (hex of the public key's first bytes; "" unsigned or local)."""
+
+
+class Authority(StrEnum):
+    """Who is in charge of the vehicle, as the agent sees it (telemetry ``authority``)."""
+
+    WAITING = "waiting"
+    """No go yet: the agent waits disarmed and sends nothing."""
+    NOT_OURS = "not-ours"
+    """The vehicle was armed by someone else: the agent watches and sends nothing."""
+    COMMAND = "command"
+    """The agent armed the vehicle in this process (or was handed it by an addressed takeover) and flies it."""
+    HANDS_OFF = "hands-off"
+    """Someone else changed the vehicle's mode: no mode request and no setpoint for the rest of
+    the flight, unless a command addressed to this agent gives it back."""
+    RELEASED = "released"
+    """The flight is over (landed, or could not arm): the go is used up."""
+
+
 class State(str, Enum):
     """The mission's states, in flight order (their values are the flight log's and telemetry's names)."""
     WAIT_POSITION = "WAIT_POSITION"
+    STANDBY = "STANDBY"
+    """Position, heartbeat and map are there but the agent is not in command: no go yet, or the
+    vehicle is someone else's (``Authority``)."""
     ARM = "ARM"
     TAKEOFF = "TAKEOFF"
     JOIN = "JOIN"

@@ -39,7 +39,7 @@ import numpy as np
 VERSION = 1
 
 STATES = ("UNKNOWN", "WAIT_MAP", "WAIT_POSITION", "ARM", "TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT",
-          "HOLD", "LAND", "DONE", "FAILSAFE")
+          "HOLD", "LAND", "DONE", "FAILSAFE", "STANDBY")
 """State names by code.  Mission states of ``fisc_agent.flight.mission.State`` plus WAIT_MAP (no map yet)."""
 
 REJECT_REASONS = ("none", "truncated", "magic", "container", "sha256", "signature", "schema",
