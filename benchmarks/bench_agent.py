@@ -205,7 +205,7 @@ def _agent_worker(conn, port: int, agent_id: int, map_choice: str, rate_hz: floa
 
     logging.getLogger("fisc_agent").setLevel(logging.ERROR)  # the shutdown's "hold not confirmed" is expected
     cmap = load_map(map_choice)
-    cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, rate_hz=rate_hz,
+    cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, rate_hz=rate_hz, go=True,
                       exit_policy="loop")
     link = MavlinkLink(cfg.mavlink_url, position_rate_hz=max(50.0, rate_hz))
     r = Runner(cfg, link, cmap)

@@ -35,6 +35,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="autopilot endpoint: udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT, udp://:14540, "
                         "serial:///dev/ttyUSB0:921600, /dev/ttyACM0:57600")
     p.add_argument("--id", dest="agent_id", type=int, required=True, help="agent id N (slot and entry point)")
+    a = p.add_argument_group("authority and health (docs/deployment.md, 'Authority')")
+    a.add_argument("--go", action="store_true",
+                   help="permission to arm and fly one flight now (a bench or SITL flight); without it the agent "
+                        "waits disarmed for a signed fleet go / start-at (fisc-ground cmd go). An armed vehicle "
+                        "is never taken over, with or without --go")
+    a.add_argument("--target-system", type=int, default=None, metavar="SYSID",
+                   help="MAVLink system id of the one autopilot to fly (default: the first one heard, then pinned)")
+    a.add_argument("--min-battery", type=number_or("off", None, "percent"), default=AgentConfig.min_battery_pct,
+                   metavar="PCT|off", help="below this battery %% finish the pass, then --low-battery-action; never "
+                                           "arm or start a pass below it")
+    a.add_argument("--low-battery-action", choices=("land", "hold"), default=AgentConfig.low_battery_action.value,
+                   help="after the last pass on a low battery: land or hold at the exit point")
+    a.add_argument("--takeoff-timeout", type=float, default=AgentConfig.takeoff_timeout_s,
+                   help="land when the take-off has not reached its height after this long [s]")
+    a.add_argument("--max-start-distance", type=float, default=AgentConfig.max_start_distance_m,
+                   help="do not arm when the start point is farther than this from the map [m]")
+    a.add_argument("--state-file", default=AgentConfig.state_file, metavar="PATH|auto|off",
+                   help="where a restarted agent finds its hands-off, fleet hold, laps and fleet-command sequence; "
+                        "auto: $XDG_STATE_HOME/fisc/agent-<swarm>-<id>.json (~/.local/state without XDG_STATE_HOME)")
     p.add_argument("--autopilot", choices=AUTOPILOTS, default=AgentConfig.autopilot,
                    help="autopilot flavour; auto: from the HEARTBEAT's autopilot field")
     p.add_argument("--backend", choices=BACKENDS, default=AgentConfig.backend,
@@ -124,7 +143,10 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
         entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
         wall_margin_m=a.wall_margin,
-        hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system)
+        hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system, go=a.go,
+        target_system=a.target_system, min_battery_pct=a.min_battery, low_battery_action=a.low_battery_action,
+        takeoff_timeout_s=a.takeoff_timeout, max_start_distance_m=a.max_start_distance,
+        state_file=None if a.state_file == "off" else a.state_file)
 
 
 def make_link(cfg: AgentConfig):
@@ -137,6 +159,7 @@ def make_link(cfg: AgentConfig):
     from fisc_agent.flight.position_gate import PositionGateConfig
 
     return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
+                       **({"target_system": cfg.target_system} if cfg.target_system is not None else {}),
                        anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz),
                        position_gate=PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
 
@@ -164,15 +187,17 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
         return ExitCode.USAGE
     link = make_link(cfg)
     try:
-        runner = Runner(cfg, link, cmap, on_tick=flog.write if flog else None)
+        runner = Runner(cfg, link, cmap, on_tick=flog.write if flog else None,
+                        swarm=zenoh_args.swarm if zenoh_args is not None else None)
     except MapError as exc:
         link.close()
         if flog:
             flog.close()
         log.error("invalid map, refusing to start: %s", exc)
         return ExitCode.USAGE
-    log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz", cfg.agent_id, cfg.mavlink_url,
-             cmap.sha256[:12] if cmap else "(none yet)", cfg.mode, cfg.rate_hz)
+    log.info("fisc-agent %d: %s, map %s, mode %s, %.0f Hz, %s", cfg.agent_id, cfg.mavlink_url,
+             cmap.sha256[:12] if cmap else "(none yet)", cfg.mode, cfg.rate_hz,
+             "go given (--go)" if cfg.go else "waiting for a fleet go (no --go)")
     zlink = None
     try:
         if zenoh_args is not None and zenoh_args.swarm:
@@ -182,15 +207,16 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
             try:
                 keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None
                 zlink = connect_runner(runner, zenoh_args.zenoh_config, zenoh_args.swarm, keys,
-                                       zenoh_args.allow_unsigned, zenoh_args.telemetry_rate, zenoh_args.zenoh_prefix)
+                                       zenoh_args.allow_unsigned, zenoh_args.telemetry_rate, zenoh_args.zenoh_prefix,
+                                       clock=runner.unix_time)
             except (MapError, ValueError, FileNotFoundError) as exc:
                 log.error("cannot start the Zenoh link: %s", exc)
                 return ExitCode.USAGE
         final = runner.run(stop, max_duration_s=max_duration_s)
     finally:
+        runner.shutdown()  # the vehicle first: hold, then tear down Zenoh and the log
         if zlink is not None:
             zlink.close()
-        runner.shutdown()
         if flog is not None:
             flog.close()
     if runner.mission.failed:

@@ -126,6 +126,25 @@ class AgentConfig:
     """With exit ``hold``/``land``: least distance between two agents' stopping points
     (``control.hold_point``: agent i takes point i of a spiral around the tunnel's axis, skipping points
     below the tunnel) [m]."""
+    go: bool = False
+    """Permission to arm and fly one flight given on the command line (``--go``: a bench or SITL
+    flight); without it the agent waits disarmed for a fleet ``go`` / ``start-at``."""
+    min_battery_pct: float | None = 20.0
+    """Below this remaining battery [%] the agent finishes its pass, then ``low_battery_action``; it never
+    starts a pass or arms below it; None: no battery rule (the autopilot's own failsafes still apply)."""
+    low_battery_action: ExitPolicy = ExitPolicy.LAND
+    """What follows the last pass on a low battery: ``land`` or ``hold`` at the exit point."""
+    takeoff_timeout_s: float = 30.0
+    """A take-off that has not reached its height (and left the ground) after this long lands [s]."""
+    max_start_distance_m: float = 200.0
+    """Do not arm when the start point is farther than this from the map's bounding box [m] (a wrong
+    anchor or origin would fly the vehicle far away)."""
+    target_system: int | None = None
+    """MAVLink system id of the one autopilot this agent flies; None: the first one heard, then pinned."""
+    state_file: str | None = "auto"
+    """The agent's state file (``fisc_agent.flight.state_file``): a path; ``auto``: the per-user default
+    ``$XDG_STATE_HOME/fisc/agent-<swarm>-<id>.json`` (``state_file.default_state_path``); None: no file
+    (a restart forgets: the emulator's in-process agents)."""
     source_system: int | None = None
     """MAVLink system id of the agent; None = the vehicle's own id (companion convention)."""
     source_component: int = 191
@@ -146,14 +165,15 @@ class AgentConfig:
         need(self.wall_margin_m is None or (isinstance(self.wall_margin_m, (int, float))
                                             and math.isfinite(self.wall_margin_m) and self.wall_margin_m >= 0),
              f"wall_margin_m must be a finite number >= 0 metres or None, is {self.wall_margin_m!r}")
-        for name, kind in (("exit_policy", ExitPolicy), ("geofence", GeofencePolicy)):
+        for name, kind in (("exit_policy", ExitPolicy), ("geofence", GeofencePolicy), ("low_battery_action", ExitPolicy)):
             value = getattr(self, name)
             need(value in tuple(kind), f"{name} must be one of {', '.join(kind)}, is {value!r}")
             object.__setattr__(self, name, kind(value))  # typed from here on
         need(2.0 < self.rate_hz <= 500.0, f"rate must be in (2, 500] Hz (PX4 needs > 2 Hz), is {self.rate_hz}")
         for name in ("max_speed_m_s", "max_accel_m_s2", "join_speed_m_s", "return_speed_m_s", "climb_speed_m_s",
                      "takeoff_alt_m", "stale_timeout_s", "link_timeout_s", "command_retry_s",
-                     "command_timeout_s", "waypoint_radius_m", "exit_spacing_m"):
+                     "command_timeout_s", "waypoint_radius_m", "exit_spacing_m", "takeoff_timeout_s",
+                     "max_start_distance_m"):
             v = getattr(self, name)
             need(isinstance(v, (int, float)) and math.isfinite(v) and v > 0, f"{name} must be > 0, is {v!r}")
         for name in ("hold_grace_s", "staging_m", "keepout_margin_m", "exit_clearance_m"):
@@ -164,6 +184,10 @@ class AgentConfig:
         need(math.isfinite(self.entry_stagger_s) and self.entry_stagger_s >= 0, "entry_stagger_s must be >= 0")
         need(isinstance(self.entry_slots, int) and self.entry_slots >= 1, "entry_slots must be >= 1")
         need(self.source_system is None or 1 <= self.source_system <= 255, "source_system must be 1..255")
+        need(self.target_system is None or 1 <= self.target_system <= 255, "target_system must be 1..255")
+        need(self.min_battery_pct is None or 0.0 <= self.min_battery_pct < 100.0,
+             f"min_battery_pct must be in [0, 100) or None, is {self.min_battery_pct!r}")
+        need(self.low_battery_action in (ExitPolicy.LAND, ExitPolicy.HOLD), "low_battery_action must be land or hold")
         need(0 <= self.source_component <= 255, "source_component must be 0..255")
         DeploymentTransform(self.origin_ned_m, self.yaw_deg)  # validates
         need(self.geodetic_anchor is None or (tuple(self.origin_ned_m) == DEFAULT_ORIGIN_NED_M and self.yaw_deg == 0.0),

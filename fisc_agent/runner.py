@@ -6,7 +6,8 @@ re-synchronises instead of bursting).  Other threads (the Zenoh side) talk to a 
 ``Runner`` only through three thread-safe methods:
 
 - ``offer_map(cmap)``: a new map; checked now, swapped in atomically between two ticks.
-- ``fleet_command(name)``: ``hold`` / ``resume`` / ``land``, applied at the next tick.
+- ``fleet_command(order)``: a ``FleetOrder`` (or a bare ``hold`` / ``resume`` / ``land`` / ``go``, swarm-wide),
+  applied at the next tick.
 - ``snapshot()``: the latest ``AgentSnapshot`` (frozen; replaced whole every tick; before the
   first tick, the agent waiting on the ground).
 """
@@ -28,9 +29,14 @@ from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import CommandMap, MapError, MapErrorKind
 from fisc_agent.flight.mission import (FLYING, Cause, HoldCause, Mission, MissionCommand, MissionOutput, Reason, State,
                                 VehicleStatus)
+from fisc_agent.flight.mission_types import FleetOrder
+from fisc_agent.flight.tick import TickRecord, failsafe_active, outside_map
+from fisc_agent.flight.readiness import health_problems
+from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
 from fisc_agent.map.wall import map_wall
+from fisc_agent.flight.health import VehicleHealth
 
 log = logging.getLogger(__name__)
 
@@ -96,79 +102,32 @@ class AgentSnapshot:
     """What is wrong with the vehicle, short phrases ("battery 18 % < 25 %", "estimator: ..."); () healthy."""
 
 
-@dataclass(frozen=True, slots=True)
-class TickRecord:
-    """What one tick saw and did (replaced whole every tick, so reading it is atomic); ``snapshot()``
-    turns it into the telemetry snapshot on demand."""
-
-    now_s: float
-    """Monotonic time of the tick [s]."""
-    wall_time_s: float
-    """UNIX time of the tick [s]."""
-    out: MissionOutput
-    """The mission's output this tick."""
-    position_map_m: Vec | None
-    """Gated position, map frame [m]."""
-    velocity_map_m_s: Vec | None
-    """Measured velocity, map frame [m/s]."""
-    setpoint_map_m_s: Vec | None
-    """Clamped setpoint sent, map frame [m/s] (None: none sent)."""
-    cmap: CommandMap | None
-    """Map in use."""
-    link_ok: bool
-    """Autopilot HEARTBEATs are arriving."""
-    heartbeat_age_s: float
-    """Age of the newest HEARTBEAT [s]."""
-    position_age_s: float
-    """Age of the newest accepted fix [s]."""
-    autopilot: str | None
-    """Adapter in use (``px4`` / ``ardupilot``)."""
-    armed: bool
-    """Armed flag from the HEARTBEAT."""
-    mode: ModeClass
-    """Autopilot mode class."""
-    laps: int
-    """Completed passes."""
-    parcel_map_m: Vec | None
-    """Streamline-tracking parcel in FLOW, map frame [m]."""
-
-
-FAILSAFE_HOLD_CAUSES = frozenset({HoldCause.LINK_LOST, HoldCause.POSITION_STALE, HoldCause.GEOFENCE,
-                                  HoldCause.PILOT_OVERRIDE})
-"""Hold causes that are failsafes (a fleet or exit hold is not)."""
-
-
-def failsafe_active(state: State, reason: Reason) -> bool:
-    """True while a failsafe holds or returns the vehicle: a HOLD for a lost link, a stale or
-    lost position, the geofence or a mode taken from the agent, or the geofence's RETURN."""
-    if state == State.HOLD:
-        return reason.cause in FAILSAFE_HOLD_CAUSES
-    return state == State.RETURN and reason.cause == Cause.GEOFENCE_RETURN
-
-
-def outside_map(state: State, reason: Reason, cv_id: int, position_known: bool) -> bool:
-    """True when the vehicle is outside the map's CVs (``cv_id`` -1 at a known position) in a
-    state that belongs inside: FLOW, the geofence's RETURN, or a geofence HOLD (joining from
-    the staging area and leaving past the outlet are outside by design)."""
-    if not position_known or cv_id >= 0:
-        return False
-    return state in (State.FLOW, State.RETURN) or (state == State.HOLD and reason.cause == HoldCause.GEOFENCE)
-
-
 class Runner:
     """Wires a ``VehicleLink``, a ``Mission`` and the control core together."""
 
     def __init__(self, cfg: AgentConfig, link: VehicleLink, cmap: CommandMap | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
                  wall_clock: Callable[[], float] = time.time,
-                 on_tick: Callable[[AgentSnapshot], None] | None = None) -> None:
+                 on_tick: Callable[[AgentSnapshot], None] | None = None, swarm: str | None = None) -> None:
         self.cfg = cfg
         self.link = link
         self.clock, self.sleep, self.wall_clock = clock, sleep, wall_clock
         self.on_tick = on_tick
         """Called with the snapshot after every tick (the flight log); None: nothing."""
         self.transform = cfg.transform
-        self.mission = Mission(cfg)
+        self.command_floors: dict[str, int] = {}
+        """Newest accepted fleet-command sequence per ground key (kept in the state file)."""
+        restored = None
+        self.state_path = (str(default_state_path(cfg.agent_id, swarm)) if cfg.state_file == "auto"
+                           else cfg.state_file)
+        """The state file in use (``cfg.state_file`` with ``auto`` resolved for ``swarm``); None: none."""
+        if self.state_path:
+            restored = load_state(self.state_path)
+            self.command_floors = dict(restored.command_floors)
+            log.info("state file %s: hands-off %s, fleet hold %s, laps %d, command floors %s", self.state_path,
+                     restored.hands_off, restored.fleet_hold, restored.laps, restored.command_floors or "none")
+        self._saved: AgentState | None = restored
+        self.mission = Mission(cfg, restored=restored)
         self.adapter: Adapter | None = None
         self.commander: Commander | None = None
         self.cmap: CommandMap | None = None
@@ -188,6 +147,8 @@ class Runner:
         self._good_sample: PositionSample | None = None
         self.ticks = 0
         self.overruns = 0
+        self.faults = 0
+        """Ticks that raised (caught: the vehicle holds, the loop goes on)."""
         if cmap is not None:
             if not self.offer_map(cmap):
                 raise MapError(MapErrorKind.OTHER, "map was refused (see the log)")
@@ -244,11 +205,21 @@ class Runner:
             return False
         return True
 
-    def fleet_command(self, name: MissionCommand | str) -> None:
-        """Queue ``hold``, ``resume`` or ``land`` for the next tick."""
-        cmd = MissionCommand.parse(name)
+    def fleet_command(self, order: FleetOrder | MissionCommand | str) -> None:
+        """Queue a fleet order (a bare command or name: swarm-wide) for the next tick; its sequence
+        number becomes its ground key's floor (saved in the state file)."""
+        if not isinstance(order, FleetOrder):
+            order = FleetOrder(MissionCommand.parse(order))
         with self._lock:
-            self._pending_cmds.append(cmd)
+            self._pending_cmds.append(order)
+            if order.seq > self.command_floors.get(order.key_id, 0):
+                self.command_floors[order.key_id] = order.seq
+
+    def unix_time(self) -> float:
+        """UNIX time [s] on the best clock the agent has: the autopilot's GNSS time when it reports one
+        (SYSTEM_TIME), else the companion computer's clock (fleet-command freshness, entry windows)."""
+        gps = getattr(self.link, "health", VehicleHealth()).unix_time_at(self.clock())  # MERGE
+        return gps if gps is not None else self.wall_clock()
 
     def snapshot(self) -> AgentSnapshot:
         """The latest telemetry snapshot; before the first tick, the agent waiting on the ground
@@ -262,7 +233,7 @@ class Runner:
                 velocity_map_m_s=None, setpoint_map_m_s=None, cv_id=-1, map_sha256=cmap.sha256 if cmap else None,
                 map_version=cmap.map_version if cmap else None, link_ok=False, heartbeat_age_s=math.inf,
                 position_age_s=math.inf, autopilot=None, armed=False, mode=ModeClass.UNKNOWN.value, laps=0,
-                failsafe=False, outside_map=False)
+                failsafe=False, outside_map=False, authority=self.mission.authority.value)
         cmap, state, reason = k.cmap, k.out.state, k.out.reason
         return AgentSnapshot(
             time_s=k.now_s, wall_time_s=k.wall_time_s, agent_id=self.cfg.agent_id, state=state.value,
@@ -272,10 +243,11 @@ class Runner:
             position_age_s=k.position_age_s, autopilot=k.autopilot, armed=k.armed, mode=k.mode.value,
             laps=k.laps, failsafe=failsafe_active(state, reason),
             outside_map=outside_map(state, reason, k.out.cv_id, k.position_map_m is not None and cmap is not None),
-            parcel_map_m=k.parcel_map_m)
+            parcel_map_m=k.parcel_map_m, authority=self.mission.authority.value, battery_pct=k.health.battery_pct,
+            landed=k.health.landed.value, health_problems=health_problems(k.health, self.cfg.min_battery_pct))
 
     # ---- the tick ------------------------------------------------------------------------
-    def _apply_pending(self) -> list[MissionCommand]:
+    def _apply_pending(self) -> list[FleetOrder]:
         with self._lock:
             pending, self._pending_map = self._pending_map, None
             cmds, self._pending_cmds = self._pending_cmds, []
@@ -330,7 +302,43 @@ class Runner:
         return self._good_sample
 
     def step(self) -> MissionOutput:
-        """One control tick."""
+        """One control tick.  A tick that raises (a flight-log write, a link error, a bug) is caught:
+        logged, counted in ``faults``, and the mission holds (``HoldCause.AGENT_FAULT``, latched)."""
+        try:
+            out = self._tick()
+        except Exception as exc:  # noqa: BLE001 - a flying agent must not die: hold and keep the link
+            self.faults += 1
+            if self.rlog.event("tick:fault", logging.ERROR, "control tick failed (%s: %s); holding the vehicle",
+                               type(exc).__name__, exc):
+                log.error("the failed tick's traceback", exc_info=True)
+            out = self.mission.fault(self.clock(), f"{type(exc).__name__}: {exc}")
+            self._safe_hold()
+        self._save_state()
+        return out
+
+    def _safe_hold(self) -> None:
+        """After a failed tick: zero-velocity setpoint while the agent flies (best effort)."""
+        if self.mission.state == State.HOLD and not self.mission.hands_off and self.link.armed:
+            try:
+                self.link.send_velocity_ned(0.0, 0.0, 0.0)
+            except Exception as exc:  # noqa: BLE001 - the link itself may be what failed
+                self.rlog.event("tick:hold-send", logging.ERROR, "zero setpoint not sent: %s", exc)
+
+    def _save_state(self) -> None:
+        """Write the state file when what it holds changed."""
+        if not self.state_path:
+            return
+        state = self.mission.saved_state()
+        state = AgentState(state.hands_off, state.fleet_hold, state.laps, dict(self.command_floors))
+        if state == self._saved:
+            return
+        try:
+            save_state(self.state_path, state)
+            self._saved = state
+        except OSError as exc:
+            self.rlog.event("state-file", logging.ERROR, "state file %s not written: %s", self.state_path, exc)
+
+    def _tick(self) -> MissionOutput:
         now = self.clock()
         cmds = self._apply_pending()
         for name in cmds:
@@ -357,8 +365,14 @@ class Runner:
         if link_ok != self._link_was_ok:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
             self._link_was_ok = link_ok
+        health = getattr(link, "health", VehicleHealth())  # MERGE: link.health
+        integrity = getattr(link, "integrity", None)
+        gps_unix = health.unix_time_at(now)
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
-                               link.armed, mode, self.wall_clock(), None if sample is None else sample.autopilot_t_s)
+                               link.armed, mode, gps_unix if gps_unix is not None else self.wall_clock(),
+                               None if sample is None else sample.autopilot_t_s, health,
+                               True if integrity is None else integrity.ok,
+                               "" if integrity is None or integrity.ok else str(integrity.reason))
         out = self.mission.step(status)
 
         sp: Vec | None = None
@@ -390,7 +404,8 @@ class Runner:
             now_s=now, wall_time_s=self.wall_clock(), out=out, position_map_m=pos, velocity_map_m_s=vel,
             setpoint_map_m_s=sp, cmap=self.cmap, link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
             autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
-            laps=self.mission.laps, parcel_map_m=self.mission.tracker.parcel_m if out.state == State.FLOW else None)
+            laps=self.mission.laps, parcel_map_m=self.mission.tracker.parcel_m if out.state == State.FLOW else None,
+            health=health)
         self.ticks += 1
         if self.on_tick is not None:
             self.on_tick(self.snapshot())

@@ -39,3 +39,10 @@ def resolve_shared(*parts: str) -> Path:
 def shared_path() -> Callable[..., Path]:
     """``shared_path("reference", "cd_nozzle", "axisym_cells.csv")`` -> Path (see ``resolve_shared``)."""
     return resolve_shared
+
+
+@pytest.fixture(autouse=True)
+def _own_agent_state_dir(tmp_path_factory, monkeypatch):
+    """Every test gets its own ``$XDG_STATE_HOME``: an agent's state file (``fisc-agent --state-file
+    auto``: hands-off, fleet hold, command floors) must not carry from one test's flight to the next."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("xdg_state")))

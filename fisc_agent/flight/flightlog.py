@@ -4,13 +4,16 @@ What the agent saw and did, in the map frame: mission state, position and veloci
 autopilot reported them, the setpoint it sent, its CV and its tracking parcel.  It is what the
 real-autopilot tests score (excursion outside the map, velocity fidelity, hold altitude) and
 what a person plots after a flight; the autopilot's own log (ULog, DataFlash) holds the truth
-about the estimator.  Rows are flushed once a second, so a killed agent loses at most that.
+about the estimator.  Rows are flushed once a second, so a killed agent loses at most that.  A log
+that already exists is never truncated: it is rotated to ``<file>.1`` (``.1`` to ``.2`` and so on,
+``KEEP_ROTATED`` kept), so a restarted agent keeps the flight it was restarted in.
 """
 
 from __future__ import annotations
 
 import csv
 import math
+import os
 from pathlib import Path
 from typing import IO
 
@@ -20,17 +23,36 @@ COLUMNS = ("time_s", "wall_time_s", "state", "reason", "x_m", "y_m", "z_m", "vx_
            "sp_x_m_s", "sp_y_m_s", "sp_z_m_s", "cv", "parcel_x_m", "parcel_y_m", "parcel_z_m", "mode", "armed")
 """Column names, in order (map frame: x along the tunnel axis, z up)."""
 
+KEEP_ROTATED = 9
+"""Older logs kept beside a new one (``<file>.1`` newest ... ``<file>.9`` oldest)."""
+
+
+def rotate(path: Path, keep: int = KEEP_ROTATED) -> Path | None:
+    """Move an existing ``path`` to ``path.1`` (shifting older ones up, the oldest beyond ``keep``
+    dropped); returns where it went, None when there was nothing to keep."""
+    if not path.exists() or path.stat().st_size == 0:
+        return None
+    for i in range(keep - 1, 0, -1):
+        older = path.with_name(f"{path.name}.{i}")
+        if older.exists():
+            os.replace(older, path.with_name(f"{path.name}.{i + 1}"))
+    kept = path.with_name(f"{path.name}.1")
+    os.replace(path, kept)
+    return kept
+
 
 def _xyz(v: tuple[float, float, float] | None) -> list[str]:
     return ["", "", ""] if v is None else [f"{c:.4f}" for c in v]
 
 
 class FlightLog:
-    """Append-only CSV writer of ``AgentSnapshot`` rows."""
+    """CSV writer of ``AgentSnapshot`` rows, one per tick (a previous log at the path is rotated, never truncated)."""
 
     def __init__(self, path: str | Path, flush_period_s: float = 1.0) -> None:
         self.path = Path(path)
-        self._fh: IO[str] = open(self.path, "w", newline="", encoding="utf-8")
+        self.rotated_to = rotate(self.path)
+        """Where an existing log at ``path`` was moved (None: there was none)."""
+        self._fh: IO[str] = open(self.path, "x", newline="", encoding="utf-8")
         self._w = csv.writer(self._fh)
         self._w.writerow(COLUMNS)
         self._flush_period_s = flush_period_s

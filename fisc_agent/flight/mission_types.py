@@ -7,8 +7,9 @@ from dataclasses import dataclass
 from enum import Enum, StrEnum
 from typing import NamedTuple
 
-from fisc_agent.mavlink.adapters import ModeClass
 from fisc_agent.flight.control import Vec
+from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.mavlink.adapters import ModeClass
 
 
 class MissionCommand(StrEnum):
@@ -90,6 +91,8 @@ class HoldCause(str, Enum):
     FLEET = "fleet hold"
     FLEET_ON_GROUND = "fleet hold (on the ground)"
     PILOT_OVERRIDE = "pilot override"
+    POSITION_JUMP = "position jump"
+    AGENT_FAULT = "agent fault"
 
 
 class Cause(str, Enum):
@@ -97,6 +100,12 @@ class Cause(str, Enum):
 
     START = "start"
     AUTOPILOT_FOUND = "position and autopilot heartbeat received"
+    WAITING_GO = "ready: waiting for a go (--go, or fisc-ground cmd go)"
+    NOT_OURS = "vehicle armed by someone else: not ours (only an addressed takeover hands it over)"
+    NOT_READY = "not arming: the vehicle is not ready"
+    GO = "go: arming"
+    TAKEOFF_TIMEOUT = "take-off timed out: landing"
+    LOW_BATTERY = "battery below the minimum"
     ARMED = "armed in offboard/guided"
     ARM_FAILED = "failed: not armed in offboard/guided"
     TAKING_OVER = "already flying: taking over"
@@ -160,6 +169,12 @@ class VehicleStatus(NamedTuple):
     fix_t_s: float | None = None
     """The autopilot's own time of the newest fix [s] (``PositionSample.autopilot_t_s``), None when the
     link gives none: the velocity-estimate bias is learnt on this clock, else on the fix's receive time."""
+    health: VehicleHealth = VehicleHealth()
+    """The autopilot's own view of its health (battery, landed state, estimator)."""
+    integrity_ok: bool = True
+    """The position track is consistent (no estimator reset or jump since a consistent track)."""
+    integrity_reason: str = ""
+    """Why it is not ("" when it is)."""
 
 
 class MissionOutput(NamedTuple):

@@ -271,7 +271,7 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
     from fisc_agent.config import AgentConfig
     from fisc_agent.flight.tracking import TrackingConfig
 
-    return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path,
+    return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path, go=True, state_file=None,
                        autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
                        exit_policy=job.exit_policy, geofence=job.geofence,
                        entry_radius_fraction=job.entry_radius_fraction, wall_margin_m=None,

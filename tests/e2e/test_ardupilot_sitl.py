@@ -49,7 +49,7 @@ def test_one_arducopter_from_the_ground_through_the_duct_and_out_then_brake_hold
     with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1) as run:
         procs = Processes(tmp_path / "logs")
         try:
-            agent = procs.start("agent1", cli("fisc-agent") + [
+            agent = procs.start("agent1", cli("fisc-agent") + ["--go", 
                 "--map", path, "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "ardupilot",
                 "--flight-log", log])
             assert poll(lambda: _exit_held(log, 10.0) or not agent.alive, 180.0, 0.5) and agent.alive, \
@@ -77,7 +77,7 @@ def test_three_arducopters_over_zenoh_with_geodetic_anchors(shared_path, tmp_pat
         try:
             procs.start("publisher", ground("publish", served, "--swarm", "apsitl", "--zenoh-config", hub))
             for i in range(n):
-                procs.start(f"agent{i}", cli("fisc-agent") + [
+                procs.start(f"agent{i}", cli("fisc-agent") + ["--go", 
                     "--swarm", "apsitl", "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "ardupilot",
                     "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", 2.0, "--entry-slots", n, "--flight-log", logs[i]])

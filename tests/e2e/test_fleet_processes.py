@@ -163,7 +163,7 @@ def _start_vehicle(fleet: Fleet, agent_id: int) -> None:
     fleet.procs.start(f"autopilot-{agent_id}", cli("fisc-sim") + [
         "autopilot", "--mavlink", f"udpin:127.0.0.1:{port}", "--personality", PERSONALITY[agent_id],
         f"--start=-3,{east},{down}", "--sysid", agent_id])
-    fleet.procs.start(f"agent-{agent_id}", cli("fisc-agent") + [
+    fleet.procs.start(f"agent-{agent_id}", cli("fisc-agent") + ["--go", 
         "--zenoh-config", fleet.member_cfg, "--swarm", SWARM, "--trusted-key", fleet.ground_pub,
         "--mavlink", f"udpout:127.0.0.1:{port}", "--id", agent_id,
         "--origin", "0,0,-4", "--exit-policy", "loop", "--join-speed", "3", "--telemetry-rate", "5",

@@ -86,7 +86,7 @@ def test_lean_agent_flies_the_emulator_through_the_tunnel(lean_venv, tmp_path):
     try:
         emu = procs.start("autopilot", cli("fisc-sim") + ["autopilot", "--mavlink", f"udpin:127.0.0.1:{port}",
                                                           "--personality", "px4"])
-        agent = procs.start("agent", [lean_venv / "bin" / "fisc-agent", "--map", cmap, "--mavlink",
+        agent = procs.start("agent", [lean_venv / "bin" / "fisc-agent", "--go", "--map", cmap, "--mavlink",
                                       f"udpout:127.0.0.1:{port}", "--id", "1", "--origin", "0,0,-4",
                                       "--takeoff-alt", "1", "--climb-speed", "2", "--join-speed", "3",
                                       "--max-accel", "6", "--exit-policy", "hold", "--flight-log", log,

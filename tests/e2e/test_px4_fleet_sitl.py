@@ -95,7 +95,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
         try:
             procs.start("publisher", ground("publish", served, "--swarm", SWARM, "--zenoh-config", hub))
             for i in range(N):
-                procs.start(f"agent{i}", cli("fisc-agent") + [
+                procs.start(f"agent{i}", cli("fisc-agent") + ["--go", 
                     "--swarm", SWARM, "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
                     "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", STAGGER_S, "--entry-slots", max(N, 2),

@@ -120,10 +120,10 @@ def test_trusted_key_requires_a_signature_by_that_key(tmp_path, caplog):
 def test_sigterm_holds_the_vehicle_and_exits_cleanly(tmp_path, udp_port):
     mp = tmp_path / "tunnel.fiscmap"
     mp.write_bytes(tunnel_map_bytes())
-    emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{udp_port}", personality="px4", start_ned=(-3.0, 0.0, -2.0)).start()
+    emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{udp_port}", personality="px4", start_ned=(-3.0, 0.0, 0.0)).start()
     probe = EmulatorProbe(emu)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--map", str(mp), "--mavlink",
+    proc = subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--go", "--map", str(mp), "--mavlink",
                              f"udpin:127.0.0.1:{udp_port}", "--id", "2", "--origin", "0,0,-4", "--takeoff-alt", "1"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

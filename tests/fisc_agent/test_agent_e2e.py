@@ -71,7 +71,7 @@ class Flight:
 
 
 def agent_cfg(url, **kw):
-    base = dict(mavlink_url=url, agent_id=3, origin_ned_m=(0.0, 0.0, -4.0), takeoff_alt_m=1.0, max_speed_m_s=5.0,
+    base = dict(mavlink_url=url, agent_id=3, go=True, origin_ned_m=(0.0, 0.0, -4.0), takeoff_alt_m=1.0, max_speed_m_s=5.0,
                 max_accel_m_s2=6.0, join_speed_m_s=3.0, climb_speed_m_s=2.0, exit_clearance_m=1.0)
     base.update(kw)
     return AgentConfig(**base)
@@ -158,7 +158,7 @@ PX4_HOLD = (4.0, 3.0)  # DO_SET_MODE param2/param3 of AUTO.LOITER ("Hold")
 PX4_OFFBOARD = (6.0, 0.0)
 
 
-def _emulated_flight(personality, port, start_ned=(-3.0, 0.0, -2.0), home_lla=None, **kw):
+def _emulated_flight(personality, port, start_ned=(-3.0, 0.0, 0.0), home_lla=None, **kw):
     """The project's emulator sending to the agent's udpin port, with a probe on what it receives."""
     extra = {} if home_lla is None else {"home_lla": home_lla}
     emu = server.AutopilotEmulator(f"udpout:127.0.0.1:{port}", personality=personality, start_ned=start_ned,

@@ -11,6 +11,7 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import MapGeometry, ScalarField, clamp_velocity, distance
 from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
+from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand
 from fisc_agent.flight.tracking import TrackingConfig
 
 DT = 0.05
@@ -89,7 +90,7 @@ class SimVehicle:
 
 
 def make(sfield, autopilot="px4", **kw):
-    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=2, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
+    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=2, go=True, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
                 max_speed_m_s=4.0, max_accel_m_s2=6.0, join_speed_m_s=3.0, climb_speed_m_s=2.0)
     base.update(kw)
     cfg = AgentConfig(**base)
@@ -326,8 +327,12 @@ def test_pilot_override_is_hands_off(sfield):
     assert m.reason.startswith("pilot override") and "hands off" in m.reason
     outs = run_for(m, v, cfg, 4.0)
     assert all(o.want_mode is None and o.velocity_m_s is None for o in outs) and v.mode == "other"
-    m.command("resume")
+    m.command("resume")                              # a swarm-wide resume does not take the vehicle back
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.hands_off and all(o.want_mode is None and o.velocity_m_s is None for o in outs)
+    m.command(FleetOrder(MissionCommand.RESUME, addressed=True))   # one addressed to this agent does
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 10)
+    assert m.authority == Authority.COMMAND
 
 
 def test_mode_taken_during_a_hold_is_respected(sfield):
@@ -348,7 +353,7 @@ def test_autopilot_failsafe_mode_while_landing_is_respected(sfield):
     run_for(m, v, cfg, 0.5)
     v.mode = "other"                                 # e.g. the pilot takes over during the descent
     outs = run_for(m, v, cfg, 2.0)
-    assert m.state == State.HOLD and "while landing" in m.reason and outs[-1].want_mode is None
+    assert m.state == State.HOLD and "in LAND" in m.reason and outs[-1].want_mode is None
 
 
 def test_arming_timeout_fails_the_mission(sfield):
@@ -387,11 +392,21 @@ def test_map_swap_during_join_replans(sfield, tunnel_map):
     assert v.pos[0] >= 4.0
 
 
-def test_restart_in_the_air_takes_over(sfield):
+def test_restart_in_the_air_does_not_take_over(sfield):
+    """An agent (re)started on an armed vehicle, even with --go, sends nothing: it is not ours."""
     cfg, m, v = make(sfield)
     v.armed, v.mode, v.pos = True, "offboard", [1.0, 0.1, 0.1]
+    outs = run_for(m, v, cfg, 5.0)
+    assert m.state == State.STANDBY and m.authority == Authority.NOT_OURS and m.reason.cause == Cause.NOT_OURS
+    assert all(o.want_mode is None and o.want_armed is None and o.velocity_m_s is None for o in outs)
+    for order in (FleetOrder(MissionCommand.GO), FleetOrder(MissionCommand.RESUME, addressed=True),
+                  FleetOrder(MissionCommand.TAKEOVER)):  # no go, no resume, no swarm-wide takeover hands it over
+        m.command(order)
+        outs = run_for(m, v, cfg, 1.0)
+        assert m.authority == Authority.NOT_OURS and all(o.velocity_m_s is None for o in outs)
+    m.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))   # only an addressed takeover does
     run(m, v, cfg, lambda m, v, o: True)
-    assert m.state == State.FLOW and "taking over" in m.reason
+    assert m.state == State.FLOW and "taking over" in m.reason and m.authority == Authority.COMMAND
 
 
 class ArduCopterVehicle(SimVehicle):
@@ -444,7 +459,10 @@ def test_autopilot_failsafe_during_a_stale_hold_is_hands_off(sfield):
     assert m.state == State.HOLD and m.reason.startswith("pilot override") and "hands off" in m.reason
     assert all(o.state == State.HOLD and o.want_mode is None and o.velocity_m_s is None for o in outs)
     assert v.mode == "hold" and v.modes == modes_requested
-    m.command("resume")                              # only a fleet resume takes the vehicle back
+    m.command("resume")                              # a swarm-wide resume does not take the vehicle back ...
+    run_for(m, v, cfg, 1.0)
+    assert m.hands_off and v.modes == modes_requested
+    m.command(FleetOrder(MissionCommand.RESUME, addressed=True))   # ... a resume addressed to it does
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 10)
 
 
@@ -573,7 +591,7 @@ def test_join_corrects_the_velocity_estimate_bias_and_crosses_at_its_entry_point
     assert m.tracker.bias_m_s[1] == pytest.approx(0.4, abs=0.05)
     cfg, m, v = flight(TrackingConfig(bias_time_constant_s=0.0))     # no bias learnt: the old join
     run_for(m, v, cfg, 30.0)
-    stage = m._waypoints[-2]
+    stage = m.nav.waypoints[-2]
     assert m.state == State.JOIN and math.hypot(v.pos[1] - stage[1], v.pos[2] - stage[2]) > 0.3
 
 
@@ -699,7 +717,7 @@ def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
     """A vehicle that gives too little excitation (a hover-like join) is not identified; the agent
     says so once and flies on with the given look-ahead (no warning per tick of the final leg)."""
     cfg, m, v = make(sfield)
-    m._recorder.max_samples = 0          # nothing recorded: the fit must refuse
+    m.nav.recorder.max_samples = 0          # nothing recorded: the fit must refuse
     with caplog.at_level("WARNING", logger="fisc_agent.flight.mission"):
         run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
     assert m.response is None

@@ -103,7 +103,7 @@ class MemoryLink(RecordingVehicle):
 
 def make(link=MemoryLink, **kw):
     clock = Clock()
-    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
+    base = dict(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, go=True, origin_ned_m=(0.0, 0.0, -3.0), takeoff_alt_m=1.0,
                 max_speed_m_s=3.0, max_accel_m_s2=2.0, join_speed_m_s=2.5, climb_speed_m_s=1.0)
     base.update(kw)
     cfg = AgentConfig(**base)
@@ -252,7 +252,7 @@ def test_map_offers_and_fleet_commands_from_another_thread_while_running():
     import threading
     import time
 
-    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, origin_ned_m=(0.0, 0.0, -3.0), rate_hz=50.0)
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, go=True, origin_ned_m=(0.0, 0.0, -3.0), rate_hz=50.0)
     link = MemoryLink(time.monotonic)
     r = Runner(cfg, link, decode_map(tunnel_map_bytes()))
     stop = threading.Event()

@@ -159,7 +159,7 @@ def start_emulator(procs: Processes, name: str, mavlink: str, start: str = "-3,0
 
 
 def agent_argv(mavlink: str, *extra) -> list:
-    return cli("fisc-agent") + ["--mavlink", mavlink, "--id", AGENT_ID, "--origin", "0,0,-4",
+    return cli("fisc-agent") + ["--go", "--mavlink", mavlink, "--id", AGENT_ID, "--origin", "0,0,-4",
                                 "--exit-policy", "loop", "--join-speed", "3", *extra]
 
 

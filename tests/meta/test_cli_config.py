@@ -39,6 +39,10 @@ AGENT = {
     "--wall-margin": "AgentConfig.wall_margin_m",
     "--stale-timeout": "AgentConfig.stale_timeout_s", "--hold-grace": "AgentConfig.hold_grace_s",
     "--link-timeout": "AgentConfig.link_timeout_s", "--source-system": "AgentConfig.source_system",
+    "--go": "AgentConfig.go", "--target-system": "AgentConfig.target_system",
+    "--min-battery": "AgentConfig.min_battery_pct", "--low-battery-action": "AgentConfig.low_battery_action",
+    "--takeoff-timeout": "AgentConfig.takeoff_timeout_s", "--max-start-distance": "AgentConfig.max_start_distance_m",
+    "--state-file": "AgentConfig.state_file",
 }
 AGENT_NO_FIELD = {
     "--flight-log": "an output file of the process (fisc_agent.cli.run's flight_log), not a flight setting",

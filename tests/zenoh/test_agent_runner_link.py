@@ -44,7 +44,7 @@ def test_runner_waits_for_the_zenoh_map_flies_it_and_obeys_hold(net, sessions, g
     stop = threading.Event()
     link = runner = th = None
     try:
-        cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{emu.local_address[1]}", agent_id=3,
+        cfg = AgentConfig(mavlink_url=f"udpout:127.0.0.1:{emu.local_address[1]}", agent_id=3, go=True,
                           origin_ned_m=(0.0, 0.0, -4.0), takeoff_alt_m=1.0, join_speed_m_s=3.0, climb_speed_m_s=2.0,
                           max_accel_m_s2=6.0, exit_clearance_m=1.0)
         runner = Runner(cfg, MavlinkLink(cfg.mavlink_url))

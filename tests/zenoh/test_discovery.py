@@ -62,7 +62,7 @@ class Lab:
                                  "7" if first else "6", "--map-timeout", "0.5"],
             "status": ground + ["status", "--swarm", SWARM, "--json", "--wait", wait],
             "cmd": ground + ["cmd", "hold", "--swarm", SWARM, "--key", f["key"], "--wait", wait, "--ack-wait", "5"],
-            "agent": [sys.executable, "-m", "fisc_agent.cli", "--swarm", SWARM, "--trusted-key", f["pub"],
+            "agent": [sys.executable, "-m", "fisc_agent.cli", "--go", "--swarm", SWARM, "--trusted-key", f["pub"],
                       "--mavlink", f"udpin:127.0.0.1:{free_port()}", "--id", str(AGENT_ID), "--max-duration", "30"],
         }[name]
 

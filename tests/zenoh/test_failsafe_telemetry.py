@@ -185,7 +185,7 @@ def test_agent_process_held_by_its_geofence_raises_the_monitor_failsafe_alarm(tm
             procs.append(subprocess.Popen([sys.executable, "-m", "sim.cli", "autopilot", "--mavlink",
                                            f"udpin:127.0.0.1:{udp}", "--personality", "px4", "--start=1,0,-4"],
                                           env=env, stdout=log_ap, stderr=subprocess.STDOUT))
-            procs.append(subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--map", map_path, "--swarm", "fs",
+            procs.append(subprocess.Popen([sys.executable, "-m", "fisc_agent.cli", "--go", "--map", map_path, "--swarm", "fs",
                                            "--trusted-key", pub, "--mavlink", f"udpout:127.0.0.1:{udp}", "--id", "5",
                                            "--origin", "0,0,-4", "--geofence", "hold", "--max-duration", "60"],
                                           env=env, stdout=log_ag, stderr=subprocess.STDOUT))

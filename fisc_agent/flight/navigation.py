@@ -1,0 +1,203 @@
+"""Where the vehicle flies (the mission's navigation, pure): the map's geometry and entry point,
+the join and return plans, streamline tracking and the in-flight identification that tunes it.
+
+``fisc_agent.flight.mission`` decides *when* (states, authority, failsafes); a ``Navigator``
+answers *where to* and *how fast*: waypoints to the inlet, the field's command, the velocity
+towards a point corrected for the velocity-estimate bias.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import Callable
+
+from fisc_agent.config import AgentConfig
+from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
+                                       entry_slot_open, goto_velocity, join_waypoints, lap_return_waypoints)
+from fisc_agent.flight.identify import ResponseRecorder, VehicleResponse
+from fisc_agent.flight.tracking import ParcelTracker
+from fisc_agent.map.lookup import POINT_MODES
+
+log = logging.getLogger("fisc_agent.flight.mission")
+
+
+class Navigator:
+    """The map-dependent plans of one vehicle's mission."""
+
+    def __init__(self, cfg: AgentConfig) -> None:
+        self.cfg = cfg
+        self.sfield: ScalarField | None = None
+        self.geom: MapGeometry | None = None
+        self.entry: Vec | None = None
+        self.tracker = ParcelTracker(cfg.tracking)
+        self.tracked_mode = "mean"
+        self.kinetic = False
+        self.response: VehicleResponse | None = None
+        """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
+        self.recorder = ResponseRecorder()
+        self._identify_tried = False
+        self.waypoints: list[Vec] = []
+        self.wp_index = 0
+        self.wait_index = 0
+        self.entry_lead_s = 0.0
+        self.entry_cleared = False
+        self.target: Vec | None = None
+
+    def set_map(self, sfield: ScalarField) -> None:
+        """Use a new map (the mission re-plans a join or return in progress)."""
+        self.sfield = sfield
+        self.geom = MapGeometry.from_field(sfield.field)
+        self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
+        self.tracker.x_outlet_m = self.geom.x_outlet_m
+        self.tracker.clear()  # a parcel of the old map means nothing in the new one
+        mode = sfield.settings(self.cfg.mode).mode
+        # kinetic under streamline tracking: the parcel follows the staggered field and carries the
+        # agent's deviation (ParcelTracker.step), when the mode was asked for explicitly
+        self.tracked_mode = "staggered" if mode == "kinetic" else mode
+        self.kinetic = mode == "kinetic" and self.cfg.mode == "kinetic"
+        if mode == "kinetic" and not self.kinetic and self.cfg.tracking.gain_1_s > 0.0:
+            log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "
+                        "with an explicit --mode kinetic (which turns them within --wall-margin of the map's real "
+                        "wall: docs/deployment.md); flying the map's staggered field")
+        if self.response is None:
+            self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self.lookahead_s())
+
+    # ---- identification ------------------------------------------------------------------
+    def record_response(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
+        """Record a streamed setpoint and the measured velocity for identification."""
+        if self.response is None:
+            self.recorder.add(t, (sp_m_s[0], sp_m_s[1]), (vel_m_s[0], vel_m_s[1]))
+
+    def identify(self) -> None:
+        """Fit the velocity response once (``lookahead_auto``) and tune the tracker's feed-forward."""
+        if not self.cfg.lookahead_auto or self._identify_tried:
+            return
+        self._identify_tried = True  # once: the final leg calls this every tick
+        resp = self.recorder.fit()
+        if resp is None:
+            log.warning("velocity response not identified (%d samples, too little excitation); flying with "
+                        "look-ahead %.2f s, feed-forward gain %.2f", len(self.recorder),
+                        self.tracker.cfg.lookahead_s, self.tracker.cfg.feedforward_gain)
+            return
+        self.response = resp
+        self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=resp.lookahead_s,
+                                   feedforward_gain=resp.feedforward_gain)
+        log.info("velocity response identified from %d samples: lag %.2f s, dead time %.2f s, gain %.2f (bound over "
+                 "halves %.2f), rise time %.2f s, max accel %.1f m/s^2 -> look-ahead %.2f s, feed-forward gain %.2f",
+                 resp.n_samples, resp.lag_s, resp.dead_time_s, resp.gain, resp.gain_bound, resp.rise_time_s,
+                 resp.max_accel_m_s2, resp.lookahead_s, resp.feedforward_gain)
+
+    # ---- plans ---------------------------------------------------------------------------
+    def plan_join(self, pos: Vec, home: Vec | None, wait_where_planned: bool) -> None:
+        """Waypoints from ``pos`` to the agent's entry point (via its wait point with a stagger)."""
+        assert self.geom is not None and self.entry is not None
+        cfg = self.cfg
+        # With a stagger, a join waits for its window where it starts (after take-off: above the
+        # vehicle's own launch point; after a hold: where it held), and leaves early by its flight to
+        # the staging point S: it reaches S as its window opens and flies on without stopping.
+        # Waiting at S, the agents stood at their entry points' (y, z), decimetres apart (PX4 SITL:
+        # 0.19 m by SIH's ground truth).  A lap's return waits where its first join did, above its
+        # launch point, reached over the tunnel (``lap_return_waypoints``).
+        wait_at: Vec | None = None
+        route: list[Vec] = []
+        if cfg.entry_stagger_s > 0:
+            if wait_where_planned:
+                wait_at = pos
+            elif home is not None:
+                wait_at = (home[0], home[1], home[2] + cfg.takeoff_alt_m)
+                route = lap_return_waypoints(pos, wait_at, self.geom, cfg.keepout_margin_m)[:-1]
+        path = join_waypoints(pos if wait_at is None else wait_at, self.entry, self.geom, cfg.staging_m,
+                              cfg.keepout_margin_m)
+        self.waypoints = route + ([] if wait_at is None else [wait_at]) + path
+        self.wait_index = len(self.waypoints) - 2 if wait_at is None else len(route)
+        legs = self.waypoints[self.wait_index:-1]
+        self.entry_lead_s = sum(approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m)
+                                for a, b in zip(legs, legs[1:]))
+        self.wp_index = 0
+        self.entry_cleared = False
+
+    def join_step(self, pos: Vec, cv: int, wall_time_s: float) -> Vec | None:
+        """JOIN's velocity: along the waypoints, waiting at the wait point for the agent's entry window
+        (on the shared clock ``wall_time_s``), then across the inlet plane at the flow's own speed;
+        None once the last waypoint is passed inside the map (the vehicle has entered the flow)."""
+        cfg = self.cfg
+        last = len(self.waypoints) - 1
+        while self.wp_index < last and distance(pos, self.waypoints[self.wp_index]) < cfg.waypoint_radius_m:
+            self.wp_index += 1
+        if self.wp_index > self.wait_index and not self.entry_cleared:  # at the wait point (or past a copy)
+            if not entry_slot_open(wall_time_s + self.entry_lead_s, cfg.agent_id, cfg.entry_stagger_s,
+                                   cfg.entry_slots):
+                return self.goto(pos, self.waypoints[self.wait_index], cfg.join_speed_m_s)
+            self.entry_cleared = True
+            if cfg.entry_stagger_s > 0:
+                log.info("entry slot open: on to the inlet")
+        if self.wp_index == last and cv >= 0:
+            return None
+        vel = self.goto(pos, self.waypoints[self.wp_index], cfg.join_speed_m_s)
+        if self.wp_index == last:  # final leg: cross the inlet plane at the flow's own speed
+            self.identify()
+            v_in = self.field_command(*self.waypoints[last])
+            crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
+            vel = (max(vel[0], crawl), vel[1], vel[2])
+        return vel
+
+    def plan_return(self, pos: Vec) -> None:
+        """Geofence return: head for the CV nearest to ``pos``."""
+        assert self.sfield is not None
+        self.target = self.sfield.centers[self.sfield.nearest_cv(*pos)]
+
+    # ---- velocities ----------------------------------------------------------------------
+    def return_velocity(self, pos: Vec) -> Vec:
+        """Geofence ``return``: near the map, rejoin the flow of the nearest CV (the simulator's rule,
+        ``ScalarField.return_command``); farther, fly straight back to the CV chosen on leaving."""
+        near = self.sfield.return_command(pos)
+        return self.goto(pos, self.target, self.cfg.return_speed_m_s) if near is None else self.unbiased(near)
+
+    def goto(self, pos: Vec, target: Vec, speed_m_s: float) -> Vec:
+        """``goto_velocity`` towards ``target``, corrected for the velocity-estimate bias (``unbiased``)."""
+        return self.unbiased(goto_velocity(pos, target, speed_m_s))
+
+    def unbiased(self, v: Vec) -> Vec:
+        """``v`` minus the bias of the autopilot's velocity estimate learnt so far (``ParcelTracker.observe``,
+        every tick).  An autopilot holds its *estimated* velocity at the setpoint, so with a biased estimate
+        (PX4 SIH early in a flight, and after a hold: up to 0.8 m/s) a proportional approach settles
+        bias / gain short of its waypoint.  Measured on PX4 SITL (the three-vehicle fleet test): the
+        vehicles crossed the inlet 0.54-0.85 m off their entry points without it (one then flew along
+        the wall and left the converging section), 0.20-0.28 m with it.  Streamline tracking subtracts
+        the same bias while flowing."""
+        b = self.tracker.bias_m_s
+        return (v[0] - b[0], v[1] - b[1], v[2] - b[2])
+
+    def field_command(self, x: float, y: float, z: float) -> Vec | None:
+        """The map's command at a point in the tracked mode (None outside the map's CVs)."""
+        mode = self.tracked_mode
+        if mode in POINT_MODES:
+            return self.sfield.command(x, y, z, self.cfg.agent_id, mode)
+        return self.sfield.flight((x, y, z), None, self.cfg.agent_id, 0.0, mode, 0.0)
+
+    def flow_velocity(self, t: float, pos: Vec, vel: Vec | None, cv: int) -> Vec | None:
+        """The FLOW setpoint: the simulator's command function open loop (tracking gain 0), else the
+        tracked parcel's (with the kinetic deviation when flying ``--mode kinetic``)."""
+        cfg = self.cfg
+        if cfg.tracking.gain_1_s == 0.0:
+            return self.sfield.flight(pos, vel, cfg.agent_id, t, cfg.mode, self.lookahead_s(), cv)
+        deviation = self._deviation_fn(t, vel) if self.kinetic else None
+        out = self.tracker.step(t, pos, self.field_command, deviation)
+        if out is None:  # the parcel's CV vanished with a new map: fly the field where we are
+            self.tracker.reset(pos, t)
+            out = self.field_command(*pos)
+        return out
+
+    def _deviation_fn(self, t: float, vel: Vec | None) -> Callable[[Vec], Vec]:
+        """The ``kinetic`` deviation at time ``t`` as a function of the parcel's position (for
+        ``ParcelTracker.step``; the vehicle's velocity sets the wall-reflection zone)."""
+        return lambda p: self.sfield.deviation(p, vel, self.cfg.agent_id, t, self.cfg.wall_margin_m)
+
+    def lookahead_s(self) -> float:
+        """Look-ahead in use: identified in flight (``lookahead_auto``), else given, else the map's."""
+        if self.response is not None:
+            return self.response.lookahead_s
+        if self.cfg.lookahead_s is not None:
+            return float(self.cfg.lookahead_s)
+        return self.sfield.settings().lookahead_s if self.sfield is not None else 0.0
