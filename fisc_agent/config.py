@@ -19,7 +19,7 @@ class ExitPolicy(StrEnum):
     HOLD = "hold"
     """Stop ``exit_clearance_m`` beyond the outlet at the agent's own point (``exit_spacing_m``) and hold (latched)."""
     LAND = "land"
-    """Land beyond the outlet."""
+    """Land straight below the agent's own hold spot beyond the outlet (``exit_spacing_m`` apart horizontally)."""
     LOOP = "loop"
     """Fly back to the inlet outside the tunnel and go round again (``laps``)."""
 
@@ -114,18 +114,24 @@ class AgentConfig:
     """Acceptance radius of join waypoints [m]."""
     entry_radius_fraction: float = 0.6
     """Entry points are spread over this fraction of the inlet radius (``control.entry_point``): 0.6
-    keeps a real duct's wall clear; 1 spreads them over every inlet CV (``fisc-sim emulate``'s default)."""
+    keeps a real duct's wall clear; 1 spreads them over every inlet CV (``fisc-sim emulate``'s default).
+    Ids 0..63 have 64 distinct points (``fisc_agent.flight.spacing.ENTRY_POINTS``), at least 0.193 x this
+    fraction x the inlet radius apart when all lie in inlet CVs (0.6: 0.12 m on a 1 m inlet)."""
     entry_stagger_s: float = 0.0
     """Staggered entry: agents cross the inlet in windows of this length on the shared clock, agent i in
     window ``i mod entry_slots`` (``control.entry_slot_open``); 0 = enter as soon as staged [s]."""
     entry_slots: int = 8
-    """Number of entry windows in a stagger cycle (agents with equal ``id mod entry_slots`` share one)."""
+    """Number of entry windows in a stagger cycle (agents with equal ``id mod entry_slots`` share one).
+    Two ids share both their window and their entry point only if they are equal modulo
+    lcm(64, ``entry_slots``): never among ids 0..63."""
     exit_clearance_m: float = 2.0
     """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
     exit_spacing_m: float = 1.5
-    """With exit ``hold``/``land``: least distance between two agents' stopping points
-    (``control.hold_point``: agent i takes point i of a spiral around the tunnel's axis, skipping points
-    below the tunnel) [m]."""
+    """With exit ``hold``/``land``: least horizontal distance between two agents' hold spots, and so
+    between their landing spots (``control.hold_point``: a square lattice of this pitch in the horizontal
+    plane from ``exit_clearance_m`` beyond the outlet, agent i on the i-th site nearest the axis; any two
+    ids, not only 0..49, are at least this far apart).  Spots are at the axis height, at least
+    ``spacing.HOLD_FLOOR_MARGIN_M`` above the tunnel's floor [m]."""
     go: bool = False
     """Permission to arm and fly one flight given on the command line (``--go``: a bench or SITL
     flight); without it the agent waits disarmed for a fleet ``go`` / ``start-at``."""

@@ -29,6 +29,7 @@ from fisc_agent.map.lookup import (
 )
 from fisc_agent.map.codec import MapError, MapErrorKind
 from fisc_agent.map.wall import DuctWall, reflect_at_wall
+from fisc_agent.flight.spacing import ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, hold_altitude_m, lattice_hold_points
 
 Vec = tuple[float, float, float]
 ZERO: Vec = (0.0, 0.0, 0.0)
@@ -263,7 +264,7 @@ class MapGeometry:
 
 
 def entry_points(geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
-                 n_points: int = 32) -> list[Vec]:
+                 n_points: int = ENTRY_POINTS) -> list[Vec]:
     """The entry points of the inlet disc (first CV slice, map frame), ``entry_point``'s table.
 
     Points of a Vogel (golden-angle) spiral, area-uniform over ``radius_fraction`` of the inlet
@@ -295,49 +296,39 @@ def entry_points(geom: MapGeometry, sfield: ScalarField, radius_fraction: float 
 
 
 def entry_point(agent_id: int, geom: MapGeometry, sfield: ScalarField, radius_fraction: float = 0.6,
-                n_points: int = 32) -> Vec:
-    """Deterministic entry point of an agent: point ``agent_id mod len`` of ``entry_points``."""
+                n_points: int = ENTRY_POINTS) -> Vec:
+    """Deterministic entry point of an agent: point ``agent_id mod len`` of ``entry_points``.
+
+    With the default 64 points, ids 0..63 each have their own point (whatever their entry windows);
+    id 64 shares id 0's point, id 64 + k id k's (and, with 8 windows, its window too)."""
     pts = entry_points(geom, sfield, radius_fraction, n_points)
     return pts[int(agent_id) % len(pts)]
 
 
-VOGEL_MIN_SPACING = 1.546
-"""Least distance between two points of the spiral r_k = sqrt(k + 1/2), theta_k = k x golden angle
-(``hold_point``), in units of its scale; checked for the first 5000 points in the tests."""
-
-
-def hold_points(n: int, geom: MapGeometry, x_m: float, spacing_m: float) -> np.ndarray:
-    """(n, 3) the hold points of agents 0..n-1 in the plane ``x = x_m``, each at least ``spacing_m``
-    from any other: the first n points of an unbounded Vogel spiral around the tunnel's axis that lie
-    no lower than the tunnel's lowest CV (``geom.lo_m[2]``).
+def hold_points(n: int, geom: MapGeometry, x_m: float, spacing_m: float, min_z_m: float | None = None,
+                floor_margin_m: float = HOLD_FLOOR_MARGIN_M) -> np.ndarray:
+    """(n, 3) the exit hold spots of agents 0..n-1 (map frame), ``fisc_agent.flight.spacing``'s layout:
+    a square lattice of pitch ``spacing_m`` in the horizontal plane, from ``x = x_m`` downstream, filled
+    as a half disc around the tunnel's axis; any two spots at least ``spacing_m`` apart horizontally
+    (so are the landing spots below them), whatever the ids.  Their altitude: the axis height, raised to
+    ``floor_margin_m`` above the tunnel's lowest CV face and to ``min_z_m`` where given
+    (``spacing.hold_altitude_m``).
 
     Agents leave the outlet within a few decimetres of each other; held where they left it, two PX4
-    SITL vehicles hovered 0.11-0.30 m apart (SIH ground truth).  The spiral's radius grows as
-    sqrt(id), so a whole spiral would put large fleets below the tunnel (1000 agents at 1.5 m
-    spacing reach 31 m from the axis, under ground at a 10 m axis height); points below the tunnel's
-    floor are skipped, so every hold point is at least as high as the tunnel the vehicles just flew
-    (1000 agents on the default map: up to 42 m above its axis).  The layout depends only on the map,
+    SITL vehicles hovered 0.11-0.30 m apart (SIH ground truth).  The layout depends only on the map,
     so every agent computes the same one.
     """
-    if int(n) < 0:
-        raise ValueError(f"hold_points: the number of agents must be >= 0, got {n}")
-    cy, cz = geom.inlet_center_yz_m
-    m = 2 * int(n) + 16   # at least half of the spiral lies above the floor, through the axis
-    while True:
-        k = np.arange(m)
-        r = spacing_m / VOGEL_MIN_SPACING * np.sqrt(k + 0.5)
-        y, z = cy + r * np.cos(k * GOLDEN_ANGLE_RAD), cz + r * np.sin(k * GOLDEN_ANGLE_RAD)
-        keep = np.flatnonzero(z >= geom.lo_m[2])[:int(n)]
-        if keep.size == int(n):
-            return np.column_stack([np.full(keep.size, float(x_m)), y[keep], z[keep]])
-        m *= 2
+    z = hold_altitude_m(geom.inlet_center_yz_m[1], geom.lo_m[2], min_z_m, floor_margin_m)
+    return lattice_hold_points(n, x_m, geom.inlet_center_yz_m[0], z, spacing_m)
 
 
-def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float) -> Vec:
-    """Agent ``agent_id``'s own hold point: row ``agent_id`` of ``hold_points``."""
+def hold_point(agent_id: int, geom: MapGeometry, x_m: float, spacing_m: float, min_z_m: float | None = None,
+               floor_margin_m: float = HOLD_FLOOR_MARGIN_M) -> Vec:
+    """Agent ``agent_id``'s own hold spot: row ``agent_id`` of ``hold_points``.  ``min_z_m``: the
+    least altitude (map z), e.g. the vehicle's home z plus its take-off height."""
     if int(agent_id) < 0:
         raise ValueError(f"hold_point: agent id must be >= 0, got {agent_id}")
-    x, y, z = hold_points(int(agent_id) + 1, geom, x_m, spacing_m)[-1]
+    x, y, z = hold_points(int(agent_id) + 1, geom, x_m, spacing_m, min_z_m, floor_margin_m)[-1]
     return (float(x), float(y), float(z))
 
 

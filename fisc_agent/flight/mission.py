@@ -197,8 +197,9 @@ class Mission:
         elif dst == State.RETURN and pos is not None:
             self.nav.plan_return(pos)
         elif dst == State.EXIT and pos is not None and self.geom is not None:
+            floor = None if self._home is None else self._home[2] + self.cfg.takeoff_alt_m  # never below take-off height
             self.nav.target = hold_point(self.cfg.agent_id, self.geom, self.geom.x_outlet_m + self.cfg.exit_clearance_m,
-                                         self.cfg.exit_spacing_m)
+                                         self.cfg.exit_spacing_m, min_z_m=floor)
         elif dst == State.TAKEOFF:  # resuming an interrupted takeoff (a hold cuts ArduPilot's climb short)
             self._climb_by_velocity = (pos is not None and self._home is not None
                                        and pos[2] > self._home[2] + AIRBORNE_ABOVE_HOME_M)

@@ -1,0 +1,108 @@
+"""Where the vehicles of a swarm stand apart (pure): entry points in the inlet disc, exit holds and
+landing spots beyond the outlet, and the distance checks that state their guarantees.
+
+- **Entry.**  ``ENTRY_POINTS`` (64) entry points per inlet disc: agent ids 0..63 each have their own
+  point, so no two of them share an entry point, whatever their entry windows
+  (``control.entry_slot_open``).  The points are a Vogel (golden-angle) spiral, area-uniform over
+  the disc: 64 of them over a disc of radius rho stand at least ``VOGEL_64_MIN_SPACING`` x rho apart
+  (0.193 rho; the densest known packing of 64 points in a disc reaches about 0.24 rho).
+- **Exit.**  Hold spots lie on a square lattice of pitch ``spacing_m`` in the horizontal plane
+  (map x, y; map z is up, ``fisc_agent.flight.frames``), in the half-plane from ``exit_clearance_m``
+  beyond the outlet downstream.  Agent i takes the i-th lattice site in order of its distance from
+  the point on the axis where the lattice starts (a half disc that grows with the fleet), so any two
+  agents, whatever their ids, hold and land (straight down from their hold) at least ``spacing_m``
+  apart horizontally.  The sites are integer pairs, ordered by integer keys: every agent computes
+  the same layout, on any machine.
+- **Altitude.**  Every hold spot is at one altitude: the tunnel's axis height, raised to at least
+  ``HOLD_FLOOR_MARGIN_M`` above the tunnel's floor (its lowest CV face) and to at least a given
+  lower bound (the take-off height above the vehicle's home: the ground is not in the map, the home
+  is the one point known to stand on it).  So no hold spot lies below the ground or a tunnel floor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+ENTRY_POINTS = 64
+"""Entry points per inlet disc (``control.entry_points``): agent ids 0..63 have one each."""
+VOGEL_64_MIN_SPACING = 0.1932
+"""Least distance between two of the 64 points of a Vogel spiral filling a disc of radius 1
+(r_k = sqrt((k + 1/2) / 64), theta_k = k x golden angle), rounded down; checked in the tests."""
+HOLD_FLOOR_MARGIN_M = 1.0
+"""Least height of a hold spot above the tunnel's floor (its lowest CV face) [m]."""
+DISTANCE_TOLERANCE_M = 1e-9
+"""Rounding allowance of ``check_min_distance``: a layout whose points are exactly the bound apart
+passes although floating point puts some pairs 1e-16 m closer [m]."""
+
+
+def min_pairwise_distance_m(points_m: np.ndarray) -> float:
+    """Least distance between two rows of an (n, d) array of points [m]; +inf for fewer than two.
+
+    Pass (n, 2) horizontal coordinates for a horizontal distance, (n, 3) for a 3-D one."""
+    p = np.asarray(points_m, dtype=float)
+    if p.ndim != 2:
+        raise ValueError(f"min_pairwise_distance_m: points must be an (n, d) array, got shape {p.shape}")
+    if len(p) < 2:
+        return math.inf
+    best = math.inf
+    for i in range(len(p) - 1):   # row by row: O(n) memory for thousands of points
+        best = min(best, float(np.min(np.linalg.norm(p[i + 1:] - p[i], axis=1))))
+    return best
+
+
+def check_min_distance(points_m: np.ndarray, min_m: float, what: str = "layout") -> float:
+    """The least pairwise distance of ``points_m`` (``min_pairwise_distance_m``) [m]; ``ValueError``
+    naming ``what`` and the distance when it is below ``min_m`` (less ``DISTANCE_TOLERANCE_M``)."""
+    d = min_pairwise_distance_m(points_m)
+    if d < float(min_m) - DISTANCE_TOLERANCE_M:
+        raise ValueError(f"{what}: two points are {d:.6f} m apart, less than the required {min_m} m")
+    return d
+
+
+def hold_sites(n: int) -> np.ndarray:
+    """(n, 2) integer lattice sites (i, j) of agents 0..n-1: i >= 0 rows downstream, j columns across.
+
+    Sites in order of i^2 + j^2 (distance from the lattice's start on the axis), then of i (nearer
+    the outlet first), then |j|, then j: agents 0, 1, 2 take (0, 0), (0, -1), (0, 1).  Distinct agents
+    take distinct sites, so two sites are at least one pitch apart."""
+    n = int(n)
+    if n < 0:
+        raise ValueError(f"hold_sites: the number of agents must be >= 0, got {n}")
+    if n == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    reach = max(1, math.ceil(math.sqrt(2.0 * n / math.pi)) + 1)   # a half disc of radius reach holds > n sites
+    while True:
+        i, j = np.meshgrid(np.arange(reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+        i, j = i.ravel(), j.ravel()
+        d2 = i * i + j * j
+        inside = d2 <= reach * reach   # complete rings only: every site nearer than ``reach`` is listed
+        if int(inside.sum()) >= n:
+            i, j, d2 = i[inside], j[inside], d2[inside]
+            order = np.lexsort((j, np.abs(j), i, d2))[:n]
+            return np.column_stack([i[order], j[order]]).astype(np.int64)
+        reach *= 2
+
+
+def hold_altitude_m(axis_z_m: float, floor_z_m: float, min_z_m: float | None = None,
+                    floor_margin_m: float = HOLD_FLOOR_MARGIN_M) -> float:
+    """Altitude (map z, up) of every hold spot [m]: the tunnel's axis height ``axis_z_m``, raised to
+    ``floor_z_m + floor_margin_m`` (the tunnel's floor) and to ``min_z_m`` where given (e.g. home z +
+    take-off height: the vehicle's own ground)."""
+    vals = (axis_z_m, floor_z_m, floor_margin_m) + (() if min_z_m is None else (min_z_m,))
+    if not all(math.isfinite(float(v)) for v in vals):
+        raise ValueError(f"hold_altitude_m: non-finite input {vals!r}")
+    z = max(float(axis_z_m), float(floor_z_m) + float(floor_margin_m))
+    return z if min_z_m is None else max(z, float(min_z_m))
+
+
+def lattice_hold_points(n: int, x0_m: float, y_axis_m: float, z_m: float, pitch_m: float) -> np.ndarray:
+    """(n, 3) hold spots of agents 0..n-1 (map frame): site (i, j) of ``hold_sites`` at
+    (x0 + i pitch, y_axis + j pitch, z) [m].  Any two are at least ``pitch_m`` apart horizontally."""
+    if not (math.isfinite(pitch_m) and pitch_m > 0):
+        raise ValueError(f"lattice_hold_points: the pitch must be > 0 m, got {pitch_m!r}")
+    if not all(math.isfinite(float(v)) for v in (x0_m, y_axis_m, z_m)):
+        raise ValueError(f"lattice_hold_points: non-finite origin {(x0_m, y_axis_m, z_m)!r}")
+    s = hold_sites(n).astype(float)
+    return np.column_stack([x0_m + s[:, 0] * pitch_m, y_axis_m + s[:, 1] * pitch_m, np.full(len(s), float(z_m))])

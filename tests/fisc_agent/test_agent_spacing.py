@@ -1,0 +1,164 @@
+"""Spacing (issue 36, item 7): entry points and windows unique for ids 0..63, exit holds and landing
+spots >= 1.5 m apart horizontally, hold spots never below the tunnel's floor or a given ground."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from fisc_agent.config import AgentConfig
+from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, entry_point, entry_points,
+                                       entry_slot_open, hold_point, hold_points)
+from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
+                                       hold_altitude_m, hold_sites, lattice_hold_points, min_pairwise_distance_m)
+from fisc_agent.map.lookup import CommandField
+
+
+@pytest.fixture(scope="module")
+def maps(tunnel_map):
+    from fisc_ground.maps.build import load_shipped_default_map
+
+    out = {}
+    for name, m in (("tunnel", tunnel_map), ("default", load_shipped_default_map())):
+        f = CommandField.from_map(m)
+        out[name] = (MapGeometry.from_field(f), ScalarField(f))
+    return out
+
+
+def _window(agent_id, stagger_s, slots):
+    """The entry window an agent's ``entry_slot_open`` opens in, found from the clock alone."""
+    step = stagger_s / 16
+    opens = [k for k in range(16 * slots) if entry_slot_open(1e6 * stagger_s * slots + k * step, agent_id,
+                                                                stagger_s, slots)]
+    assert opens, agent_id
+    return opens[0] // 16
+
+
+# ---- the distance check itself -------------------------------------------------------------
+def test_check_min_distance_passes_at_the_bound_and_fails_just_below():
+    exact = lattice_hold_points(50, 3.7, -0.3, 2.0, 1.5)[:, :2]   # pitch 1.5 with rounding in the coordinates
+    assert check_min_distance(exact, 1.5) == pytest.approx(1.5, abs=1e-12)
+    planted = exact.copy()
+    planted[7] = planted[0] - [1.5 - 1e-6, 0.0]   # one pair just below the bound (upstream of the lattice)
+    assert min_pairwise_distance_m(planted) == pytest.approx(1.5 - 1e-6, abs=1e-12)
+    with pytest.raises(ValueError, match="holds: two points are 1.499999 m apart, less than the required 1.5 m"):
+        check_min_distance(planted, 1.5, "holds")
+    assert min_pairwise_distance_m(np.zeros((1, 2))) == math.inf == min_pairwise_distance_m(np.zeros((0, 2)))
+    with pytest.raises(ValueError, match=r"\(n, d\) array"):
+        min_pairwise_distance_m(np.zeros(3))
+
+
+# ---- entry points and windows -----------------------------------------------------------------
+def test_vogel_64_min_spacing_holds_and_is_not_loose():
+    k = np.arange(ENTRY_POINTS)
+    r = np.sqrt((k + 0.5) / ENTRY_POINTS)
+    unit = np.column_stack([r * np.cos(k * GOLDEN_ANGLE_RAD), r * np.sin(k * GOLDEN_ANGLE_RAD)])
+    d = check_min_distance(unit, VOGEL_64_MIN_SPACING, "Vogel 64")
+    assert d < VOGEL_64_MIN_SPACING + 1e-3
+
+
+@pytest.mark.parametrize("name", ["tunnel", "default"])
+@pytest.mark.parametrize("fraction, bound", [(0.6, VOGEL_64_MIN_SPACING), (1.0, 0.165)])
+def test_entry_points_are_64_distinct_spread_points_inside_the_inlet(maps, name, fraction, bound):
+    # fraction 0.6: every spiral point lies in an inlet CV, so the 64 are the Vogel layout itself;
+    # fraction 1 (fisc-sim emulate): points outside the staircase are skipped, a denser spiral fills in
+    g, sf = maps[name]
+    pts = np.array(entry_points(g, sf, fraction))
+    assert pts.shape == (ENTRY_POINTS, 3)
+    rho = fraction * g.inlet_radius_m
+    check_min_distance(pts[:, 1:], bound * rho, f"entry points of {name} at {fraction}")
+    r = np.hypot(pts[:, 1] - g.inlet_center_yz_m[0], pts[:, 2] - g.inlet_center_yz_m[1])
+    assert r.max() <= rho + 1e-9
+    assert all(sf.cv_of(*p) >= 0 for p in pts)
+    assert np.all(pts[:, 0] == g.x_inlet_m + 0.5 * g.cell_size_m)
+
+
+@pytest.mark.parametrize("slots", [1, 2, 6, 8, 16, 64])
+def test_no_two_ids_below_64_share_entry_point_and_window(maps, slots):
+    g, sf = maps["tunnel"]
+    key = {}
+    for i in range(64):
+        key[i] = (entry_point(i, g, sf), _window(i, 2.0, slots))
+    assert len(set(key.values())) == 64
+    assert len({p for p, _ in key.values()}) == 64          # the points alone are unique
+    # boundary: 63 is still unique, 64 takes 0's point, and its window whenever slots divides 64
+    assert key[63] not in [key[i] for i in range(63)]
+    p64 = entry_point(64, g, sf)
+    assert p64 == key[0][0]
+    assert (_window(64, 2.0, slots) == key[0][1]) == (64 % slots == 0)
+
+
+def test_entry_windows_are_id_mod_slots(maps):
+    assert [_window(i, 1.0, 8) for i in range(17)] == [i % 8 for i in range(17)]
+
+
+# ---- exit holds and landing spots ----------------------------------------------------------------
+def test_hold_sites_are_distinct_nearest_first_and_deterministic():
+    s = hold_sites(2000)
+    assert len({tuple(r) for r in s.tolist()}) == 2000 and s[:, 0].min() == 0
+    assert s[:3].tolist() == [[0, 0], [0, -1], [0, 1]]
+    d2 = s[:, 0] ** 2 + s[:, 1] ** 2
+    assert np.all(np.diff(d2) >= 0)                        # a half disc growing outwards
+    assert hold_sites(50).tolist() == s[:50].tolist()       # a prefix: an agent's site does not depend on n
+    assert hold_sites(0).shape == (0, 2)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        hold_sites(-1)
+
+
+@pytest.mark.parametrize("name", ["tunnel", "default"])
+def test_fifty_holds_are_the_default_spacing_apart_horizontally_beyond_the_outlet(maps, name):
+    g, _ = maps[name]
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=0)
+    assert cfg.exit_spacing_m == 1.5
+    x0 = g.x_outlet_m + cfg.exit_clearance_m
+    pts = hold_points(50, g, x0, cfg.exit_spacing_m)
+    d = check_min_distance(pts[:, :2], 1.5, "50 exit holds")   # horizontal: landing spots too
+    assert d == pytest.approx(1.5, abs=1e-9)                   # the lattice's pitch, not looser
+    assert pts[:, 0].min() == pytest.approx(x0) and np.all(pts[:, 0] >= x0 - 1e-12)
+    # boundaries: ids 0, 49 and 50 are their rows of the layout; 50 is 1.5 m or more from all of 0..49
+    assert [hold_point(k, g, x0, 1.5) for k in (0, 49)] == [tuple(pts[k]) for k in (0, 49)]
+    p50 = np.array(hold_point(50, g, x0, 1.5))
+    assert np.linalg.norm(pts[:, :2] - p50[:2], axis=1).min() >= 1.5 - 1e-9
+    assert hold_point(0, g, x0, 1.5)[:2] == pytest.approx((x0, g.inlet_center_yz_m[0]))
+
+
+def test_holds_beyond_fifty_keep_the_pitch_and_a_planted_layout_fails(maps):
+    g, _ = maps["tunnel"]
+    many = hold_points(1500, g, 5.0, 1.2)
+    assert check_min_distance(many[:, :2], 1.2) == pytest.approx(1.2, abs=1e-9)
+    too_tight = hold_points(50, g, 5.0, 1.5 - 1e-6)
+    with pytest.raises(ValueError, match="less than the required 1.5 m"):
+        check_min_distance(too_tight[:, :2], 1.5)
+    with pytest.raises(ValueError, match="pitch must be > 0"):
+        hold_points(3, g, 5.0, 0.0)
+    with pytest.raises(ValueError, match="agent id must be >= 0"):
+        hold_point(-1, g, 5.0, 1.5)
+
+
+# ---- altitude: never below the tunnel's floor or the ground ----------------------------------------
+def test_hold_altitude_clamps_to_floor_margin_and_minimum():
+    assert hold_altitude_m(0.0, -1.5) == 0.0                              # the axis, well above the floor
+    assert hold_altitude_m(-0.5, -1.5) == -0.5                            # axis exactly floor + margin
+    assert hold_altitude_m(-0.6, -1.5) == pytest.approx(-0.5)             # just below: raised to it
+    assert hold_altitude_m(0.0, -1.5, min_z_m=0.0) == 0.0                 # the minimum, equal
+    assert hold_altitude_m(0.0, -1.5, min_z_m=0.01) == 0.01               # just above: raised
+    assert hold_altitude_m(0.0, -1.5, min_z_m=-20.0) == 0.0               # a low minimum changes nothing
+    assert hold_altitude_m(0.0, -0.2, floor_margin_m=0.0) == 0.0
+    with pytest.raises(ValueError, match="non-finite"):
+        hold_altitude_m(float("nan"), 0.0)
+
+
+def test_hold_spots_never_below_the_floor_or_the_home_takeoff_height(maps):
+    g, _ = maps["tunnel"]
+    assert {p[2] for p in hold_points(50, g, 5.0, 1.5)} == {g.inlet_center_yz_m[1]}   # one plane: the axis
+    # a flat duct whose axis is 0.3 m above its floor: raised to the floor + margin
+    flat = dataclasses.replace(g, lo_m=(g.lo_m[0], g.lo_m[1], -0.3))
+    pts = hold_points(50, flat, 5.0, 1.5)
+    assert np.all(pts[:, 2] == pytest.approx(-0.3 + HOLD_FLOOR_MARGIN_M))
+    # the ground: home 3 m below the axis, take-off 2.5 m -> no spot below z = -0.5 ...
+    home_z, takeoff_m = -3.0, 2.5
+    assert hold_point(7, g, 5.0, 1.5, min_z_m=home_z + takeoff_m)[2] == 0.0          # axis already higher
+    # ... and with the home 1 m below the axis: 1.5 m above the axis
+    assert hold_point(7, g, 5.0, 1.5, min_z_m=-1.0 + takeoff_m)[2] == pytest.approx(1.5)
+    assert hold_point(7, g, 5.0, 1.5, min_z_m=1.5)[:2] == hold_point(7, g, 5.0, 1.5)[:2]  # only z moves
