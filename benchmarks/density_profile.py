@@ -24,7 +24,7 @@ Last, what the min-max nRMSE is made of: the swarm's range against the range its
 the CFD pattern spans (CVs beyond it stretch the normalisation and compress all others), the squared
 error by band of the normalised CFD density, and two more "what if" scores: the densest CVs at their
 slice's mean, and every CV at its slice's mean (no within-slice scatter at all).  Numbers from
-this script are in docs/simulation.md ("What limits each metric")::
+this script are in docs/studies/fidelity.md ("What limits each metric")::
 
     fisc-sim run -o out/run
     python benchmarks/density_profile.py out/run/fields.csv

@@ -11,7 +11,7 @@ quasi-1-D isentropic flow with the streamline-slope radial velocity).  Sweep spe
     fisc-sim sweep benchmarks/duct_family_beta.toml -o out/duct_beta --workers 2     # continuity weight
     fisc-sim sweep benchmarks/duct_fresh.toml -o out/duct_fresh --workers 2          # the fresh four
 
-docs/simulation.md ("Ducts not seen when the defaults were chosen") has the measured table.
+docs/studies/fidelity.md ("Ducts not seen when the defaults were chosen") has the measured table.
 """
 
 from __future__ import annotations

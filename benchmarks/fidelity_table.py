@@ -1,4 +1,4 @@
-"""The fidelity table of docs/simulation.md, printed as markdown (not a test).
+"""The fidelity table of docs/studies/fidelity.md, printed as markdown (not a test).
 
 The table is the sweep spec ``benchmarks/fidelity_table.toml``; this script runs it through
 ``fisc-sim sweep``'s engine (``sim.sweep.spec``, ``sim.sweep.run``) and prints the rows::
@@ -48,7 +48,7 @@ def _f(v, fmt=".3f") -> str:
 
 
 def markdown_row(r: dict) -> str:
-    """One row of the docs/simulation.md table from a sweep row."""
+    """One row of the docs/studies/fidelity.md table from a sweep row."""
     ref = Path(str(r["map"]).split(":")[-1]).stem.removesuffix("_reference") if ".py:" in str(r["map"]) else r["map"]
     return (f"| {ref} | {r['configuration']} | {r['mode_flown']} | {r['lookahead_s_flown']:g} | {r['map_schema']} | "
             f"{r['scale']:.3f} | {_f(r['nrmse_velocity'])} | {_f(r['nrmse_pressure'])} | {_f(r['nrmse_density'])} | "

@@ -10,7 +10,7 @@ the axisymmetric CSV) and by ``foamToVTK`` (the VTU), fitted with ``fisc-ground 
     python benchmarks/openfoam_duct.py -o out/duct_c                 # about 1 min of OpenFOAM, then ~20 s
     python benchmarks/openfoam_duct.py -o out/duct_c --iterations 3000 --shared ../shared
 
-docs/simulation.md ("Ducts not seen when the defaults were chosen") has the measured rows.
+docs/studies/fidelity.md ("Ducts not seen when the defaults were chosen") has the measured rows.
 """
 
 from __future__ import annotations

@@ -261,7 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --kappa auto: the largest rms velocity spread the fit may ask for, as a ratio of the "
                         f"peak target speed (default {KINETIC_DISPERSION_RATIO:g}; {DEFAULT_DISPERSION_RATIO:g} with "
                         "--preset paper); a hotter swarm trades velocity for pressure and density fidelity "
-                        "(docs/simulation.md, 'Velocity against density')")
+                        "(docs/studies/fidelity.md, 'Velocity against density')")
     p.add_argument("--agent-mass", type=float, default=1.0, metavar="KG", help="agent mass (default 1 kg)")
     p.add_argument("--min-nodes", type=int, default=1, help="reference nodes a CV needs to exist (default 1)")
     p.add_argument("--pressure-kind", choices=["auto", "gauge", "absolute"], default="auto",
@@ -280,14 +280,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--density-amplitude", type=number_or("auto", "auto"), default=None,
                    metavar="K|auto",
                    help="designed density contrast over the staircase's own; above 1 the density follows the CFD "
-                        "more closely and the velocity less (docs/simulation.md, 'Velocity against density'). "
+                        "more closely and the velocity less (docs/studies/fidelity.md, 'Velocity against density'). "
                         f"Default auto: the largest of {', '.join(f'{k:g}' for k in AUTO_DENSITY_AMPLITUDES)} whose "
                         f"static field keeps the velocity nRMSE within {STATIC_VELOCITY_BUDGET:g}")
     p.add_argument("--staircase-contrast", type=number_or("off", "off"), default=None, metavar="C|off",
                    help="designed staircase: per x slice only the most covered cubes that make the swarm's density "
                         "at the CFD velocity follow the CFD's density pattern with contrast C become CVs "
                         f"(default {DEFAULT_STAIRCASE_CONTRAST:g}); off: every cube the reference covers "
-                        "(docs/simulation.md, 'The designed staircase')")
+                        "(docs/staircase.md, 'The designed staircase')")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

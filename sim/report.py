@@ -143,6 +143,6 @@ def write_report_md(result: RunResult, path: Path) -> Path:
     figs = [p for k, p in result.paths.items() if str(p).endswith(".png")]
     if figs:
         lines += ["## Figures", ""] + [f"* [{Path(p).name}]({Path(p).name})" for p in figs]
-    lines += ["", "See docs/simulation.md for what limits each metric.", ""]
+    lines += ["", "See docs/studies/fidelity.md for what limits each metric.", ""]
     path.write_text("\n".join(lines))
     return path

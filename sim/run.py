@@ -49,13 +49,13 @@ DEFAULT_AGENTS = 1000
 #: Agent speed limit [m/s] for the maps a run fits itself (no ``--map``, or a reference spec).
 #: The paper's speed regime: it flew S = 0.1 on 22.4 m/s peaks, i.e. ~2.2 m/s peak commands.
 #: With the plant's ~0.58 s lag the lag distance u tau is then ~1.2 m (about 2 CVs) instead of
-#: ~2.9 m at 5 m/s, which halves the velocity error (docs/simulation.md, "Fidelity").
+#: ~2.9 m at 5 m/s, which halves the velocity error (docs/studies/fidelity.md, "Fidelity").
 SIM_MAX_SPEED_M_S = DEFAULT_MAX_SPEED_M_S
 #: Case 2 simulated time [s]: the paper's run.
 RESERVOIR_DURATION_S = 300.0
 #: Case 2 averaging window [s]: the last 260 s of the 300, i.e. from t = 40 s, 10 s after the swarm is
 #: steady (seed 0, agents in the CVs over 10 s windows: 631 at 20 s, 846 at 30 s, then 831-908 without
-#: a trend up to 400 s; docs/simulation.md, "The averaging window").  The min-max normalised density and
+#: a trend up to 400 s; docs/studies/fidelity.md, "The averaging window").  The min-max normalised density and
 #: pressure are set by their extreme CVs, so the per-CV sampling noise (~0.055 of the mean density per
 #: CV at 100 s, 1000 agents) moves them from seed to seed: on the default map, seeds 0-9, the density
 #: nRMSE was 0.206-0.260 averaged over the last 200 s and 0.207-0.229 over the last 260 s; the paper

@@ -12,7 +12,7 @@ Why: ``fisc_ground.fit.staggered.project`` makes the discrete divergence of rho_
 and inside a cube each component runs linearly between its two faces.  Whether tracers then keep
 the designed density is a property of the field alone; this module measures it, so that the swarm's
 departures from the design can be split into what the field does and what the vehicles do
-(``benchmarks/density_profile.py``, docs/density_study.md).  The forward-Euler integrator holds each
+(``benchmarks/density_profile.py``, docs/studies/density_study.md).  The forward-Euler integrator holds each
 velocity over its step, as a vehicle without lag flying commands streamed every ``dt_s``.
 
 Pure numerics: arrays in, arrays out; vectorised over tracers (numpy).

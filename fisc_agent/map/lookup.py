@@ -209,7 +209,7 @@ class CommandField:
         A stagnant CV makes a poor target: its flow carries the vehicle nowhere, and the pull towards
         it is capped by its own speed.  On the RANS nozzle (cd_nozzle) the vehicles that drifted out
         beside its slow wall CVs stayed out: 389 of 12 221 agents escaped, 4 with this rule, while no
-        CV of the inviscid references is stagnant (docs/simulation.md, "Agents that leave the CVs")."""
+        CV of the inviscid references is stagnant (docs/swarm_model.md, "Agents that leave the CVs")."""
         return self._nearest_within(points_m, radius_cells, self.stagnant)
 
     @functools.cached_property

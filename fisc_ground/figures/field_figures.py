@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.figure import Figure
 
 from fisc_ground.figures import plots
 from fisc_ground.figures.workers import FigureJob, render_figures
 from fisc_ground.fields.metrics import centreline_profiles
 
-
+FigureDrawing = Callable[[], Figure]
+"""Draws one figure and returns it, unsaved (``run_figure_drawings``)."""
 
 def _minmax(v: np.ndarray, ok: np.ndarray) -> np.ndarray:
     v = np.asarray(v, dtype=float)
@@ -62,8 +65,28 @@ def companion_on_cvs(run: Any) -> dict[str, np.ndarray]:
             "rho": take(pf.rho_s_kg_m3, np.nan), "samples": take(pf.samples, 0.0)}
 
 
+def _varies(values: np.ndarray) -> bool:
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    return v.size > 0 and float(v.max()) > float(v.min())
+
+
 def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
-    """The figures of ``write_run_figures`` as jobs, name -> job, in the paper's order."""
+    """The figures of ``write_run_figures`` as jobs, name -> job (writes ``out_dir/<name>.png``), in the
+    paper's order."""
+    return {name: partial(_draw_and_save, draw, Path(out_dir) / f"{name}.png")
+            for name, draw in run_figure_drawings(run).items()}
+
+
+def _draw_and_save(draw: FigureDrawing, path: Path) -> Path:
+    return plots.save_figure(draw(), path)
+
+
+def run_figure_drawings(run: Any) -> dict[str, FigureDrawing]:
+    """The figures of ``write_run_figures`` as drawings, name -> drawing, in the paper's order.
+
+    Density panel (b) shows ``plots.requested_density``; a map that asks for the same density in every CV
+    (a schema-1 map with one N*) gets no panel (b), and the figure's title says so."""
     cmap, f = run.cmap, run.fields
     c = np.asarray(cmap["cv_center_m"], dtype=float)
     l = cmap.cell_size_m
@@ -72,11 +95,11 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
     everywhere = np.ones(c.shape[0], dtype=bool)
     tgt_v = np.asarray(cmap["target_velocity_m_s"], dtype=float)
     fit_v = np.asarray(cmap["fit_mean_velocity_m_s"], dtype=float)
-    jobs: dict[str, FigureJob] = {}
+    jobs: dict[str, FigureDrawing] = {}
     tag = f"{run.scenario}, {run.mode}{', collisions' if run.collisions else ''}"
     for t, pos in run.snapshots:  # fig. 4
         name = f"snapshot_{run.scenario}_{t:05.1f}s".replace(".", "_")
-        jobs[name] = partial(plots.plot_swarm_snapshot, pos, c, l, t, out_dir / f"{name}.png", wall_radius=wall)
+        jobs[name] = partial(plots.swarm_snapshot_figure, pos, c, l, t, wall_radius=wall)
     swarm_u = np.where(ok, f.u_axial_m_s, np.nan)
     # a companion run of the paper's preset (``sim.run``): a fourth panel / curve, on this map's CVs
     pf = companion_on_cvs(run) if run.companion is not None else None
@@ -89,24 +112,27 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
                 "(b) fitted u_x / max": _bymax(fit_v[:, 0], everywhere),
                 f"(c) swarm u_s / max ({tag})": _bymax(swarm_u, ok), **u_extra}
     jobs["velocity_cfd_fit_swarm"] = partial(  # fig. 5
-        plots.plot_xz_comparison, c, velocity, l, "Axial velocity normalised by the field maximum, XZ plane",
-        out_dir / "velocity_cfd_fit_swarm.png", label="u / max u", wall_radius=wall)
+        plots.xz_comparison_figure, c, velocity, l, "Axial velocity normalised by the field maximum, XZ plane",
+        label="u / max u", wall_radius=wall)
     pressure = {"(a) CFD gauge pressure": _minmax(cmap["target_pressure_gauge_pa"], everywhere),
                 "(b) fitted swarm pressure P_s,d": _minmax(cmap["fit_pressure"], everywhere),
                 f"(c) swarm pressure ({tag})": _minmax(f.p_dispersion_pa, ok), **p_extra}
     jobs["pressure_cfd_fit_swarm"] = partial(  # fig. 7
-        plots.plot_xz_comparison, c, pressure, l, "Pressure, min-max normalised, XZ plane",
-        out_dir / "pressure_cfd_fit_swarm.png", cmap="coolwarm", label="(P - min) / (max - min)", wall_radius=wall)
-    rho_fit = np.asarray(cmap["n_star"], dtype=float) * float(cmap.body.get("agent_mass_kg", 1.0)) / l ** 3
-    density = {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere),
-               "(b) fitted density N* m / dV": _minmax(rho_fit, everywhere),
+        plots.xz_comparison_figure, c, pressure, l, "Pressure, min-max normalised, XZ plane",
+        cmap="coolwarm", label="(P - min) / (max - min)", wall_radius=wall)
+    asked_title, asked = plots.requested_density(cmap)
+    density_title = "Density, min-max normalised, XZ plane"
+    asked_panel = {asked_title: _minmax(asked, everywhere)} if _varies(asked) else {}
+    if not asked_panel:
+        density_title += f"\n(no panel (b): the map asks for one density everywhere, {asked_title[4:]})"
+    density = {"(a) CFD density": _minmax(cmap["target_density_kg_m3"], everywhere), **asked_panel,
                f"(c) time-averaged swarm density ({tag})": _minmax(f.rho_s_kg_m3, ok), **r_extra}
     jobs["density_cfd_fit_swarm"] = partial(  # fig. 8
-        plots.plot_xz_comparison, c, density, l, "Density, min-max normalised, XZ plane",
-        out_dir / "density_cfd_fit_swarm.png", label="(rho - min) / (max - min)", wall_radius=wall)
+        plots.xz_comparison_figure, c, density, l, density_title, label="(rho - min) / (max - min)",
+        wall_radius=wall)
     jobs["density_velocity_swarm"] = partial(  # fig. 9
-        plots.plot_density_with_vectors, c, np.where(ok, f.rho_s_kg_m3, np.nan),
-        np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l, out_dir / "density_velocity_swarm.png",
+        plots.density_with_vectors_figure, c, np.where(ok, f.rho_s_kg_m3, np.nan),
+        np.where(ok[:, None], f.mean_velocity_m_s, np.nan), l,
         title=f"Time-averaged swarm density and velocity ({tag})", wall_radius=wall)
     prof = centreline_profiles(c, tgt_v[:, 0], np.asarray(cmap["target_pressure_gauge_pa"], dtype=float),
                                np.asarray(cmap["target_density_kg_m3"], dtype=float), f.u_axial_m_s,
@@ -118,6 +144,5 @@ def run_figure_jobs(run: Any, out_dir: Path) -> dict[str, FigureJob]:
             np.asarray(cmap["target_density_kg_m3"], dtype=float), pf["u"], pf["p"], pf["rho"], pf["samples"],
             run.min_samples).swarm}
     jobs["centreline"] = partial(  # fig. 10
-        plots.plot_centreline_profiles, prof, out_dir / "centreline.png", title=f"Centreline profiles ({tag})",
-        extra_swarm=extra)
+        plots.centreline_profiles_figure, prof, title=f"Centreline profiles ({tag})", extra_swarm=extra)
     return jobs

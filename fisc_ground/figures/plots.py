@@ -4,7 +4,9 @@ Paper figures reproduced from a command map by ``plot_map_figures``: 5a/5b (velo
 (pressure), 8a/8b (density) and an N* map.  The generic helpers (``xz_field_panel``,
 ``plot_xz_comparison``, ``plot_centreline``, ``plot_centreline_profiles``,
 ``plot_density_with_vectors``, ``plot_swarm_snapshot``) are reused by the simulator report
-(figs. 4, 9, 10 and the swarm panels "c" of 5/7/8).
+(figs. 4, 9, 10 and the swarm panels "c" of 5/7/8).  Each ``plot_*`` of those writes the Figure that
+its ``*_figure`` twin draws (``save_figure``), so a caller can inspect a figure before it is written.
+Figures use matplotlib's constrained layout: no axis label runs into another panel's title.
 
 XZ plane.  The grid has the tunnel axis (y = 0) on cell faces, so no CV layer is centred on
 y = 0: the plane shown is the average of the layers whose centres are nearest y = 0, i.e.
@@ -30,6 +32,7 @@ import numpy as np  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.colors import BoundaryNorm  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 from fisc_agent.map.codec import CommandMap  # noqa: E402
 
@@ -80,15 +83,17 @@ def xz_slice(centers_m: np.ndarray, values: np.ndarray, cell_size_m: float,
     return x_edges, z_edges, grid
 
 
-def _draw_cv_grid(ax: Axes, x_edges: np.ndarray, z_edges: np.ndarray, present: np.ndarray) -> None:
-    """Wireframe of the cell faces of the (nz, nx) cells where ``present`` is True."""
+def _draw_cv_grid(ax: Axes, x_edges: np.ndarray, z_edges: np.ndarray, present: np.ndarray,
+                  facecolor: str = "none") -> None:
+    """Wireframe of the cell faces of the (nz, nx) cells where ``present`` is True (filled with
+    ``facecolor``, a plain colour: no colour map, so it carries no data)."""
     iz, ix = np.nonzero(present)
     if iz.size == 0:
         return
     x0, x1, z0, z1 = x_edges[ix], x_edges[ix + 1], z_edges[iz], z_edges[iz + 1]
     verts = np.stack([np.stack([x0, z0], 1), np.stack([x1, z0], 1), np.stack([x1, z1], 1),
                       np.stack([x0, z1], 1)], axis=1)
-    ax.add_collection(PolyCollection(verts, facecolors="none", **_GRID_LINE))
+    ax.add_collection(PolyCollection(verts, facecolors=facecolor, **_GRID_LINE))
 
 
 def _draw_wall(ax: Axes, x_edges: np.ndarray, wall_radius: WallRadius | None) -> None:
@@ -145,7 +150,8 @@ def _quiver(ax: Axes, centers_m: np.ndarray, velocity_m_s: np.ndarray, cell_size
               width=0.0025, color="k", alpha=0.8)
 
 
-def _save(fig, path: str | Path) -> Path:
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` as a PNG at ``path`` (parents created), close it and return the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=_DPI, bbox_inches="tight")
@@ -162,7 +168,17 @@ def plot_xz_comparison(centers_m: np.ndarray, fields: dict[str, np.ndarray], cel
                        path: str | Path, cmap: str = "viridis", shared_scale: bool = True,
                        label: str | None = None, vectors: dict[str, np.ndarray] | None = None,
                        wall_radius: WallRadius | None = None) -> Path:
-    """Stacked XZ panels, one per entry of ``fields`` (e.g. CFD / fitted / swarm), one PNG.
+    """``xz_comparison_figure`` written to ``path``."""
+    return save_figure(xz_comparison_figure(centers_m, fields, cell_size_m, title, cmap=cmap,
+                                            shared_scale=shared_scale, label=label, vectors=vectors,
+                                            wall_radius=wall_radius), path)
+
+
+def xz_comparison_figure(centers_m: np.ndarray, fields: dict[str, np.ndarray], cell_size_m: float, title: str,
+                         cmap: str = "viridis", shared_scale: bool = True, label: str | None = None,
+                         vectors: dict[str, np.ndarray] | None = None,
+                         wall_radius: WallRadius | None = None) -> Figure:
+    """Stacked XZ panels, one per entry of ``fields`` (e.g. CFD / fitted / swarm), one figure.
 
     ``shared_scale``: one colour range for all panels (use it for normalised fields).
     ``vectors``: optional panel name -> (n_cv, 3) velocities drawn as arrows.
@@ -178,7 +194,8 @@ def plot_xz_comparison(centers_m: np.ndarray, fields: dict[str, np.ndarray], cel
     span = np.ptp(np.asarray(centers_m)[:, 0]) + cell_size_m
     height = np.ptp(np.asarray(centers_m)[:, 2]) + cell_size_m
     panel_h = max(1.6, 9.0 * height / max(span, 1e-9)) + 0.8
-    fig, axes = plt.subplots(len(fields), 1, figsize=(10, panel_h * len(fields)), squeeze=False)
+    fig, axes = plt.subplots(len(fields), 1, figsize=(10, panel_h * len(fields)), squeeze=False,
+                             layout="constrained")
     for ax, (name, values) in zip(axes[:, 0], fields.items()):
         arr = None if values is None else np.asarray(values, dtype=float)
         if arr is None or not np.isfinite(arr).any():
@@ -188,13 +205,13 @@ def plot_xz_comparison(centers_m: np.ndarray, fields: dict[str, np.ndarray], cel
         xz_field_panel(ax, centers_m, arr, cell_size_m, name, cmap=cmap, vmin=vmin, vmax=vmax, label=label,
                        wall_radius=wall_radius, velocity_m_s=(vectors or {}).get(name))
     fig.suptitle(title)
-    return _save(fig, path)
+    return fig
 
 
 def plot_centreline(x_m: np.ndarray, profiles: dict[str, np.ndarray], path: str | Path, title: str = "",
                     ylabel: str = "normalised value") -> Path:
     """Line plot of centreline profiles (label -> (n,) values at ``x_m``) on one axes."""
-    fig, ax = plt.subplots(figsize=(7, 3.5))
+    fig, ax = plt.subplots(figsize=(7, 3.5), layout="constrained")
     styles = ["-", "--", ":", "-."]
     for i, (name, y) in enumerate(profiles.items()):
         ax.plot(x_m, np.asarray(y, dtype=float), styles[i % len(styles)], marker="o", markersize=3, label=name)
@@ -203,19 +220,25 @@ def plot_centreline(x_m: np.ndarray, profiles: dict[str, np.ndarray], path: str 
     ax.set_title(title)
     ax.grid(True, alpha=0.3)
     ax.legend()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_centreline_profiles(profiles, path: str | Path, title: str = "Centreline profiles",
                              target_label: str = "CFD", swarm_label: str = "swarm",
                              extra_swarm: dict[str, dict] | None = None) -> Path:
+    """``centreline_profiles_figure`` written to ``path``."""
+    return save_figure(centreline_profiles_figure(profiles, title, target_label, swarm_label, extra_swarm), path)
+
+
+def centreline_profiles_figure(profiles, title: str = "Centreline profiles", target_label: str = "CFD",
+                               swarm_label: str = "swarm", extra_swarm: dict[str, dict] | None = None) -> Figure:
     """Paper fig. 10: density, pressure and velocity centreline profiles, target vs swarm.
 
     ``profiles``: a ``fisc_ground.fields.metrics.CentrelineProfiles``; ``extra_swarm``: label -> further
     swarm profiles on the same slices (e.g. the paper preset beside the default), drawn dotted.
     """
     names = list(profiles.target)
-    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.5), squeeze=False, layout="constrained")
     for ax, q in zip(axes[0], names):
         ax.plot(profiles.x_m, profiles.target[q], "-", marker="o", markersize=3, label=target_label)
         ax.plot(profiles.x_m, profiles.swarm[q], "--", marker="s", markersize=3, label=swarm_label)
@@ -227,25 +250,40 @@ def plot_centreline_profiles(profiles, path: str | Path, title: str = "Centrelin
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, path)
+    return fig
 
 
 def plot_density_with_vectors(centers_m: np.ndarray, density: np.ndarray, velocity_m_s: np.ndarray,
                               cell_size_m: float, path: str | Path, title: str = "Density and velocity",
                               label: str = "density [kg/m^3]", wall_radius: WallRadius | None = None) -> Path:
+    """``density_with_vectors_figure`` written to ``path``."""
+    return save_figure(density_with_vectors_figure(centers_m, density, velocity_m_s, cell_size_m, title, label,
+                                                   wall_radius), path)
+
+
+def density_with_vectors_figure(centers_m: np.ndarray, density: np.ndarray, velocity_m_s: np.ndarray,
+                                cell_size_m: float, title: str = "Density and velocity",
+                                label: str = "density [kg/m^3]", wall_radius: WallRadius | None = None) -> Figure:
     """Paper fig. 9: (time-averaged) density colour map with velocity vectors (length ~ speed)."""
     span = np.ptp(np.asarray(centers_m)[:, 0]) + cell_size_m
     height = np.ptp(np.asarray(centers_m)[:, 2]) + cell_size_m
-    fig, ax = plt.subplots(figsize=(10, max(2.0, 9.0 * height / max(span, 1e-9)) + 1.0))
+    fig, ax = plt.subplots(figsize=(10, max(2.0, 9.0 * height / max(span, 1e-9)) + 1.0), layout="constrained")
     xz_field_panel(ax, centers_m, density, cell_size_m, title, cmap="viridis", label=label,
                    wall_radius=wall_radius, velocity_m_s=velocity_m_s)
-    return _save(fig, path)
+    return fig
 
 
 def plot_swarm_snapshot(positions_m: np.ndarray, centers_m: np.ndarray, cell_size_m: float, t_s: float,
                         path: str | Path, wall_radius: WallRadius | None = None,
                         slab_half_width_m: float | None = None) -> Path:
+    """``swarm_snapshot_figure`` written to ``path``."""
+    return save_figure(swarm_snapshot_figure(positions_m, centers_m, cell_size_m, t_s, wall_radius,
+                                             slab_half_width_m), path)
+
+
+def swarm_snapshot_figure(positions_m: np.ndarray, centers_m: np.ndarray, cell_size_m: float, t_s: float,
+                          wall_radius: WallRadius | None = None,
+                          slab_half_width_m: float | None = None) -> Figure:
     """Paper fig. 4: agents as dots projected on the XZ plane over the CV wireframe at time ``t_s``.
 
     ``slab_half_width_m``: only agents with |y| <= this are drawn (None: all agents).
@@ -257,17 +295,17 @@ def plot_swarm_snapshot(positions_m: np.ndarray, centers_m: np.ndarray, cell_siz
     x_edges, z_edges, grid = xz_slice(centers_m, np.ones(np.asarray(centers_m).shape[0]), cell_size_m)
     span = x_edges[-1] - x_edges[0]
     height = z_edges[-1] - z_edges[0]
-    fig, ax = plt.subplots(figsize=(10, max(2.0, 9.0 * height / max(span, 1e-9)) + 1.0))
-    ax.pcolormesh(x_edges, z_edges, np.ma.masked_invalid(grid), cmap="Greys", vmin=0.0, vmax=8.0,
-                  shading="flat")
-    _draw_cv_grid(ax, x_edges, z_edges, np.isfinite(grid))
+    fig, ax = plt.subplots(figsize=(10, max(2.0, 9.0 * height / max(span, 1e-9)) + 1.0), layout="constrained")
+    _draw_cv_grid(ax, x_edges, z_edges, np.isfinite(grid), facecolor="0.94")
+    ax.set_xlim(x_edges[0], x_edges[-1])
+    ax.set_ylim(z_edges[0], z_edges[-1])
     _draw_wall(ax, x_edges, wall_radius)
     ax.scatter(pos[:, 0], pos[:, 2], s=3, color="tab:blue", linewidths=0)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("z [m]")
     ax.set_title(f"t = {t_s:.1f} s, {pos.shape[0]} agents")
-    return _save(fig, path)
+    return fig
 
 
 # --------------------------------------------------------------------------------------------
@@ -298,6 +336,19 @@ def _minmax(values: np.ndarray) -> np.ndarray:
     return np.zeros_like(v) if not hi > lo else (v - lo) / (hi - lo)
 
 
+def requested_density(cmap: CommandMap) -> tuple[str, np.ndarray]:
+    """Panel (b) of the density figure: what the map asks the swarm for, (title, (n_cv,) values).
+
+    A schema-2 map carries its designed swarm density rho_d (``cv_design_density``,
+    ``fisc_ground.fit.staggered.design_density``, relative, mean 1); a schema-1 map asks for N*_j
+    agents per CV, i.e. the fitted density N* m / dV [kg/m^3]."""
+    if "cv_design_density" in cmap.arrays:
+        return "(b) designed density rho_d (relative): what the map asks the swarm for", \
+            np.asarray(cmap["cv_design_density"], dtype=float)
+    mass_kg = float(cmap.body.get("agent_mass_kg", 1.0))
+    return "(b) fitted density N* m / dV", np.asarray(cmap["n_star"], dtype=float) * mass_kg / cmap.cell_size_m ** 3
+
+
 def plot_map_figures(cmap: CommandMap, out_dir: str | Path,
                      wall_radius: WallRadius | None | str = "auto") -> list[Path]:
     """The map's target-vs-fit figures (paper figs. 5a/5b, 7a/7b, 8a/8b) and an N* map.
@@ -305,7 +356,7 @@ def plot_map_figures(cmap: CommandMap, out_dir: str | Path,
     Writes ``velocity_target_vs_fit.png`` (speed / field max, with vectors),
     ``pressure_target_vs_fit.png`` (CFD gauge pressure and achieved fitted swarm pressure, each
     min-max normalised to [0, 1] so the patterns compare), ``density_target_vs_fit.png`` (CFD
-    density and the fitted density N* m / dV, each in kg/m^3 on its own scale) and
+    density and what the map asks the swarm for, ``requested_density``, each on its own scale) and
     ``n_star.png``.  ``wall_radius``: a callable R(x), None, or "auto" (``design_tunnel_wall``).
     """
     out = Path(out_dir)
@@ -333,16 +384,16 @@ def plot_map_figures(cmap: CommandMap, out_dir: str | Path,
         l, "Pressure, min-max normalised, XZ plane", out / "pressure_target_vs_fit.png", cmap="coolwarm",
         label="(P - min P) / (max P - min P)", wall_radius=wall))
     n_star = np.asarray(cmap["n_star"], dtype=float)
-    rho_fit = n_star * float(cmap.body["agent_mass_kg"]) / l ** 3
+    asked_title, asked = requested_density(cmap)
     paths.append(plot_xz_comparison(
         c, {"(a) CFD target density [kg/m^3]": np.asarray(cmap["target_density_kg_m3"], dtype=float),
-            "(b) fitted density N* m / dV [kg/m^3]": rho_fit},
+            asked_title + ("" if "cv_design_density" in cmap.arrays else " [kg/m^3]"): asked},
         l, "Density, XZ plane", out / "density_target_vs_fit.png", cmap="viridis", shared_scale=False,
-        label="kg/m^3", wall_radius=wall))
+        label=None if "cv_design_density" in cmap.arrays else "kg/m^3", wall_radius=wall))
     lo, hi = (int(v) for v in cmap.body["n_range"])
     fig, ax = plt.subplots(figsize=(10, 3.2))
     norm = BoundaryNorm(np.arange(lo - 0.5, hi + 1.5), plt.get_cmap("viridis").N)
     xz_field_panel(ax, c, n_star, l, f"Fitted agent count N* per CV (N in [{lo}, {hi}])", cmap="viridis",
                    label="N*", wall_radius=wall, norm=norm)
-    paths.append(_save(fig, out / "n_star.png"))
+    paths.append(save_figure(fig, out / "n_star.png"))
     return paths

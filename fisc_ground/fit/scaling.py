@@ -18,7 +18,7 @@ factor that keeps every commanded vector (mean plus deviation) within the agent'
 so ``S (|mean| + deviation) <= max_speed`` holds by construction.  DEFAULT_MAX_SPEED_M_S = 2 m/s
 is the paper's own speed regime (S = 0.1 on 22.4 m/s peaks) and the low end of its 2-10 m/s flyable
 range: the vehicles' ~0.58 s response lag then costs about a CV of lag distance instead of five at
-5 m/s (docs/simulation.md, "Defaults chosen").  ``fisc-ground fit`` and ``fisc-sim run`` share it, so
+5 m/s (docs/studies/fidelity.md, "Defaults chosen").  ``fisc-ground fit`` and ``fisc-sim run`` share it, so
 the map a user fits is the map the simulator's default run flies; the inviscid reference gets
 S of about 0.13 (schema 2).
 """

@@ -45,7 +45,7 @@ from fisc_agent.map.lookup import cube_mean_u_axial_m_s
 #: (``build_staggered``).  0.5 is the middle of the blend; a duct whose static field misses the limit there
 #: gets more (the long duct of benchmarks/duct_family.py 0.6, its double throat 0.75): higher beta moves the
 #: design towards the staircase's continuity pattern, buying velocity fidelity with density correlation
-#: (docs/simulation.md, "Ducts not seen when the defaults were chosen").
+#: (docs/studies/fidelity.md, "Ducts not seen when the defaults were chosen").
 AUTO_CONTINUITY_WEIGHTS = (0.5, 0.6, 0.75, 1.0)
 #: Largest velocity nRMSE of the static field at amplitude k = 1 for which the automatic beta may stay at
 #: its lowest candidate.  Flown, a swarm scores 0.6-0.75 of its static field's figure (the long duct: 0.077
@@ -62,7 +62,7 @@ WEIGHT_FLOOR = 0.02
 #: scatters in the wall cubes, so the design asks for more: the largest of these whose static field keeps
 #: the velocity nRMSE within ``STATIC_VELOCITY_BUDGET`` (1 regardless).  1.1 improved the density
 #: figures on the ducts that can afford it at a velocity cost of about 0.002 on the tunnel
-#: (docs/simulation.md, "Velocity against density"); more contrast buys more correlation with more
+#: (docs/studies/fidelity.md, "Velocity against density"); more contrast buys more correlation with more
 #: velocity error.
 AUTO_DENSITY_AMPLITUDES = (1.1, 1.05, 1.0)
 #: Largest velocity nRMSE of the static field (``static_velocity_nrmse``) for which the automatic
@@ -95,7 +95,7 @@ class StaggeredConfig:
     (``AUTO_DENSITY_AMPLITUDES`` within ``velocity_budget``, ``build_staggered``).  Above
     1 the swarm's density pattern stands further above its sampling noise and wall-cube scatter, at
     the cost of velocity fidelity: by continuity, n u A is the same through every slice, so a deeper
-    density dip makes the swarm faster than the CFD there (docs/simulation.md, "Velocity against
+    density dip makes the swarm faster than the CFD there (docs/studies/fidelity.md, "Velocity against
     density")."""
     velocity_budget: float = STATIC_VELOCITY_BUDGET
     """With ``density_amplitude`` None: the largest static velocity nRMSE (``static_velocity_nrmse``)

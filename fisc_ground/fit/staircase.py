@@ -4,7 +4,7 @@ A swarm that flies the CFD's axial velocity u through a slice of N cubes carries
 n u N l^2, and by continuity that flux is the same in every slice.  The CFD's flow passes through the
 *open* area of the slice only, but the swarm spreads over whole cubes, so the swarm's density follows
 the slice's cube area: n ~ 1 / sum_cubes(u).  With every covered cube a CV (DESIGN.md section 2's
-rule), that pattern is an accident of how the grid cuts the wall (docs/density_study.md, "A trimmed
+rule), that pattern is an accident of how the grid cuts the wall (docs/studies/density_study.md, "A trimmed
 staircase"): it correlates 0.74 with the CFD's density on the tunnel and -0.21 on a mild duct.
 
 Cubes that lie only partly inside the duct are the free choice.  Keeping a slice's m most covered cubes
@@ -32,13 +32,13 @@ import numpy as np
 #: Default contrast C of the designed staircase (``FitConfig.staircase_contrast``).  Chosen from 0.3 / 0.4 /
 #: 0.5 on seven ducts (the tunnel, its RANS solution, duct_b and four fresh analytic ducts): 0.4 meets the
 #: tunnel's aims and keeps every other duct within 1.5x of them (the double throat's pressure only since
-#: ``axial_pockets``; docs/simulation.md, "The designed staircase"); 0.5 raises the density correlation further but costs
+#: ``axial_pockets``; docs/staircase.md, "The designed staircase"); 0.5 raises the density correlation further but costs
 #: the mild duct's and the double throat's pressure, and the tunnel's density nRMSE.
 DEFAULT_STAIRCASE_CONTRAST = 0.4
 #: Default smallest open fraction of a cube that steps the staircase outwards (``designed_staircase``).  On
 #: the tunnel such cubes held 0.48-0.65 of their slice's density below a quarter open; with the rule the
 #: density nRMSE fell from 0.238-0.261 to 0.217-0.255 (seeds 0-3).  Neutral on four other ducts, it cost the
-#: short throat 0.04 of density nRMSE (docs/density_study.md, "The designed staircase").
+#: short throat 0.04 of density nRMSE (docs/studies/density_study.md, "The designed staircase").
 DEFAULT_MIN_STEP_OPEN = 0.25
 #: Scale factors tried for the proportionality constant of s (log-spaced over this range around the median
 #: slice's full flux area, in this many steps).

@@ -37,7 +37,7 @@ DEFAULT_REFERENCE = "cd_nozzle_inviscid"
 DEFAULT_MAP_FILE = "default.fiscmap"
 
 
-#: Recommended flight settings of the maps this project builds (docs/simulation.md, "Fidelity").
+#: Recommended flight settings of the maps this project builds (docs/studies/fidelity.md, "Fidelity").
 DEFAULT_FLIGHT = FlightSettings("kinetic", 0.5, DEFAULT_PERSISTENCE_S)
 #: ``--preset paper``: the fit settings of the paper's schema-1 map.
 PAPER_PRESET = "paper"

@@ -17,7 +17,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="Run every point of SPEC's grid (maps or CFD cases x fit settings x modes x seeds; "
                     "sim.sweep.spec documents the TOML) as one dask task each, on a LocalCluster or any dask "
                     "scheduler, and write results.csv (one row per run), one PNG per metric and sweep.json. "
-                    "benchmarks/fidelity_table.toml is the fidelity table of docs/simulation.md.")
+                    "benchmarks/fidelity_table.toml is the fidelity table of docs/studies/fidelity.md.")
     p.add_argument("spec", metavar="SPEC.toml", help="sweep spec (TOML)")
     add_output_arg(p, required=True, metavar="DIR", help="output directory")
     p.add_argument("--scheduler", metavar="ADDRESS",

@@ -119,7 +119,7 @@ def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personali
         # the mission's path through the tunnel, flown on the map's continuity-consistent field with
         # its look-ahead; the map's recommended `kinetic` mode adds random deviations that, at the
         # builder's 5 m/s, can carry a lagging vehicle across a staircase wall into the `hold`
-        # geofence (docs/simulation.md, "Onboard"), which is not what this test is about
+        # geofence (docs/designed_density.md, "Onboard"), which is not what this test is about
         mode = "staggered" if cmap.schema_version >= 2 else None
         cfg = agent_cfg(f"udpout:127.0.0.1:{emu.local_address[1]}", mode=mode)
         runner = Runner(cfg, MavlinkLink(cfg.mavlink_url), cmap)

@@ -3,7 +3,7 @@
 Three agents of mass m = 2 kg (not 1: a reader that ignores the map's agent mass is off by 2x)
 in a 3-CV map with l = 0.5 m (dV = 0.125 m^3), speed scale S = 2, fed to the monitor as
 telemetry, recorded, replayed to fields.csv.  Every number below is worked out by hand in the
-comments from the paper's equations (README, "Where the paper's equations live"), with
+comments from the paper's equations (docs/swarm_model.md, "Where the paper's equations live"), with
 a_max = (2.2 - 1) 9.81 = 11.772 m/s^2, lambda = 0.5, K_b = c_v = 1:
 
 CV 0 (target v = (2,0,0), command S v = (4,0,0)): A v=(4,0,0), B v=(6,2,0)

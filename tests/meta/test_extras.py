@@ -20,7 +20,7 @@ def _project() -> dict:
 def _named_extras() -> dict[str, set[str]]:
     found: dict[str, set[str]] = {}
     files = [*REPO.glob("fisc_agent/**/*.py"), *REPO.glob("fisc_ground/**/*.py"), *REPO.glob("sim/**/*.py"),
-             *REPO.glob("docs/*.md"), REPO / "README.md"]
+             *REPO.glob("docs/**/*.md"), REPO / "README.md"]
     for path in files:
         for match in re.finditer(r"fisc\[([a-z0-9_,\- ]+)\]", path.read_text()):
             for extra in match.group(1).split(","):

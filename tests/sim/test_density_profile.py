@@ -1,4 +1,4 @@
-"""``benchmarks/density_profile.py``: the slice-by-slice density diagnostic of docs/density_study.md."""
+"""``benchmarks/density_profile.py``: the slice-by-slice density diagnostic of docs/studies/density_study.md."""
 
 import csv
 import importlib.util
