@@ -57,7 +57,7 @@ class CommandDispatcher:
             if cmd.name in CANCELS_START:
                 self._cancel()
             if cmd.name is not CommandName.START_AT:
-                self.runner.fleet_command(order_of(cmd))
+                self._deliver(order_of(cmd))
                 return
             start = float(cmd.start_at_unix_s)
             stop = threading.Event()
@@ -75,8 +75,14 @@ class CommandDispatcher:
                 order = self._pending[1]
                 self._pending = None
                 log.info("start-at: %.3f reached, go", start)
-                self.runner.fleet_command(order)
+                self._deliver(order)
             return
+
+    def _deliver(self, order: FleetOrder) -> None:
+        try:
+            self.runner.fleet_command(order)
+        except ValueError:  # TODO(issue 36 integration): remove once Runner.fleet_command takes a FleetOrder
+            self.runner.fleet_command(order.command.value)
 
     def _cancel(self) -> None:
         if self._pending is not None:
