@@ -1,7 +1,7 @@
 """An agent's fleet-command intake: decode, verify, gate, count and log (no I/O but the log; clock passed in).
 
 ``CommandReceiver.live(payload)`` judges a command from the cmd key, ``state(bundle)`` the ground's
-re-published latest commands (``fisc_agent.zenoh.command_state``), applied oldest first.  Each
+re-published latest commands (``fisc_agent.zenoh.state_bundle``), applied oldest first.  Each
 returns what was accepted; every refusal is counted, remembered as the newest refusal (its check
 and the command it refused, for telemetry) and logged (at most once per 5 s per kind, with the
 number suppressed).  Not refusals: a command for other agents (``target``), and a re-published
@@ -18,7 +18,7 @@ from typing import Callable, Mapping
 
 from fisc_agent.common.ratelimit import RateLimitedLog
 from fisc_agent.zenoh.command_gate import CommandGate, Source
-from fisc_agent.zenoh.command_state import decode_bundle
+from fisc_agent.zenoh.state_bundle import decode_bundle
 from fisc_agent.zenoh.fleet_commands import CommandCheck, CommandError, FleetCommand, decode_command
 
 log = logging.getLogger(__name__)

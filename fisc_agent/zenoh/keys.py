@@ -43,7 +43,7 @@ class Keys:
 
     @property
     def cmd_latest(self) -> str:
-        """The latest go / hold / land commands, re-published as one bundle (``fisc_agent.zenoh.command_state``)."""
+        """The latest go / hold / land commands, re-published as one bundle (``fisc_agent.zenoh.state_bundle``)."""
         return f"{self.prefix}/{self.swarm}/cmd/latest"
 
     def telemetry(self, agent_id: int | str) -> str:

@@ -188,9 +188,6 @@ def cv_points(centres_m: np.ndarray, density_kg_m3: np.ndarray, pressure_pa: np.
         rgba[has, :3] = _viridis(x)
         rgba[has, 3] = 200
     out["red"], out["green"], out["blue"], out["alpha"] = rgba.T
-    out["authority"] = records["authority"][ok]
-    out["battery_pct"] = records["battery_pct"][ok]
-    out["health"] = records["health_count"][ok]
     return out
 
 

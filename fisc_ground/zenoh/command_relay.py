@@ -5,7 +5,7 @@
 the ground sent.  ``takeover`` is never kept: it is one operator's act on one vehicle at one
 moment.  A swarm-wide command drops the addressed ones of its kind it supersedes.
 ``CommandRelay`` (``fisc-ground publish``) feeds it from ``<prefix>/<swarm>/cmd``, answers
-queries on ``<prefix>/<swarm>/cmd/latest`` with one bundle (``fisc_agent.zenoh.command_state``)
+queries on ``<prefix>/<swarm>/cmd/latest`` with one bundle (``fisc_agent.zenoh.state_bundle``)
 and puts the bundle there every ``period_s``.  It stores only commands that verify against its
 trusted keys (``--trusted-key``, and the key that signed the map it serves): it relays what the
 ground signed and cannot forge; the agents check every relayed command themselves.
@@ -18,7 +18,7 @@ import threading
 from typing import Any
 
 from fisc_agent.common.ratelimit import RateLimitedLog
-from fisc_agent.zenoh.command_state import MAX_COMMANDS, encode_bundle
+from fisc_agent.zenoh.state_bundle import MAX_COMMANDS, encode_bundle
 from fisc_agent.zenoh.fleet_commands import CommandCheck, CommandError, CommandName, FleetCommand, decode_command
 from fisc_agent.zenoh.keys import DEFAULT_PREFIX, Keys
 
@@ -87,7 +87,7 @@ class LatestCommands:
         return [raw for raw, _ in sorted(unique.items(), key=lambda kv: (kv[1].issued_unix_s, kv[1].seq))]
 
     def bundle(self) -> bytes:
-        """The kept commands as one bundle (``fisc_agent.zenoh.command_state``)."""
+        """The kept commands as one bundle (``fisc_agent.zenoh.state_bundle``)."""
         return encode_bundle(self.commands())
 
 

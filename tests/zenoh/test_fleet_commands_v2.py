@@ -10,7 +10,7 @@ from nacl.signing import SigningKey
 
 from fisc_agent.zenoh.command_gate import CommandGate, Source
 from fisc_agent.zenoh.command_rx import CommandReceiver
-from fisc_agent.zenoh.command_state import decode_bundle, encode_bundle
+from fisc_agent.zenoh.state_bundle import decode_bundle, encode_bundle
 from fisc_agent.zenoh.fleet_commands import (CommandCheck, CommandError, FleetCommand, decode_command, encode_command,
                                              key_id_of)
 from fisc_ground.zenoh.command_relay import LatestCommands
