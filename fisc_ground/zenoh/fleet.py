@@ -220,7 +220,7 @@ def run_cmd(args: Any) -> int:
     finally:
         session.close()
     print(json.dumps({"command": cmd.name.value, "seq": cmd.seq, "swarm": cmd.swarm,
-                      "agents": list(cmd.targets) or "all",
+                      "target": list(cmd.targets) or "all",
                       "subscribers_matched": res.matched, "acked": list(res.acked)}))
     return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.common.cli_common)
 
