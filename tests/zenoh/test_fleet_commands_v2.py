@@ -156,3 +156,20 @@ def test_receiver_counts_refusals_once_and_ignores_state_it_already_has():
     assert rx.stats.refused == 2 and (rx.stats.last_refusal, rx.stats.last_refused_command) == ("stale", "go")
     assert rx.live(b"garbage") is None and rx.stats.last_refused_command == "none"
     assert rx.floors == {key_id_of(PUB): 5} and rx.stats.accepted == 1
+
+
+def test_cmd_agents_option_parses_lists_and_ranges_and_refuses_the_rest(capsys):
+    from fisc_ground.zenoh.fleet import parse_agents
+
+    from .test_names_and_json import ground_parser
+
+    assert parse_agents("5,1,3") == (1, 3, 5) and parse_agents("1-4,9,2") == (1, 2, 3, 4, 9)
+    assert parse_agents("0") == (0,) and parse_agents("4294967294") == (4294967294,)
+    for bad in ("", "x", "3-1", "4294967295", "-1", "0-5000"):
+        with pytest.raises(ValueError, match="--agents"):
+            parse_agents(bad)
+    args = ground_parser().parse_args(["cmd", "go", "--swarm", "alpha", "--agents", "1,3,5"])
+    assert args.agents == (1, 3, 5) and args.fleet_command == "go"
+    with pytest.raises(SystemExit) as exit_:
+        ground_parser().parse_args(["cmd", "takeover", "--swarm", "alpha", "--agents", "1,x"])
+    assert exit_.value.code == 2 and "'x' is not an agent id" in capsys.readouterr().err
