@@ -1,24 +1,26 @@
-"""Signed fleet commands (``fisc/<swarm>/cmd``): codec and the replay/staleness gate, pure.
+"""Signed fleet commands (``<prefix>/<swarm>/cmd``): the codec, pure.
 
-Wire format, version 1 (little-endian)::
+Wire format, version 2 (little-endian)::
 
     b"FCMD"        magic
-    u8   version (1)
-    u8   command code (1 hold, 2 resume, 3 land, 4 start-at)
+    u8   version (2)
+    u8   command code (``CommandName`` order: 1 hold, 2 resume, 3 land, 4 start-at, 5 go, 6 takeover)
     u8   flags (bit 0: signed)
     u8   length L of the swarm name
-    u32  target agent id (0xFFFFFFFF = every agent)
+    u16  number N of addressed agents (0 = the whole swarm)
+    u16  reserved (0)
     u64  sequence number (strictly increasing per ground key; the ground uses UNIX time in us)
-    u64  issued at, UNIX time [ms]
+    u64  issued at, UNIX time [ms] (the ground's clock)
     u64  start-at time, UNIX time [ms] (0 unless start-at)
     L    swarm name (UTF-8)           -- binds the command to one swarm
+    4N   u32 agent ids, ascending, no repeats
     64   Ed25519 signature over every byte before it (zeros when unsigned)
 
-An agent accepts a command only if it decodes, names its swarm, targets it (or everyone),
-is signed by a trusted key (unless unsigned commands are explicitly allowed), carries a
-sequence number above the last one it accepted, and was issued within the freshness window
-(``CommandGate``).  A captured command can therefore not be replayed later, nor into another
-swarm, nor re-ordered after a newer one.
+Version 2 replaced version 1's single u32 target (``0xFFFFFFFF`` = every agent) by a list, so
+that one signed ``go`` can name agents 1, 3 and 5.  Version-1 commands still decode (their one
+target becomes a one-element list); the ground only sends version 2, so ground and agents are
+upgraded together.  The acceptance rules (signature, swarm, target, per-key sequence,
+freshness) are ``fisc_agent.zenoh.command_gate``'s.
 """
 
 from __future__ import annotations
@@ -27,16 +29,37 @@ import struct
 from dataclasses import dataclass
 from enum import StrEnum
 
-COMMANDS = ("hold", "resume", "land", "start-at")
+
+class CommandName(StrEnum):
+    """A fleet command on the wire (the value is its CLI name; the order is its wire code - 1)."""
+
+    HOLD = "hold"
+    RESUME = "resume"
+    LAND = "land"
+    START_AT = "start-at"
+    """A ``go`` that takes effect at ``start_at_unix_s``."""
+    GO = "go"
+    TAKEOVER = "takeover"
+    """Take an armed vehicle this process did not arm; only valid addressed to listed agents."""
+
+
+COMMANDS = tuple(c.value for c in CommandName)
+"""Command names in wire-code order (code = index + 1)."""
 ALL_AGENTS = 0xFFFFFFFF
+"""Version 1's "every agent" target; never a valid agent id."""
 MAGIC = b"FCMD"
-VERSION = 1
+VERSION = 2
 SIG_LEN = 64
-_HEAD = struct.Struct("<4sBBBBIQQQ")
+MAX_TARGETS = 4096
+"""Agent ids one command may name at most."""
+_HEAD = struct.Struct("<4sBBBBHHQQQ")
+_HEAD_V1 = struct.Struct("<4sBBBBIQQQ")
 
 
 class CommandCheck(StrEnum):
-    """The check a fleet command failed (``CommandError.check``; the telemetry counter's key)."""
+    """The check a fleet command failed (``CommandError.check``; telemetry's refusal reason).
+
+    Append only: the order is the telemetry code (``telemetry_codec.COMMAND_REFUSALS``)."""
 
     TRUNCATED = "truncated"
     MAGIC = "magic"
@@ -50,6 +73,8 @@ class CommandCheck(StrEnum):
     REPLAY = "replay"
     STALE = "stale"
     FUTURE = "future"
+    ADDRESS = "address"
+    """A takeover not addressed to listed agents, or a malformed agent list."""
 
 
 class CommandError(ValueError):
@@ -62,43 +87,77 @@ class CommandError(ValueError):
         """The failed check."""
 
 
+def key_id_of(public_key: bytes) -> str:
+    """The short name of a ground key: hex of the Ed25519 public key's first 8 bytes (the key of
+    the per-key sequence floors and ``FleetOrder.key_id``)."""
+    return bytes(public_key)[:8].hex()
+
+
 @dataclass(frozen=True)
 class FleetCommand:
     """A decoded fleet command."""
 
-    name: str
-    """``hold``, ``resume``, ``land`` or ``start-at``."""
+    name: CommandName
+    """The command."""
     swarm: str
     """Swarm the command is for."""
     seq: int
     """Sequence number (strictly increasing per ground key)."""
     issued_unix_s: float
-    """When the ground issued it, UNIX seconds (ms resolution)."""
-    target_id: int = ALL_AGENTS
-    """Agent id, or ``ALL_AGENTS``."""
+    """When the ground issued it, UNIX seconds on the ground's clock (ms resolution)."""
+    targets: tuple[int, ...] = ()
+    """Agent ids it is addressed to, ascending; () = the whole swarm."""
     start_at_unix_s: float | None = None
-    """For ``start-at``: when to start, UNIX seconds (ms resolution)."""
+    """For ``start-at``: when to go, UNIX seconds (ms resolution)."""
     signed: bool = False
     """True when the command carried a signature that verified against a trusted key."""
+    key_id: str = ""
+    """``key_id_of`` the trusted key that verified it ("" unsigned, or signed but no key to check)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "name", CommandName(self.name))
+        object.__setattr__(self, "targets", tuple(int(t) for t in self.targets))
+
+    @property
+    def addressed(self) -> bool:
+        """True when the command names agents (``--agents``), False for the whole swarm."""
+        return bool(self.targets)
 
     def applies_to(self, agent_id: int) -> bool:
-        """True when the command targets every agent or ``agent_id``."""
-        return self.target_id == ALL_AGENTS or self.target_id == int(agent_id)
+        """True when the command is for the whole swarm or names ``agent_id``."""
+        return not self.targets or int(agent_id) in self.targets
+
+
+def check_targets(targets: tuple[int, ...]) -> None:
+    """``CommandError`` (``address``) unless ``targets`` are ascending, distinct u32 agent ids
+    (not ``ALL_AGENTS``), at most ``MAX_TARGETS``."""
+    if len(targets) > MAX_TARGETS:
+        raise CommandError(CommandCheck.ADDRESS, f"{len(targets)} agents named, at most {MAX_TARGETS}")
+    for a, b in zip(targets, targets[1:]):
+        if b <= a:
+            raise CommandError(CommandCheck.ADDRESS, f"agent ids must be ascending and distinct ({a} then {b})")
+    if targets and not (0 <= targets[0] and targets[-1] < ALL_AGENTS):
+        raise CommandError(CommandCheck.ADDRESS, f"agent ids must be within 0..{ALL_AGENTS - 1}")
+
+
+def _check_fields(name: CommandName, targets: tuple[int, ...], start_ms: int) -> None:
+    if (name is CommandName.START_AT) != (start_ms != 0):
+        raise CommandError(CommandCheck.START_AT, "start-at needs a start time, and only start-at carries one")
+    if name is CommandName.TAKEOVER and not targets:
+        raise CommandError(CommandCheck.ADDRESS, "takeover must name its agents (--agents): never swarm-wide")
+    check_targets(targets)
 
 
 def encode_command(cmd: FleetCommand, signing_key: bytes | None = None) -> bytes:
-    """FleetCommand -> bytes; ``signing_key``: 32-byte Ed25519 seed (None: unsigned)."""
-    if cmd.name not in COMMANDS:
-        raise CommandError(CommandCheck.COMMAND, f"unknown fleet command {cmd.name!r}; known: {', '.join(COMMANDS)}")
-    if (cmd.name == "start-at") != (cmd.start_at_unix_s is not None):
-        raise CommandError(CommandCheck.START_AT, "start-at needs start_at_unix_s, and only start-at carries one")
+    """FleetCommand -> version-2 bytes; ``signing_key``: 32-byte Ed25519 seed (None: unsigned)."""
     swarm = cmd.swarm.encode()
     if not 0 < len(swarm) < 256:
         raise CommandError(CommandCheck.SWARM, "name must be 1..255 bytes")
     start_ms = 0 if cmd.start_at_unix_s is None else int(round(cmd.start_at_unix_s * 1000))
+    _check_fields(cmd.name, cmd.targets, start_ms)
     head = _HEAD.pack(MAGIC, VERSION, COMMANDS.index(cmd.name) + 1, 1 if signing_key is not None else 0,
-                      len(swarm), int(cmd.target_id), int(cmd.seq), int(round(cmd.issued_unix_s * 1000)),
-                      start_ms) + swarm
+                      len(swarm), len(cmd.targets), 0, int(cmd.seq), int(round(cmd.issued_unix_s * 1000)),
+                      start_ms) + swarm + struct.pack(f"<{len(cmd.targets)}I", *cmd.targets)
     if signing_key is None:
         return head + b"\0" * SIG_LEN
     from nacl.signing import SigningKey
@@ -106,84 +165,67 @@ def encode_command(cmd: FleetCommand, signing_key: bytes | None = None) -> bytes
     return head + SigningKey(signing_key).sign(head).signature
 
 
+def _verify(signed_part: bytes, signature: bytes, signed: bool, trusted_keys: list[bytes] | None,
+            allow_unsigned: bool) -> str:
+    """The key id that verified the signature ("" when none was needed or none could check)."""
+    if not signed:
+        if not allow_unsigned:
+            raise CommandError(CommandCheck.SIGNATURE, "command is unsigned (use --allow-unsigned only in a lab)")
+        return ""
+    if not trusted_keys:
+        if not allow_unsigned:
+            raise CommandError(CommandCheck.SIGNATURE, "signed command but no trusted key configured")
+        return ""
+    from nacl.exceptions import BadSignatureError
+    from nacl.signing import VerifyKey
+
+    for key in trusted_keys:
+        try:
+            VerifyKey(key).verify(signed_part, signature)
+            return key_id_of(key)
+        except (BadSignatureError, ValueError):
+            continue
+    raise CommandError(CommandCheck.SIGNATURE, "command is not signed by a trusted key")
+
+
 def decode_command(data: bytes | bytearray | memoryview, trusted_keys: list[bytes] | None,
                    allow_unsigned: bool = False) -> FleetCommand:
-    """Verify and decode a command.  With ``trusted_keys`` the signature must verify against
-    one of them; an unsigned command is refused unless ``allow_unsigned``.  A signed command
-    whose signature fails is always refused."""
+    """Verify and decode a command (version 2, or version 1).  With ``trusted_keys`` the
+    signature must verify against one of them; an unsigned command is refused unless
+    ``allow_unsigned``.  A signed command whose signature fails is always refused."""
     data = bytes(data)
-    if len(data) < _HEAD.size + SIG_LEN:
-        raise CommandError(CommandCheck.TRUNCATED, f"command has {len(data)} bytes, at least {_HEAD.size + SIG_LEN} needed")
-    magic, version, code, flags, n_swarm, target, seq, issued_ms, start_ms = _HEAD.unpack_from(data)
-    if magic != MAGIC:
+    if len(data) < 6:
+        raise CommandError(CommandCheck.TRUNCATED, f"command has {len(data)} bytes")
+    if data[:4] != MAGIC:
         raise CommandError(CommandCheck.MAGIC, "not a FISC fleet command")
-    if version != VERSION:
-        raise CommandError(CommandCheck.VERSION, f"command format {version} is not supported (expected {VERSION})")
+    version = data[4]
+    if version not in (1, VERSION):
+        raise CommandError(CommandCheck.VERSION, f"command format {version} is not supported (expected 1 or {VERSION})")
+    head = _HEAD if version == VERSION else _HEAD_V1
+    if len(data) < head.size + SIG_LEN:
+        raise CommandError(CommandCheck.TRUNCATED, f"command has {len(data)} bytes, at least {head.size + SIG_LEN} needed")
+    if version == VERSION:
+        _, _, code, flags, n_swarm, n_targets, _, seq, issued_ms, start_ms = head.unpack_from(data)
+    else:
+        _, _, code, flags, n_swarm, target, seq, issued_ms, start_ms = head.unpack_from(data)
+        n_targets = 0
     if not 1 <= code <= len(COMMANDS):
         raise CommandError(CommandCheck.COMMAND, f"unknown command code {code}")
-    end = _HEAD.size + n_swarm
+    end = head.size + n_swarm + 4 * n_targets
     if len(data) != end + SIG_LEN:
         raise CommandError(CommandCheck.SIZE, f"command should have {end + SIG_LEN} bytes, has {len(data)}")
     signed_part, signature = data[:end], data[end:]
-    signed = bool(flags & 1)
-    if signed:
-        if not trusted_keys:
-            if not allow_unsigned:
-                raise CommandError(CommandCheck.SIGNATURE, "signed command but no trusted key configured")
-        else:
-            from nacl.exceptions import BadSignatureError
-            from nacl.signing import VerifyKey
-
-            for key in trusted_keys:
-                try:
-                    VerifyKey(key).verify(signed_part, signature)
-                    break
-                except (BadSignatureError, ValueError):
-                    continue
-            else:
-                raise CommandError(CommandCheck.SIGNATURE, "command is not signed by a trusted key")
-    elif not allow_unsigned:
-        raise CommandError(CommandCheck.SIGNATURE, "command is unsigned (use --allow-unsigned only in a lab)")
+    key_id = _verify(signed_part, signature, bool(flags & 1), trusted_keys, allow_unsigned)
     try:
-        swarm = data[_HEAD.size:end].decode()
+        swarm = data[head.size:head.size + n_swarm].decode()
     except UnicodeDecodeError as exc:
         raise CommandError(CommandCheck.SWARM, "name is not UTF-8") from exc
-    name = COMMANDS[code - 1]
-    if (name == "start-at") != (start_ms != 0):
-        raise CommandError(CommandCheck.START_AT, "start time missing or given to another command")
-    return FleetCommand(name=name, swarm=swarm, seq=seq, issued_unix_s=issued_ms / 1000.0, target_id=target,
-                        start_at_unix_s=start_ms / 1000.0 if start_ms else None,
-                        signed=signed and bool(trusted_keys))
-
-
-class CommandGate:
-    """Replay and staleness filter for one agent (keeps only the last accepted sequence).
-
-    ``check(cmd, now_unix_s)`` raises ``CommandError`` for a command of another swarm or
-    agent, a sequence number not above the last accepted one (replayed or re-ordered), or an
-    issue time outside ``[now - max_age_s, now + max_future_s]`` (stale, or from a clock far
-    ahead).  On success the command's sequence becomes the new floor.
-    """
-
-    def __init__(self, swarm: str, agent_id: int, max_age_s: float = 30.0, max_future_s: float = 5.0) -> None:
-        self.swarm = swarm
-        self.agent_id = int(agent_id)
-        self.max_age_s = float(max_age_s)
-        self.max_future_s = float(max_future_s)
-        self.last_seq = 0
-
-    def check(self, cmd: FleetCommand, now_unix_s: float) -> FleetCommand:
-        """Accept ``cmd`` (returned) or raise ``CommandError`` naming the failed check (swarm, target, replay, age)."""
-        if cmd.swarm != self.swarm:
-            raise CommandError(CommandCheck.SWARM, f"command is for swarm {cmd.swarm!r}, this agent flies in {self.swarm!r}")
-        if not cmd.applies_to(self.agent_id):
-            raise CommandError(CommandCheck.TARGET, f"command is for agent {cmd.target_id}")
-        if cmd.seq <= self.last_seq:
-            raise CommandError(CommandCheck.REPLAY, f"sequence {cmd.seq} is not above the last accepted {self.last_seq}")
-        age = now_unix_s - cmd.issued_unix_s
-        if age > self.max_age_s:
-            raise CommandError(CommandCheck.STALE, f"command issued {age:.1f} s ago (window {self.max_age_s:.0f} s)")
-        if age < -self.max_future_s:
-            raise CommandError(CommandCheck.FUTURE, f"command issued {-age:.1f} s in the future (clock skew?)")
-        self.last_seq = cmd.seq
-        return cmd
+    if version == VERSION:
+        targets = struct.unpack_from(f"<{n_targets}I", data, head.size + n_swarm)
+    else:
+        targets = () if target == ALL_AGENTS else (target,)
+    name = CommandName(COMMANDS[code - 1])
+    _check_fields(name, targets, start_ms)
+    return FleetCommand(name=name, swarm=swarm, seq=seq, issued_unix_s=issued_ms / 1000.0, targets=targets,
+                        start_at_unix_s=start_ms / 1000.0 if start_ms else None, signed=bool(key_id),
+                        key_id=key_id)

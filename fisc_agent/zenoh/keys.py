@@ -4,6 +4,7 @@
 
     <prefix>/<swarm>/map                      map chunks and announcements (queryable for late joiners)
     <prefix>/<swarm>/cmd                      signed fleet commands
+    <prefix>/<swarm>/cmd/latest               the ground's latest commands, re-published (queryable too)
     <prefix>/<swarm>/agents/<id>/telemetry    telemetry (``fisc_agent.zenoh.telemetry_codec``)
 """
 
@@ -39,6 +40,11 @@ class Keys:
     def cmd(self) -> str:
         """Signed fleet commands."""
         return f"{self.prefix}/{self.swarm}/cmd"
+
+    @property
+    def cmd_latest(self) -> str:
+        """The latest go / hold / land commands, re-published as one bundle (``fisc_agent.zenoh.state_bundle``)."""
+        return f"{self.prefix}/{self.swarm}/cmd/latest"
 
     def telemetry(self, agent_id: int | str) -> str:
         """Telemetry of one agent."""

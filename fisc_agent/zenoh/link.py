@@ -31,7 +31,9 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from fisc_agent.zenoh import telemetry_codec as tc
-from fisc_agent.zenoh.fleet_commands import CommandCheck, CommandError, CommandGate, FleetCommand, decode_command
+from fisc_agent.zenoh.command_gate import MAX_AGE_S, STANDING_GO_S
+from fisc_agent.zenoh.command_rx import CommandReceiver
+from fisc_agent.zenoh.fleet_commands import FleetCommand
 from fisc_agent.map.chunks import (KIND_ANNOUNCE, AssemblyDrop, AssemblyLimits, ChunkHeader, DropReason,
                                    MapAssembler)
 from fisc_agent.map.codec import CommandMap, MapError, MapErrorKind
@@ -73,18 +75,12 @@ class LinkStats:
     """Check that refused the last refused map (``REJECT_REASONS``)."""
     last_reject_message: str = ""
     """Full message of that refusal."""
-    commands_accepted: int = 0
-    """Fleet commands passed to ``on_command``."""
-    commands_rejected: int = 0
-    """Fleet commands refused (signature, replay, stale, other swarm...)."""
-    last_command: str = "none"
-    """Name of the last accepted command (acknowledged in telemetry)."""
-    last_command_seq: int = 0
-    """Its sequence number."""
     telemetry_sent: int = 0
     """Telemetry messages published."""
     queries_sent: int = 0
     """Map queries issued (start, announcements of maps not arriving)."""
+    state_queries_sent: int = 0
+    """Queries of the ground's latest fleet commands (on connect)."""
 
 
 class AgentZenohLink:
@@ -93,9 +89,13 @@ class AgentZenohLink:
     ``on_map(cmap)`` is called from the link's worker thread with each verified map newer than
     the last; the runner installs it at its next safe point.  Returning ``False`` refuses it
     (``Runner.offer_map``'s own checks) and it is then counted as refused.  ``on_command(cmd)``
-    gets each fleet command that passed signature, swarm, target, replay and staleness checks.  Neither
-    is called for anything refused: refusals are logged, counted in ``stats`` and reported in
-    telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
+    gets each fleet command that passed signature, swarm, target, replay and staleness checks
+    (``commands``, a ``CommandReceiver``: live ones from the cmd key, and the ground's re-published
+    latest ones, queried on connect and re-published by the ground every few seconds, oldest
+    first).  Freshness is judged on ``command_clock`` (default ``clock``; the agent passes the
+    autopilot's GNSS time), replay by per-key sequence floors starting at ``command_floors``
+    (read them back from ``commands.floors``).  Neither callback is called for anything refused:
+    refusals are logged, counted and reported in telemetry.  ``session_config``: a ``zenoh.Config``, a JSON5 file path or None (lab
     default); or pass an open ``session`` to share one (it is then not closed by ``close``).
 
     Threads: Zenoh's callbacks only queue map-key payloads (``rx_queue_bytes`` /
@@ -109,7 +109,9 @@ class AgentZenohLink:
                  allow_unsigned: bool, on_map: Callable[[CommandMap], object],
                  on_command: Callable[[FleetCommand], None], *, prefix: str = DEFAULT_PREFIX,
                  session: Any = None, query_timeout_s: float = 10.0, max_map_bytes: int | None = None,
-                 command_max_age_s: float = 30.0, clock: Callable[[], float] = time.time,
+                 command_max_age_s: float = MAX_AGE_S, clock: Callable[[], float] = time.time,
+                 command_clock: Callable[[], float] | None = None, command_floors: dict[str, int] | None = None,
+                 standing_go_s: float = STANDING_GO_S,
                  assembly_limits: AssemblyLimits | None = None, rx_queue_bytes: int = DEFAULT_RX_QUEUE_BYTES,
                  rx_queue_messages: int = DEFAULT_RX_QUEUE_MESSAGES) -> None:
         if not trusted_keys and not allow_unsigned:
@@ -135,7 +137,10 @@ class AgentZenohLink:
         self._rx_bytes = 0
         self._rx_limits = (int(rx_queue_bytes), int(rx_queue_messages))
         self._assembler_thread: threading.Thread | None = None
-        self._gate = CommandGate(swarm, self.agent_id, max_age_s=command_max_age_s)
+        self.commands = CommandReceiver(swarm, self.agent_id, self.trusted_keys, self.allow_unsigned,
+                                        command_clock or clock, command_floors, self.rlog,
+                                        max_age_s=command_max_age_s, standing_go_s=standing_go_s)
+        """Fleet-command intake: counters, newest refusal, per-key sequence floors."""
         self._lock = threading.Lock()
         self._asm_lock = threading.Lock()
         self._work: queue.Queue = queue.Queue()
@@ -181,10 +186,12 @@ class AgentZenohLink:
         s = self._session
         self._entities.append(s.declare_subscriber(self.keys.map, self._on_map_sample))
         self._entities.append(s.declare_subscriber(self.keys.cmd, self._on_cmd_sample))
+        self._entities.append(s.declare_subscriber(self.keys.cmd_latest, self._on_state_sample))
         pub = s.declare_publisher(self.keys.telemetry(self.agent_id), congestion_control=zenoh.CongestionControl.DROP)
         self._entities.append(pub)
         self._pub = pub
         self.query_map()
+        self.query_commands()
         return True
 
     def _connect_loop(self) -> None:
@@ -388,23 +395,35 @@ class AgentZenohLink:
                         "current map" if self.current is not None else "ground hold (no map yet)")
 
     # -- commands ----------------------------------------------------------------------------
-    def _on_cmd_sample(self, sample: Any) -> None:
-        try:
-            cmd = decode_command(sample.payload.to_bytes(), self.trusted_keys, self.allow_unsigned)
-            with self._lock:
-                self._gate.check(cmd, self.clock())
-        except CommandError as exc:
-            if exc.check is not CommandCheck.TARGET:  # another agent's command is not a refusal
-                with self._lock:
-                    self.stats.commands_rejected += 1
-                self.rlog.event(f"cmd:{exc.check.value}", logging.WARNING, "fleet command refused: %s", exc)
+    def query_commands(self) -> None:
+        """Ask the ground for its latest fleet commands (``fisc-ground publish`` answers)."""
+        import zenoh
+
+        if self._session is None:
             return
-        with self._lock:
-            self.stats.commands_accepted += 1
-            self.stats.last_command = cmd.name
-            self.stats.last_command_seq = cmd.seq
-        log.info("fleet command %s (seq %d) accepted", cmd.name, cmd.seq)
-        self.on_command(cmd)
+        self.stats.state_queries_sent += 1
+        self._session.get(self.keys.cmd_latest, self._on_state_reply,
+                          consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                          timeout=self.query_timeout_s)
+
+    def _on_state_reply(self, reply: Any) -> None:
+        if reply.ok is not None:
+            self._on_state_sample(reply.ok)
+
+    def _on_state_sample(self, sample: Any) -> None:
+        for cmd in self.commands.state(sample.payload.to_bytes()):
+            self._deliver(cmd)
+
+    def _on_cmd_sample(self, sample: Any) -> None:
+        cmd = self.commands.live(sample.payload.to_bytes())
+        if cmd is not None:
+            self._deliver(cmd)
+
+    def _deliver(self, cmd: FleetCommand) -> None:
+        try:
+            self.on_command(cmd)
+        except Exception as exc:  # a flying agent never loses its link to a callback's bug
+            log.error("fleet command %s (seq %d) could not be applied: %r", cmd.name.value, cmd.seq, exc)
 
     # -- telemetry ---------------------------------------------------------------------------
     def telemetry_from(self, snap: AgentSnapshot | None) -> tc.Telemetry:
@@ -415,8 +434,11 @@ class AgentZenohLink:
             self._seq = (self._seq + 1) & 0xFFFFFFFF
             seq = self._seq
             sha = snap.map_sha256 if snap is not None else None
+            cmds = self.commands.stats
             status = LinkStatus(maps_rejected=stats.maps_rejected, reject_reason=stats.last_reject_reason,
-                                ack_command=stats.last_command, ack_seq=stats.last_command_seq,
+                                ack_command=cmds.last_accepted, ack_seq=cmds.last_accepted_seq,
+                                commands_refused=cmds.refused, refusal=cmds.last_refusal,
+                                refused_command=cmds.last_refused_command,
                                 zenoh_ok=self._pub is not None,
                                 map_unsigned=current is not None and current.sha256 == sha and not current.signed)
         return telemetry_message(snap, self.agent_id, seq, status, self.clock())

@@ -1,13 +1,20 @@
 """Telemetry message of one agent from its ``AgentSnapshot`` and its Zenoh link's counters (pure).
 
 Every field comes from a named field of the typed snapshot (``fisc_agent.runner.AgentSnapshot``);
-the link adds what only it knows: the refused maps, the last accepted fleet command, whether
-its publisher is up and whether the map in use is unsigned.
+the link adds what only it knows: the refused maps, the last accepted fleet command, the newest
+refused one, whether its publisher is up and whether the map in use is unsigned.
+
+Health.  ``AgentSnapshot.health_problems`` are short phrases; telemetry carries their number,
+the first one (32 bytes) and one flag per kind (``telemetry_codec.HEALTH_NAMES``).  The kind is
+the phrase's first word (before a space or ``:``): ``estimator`` (alias ``ekf``), ``battery``,
+``system``, ``position`` (aliases ``reset``, ``jump``), ``gps`` (alias ``gnss``), ``origin``
+(alias ``home``), ``takeoff``; any other phrase is ``other``.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 from fisc_agent.zenoh import telemetry_codec as tc
@@ -16,6 +23,9 @@ from fisc_agent.runner import AgentSnapshot
 POSITION_FRESH_S = 1.0
 """A position fix younger than this sets the ``position_fresh`` flag [s]."""
 _NO_VEC = (math.nan, math.nan, math.nan)
+HEALTH_ALIASES = {"ekf": "estimator", "reset": "position", "jump": "position", "gnss": "gps", "home": "origin"}
+"""First words that name a health kind other than their own."""
+_FIRST_WORD = re.compile(r"[a-z-]+")
 
 
 @dataclass(frozen=True)
@@ -34,6 +44,19 @@ class LinkStatus:
     """The link's telemetry publisher is declared."""
     map_unsigned: bool
     """The map in use is unsigned (``--allow-unsigned``)."""
+    commands_refused: int = 0
+    """Fleet commands refused so far."""
+    refusal: str = "none"
+    """``CommandCheck`` value of the newest refusal ("none")."""
+    refused_command: str = "none"
+    """Name of the command it refused ("none": it did not decode)."""
+
+
+def health_kind(problem: str) -> str:
+    """The ``telemetry_codec.HEALTH_NAMES`` kind of one health phrase (its first word; ``other``)."""
+    m = _FIRST_WORD.match(problem.strip().lower())
+    word = HEALTH_ALIASES.get(m.group(0), m.group(0)) if m else ""
+    return word if word in tc.HEALTH_NAMES else "other"
 
 
 def _vec3(value: tuple[float, float, float] | None) -> tuple[float, float, float]:
@@ -49,7 +72,9 @@ def telemetry_message(snap: AgentSnapshot | None, agent_id: int, seq: int, link:
     ``WAIT_MAP``, no position, time ``now_s``)."""
     flags = {name for name, on in (("zenoh_ok", link.zenoh_ok), ("map_unsigned", link.map_unsigned)) if on}
     common = dict(agent_id=int(agent_id), seq=int(seq), maps_rejected=link.maps_rejected,
-                  reject_reason=link.reject_reason, ack_command=link.ack_command, ack_seq=link.ack_seq)
+                  reject_reason=link.reject_reason, ack_command=link.ack_command, ack_seq=link.ack_seq,
+                  commands_refused=link.commands_refused, command_refusal=link.refusal,
+                  refused_command=link.refused_command)
     if snap is None:
         return tc.Telemetry(time_s=float(now_s), position_m=_NO_VEC, velocity_m_s=_NO_VEC, state="WAIT_MAP",
                             flags=frozenset(flags), **common)
@@ -64,4 +89,7 @@ def telemetry_message(snap: AgentSnapshot | None, agent_id: int, seq: int, link:
         time_s=float(snap.wall_time_s), position_m=_vec3(snap.position_map_m),
         velocity_m_s=_vec3(snap.velocity_map_m_s), cv_index=int(snap.cv_id), state=state,
         map_version=int(snap.map_version or 0), map_sha256=snap.map_sha256 or "", flags=frozenset(flags),
-        position_age_s=float(snap.position_age_s), heartbeat_age_s=float(snap.heartbeat_age_s), **common)
+        position_age_s=float(snap.position_age_s), heartbeat_age_s=float(snap.heartbeat_age_s),
+        authority=str(snap.authority), landed=str(snap.landed), battery_pct=snap.battery_pct,
+        health=frozenset(health_kind(p) for p in snap.health_problems), health_count=len(snap.health_problems),
+        health_text=snap.health_problems[0] if snap.health_problems else "", **common)

@@ -22,6 +22,7 @@ import numpy as np
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import CommandMap
+from fisc_ground.monitor.alarms import LOW_BATTERY_PCT, fleet_alarms, id_list as _id_list
 from fisc_ground.fields.field_run import FieldRun, FieldSource
 from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields
 
@@ -92,7 +93,8 @@ class FleetView:
     map_versions: dict[int, int]
     """map_version -> live agents flying it."""
     alarms: tuple[str, ...]
-    """Human-readable alarms (outside the tunnel, failsafes, refused maps, foreign maps, spoofing)."""
+    """Human-readable alarms (every agent / some agents stale, low battery, unhealthy, hands-off,
+    refused commands, outside the tunnel, failsafes, refused maps, foreign maps, spoofing)."""
     messages: int
     """Messages ingested."""
     bad_messages: int
@@ -105,19 +107,24 @@ class FleetView:
     """Messages from agent ids not on the roster (``--roster``), not shown."""
     over_cap: int = 0
     """Messages from new agent ids refused because ``max_agents`` ids are already tracked."""
+    by_authority: dict[str, int] | None = None
+    """Live agents per authority (``telemetry_codec.AUTHORITIES``; ``unknown`` from version-1 agents)."""
 
 
 class TelemetryAggregator:
     """Newest telemetry per agent plus time-averaged swarm fields over the map's CVs."""
 
     def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = 0.5, stale_after_s: float = 3.0,
-                 roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS) -> None:
+                 roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS,
+                 low_battery_pct: float = LOW_BATTERY_PCT) -> None:
         if not sample_period_s > 0 or not stale_after_s > 0:
             raise ValueError("sample_period_s and stale_after_s must be > 0")
         if int(max_agents) < 1:
             raise ValueError(f"max_agents must be >= 1, got {max_agents}")
         self.sample_period_s = float(sample_period_s)
         self.stale_after_s = float(stale_after_s)
+        self.low_battery_pct = float(low_battery_pct)
+        """Battery level below which ``low battery`` is raised [%]."""
         self.roster = roster
         """Agent ids accepted (None: any id, up to ``max_agents``)."""
         self.max_agents = int(max_agents)
@@ -264,10 +271,14 @@ class TelemetryAggregator:
         by_state: dict[str, int] = {}
         for s in states[live]:
             by_state[s] = by_state.get(s, 0) + 1
+        by_authority: dict[str, int] = {}
+        for code in rec["authority"][live].tolist():
+            name = tc.AUTHORITIES[code] if code < len(tc.AUTHORITIES) else "unknown"
+            by_authority[name] = by_authority.get(name, 0) + 1
         versions: dict[int, int] = {}
         for v in rec["map_version"][live].tolist():
             versions[int(v)] = versions.get(int(v), 0) + 1
-        alarms: list[str] = []
+        alarms = fleet_alarms(ids, rec, live, self.stale_after_s, self.low_battery_pct)
         flags = rec["flags"]
         flying = np.isin(states, list(FLYING_STATES))
         if self.field is not None:  # the monitor's own CV assignment from the reported position
@@ -300,10 +311,4 @@ class TelemetryAggregator:
         return FleetView(now_s=now, n_agents=len(ids), by_state=by_state, stale=stale, map_versions=versions,
                          alarms=tuple(alarms), messages=self.messages, bad_messages=self.bad_messages,
                          spoofed=self.spoofed, time_samples=0 if self.acc is None else self.acc.n_time_samples,
-                         off_roster=self.off_roster, over_cap=self.over_cap)
-
-
-def _id_list(ids: np.ndarray, limit: int = 12) -> str:
-    ids = sorted(int(i) for i in ids)
-    text = ", ".join(str(i) for i in ids[:limit])
-    return text + (f" ... (+{len(ids) - limit})" if len(ids) > limit else "")
+                         off_roster=self.off_roster, over_cap=self.over_cap, by_authority=by_authority)

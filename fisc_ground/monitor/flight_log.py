@@ -26,7 +26,8 @@ from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.map.codec import CommandMap
 from fisc_ground.monitor import foxglove_scene as fs
 from fisc_ground.fields.field_report import json_safe
-from fisc_ground.monitor.aggregator import DEFAULT_MAX_AGENTS, TelemetryAggregator
+from fisc_ground.monitor.aggregator import DEFAULT_MAX_AGENTS, FleetView, TelemetryAggregator
+from fisc_ground.monitor.alarms import LOW_BATTERY_PCT
 
 #: Uncompressed size of an MCAP chunk [bytes]: a log cut short by a crash loses at most its last chunk.
 CHUNK_BYTES = 256 * 1024
@@ -54,6 +55,8 @@ class LogSettings:
     """Accepted agent ids (``AgentRoster.spec``), None: any."""
     max_agents: int = DEFAULT_MAX_AGENTS
     """Most agent ids tracked."""
+    low_battery_pct: float = LOW_BATTERY_PCT
+    """Battery level below which the ``low battery`` alarm is raised [%]."""
 
     def aggregator(self, cmap: CommandMap | None = None) -> TelemetryAggregator:
         """A fresh aggregator with these settings."""
@@ -61,7 +64,7 @@ class LogSettings:
 
         return TelemetryAggregator(cmap, sample_period_s=self.sample_period_s, stale_after_s=self.stale_after_s,
                                    roster=AgentRoster.parse(self.roster) if self.roster else None,
-                                   max_agents=self.max_agents)
+                                   max_agents=self.max_agents, low_battery_pct=self.low_battery_pct)
 
 
 def map_bytes(cmap: CommandMap) -> bytes:
@@ -133,6 +136,8 @@ class FlightLog:
         self._telemetry_ch = ch(fs.TOPIC_TELEMETRY, fs.TELEMETRY_SCHEMA)
         self._fidelity_ch = ch(fs.TOPIC_FIDELITY, fs.FIDELITY_SCHEMA)
         self._states_ch = ch(fs.TOPIC_STATES, fs.STATES_SCHEMA)
+        self._alarms_ch = ch(fs.TOPIC_ALARMS, fs.ALARMS_SCHEMA)
+        self._alarms: tuple[str, ...] | None = None
         self._agents_ch = PointCloudChannel(fs.TOPIC_AGENTS, context=self._ctx)
         self._cvs_ch = PointCloudChannel(fs.TOPIC_CVS, context=self._ctx)
         self._scene_ch = SceneUpdateChannel(fs.TOPIC_SCENE, context=self._ctx)
@@ -169,6 +174,18 @@ class FlightLog:
             self._seq += 1
             self.records += len(payloads)
 
+    def log_alarms(self, view: FleetView) -> bool:
+        """Log ``view``'s alarms on ``/fisc/alarms`` at ``view.now_s`` if they changed since the last
+        ones logged (the monitor calls it on its clock too, so that silence, "every agent stale",
+        is logged although no message arrives); returns whether it logged."""
+        with self._lock:
+            if view.alarms == self._alarms:
+                return False
+            self._alarms = view.alarms
+            self._alarms_ch.log({"t_s": float(view.now_s), "agents_heard": view.n_agents, "stale": len(view.stale),
+                                 "alarms": list(view.alarms)}, log_time=_ns(view.now_s))
+        return True
+
     # -- derived scene -------------------------------------------------------------------------
     def publish(self, agg: TelemetryAggregator, force: bool = False) -> bool:
         """Log the scene, the fidelity and the state counts of ``agg`` at its newest receive time
@@ -187,6 +204,7 @@ class FlightLog:
         view = agg.view(t)
         self._states_ch.log({"t_s": t, "agents_heard": view.n_agents, "stale": len(view.stale),
                              **{s: int(view.by_state.get(s, 0)) for s in tc.STATES}}, log_time=lt)
+        self.log_alarms(view)
         cmap = agg.cmap
         wall = []
         if cmap is not None:
@@ -246,6 +264,8 @@ class SimulatedTelemetry:
             return
         rec = np.zeros(n, dtype=tc.DTYPE)
         rec["version"] = tc.VERSION
+        rec["battery_pct"] = tc.NO_BATTERY
+        rec["authority"] = tc.AUTHORITIES.index("command")
         names = np.full(n, states, dtype=object) if isinstance(states, str) else np.asarray(states, dtype=object)
         rec["state"] = [tc.STATES.index(s) if s in tc.STATES else 0 for s in names.tolist()]
         rec["agent_id"] = np.asarray(ids, dtype=np.int64) & 0xFFFFFFFF

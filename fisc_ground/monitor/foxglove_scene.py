@@ -14,6 +14,8 @@ topic                         schema                 content
 ``/fisc/scene``               foxglove.SceneUpdate   the duct wall (lines) and per-agent velocity arrows
 ``/fisc/fidelity``            JSON schema            running nRMSE / Pearson against the map's CFD targets
 ``/fisc/states``              JSON schema            live agents per state, stale agents
+``/fisc/alarms``              JSON schema            the monitor's alarms (``fisc_ground.monitor.alarms``),
+                                                     logged when they change
 ``/fisc/telemetry``           JSON schema            the raw telemetry stream (what replay re-aggregates)
 ``/fisc/map``                 JSON schema            the map flown (``.fiscmap`` bytes, base64)
 ``/fisc/settings``            JSON schema            the aggregator settings of the log
@@ -36,6 +38,7 @@ TOPIC_CVS = "/fisc/cvs"
 TOPIC_SCENE = "/fisc/scene"
 TOPIC_FIDELITY = "/fisc/fidelity"
 TOPIC_STATES = "/fisc/states"
+TOPIC_ALARMS = "/fisc/alarms"
 TOPIC_TELEMETRY = "/fisc/telemetry"
 TOPIC_MAP = "/fisc/map"
 TOPIC_SETTINGS = "/fisc/settings"
@@ -51,8 +54,10 @@ _STATE_TABLE = np.array([STATE_RGBA.get(s, _GREY) for s in tc.STATES], dtype=np.
 
 AGENT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("vx", "<f4"), ("vy", "<f4"), ("vz", "<f4"),
                         ("agent_id", "<u4"), ("state", "u1"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-                        ("alpha", "u1")])
-"""One ``/fisc/agents`` point (velocity in [m/s], ``state`` a ``telemetry_codec.STATES`` index)."""
+                        ("alpha", "u1"), ("authority", "u1"), ("battery_pct", "u1"), ("health", "u1")])
+"""One ``/fisc/agents`` point (velocity in [m/s], ``state`` a ``telemetry_codec.STATES`` index,
+``authority`` an ``AUTHORITIES`` index, ``battery_pct`` 0-100 (255: not reported), ``health`` the
+number of health problems)."""
 CV_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("density_kg_m3", "<f4"), ("pressure_pa", "<f4"),
                      ("samples", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")])
 """One ``/fisc/cvs`` point (NaN density/pressure where the CV has no sample yet)."""
@@ -69,6 +74,12 @@ FIDELITY_SCHEMA = {
         "time_samples": {"type": "integer"}, "n_cv_compared": {"type": "integer"},
         **{f"{k}_{q}": _FLOAT_OR_NULL for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")},
     },
+}
+ALARMS_SCHEMA = {
+    "title": "fisc.Alarms", "type": "object", "description": "The monitor's alarms (empty list: none)",
+    "properties": {"t_s": {"type": "number"}, "agents_heard": {"type": "integer"}, "stale": {"type": "integer"},
+                   "alarms": {"type": "array", "items": {"type": "string"}}},
+    "required": ["t_s", "alarms"],
 }
 STATES_SCHEMA = {
     "title": "fisc.StateCounts", "type": "object", "description": "Live agents per mission state",
@@ -96,6 +107,7 @@ SETTINGS_SCHEMA = {
     "properties": {"source": {"type": "string"}, "swarm": {"type": ["string", "null"]},
                    "sample_period_s": {"type": "number"}, "stale_after_s": {"type": "number"},
                    "roster": {"type": ["string", "null"]}, "max_agents": {"type": "integer"},
+                   "low_battery_pct": {"type": "number"},
                    "telemetry_version": {"type": "integer"}, "created_utc": {"type": "string"}},
     "required": ["sample_period_s", "stale_after_s"],
 }
@@ -146,6 +158,9 @@ def agent_points(ids: np.ndarray, records: np.ndarray) -> np.ndarray:
     out["state"] = state
     rgba = _STATE_TABLE[state]
     out["red"], out["green"], out["blue"], out["alpha"] = rgba.T
+    out["authority"] = records["authority"][ok]
+    out["battery_pct"] = records["battery_pct"][ok]
+    out["health"] = records["health_count"][ok]
     return out
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from fisc_agent.map.codec import CommandMap
 from fisc_agent.zenoh.keys import Keys
 from fisc_ground.monitor.flight_log import FlightLog, LogSettings
+from fisc_ground.monitor.alarms import LOW_BATTERY_PCT
 from fisc_ground.monitor.aggregator import (  # noqa: F401 - DEFAULT_MAX_AGENTS: imported from here by the CLI
     DEFAULT_MAX_AGENTS,
     NO_AGENT,
@@ -305,13 +306,15 @@ def run_monitor(args: Any) -> int:
                 got = None
             if got is not None:
                 cmap, blob = got
+        low_battery = getattr(args, "low_battery", LOW_BATTERY_PCT)
         agg = TelemetryAggregator(None, sample_period_s=args.sample_period, stale_after_s=args.stale_after,
-                                  roster=roster, max_agents=args.max_agents)
+                                  roster=roster, max_agents=args.max_agents, low_battery_pct=low_battery)
         foxglove_port = getattr(args, "foxglove", None)
         if args.record or foxglove_port is not None:
             recorder = FlightLog(LogSettings(sample_period_s=args.sample_period, stale_after_s=args.stale_after,
                                              swarm=args.swarm, prefix=args.prefix,
-                                             roster=roster.spec() if roster else None, max_agents=args.max_agents),
+                                             roster=roster.spec() if roster else None, max_agents=args.max_agents,
+                                             low_battery_pct=low_battery),
                                  mcap_path=args.record, ws_port=foxglove_port)
             if recorder.port is not None:
                 console.print(f"Foxglove WebSocket: ws://127.0.0.1:{recorder.port} (open it in Foxglove; "
@@ -334,6 +337,8 @@ def run_monitor(args: Any) -> int:
                         view = agg.view(time.time())
                         fields = agg.fields()
                         shown_map = agg.cmap
+                    if recorder is not None:  # silence too ("every agent stale") reaches the log
+                        recorder.log_alarms(view)
                     live.update(render(view, fields, shown_map, pipe.dropped, title, pipe.worker_errors,
                                        pipe.last_error))
                     hint = None if hinted or view.n_agents else silence_hint(

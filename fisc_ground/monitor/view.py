@@ -59,6 +59,8 @@ def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None,
     info = Table.grid(padding=(0, 2))
     info.add_row("agents heard", str(view.n_agents))
     info.add_row("map", f"{cmap.sha256[:12]} v{cmap.map_version} ({cmap.n_cv} CVs)" if cmap else "none yet")
+    info.add_row("authority", ", ".join(f"{k}: {v}" for k, v in sorted((view.by_authority or {}).items())) or "-",
+                 style="bold red" if (view.by_authority or {}).get("hands-off") else "")
     info.add_row("map versions flown", ", ".join(f"v{k}: {v}" for k, v in sorted(view.map_versions.items())) or "-")
     info.add_row("messages", f"{view.messages}  (bad {view.bad_messages}, dropped {dropped}, "
                              f"off roster {view.off_roster}, over agent cap {view.over_cap})")

@@ -11,8 +11,9 @@ from datetime import datetime, timezone
 from typing import Any
 
 from fisc_agent.zenoh import telemetry_codec as tc
-from fisc_agent.zenoh.fleet_commands import ALL_AGENTS, FleetCommand, encode_command
+from fisc_agent.zenoh.fleet_commands import CommandName, FleetCommand, encode_command
 from fisc_agent.zenoh.keys import Keys
+from fisc_ground.monitor.alarms import LOW_BATTERY_PCT, fleet_alarms
 from fisc_ground.monitor.run import DEFAULT_MAX_AGENTS
 
 log = logging.getLogger(__name__)
@@ -29,14 +30,29 @@ def parse_utc(text: str) -> float:
     return dt.timestamp()
 
 
-def make_command(name: str, swarm: str, target_id: int | None = None, start_at_unix_s: float | None = None,
+def parse_agents(text: str) -> tuple[int, ...]:
+    """``"1,3,5"`` or ``"1-4,9"`` -> ascending distinct agent ids (``ValueError`` naming the bad part)."""
+    ids: set[int] = set()
+    for part in str(text).split(","):
+        lo, sep, hi = part.strip().partition("-")
+        try:
+            a, b = int(lo), int(hi) if sep else int(lo)
+        except ValueError:
+            raise ValueError(f"--agents: {part.strip()!r} is not an agent id or a range like 1-4") from None
+        if not 0 <= a <= b < 0xFFFFFFFF or b - a > 4096:
+            raise ValueError(f"--agents: {part.strip()!r} is not a range of agent ids within 0..4294967294")
+        ids.update(range(a, b + 1))
+    return tuple(sorted(ids))
+
+
+def make_command(name: str, swarm: str, targets: tuple[int, ...] = (), start_at_unix_s: float | None = None,
                  now_unix_s: float | None = None) -> FleetCommand:
-    """A command stamped now; its sequence number is the issue time in microseconds (strictly
-    increasing across ground restarts as long as the ground clock is)."""
+    """A command stamped now, for the whole swarm (``targets`` empty) or the listed agents; its
+    sequence number is the issue time in microseconds (strictly increasing per ground key across
+    ground restarts as long as the ground clock is)."""
     now = time.time() if now_unix_s is None else now_unix_s
-    return FleetCommand(name=name, swarm=swarm, seq=int(now * 1e6), issued_unix_s=now,
-                        target_id=ALL_AGENTS if target_id is None else int(target_id),
-                        start_at_unix_s=start_at_unix_s)
+    return FleetCommand(name=CommandName(name), swarm=swarm, seq=int(now * 1e6), issued_unix_s=now,
+                        targets=tuple(sorted(set(int(t) for t in targets))), start_at_unix_s=start_at_unix_s)
 
 
 class TelemetryListener:
@@ -83,19 +99,34 @@ class TelemetryListener:
         self._sub.undeclare()
 
 
-def status_report(latest: dict[int, tuple[tc.Telemetry, float]], now_unix_s: float) -> dict:
-    """The ``status --json`` object: ``{"agents": [{"id", "state", "map_sha256", "last_seen_s", ...}]}``."""
+def status_report(latest: dict[int, tuple[tc.Telemetry, float]], now_unix_s: float, stale_after_s: float = 3.0,
+                  low_battery_pct: float = LOW_BATTERY_PCT) -> dict:
+    """The ``status --json`` object: ``{"agents": [{"id", "state", "authority", "battery_pct",
+    "landed", "health", "map_sha256", "last_seen_s", ...}], "alarms": [...]}`` (``fisc_ground.monitor.alarms``)."""
     agents = []
     for aid in sorted(latest):
         t, seen = latest[aid]
         agents.append({
+            "authority": t.authority, "battery_pct": t.battery_pct, "landed": t.landed,
+            "health": sorted(t.health), "health_problems": t.health_count, "health_text": t.health_text,
+            "commands_refused": t.commands_refused, "command_refusal": t.command_refusal,
+            "refused_command": t.refused_command, "stale": now_unix_s - seen > stale_after_s,
             "id": aid, "state": t.state, "map_sha256": t.map_sha256, "last_seen_s": round(now_unix_s - seen, 3),
             "map_version": t.map_version, "cv_index": t.cv_index,
             "position_m": [round(v, 3) for v in t.position_m], "velocity_m_s": [round(v, 3) for v in t.velocity_m_s],
             "flags": sorted(t.flags), "maps_rejected": t.maps_rejected, "reject_reason": t.reject_reason,
             "ack_command": t.ack_command, "ack_seq": t.ack_seq,
         })
-    return {"agents": agents}
+    return {"agents": agents, "alarms": status_alarms(latest, now_unix_s, stale_after_s, low_battery_pct)}
+
+
+def status_alarms(latest: dict[int, tuple[tc.Telemetry, float]], now_unix_s: float, stale_after_s: float,
+                  low_battery_pct: float = LOW_BATTERY_PCT) -> list[str]:
+    """The monitor's health, authority and silence alarms for the agents ``status`` heard."""
+    ids = sorted(latest)
+    records, _ = tc.decode_many([tc.encode(latest[i][0]) for i in ids])
+    live = [now_unix_s - latest[i][1] <= stale_after_s for i in ids]
+    return fleet_alarms(ids, records, live, stale_after_s, low_battery_pct)
 
 
 def _wait_connected(session: Any, timeout_s: float) -> bool:
@@ -147,7 +178,7 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
             end = time.monotonic() + ack_timeout_s
             while time.monotonic() < end:
                 acked = {aid for aid, (t, _) in listener.snapshot().items() if t.ack_seq == cmd.seq}
-                targets = set(listener.snapshot()) if cmd.target_id == ALL_AGENTS else {cmd.target_id}
+                targets = set(cmd.targets) or set(listener.snapshot())
                 if targets and targets <= acked and time.monotonic() - listener.started_s >= settle_s:
                     break
                 time.sleep(0.05)
@@ -160,7 +191,7 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
 # CLI bodies
 
 def run_cmd(args: Any) -> int:
-    """``fisc-ground cmd hold|resume|land|start-at [UTC_TIME] --swarm NAME [--id N] [--key KEYFILE]``."""
+    """``fisc-ground cmd go|takeover|hold|resume|land|start-at [UTC_TIME] --swarm NAME [--agents IDS] [--key KEYFILE]``."""
     from fisc_ground.maps.write import read_signing_key
     from fisc_ground.zenoh.config import open_ground_session
 
@@ -171,6 +202,9 @@ def run_cmd(args: Any) -> int:
         start_at = parse_utc(args.time)
     elif args.time:
         raise ValueError(f"cmd {args.fleet_command} takes no time argument")
+    targets = tuple(args.agents or ())
+    if args.fleet_command == "takeover" and not targets:
+        raise ValueError("cmd takeover needs --agents: a takeover is never swarm-wide")
     key = read_signing_key(args.key) if args.key else None
     if key is None:
         log.warning("sending an UNSIGNED command: agents refuse it unless started with --allow-unsigned")
@@ -179,14 +213,14 @@ def run_cmd(args: Any) -> int:
     try:
         _wait_connected(session, args.wait)
         listener = TelemetryListener(session, keys)
-        cmd = make_command(args.fleet_command, args.swarm, args.id, start_at)
+        cmd = make_command(args.fleet_command, args.swarm, targets, start_at)
         res = send_command(session, keys, cmd, key, match_timeout_s=args.wait, ack_timeout_s=args.ack_wait,
                            listener=listener)
         listener.close()
     finally:
         session.close()
-    print(json.dumps({"command": cmd.name, "seq": cmd.seq, "swarm": cmd.swarm,
-                      "target": "all" if cmd.target_id == ALL_AGENTS else cmd.target_id,
+    print(json.dumps({"command": cmd.name.value, "seq": cmd.seq, "swarm": cmd.swarm,
+                      "target": list(cmd.targets) or "all",
                       "subscribers_matched": res.matched, "acked": list(res.acked)}))
     return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.common.cli_common)
 
@@ -204,7 +238,7 @@ def run_status(args: Any) -> int:
         listener.close()
     finally:
         session.close()
-    report = status_report(latest, time.time())
+    report = status_report(latest, time.time(), args.stale_after, args.low_battery)
     if args.json:  # strict JSON: a non-finite position or velocity is null, never NaN/Infinity
         from fisc_ground.fields.field_report import json_safe
 
@@ -214,12 +248,21 @@ def run_status(args: Any) -> int:
     from rich.table import Table
 
     table = Table(title=f"swarm {args.swarm}: {len(report['agents'])} agents")
-    for col in ("id", "state", "map", "cv", "position [m]", "flags", "refused maps", "last seen [s]"):
+    for col in ("id", "state", "authority", "battery", "landed", "health", "map", "cv", "position [m]", "flags",
+                "refused maps", "refused cmds", "last seen [s]"):
         table.add_column(col)
     for a in report["agents"]:
-        table.add_row(str(a["id"]), a["state"], a["map_sha256"][:12] or "-", str(a["cv_index"]),
+        table.add_row(str(a["id"]), a["state"], a["authority"],
+                      "-" if a["battery_pct"] is None else f"{a['battery_pct']:.0f} %", a["landed"],
+                      (a["health_text"] or ",".join(a["health"])) if a["health_problems"] else "ok",
+                      a["map_sha256"][:12] or "-", str(a["cv_index"]),
                       " ".join(f"{v:.1f}" for v in a["position_m"]), ",".join(a["flags"]),
                       f"{a['maps_rejected']} ({a['reject_reason']})" if a["maps_rejected"] else "0",
-                      f"{a['last_seen_s']:.1f}")
-    Console().print(table)
+                      f"{a['commands_refused']} ({a['command_refusal']} {a['refused_command']})"
+                      if a["commands_refused"] else "0",
+                      f"{a['last_seen_s']:.1f}", style="red" if a["stale"] else "")
+    console = Console()
+    console.print(table)
+    console.print("alarms: " + ("; ".join(report["alarms"]) if report["alarms"] else "none"),
+                  style="bold red" if report["alarms"] else "green")
     return 0

@@ -11,8 +11,9 @@ import pytest
 from nacl.signing import SigningKey
 
 from fisc_agent.zenoh import telemetry_codec as tc
-from fisc_agent.zenoh.fleet_commands import (ALL_AGENTS, CommandCheck, CommandError, CommandGate, FleetCommand, decode_command,
-                                       encode_command)
+from fisc_agent.zenoh.command_gate import CommandGate
+from fisc_agent.zenoh.fleet_commands import (CommandCheck, CommandError, FleetCommand, decode_command, encode_command,
+                                             key_id_of)
 from fisc_agent.map.codec import MapError, MapErrorKind
 from fisc_agent.map.chunks import CHUNK_HEADER, MapAssembler, announce_message, parse_chunk, split_map
 from fisc_agent.zenoh.maps import reject_code
@@ -32,8 +33,8 @@ def sample(**kw):
 
 def test_telemetry_layout_is_the_documented_raw_bytes():
     raw = tc.encode(sample())
-    assert len(raw) == tc.SIZE == 104
-    assert raw[0] == 1  # version byte first
+    assert len(raw) == tc.SIZE == 148
+    assert raw[0] == 2  # version byte first
     assert raw[1] == tc.STATES.index("FLOW")
     assert raw[2] == tc.FLAG_ARMED | tc.FLAG_MAVLINK_OK
     assert raw[3] == tc.REJECT_REASONS.index("signature")
@@ -54,14 +55,14 @@ def test_telemetry_round_trip_and_batch_decode():
     back = tc.decode(tc.encode(empty))
     assert back.map_sha256 == "" and math.isinf(back.position_age_s) and back.state == "UNKNOWN"
     assert all(math.isnan(v) for v in back.position_m)
-    recs, ok = tc.decode_many([tc.encode(t), b"\x02" + bytes(103), b"\x01short", tc.encode(empty)])
+    recs, ok = tc.decode_many([tc.encode(t), b"\x03" + bytes(147), b"\x02short", tc.encode(empty)])
     assert ok.tolist() == [True, False, False, True]
     assert recs["agent_id"][0] == 42 and recs["cv_index"][0] == 311
     assert tc.sha_hex(recs[:1]) == [SHA] and tc.state_names(recs["state"][:1]) == ["FLOW"]
 
 
-@pytest.mark.parametrize("raw, why", [(b"", "empty"), (b"\x09" + bytes(103), "version 9"),
-                                      (b"\x01" + bytes(50), "104 bytes")])
+@pytest.mark.parametrize("raw, why", [(b"", "empty"), (b"\x09" + bytes(147), "version 9"),
+                                      (b"\x01" + bytes(50), "104 bytes"), (b"\x02" + bytes(103), "148 bytes")])
 def test_telemetry_refuses_unknown_versions_and_sizes(raw, why):
     with pytest.raises(tc.TelemetryError, match=why):
         tc.decode(raw)
@@ -78,12 +79,13 @@ def cmd(name="hold", seq=10, issued=1000.0, **kw):
 
 def test_command_round_trip_signed_and_layout():
     key = SigningKey.generate()
-    raw = encode_command(cmd("start-at", start_at_unix_s=2000.5, target_id=3), key.encode())
-    assert raw[:4] == b"FCMD" and raw[4] == 1 and raw[5] == 4 and raw[6] == 1
+    raw = encode_command(cmd("start-at", start_at_unix_s=2000.5, targets=(3,)), key.encode())
+    assert raw[:4] == b"FCMD" and raw[4] == 2 and raw[5] == 4 and raw[6] == 1
     back = decode_command(raw, [key.verify_key.encode()])
-    assert back == cmd("start-at", start_at_unix_s=2000.5, target_id=3, signed=True)
+    assert back == cmd("start-at", start_at_unix_s=2000.5, targets=(3,), signed=True,
+                       key_id=key_id_of(key.verify_key.encode()))
     assert back.applies_to(3) and not back.applies_to(4)
-    assert cmd().target_id == ALL_AGENTS and cmd().applies_to(99)
+    assert cmd().targets == () and cmd().applies_to(99)
 
 
 def test_command_signature_checks():
@@ -112,7 +114,7 @@ def test_gate_refuses_replays_reorders_stale_future_and_foreign_commands():
     assert gate.check(cmd(seq=10, issued=1000.0), now_unix_s=1001.0).seq == 10
     for bad, why in [(cmd(seq=10, issued=1000.0), "replay"), (cmd(seq=9, issued=1000.5), "replay"),
                      (cmd(seq=11, issued=900.0), "stale"), (cmd(seq=12, issued=1100.0), "future"),
-                     (FleetCommand("hold", "beta", 13, 1001.0), "swarm"), (cmd(seq=14, target_id=6), "target")]:
+                     (FleetCommand("hold", "beta", 13, 1001.0), "swarm"), (cmd(seq=14, targets=(6,)), "target")]:
         with pytest.raises(CommandError, match=why) as err:
             gate.check(bad, now_unix_s=1001.0)
         assert err.value.check is CommandCheck(why)  # the typed check the agent's counters key on
@@ -173,6 +175,6 @@ def test_start_at_times_are_utc_and_commands_are_stamped_increasing():
     with pytest.raises(ValueError, match="ISO-8601"):
         parse_utc("tomorrow")
     a, b = make_command("hold", "alpha", now_unix_s=100.0), make_command("resume", "alpha", now_unix_s=100.001)
-    assert b.seq > a.seq and a.target_id == ALL_AGENTS
+    assert b.seq > a.seq and a.targets == ()
     start = make_command("start-at", "alpha", start_at_unix_s=1777636800.0)
     assert decode_command(encode_command(start, None), None, allow_unsigned=True).start_at_unix_s == 1777636800.0

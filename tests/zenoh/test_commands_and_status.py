@@ -46,10 +46,11 @@ def test_signed_command_reaches_every_agent_and_is_acknowledged(fleet, ground_ke
 
 def test_targeted_command_only_reaches_its_agent(fleet, ground_key):
     ground, links, got = fleet
-    send_command(ground, Keys("fisc", "alpha"), make_command("land", "alpha", target_id=2), ground_key[0])
-    assert wait_for(lambda: len(got[2]) == 1)
+    send_command(ground, Keys("fisc", "alpha"), make_command("land", "alpha", targets=(0, 2)), ground_key[0])
+    assert wait_for(lambda: len(got[2]) == 1 and len(got[0]) == 1)
     time.sleep(0.3)
-    assert got[0] == [] and got[1] == [] and links[0].stats.commands_rejected == 0
+    assert got[1] == [] and links[1].commands.stats.refused == 0  # another agent's command is no refusal
+    assert got[0][0].addressed and got[0][0].targets == (0, 2)
 
 
 def test_replayed_stale_forged_and_foreign_commands_are_ignored(fleet, ground_key):
@@ -65,7 +66,9 @@ def test_replayed_stale_forged_and_foreign_commands_are_ignored(fleet, ground_ke
     pub.put(encode_command(make_command("land", "alpha", now_unix_s=now + 1), SigningKey.generate().encode()))
     pub.put(encode_command(make_command("land", "alpha", now_unix_s=now + 2), None))  # unsigned
     pub.put(encode_command(make_command("land", "beta", now_unix_s=now + 3), ground_key[0]))  # other swarm
-    assert wait_for(lambda: all(link.stats.commands_rejected == 5 for link in links))
+    assert wait_for(lambda: all(link.commands.stats.refused == 5 for link in links))
+    last = links[0].commands.stats
+    assert (last.last_refusal, last.last_refused_command) == ("swarm", "land")
     assert all([c.name for c in v] == ["hold"] for v in got.values())
     pub.put(encode_command(make_command("resume", "alpha", now_unix_s=now + 4), ground_key[0]))
     assert wait_for(lambda: all([c.name for c in v] == ["hold", "resume"] for v in got.values()))
@@ -96,25 +99,36 @@ def test_status_lists_agents_with_the_contract_keys(fleet):
     listener.close()
 
 
-def test_start_at_holds_now_and_resumes_at_the_time_and_a_later_command_cancels_it():
+class StandInRunner:
+    """What the dispatcher needs of a ``Runner``: ``fleet_command(FleetOrder)``."""
+
+    def __init__(self):
+        self.orders = []
+
+    def fleet_command(self, order):
+        self.orders.append(order)
+
+
+def test_start_at_is_a_go_at_its_time_on_the_given_clock_and_a_later_hold_cancels_it():
+    from fisc_agent.flight.mission_types import FleetOrder, MissionCommand
     from fisc_agent.zenoh.fleet_commands import FleetCommand
-    from fisc_agent.zenoh.runner import _CommandDispatcher
+    from fisc_agent.zenoh.runner import CommandDispatcher
 
-    class FakeRunner:
-        def __init__(self):
-            self.calls = []
-
-        def fleet_command(self, name):
-            self.calls.append(name)
-
-    runner = FakeRunner()
-    d = _CommandDispatcher(runner, clock=time.time)
-    d(FleetCommand("start-at", "alpha", 1, time.time(), start_at_unix_s=time.time() + 0.3))
-    assert runner.calls == ["hold"]
-    assert wait_for(lambda: runner.calls == ["hold", "resume"], timeout_s=3)
-    d(FleetCommand("start-at", "alpha", 2, time.time(), start_at_unix_s=time.time() + 0.3))
-    d(FleetCommand("land", "alpha", 3, time.time()))
+    skew = -10.0  # the agent's clock (the autopilot's GNSS time) is 10 s behind the companion's
+    runner = StandInRunner()
+    d = CommandDispatcher(runner, clock=lambda: time.time() + skew, poll_s=0.02)
+    start = time.time() + skew + 0.3
+    d(FleetCommand("start-at", "alpha", 1, time.time(), start_at_unix_s=start, targets=(3,), key_id="k1"))
+    assert runner.orders == [] and d.pending_start_unix_s == start
+    assert wait_for(lambda: runner.orders == [FleetOrder(MissionCommand.GO, True, 1, "k1")], timeout_s=3)
+    assert d.pending_start_unix_s is None
+    d(FleetCommand("start-at", "alpha", 2, time.time(), start_at_unix_s=time.time() + skew + 0.3))
+    d(FleetCommand("resume", "alpha", 3, time.time()))  # a resume does not cancel the start
+    d(FleetCommand("hold", "alpha", 4, time.time()))    # a hold does
     time.sleep(0.6)
-    assert runner.calls == ["hold", "resume", "hold", "land"]
-    d(FleetCommand("start-at", "alpha", 4, time.time(), start_at_unix_s=time.time() - 5))  # already due
-    assert runner.calls[-2:] == ["hold", "resume"]
+    assert [o.command for o in runner.orders] == ["go", "resume", "hold"]
+    d(FleetCommand("start-at", "alpha", 5, time.time(), start_at_unix_s=time.time() + skew - 5))  # already due
+    assert wait_for(lambda: len(runner.orders) == 4 and runner.orders[-1] == FleetOrder(MissionCommand.GO, False, 5))
+    d(FleetCommand("takeover", "alpha", 6, time.time(), targets=(3,)))
+    assert runner.orders[-1] == FleetOrder(MissionCommand.TAKEOVER, True, 6)
+    d.cancel()
