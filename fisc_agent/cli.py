@@ -208,7 +208,7 @@ def run(cfg: AgentConfig, stop: threading.Event | None = None, max_duration_s: f
                 keys = [read_public_key(cfg.trusted_key)] if cfg.trusted_key else None
                 zlink = connect_runner(runner, zenoh_args.zenoh_config, zenoh_args.swarm, keys,
                                        zenoh_args.allow_unsigned, zenoh_args.telemetry_rate, zenoh_args.zenoh_prefix,
-                                       clock=runner.unix_time)
+                                       clock=runner.unix_time, command_floors=runner.command_floors)
             except (MapError, ValueError, FileNotFoundError) as exc:
                 log.error("cannot start the Zenoh link: %s", exc)
                 return ExitCode.USAGE

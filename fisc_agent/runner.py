@@ -31,7 +31,7 @@ from fisc_agent.flight.mission import (FLYING, Cause, HoldCause, Mission, Missio
                                 VehicleStatus)
 from fisc_agent.flight.mission_types import FleetOrder
 from fisc_agent.flight.tick import TickRecord, failsafe_active, outside_map
-from fisc_agent.flight.readiness import health_problems
+from fisc_agent.flight.readiness import HealthProblem, health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
@@ -98,8 +98,8 @@ class AgentSnapshot:
     """Remaining battery [%] as the autopilot reports it (None: not reported)."""
     landed: str = "unknown"
     """Landed state (``fisc_agent.flight.health.LandedState`` value)."""
-    health_problems: tuple[str, ...] = ()
-    """What is wrong with the vehicle, short phrases ("battery 18 % < 25 %", "estimator: ..."); () healthy."""
+    health_problems: tuple[HealthProblem, ...] = ()
+    """What is wrong with the vehicle by its own report (kind and phrase); () healthy."""
 
 
 class Runner:

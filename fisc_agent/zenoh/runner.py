@@ -79,10 +79,7 @@ class CommandDispatcher:
             return
 
     def _deliver(self, order: FleetOrder) -> None:
-        try:
-            self.runner.fleet_command(order)
-        except ValueError:  # TODO(issue 36 integration): remove once Runner.fleet_command takes a FleetOrder
-            self.runner.fleet_command(order.command.value)
+        self.runner.fleet_command(order)
 
     def _cancel(self) -> None:
         if self._pending is not None:

@@ -4,17 +4,14 @@ Every field comes from a named field of the typed snapshot (``fisc_agent.runner.
 the link adds what only it knows: the refused maps, the last accepted fleet command, the newest
 refused one, whether its publisher is up and whether the map in use is unsigned.
 
-Health.  ``AgentSnapshot.health_problems`` are short phrases; telemetry carries their number,
-the first one (32 bytes) and one flag per kind (``telemetry_codec.HEALTH_NAMES``).  The kind is
-the phrase's first word (before a space or ``:``): ``estimator`` (alias ``ekf``), ``battery``,
-``system``, ``position`` (aliases ``reset``, ``jump``), ``gps`` (alias ``gnss``), ``origin``
-(alias ``home``), ``takeoff``; any other phrase is ``other``.
+Health.  ``AgentSnapshot.health_problems`` are typed (``fisc_agent.flight.readiness.HealthProblem``:
+a kind and a phrase); telemetry carries their number, the first phrase (32 bytes) and one flag per
+kind (``telemetry_codec.HEALTH_NAMES``, the ``HealthKind`` values).
 """
 
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass
 
 from fisc_agent.zenoh import telemetry_codec as tc
@@ -23,9 +20,6 @@ from fisc_agent.runner import AgentSnapshot
 POSITION_FRESH_S = 1.0
 """A position fix younger than this sets the ``position_fresh`` flag [s]."""
 _NO_VEC = (math.nan, math.nan, math.nan)
-HEALTH_ALIASES = {"ekf": "estimator", "reset": "position", "jump": "position", "gnss": "gps", "home": "origin"}
-"""First words that name a health kind other than their own."""
-_FIRST_WORD = re.compile(r"[a-z-]+")
 
 
 @dataclass(frozen=True)
@@ -50,13 +44,6 @@ class LinkStatus:
     """``CommandCheck`` value of the newest refusal ("none")."""
     refused_command: str = "none"
     """Name of the command it refused ("none": it did not decode)."""
-
-
-def health_kind(problem: str) -> str:
-    """The ``telemetry_codec.HEALTH_NAMES`` kind of one health phrase (its first word; ``other``)."""
-    m = _FIRST_WORD.match(problem.strip().lower())
-    word = HEALTH_ALIASES.get(m.group(0), m.group(0)) if m else ""
-    return word if word in tc.HEALTH_NAMES else "other"
 
 
 def _vec3(value: tuple[float, float, float] | None) -> tuple[float, float, float]:
@@ -91,5 +78,5 @@ def telemetry_message(snap: AgentSnapshot | None, agent_id: int, seq: int, link:
         map_version=int(snap.map_version or 0), map_sha256=snap.map_sha256 or "", flags=frozenset(flags),
         position_age_s=float(snap.position_age_s), heartbeat_age_s=float(snap.heartbeat_age_s),
         authority=str(snap.authority), landed=str(snap.landed), battery_pct=snap.battery_pct,
-        health=frozenset(health_kind(p) for p in snap.health_problems), health_count=len(snap.health_problems),
-        health_text=snap.health_problems[0] if snap.health_problems else "", **common)
+        health=frozenset(p.kind.value for p in snap.health_problems), health_count=len(snap.health_problems),
+        health_text=snap.health_problems[0].text if snap.health_problems else "", **common)

@@ -252,12 +252,13 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
         return None, []
     from fisc_agent.map.codec import read_public_key
     from fisc_agent.zenoh.link import AgentZenohLink
+    from fisc_agent.zenoh.runner import CommandDispatcher
     from fisc_agent.zenoh.session import open_session
 
     keys = [read_public_key(job.trusted_key)]
     session = open_session(job.zenoh_config)
-    links = [AgentZenohLink(None, job.swarm, int(aid), keys, False, r.offer_map, r.fleet_command,
-                            prefix=job.zenoh_prefix, session=session).start()
+    links = [AgentZenohLink(None, job.swarm, int(aid), keys, False, r.offer_map, CommandDispatcher(r, r.unix_time),
+                            prefix=job.zenoh_prefix, session=session, command_clock=r.unix_time).start()
              for aid, r in zip(job.agent_ids, runners)]
     return session, links
 

@@ -34,6 +34,7 @@ from fisc_agent.zenoh.link import AgentZenohLink  # noqa: E402
 from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, open_lab_session  # noqa: E402
 from fisc_ground.maps.write import generate_keypair, read_signing_key  # noqa: E402
 from fisc_ground.monitor.run import TelemetryAggregator, TelemetryPipe  # noqa: E402
+from fisc_ground.zenoh.fleet import make_command, send_command  # noqa: E402
 
 from .conftest import free_port, map_parts, wait_for  # noqa: E402
 
@@ -189,6 +190,12 @@ def test_agent_process_held_by_its_geofence_raises_the_monitor_failsafe_alarm(tm
                                            "--trusted-key", pub, "--mavlink", f"udpout:127.0.0.1:{udp}", "--id", "5",
                                            "--origin", "0,0,-4", "--geofence", "hold", "--max-duration", "60"],
                                           env=env, stdout=log_ag, stderr=subprocess.STDOUT))
+
+        # the hovering vehicle is not the agent's (armed before it started): it waits, then a signed
+        # takeover addressed to it hands the vehicle over
+        standby = wait_for(lambda: pipe.view().by_state.get("STANDBY") == 1, timeout_s=30, period_s=0.2)
+        assert standby, (tmp_path / "agent.log").read_text()[-3000:]
+        send_command(session, Keys("fisc", "fs"), make_command("takeover", "fs", (5,)), read_signing_key(key))
 
         def alarm():
             return any(a.startswith("failsafe: agents 5") for a in pipe.view().alarms)

@@ -3,6 +3,8 @@ old commands stay refused, clock skew, and the ground's health / silence alarms.
 
 from __future__ import annotations
 
+from fisc_agent.flight.readiness import HealthKind, HealthProblem
+
 import time
 
 import numpy as np
@@ -107,7 +109,8 @@ def test_status_and_monitor_raise_health_authority_and_every_agent_stale_alarms(
     shared = sessions(member)
     listener = TelemetryListener(ground, KEYS)
     problems = {1: dict(battery_pct=18.0), 2: dict(authority="hands-off", battery_pct=80.0),
-                3: dict(health_problems=("estimator: pos_horiz_abs not OK",), battery_pct=None)}
+                3: dict(health_problems=(HealthProblem(HealthKind.ESTIMATOR, "estimator: pos_horiz_abs not OK"),),
+                        battery_pct=None)}
     links = [AgentZenohLink(None, "alpha", i, None, True, lambda m: None, lambda c: None, session=shared).start()
              for i in problems]
     for i, link in zip(problems, links):

@@ -10,7 +10,8 @@ import numpy as np
 
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.zenoh.fleet_commands import CommandCheck, CommandName
-from fisc_agent.zenoh.telemetry import LinkStatus, health_kind, telemetry_message
+from fisc_agent.flight.readiness import HealthKind, HealthProblem
+from fisc_agent.zenoh.telemetry import LinkStatus, telemetry_message
 
 from .conftest import snap
 
@@ -72,14 +73,14 @@ def test_wire_tables_match_the_typed_enums():
     assert set(tc.LANDED) == {s.value for s in LandedState}
 
 
-def test_snapshot_health_phrases_become_kinds_count_and_first_text():
-    assert [health_kind(p) for p in ("battery 18 % < 25 %", "EKF: variance", "estimator: bad", "reset of position",
-                                     "GNSS lost", "start 40 m from the map origin", "", "motor 3 hot")] == \
-        ["battery", "estimator", "estimator", "position", "gps", "other", "other", "other"]
+def test_snapshot_health_problems_become_kinds_count_and_first_text():
+    assert set(tc.HEALTH_NAMES) == {k.value for k in HealthKind}  # one wire flag per typed kind
     link = LinkStatus(maps_rejected=0, reject_reason="none", ack_command="go", ack_seq=5, zenoh_ok=True,
                       map_unsigned=False, commands_refused=2, refusal="stale", refused_command="hold")
     msg = telemetry_message(snap(authority="command", battery_pct=18.0, landed="in-air",
-                                 health_problems=("battery 18 % < 25 %", "estimator: no GPS")), 3, 1, link, 0.0)
+                                 health_problems=(HealthProblem(HealthKind.BATTERY, "battery 18 % < 25 %"),
+                                                  HealthProblem(HealthKind.ESTIMATOR, "estimator: no GPS"))),
+                            3, 1, link, 0.0)
     assert (msg.authority, msg.battery_pct, msg.landed, msg.health_count) == ("command", 18.0, "in-air", 2)
     assert msg.health == {"battery", "estimator"} and msg.health_text == "battery 18 % < 25 %"
     assert (msg.commands_refused, msg.command_refusal, msg.refused_command) == (2, "stale", "hold")
