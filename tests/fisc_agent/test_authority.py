@@ -1,0 +1,316 @@
+"""The authority model (issue 36): a go to arm, never take over, hands off in every state, health
+that gates arming and ends the laps, position-jump holds, restarts from the state file.
+
+The pure rules (``ModeWatch``, ``fleet_action``, ``readiness``, ``state_file``) are tested at their
+boundaries; the mission's use of them on the point vehicle of ``test_agent_mission``.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from test_agent_mission import DT, SimVehicle, make, run, run_for  # noqa: F401 (sfield fixture below)
+
+from fisc_agent.config import AgentConfig
+from fisc_agent.flight.authority import MODE_ECHO_S, FleetAction, ModeWatch, fleet_action
+from fisc_agent.flight.control import MapGeometry, ScalarField
+from fisc_agent.flight.flightlog import FlightLog, rotate
+from fisc_agent.flight.health import LandedState, SystemState, VehicleHealth
+from fisc_agent.flight.mission import Mission
+from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, State
+from fisc_agent.flight.readiness import HealthKind, arming_blockers, battery_low, distance_to_box_m, health_problems
+from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
+from fisc_agent.map.lookup import CommandField
+from fisc_agent.mavlink.adapters import ModeClass
+
+OFFBOARD, HOLD, LAND, OTHER, UNKNOWN = (ModeClass.OFFBOARD, ModeClass.HOLD, ModeClass.LAND, ModeClass.OTHER,
+                                        ModeClass.UNKNOWN)
+
+
+@pytest.fixture(scope="module")
+def sfield(tunnel_map):
+    return ScalarField(CommandField.from_map(tunnel_map))
+
+
+class HealthVehicle(SimVehicle):
+    """The point vehicle with a health report and a position-integrity verdict."""
+
+    def __init__(self, autopilot="px4"):
+        super().__init__(autopilot)
+        self.health = VehicleHealth()
+        self.integrity = (True, "")
+
+    def status(self):
+        return super().status()._replace(health=self.health, integrity_ok=self.integrity[0],
+                                         integrity_reason=self.integrity[1])
+
+
+def make_h(sfield, **kw):
+    cfg, _, _ = make(sfield, **kw)
+    return cfg, Mission(cfg, sfield), HealthVehicle()
+
+
+def to_flow(m, v, cfg):
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+
+
+def silent(outs):
+    return all(o.want_mode is None and o.want_armed is None and o.velocity_m_s is None for o in outs)
+
+
+# ---- ModeWatch -------------------------------------------------------------------------------
+
+def test_mode_watch_tells_own_changes_from_foreign_ones_at_the_echo_boundary():
+    w = ModeWatch()
+    assert w.observe(0.0, OTHER) is None                      # first sight is a baseline, not a change
+    w.want(1.0, OFFBOARD)
+    assert w.observe(1.0 + MODE_ECHO_S, OFFBOARD) is None     # wanted exactly echo_s ago: ours
+    assert w.observe(2.0, OFFBOARD) is None                   # no change
+    assert w.observe(2.0, UNKNOWN) is None and w.last_seen == OFFBOARD   # unknown is never a change
+    w2 = ModeWatch(last_seen=OTHER)
+    w2.want(0.0, OFFBOARD)
+    assert w2.observe(MODE_ECHO_S + 1e-6, OFFBOARD) == OFFBOARD   # just outside the echo: foreign
+    w3 = ModeWatch(last_seen=OFFBOARD)
+    w3.want(5.0, HOLD)
+    assert w3.observe(5.1, LAND) == LAND                       # a mode never asked for: foreign
+    assert w3.observe(5.2, HOLD) is None                       # back to the wanted one: ours
+    w3.forget()
+    assert w3.observe(5.3, OFFBOARD) == OFFBOARD               # after forget() every change is foreign
+
+
+# ---- fleet_action: the rule table ------------------------------------------------------------
+
+def _order(cmd, addressed=False):
+    return FleetOrder(MissionCommand(cmd), addressed=addressed)
+
+
+@pytest.mark.parametrize("cmd, addressed, authority, armed, holding, action", [
+    ("go", False, Authority.WAITING, False, False, FleetAction.GO),
+    ("go", True, Authority.WAITING, False, False, FleetAction.GO),
+    ("go", False, Authority.COMMAND, True, False, FleetAction.IGNORE),
+    ("go", False, Authority.NOT_OURS, True, False, FleetAction.IGNORE),
+    ("go", False, Authority.RELEASED, False, False, FleetAction.IGNORE),      # one flight per process
+    ("takeover", False, Authority.NOT_OURS, True, False, FleetAction.IGNORE),  # must be addressed
+    ("takeover", True, Authority.NOT_OURS, True, False, FleetAction.TAKEOVER),
+    ("takeover", True, Authority.HANDS_OFF, True, True, FleetAction.TAKEOVER),
+    ("takeover", True, Authority.WAITING, False, False, FleetAction.GO),       # a disarmed vehicle: a go
+    ("takeover", True, Authority.COMMAND, True, False, FleetAction.IGNORE),
+    ("resume", False, Authority.HANDS_OFF, True, True, FleetAction.IGNORE),    # swarm-wide: not back
+    ("resume", True, Authority.HANDS_OFF, True, True, FleetAction.TAKEOVER),   # addressed: back
+    ("resume", True, Authority.HANDS_OFF, False, True, FleetAction.IGNORE),    # disarmed: nothing to resume
+    ("resume", False, Authority.COMMAND, True, True, FleetAction.RESUME),
+    ("resume", False, Authority.COMMAND, True, False, FleetAction.IGNORE),     # not holding
+    ("resume", True, Authority.NOT_OURS, True, False, FleetAction.IGNORE),
+    ("hold", False, Authority.COMMAND, True, False, FleetAction.HOLD),
+    ("hold", False, Authority.WAITING, False, False, FleetAction.HOLD),
+    ("hold", False, Authority.NOT_OURS, True, False, FleetAction.IGNORE),
+    ("hold", True, Authority.HANDS_OFF, True, True, FleetAction.IGNORE),
+    ("land", False, Authority.COMMAND, True, False, FleetAction.LAND),
+    ("land", False, Authority.WAITING, False, False, FleetAction.END),
+    ("land", False, Authority.NOT_OURS, True, False, FleetAction.IGNORE),
+    ("land", True, Authority.HANDS_OFF, True, True, FleetAction.IGNORE),
+])
+def test_fleet_action_table(cmd, addressed, authority, armed, holding, action):
+    verdict = fleet_action(_order(cmd, addressed), authority, armed, holding)
+    assert verdict.action == action
+    assert (verdict.note == "") == (action != FleetAction.IGNORE)  # every refusal says why
+
+
+# ---- readiness -------------------------------------------------------------------------------
+
+def test_battery_rule_boundaries():
+    assert not battery_low(VehicleHealth(battery_pct=20.0), 20.0)         # equal: not below
+    assert battery_low(VehicleHealth(battery_pct=19.99), 20.0)
+    assert not battery_low(VehicleHealth(battery_pct=None), 20.0)         # unknown: no rule
+    assert not battery_low(VehicleHealth(battery_pct=0.0), None)          # rule off
+    assert not battery_low(VehicleHealth(battery_pct=0.0), 0.0)
+
+
+def test_health_problems_are_typed():
+    h = VehicleHealth(battery_pct=10.0, estimator_ok=False, estimator_detail="pos_horiz_abs",
+                      system_state=SystemState.CRITICAL)
+    kinds = [p.kind for p in health_problems(h, 20.0)]
+    assert kinds == [HealthKind.BATTERY, HealthKind.ESTIMATOR, HealthKind.SYSTEM]
+    assert health_problems(VehicleHealth(estimator_ok=None, system_state=SystemState.ACTIVE), 20.0) == ()
+    assert health_problems(VehicleHealth(system_state=SystemState.STANDBY, estimator_ok=True), 20.0) == ()
+
+
+def test_distance_to_box_and_the_start_distance_gate(sfield):
+    lo, hi = (0.0, 0.0, 0.0), (1.0, 2.0, 3.0)
+    assert distance_to_box_m((0.5, 1.0, 1.0), lo, hi) == 0.0 and distance_to_box_m((1.0, 2.0, 3.0), lo, hi) == 0.0
+    assert distance_to_box_m((-3.0, 6.0, 3.0), lo, hi) == pytest.approx(5.0)
+    geom = MapGeometry.from_field(sfield.field)
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, max_start_distance_m=10.0)
+    x0 = geom.lo_m[0]
+    at = (x0 - 10.0, geom.lo_m[1], geom.lo_m[2])
+    assert arming_blockers(VehicleHealth(), cfg, at, geom) == []                 # exactly the limit
+    blocked = arming_blockers(VehicleHealth(), cfg, (x0 - 10.001, geom.lo_m[1], geom.lo_m[2]), geom)
+    assert len(blocked) == 1 and "from the map" in blocked[0]
+
+
+# ---- the mission ----------------------------------------------------------------------------
+
+def test_no_arming_without_a_go_then_a_fleet_go_arms(sfield):
+    cfg, m, v = make_h(sfield, go=False)
+    outs = run_for(m, v, cfg, 5.0)
+    assert m.state == State.STANDBY and m.authority == Authority.WAITING and m.reason.cause == Cause.WAITING_GO
+    assert silent(outs) and not v.armed and v.modes == []
+    m.command(FleetOrder(MissionCommand.GO))
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF, max_s=v.t + 5)
+    assert m.authority == Authority.COMMAND and v.armed
+
+
+def test_a_go_is_withdrawn_when_someone_else_arms_and_is_good_for_one_flight(sfield):
+    cfg, m, v = make_h(sfield, go=True, exit_policy="land")
+    v.armed = True                                   # a ground station arms it before the agent acts
+    run_for(m, v, cfg, 1.0)
+    assert m.authority == Authority.NOT_OURS
+    v.armed = False                                  # ... and disarms it again
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.authority == Authority.WAITING and silent(outs) and not v.armed   # --go was withdrawn
+    m.command("go")
+    run(m, v, cfg, lambda m, v, o: m.state == State.DONE, max_s=v.t + 120)
+    assert m.authority == Authority.RELEASED and m.reason.cause == Cause.LANDED
+    m.command("go")                                  # the flight is over: no second flight
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.state == State.DONE and silent(outs) and not v.armed
+
+
+@pytest.mark.parametrize("until", [State.ARM, State.TAKEOFF, State.JOIN, State.FLOW, "hold-zero", "hold-mode"])
+def test_a_ground_station_mode_change_makes_it_hands_off_in_every_state(sfield, until):
+    cfg, m, v = make_h(sfield, hold_grace_s=1.0)
+    if until == State.ARM:
+        v.mute = True                                # the autopilot ignores the agent: ARM goes on
+        run(m, v, cfg, lambda m, v, o: m.state == State.ARM)
+        run_for(m, v, cfg, 0.5)
+        v.mute = False
+        v.mode = "hold"                              # ... and a ground station picks its own mode
+        v.last_hb = v.t
+    else:
+        target = {"hold-zero": State.FLOW, "hold-mode": State.FLOW}.get(until, until)
+        run(m, v, cfg, lambda m, v, o: m.state == target)
+        if until == "hold-zero":
+            m.command("hold")
+            run_for(m, v, cfg, 0.3)
+        elif until == "hold-mode":
+            m.command("hold")
+            run(m, v, cfg, lambda m, v, o: v.mode == "hold")
+            run_for(m, v, cfg, 0.2)
+        v.mode = "other"                             # a pilot switches to POSCTL
+    before = list(v.modes)
+    outs = run_for(m, v, cfg, 3.0)
+    assert m.authority == Authority.HANDS_OFF and m.hold_cause == HoldCause.PILOT_OVERRIDE
+    assert silent(outs[1:]) and v.modes == before    # no further mode request, no setpoint
+    m.command("resume")                              # a fleet-wide resume does not take it back
+    assert silent(run_for(m, v, cfg, 1.0)) and m.hands_off
+
+
+def test_failsafe_land_after_a_link_loss_is_never_overridden(sfield):
+    cfg, m, v = make_h(sfield)
+    to_flow(m, v, cfg)
+    v.mute = True                                    # the link drops ...
+    run(m, v, cfg, lambda m, v, o: m.hold_cause == HoldCause.LINK_LOST)
+    v.mode = "land"                                  # ... the autopilot's failsafe lands meanwhile
+    run_for(m, v, cfg, 1.0)
+    v.mute = False                                   # the link returns
+    z0, requested = v.pos[2], list(v.modes)
+    outs = run_for(m, v, cfg, 0.5)
+    assert m.hands_off and v.mode == "land" and silent(outs[1:]) and v.pos[2] < z0
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.DONE, max_s=v.t + 10)  # it lands where it was
+    assert silent(outs) and v.modes == requested and m.reason.cause == Cause.DISARMED_IN_FLIGHT
+
+
+def test_takeoff_timeout_lands(sfield):
+    cfg, m, v = make_h(sfield, takeoff_timeout_s=2.0)
+    v.health = VehicleHealth(landed=LandedState.ON_GROUND)   # stuck on the ground (e.g. a prop guard)
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF)
+    t0 = v.t
+    run(m, v, cfg, lambda m, v, o: m.state == State.LAND, max_s=v.t + 5)
+    assert m.reason.cause == Cause.TAKEOFF_TIMEOUT and v.t - t0 == pytest.approx(2.0, abs=2 * DT)
+
+
+def test_low_battery_ends_the_laps_at_the_exit(sfield):
+    cfg, m, v = make_h(sfield, exit_policy="loop", laps=0, min_battery_pct=30.0, low_battery_action="hold")
+    v.health = VehicleHealth(battery_pct=30.0)       # equal to the minimum: flies on
+    to_flow(m, v, cfg)
+    v.health = VehicleHealth(battery_pct=29.0)       # below it mid-pass: the pass is finished ...
+    assert m.state == State.FLOW
+    run(m, v, cfg, lambda m, v, o: m.state != State.FLOW)
+    assert m.state == State.EXIT and m.reason.cause == Cause.LOW_BATTERY and m.laps == 1
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)   # ... then the low-battery action at the exit
+    assert m.hold_cause == HoldCause.EXIT
+
+
+def test_no_arming_below_the_minimum_battery_or_with_a_bad_estimator(sfield):
+    cfg, m, v = make_h(sfield, min_battery_pct=25.0)
+    v.health = VehicleHealth(battery_pct=24.0)
+    assert silent(run_for(m, v, cfg, 1.0)) and m.reason.cause == Cause.NOT_READY and "battery" in m.reason
+    v.health = VehicleHealth(battery_pct=90.0, estimator_ok=False, estimator_detail="no GPS fix")
+    run_for(m, v, cfg, 0.5)
+    assert m.state == State.STANDBY and "estimator: no GPS fix" in m.reason and not v.armed
+    v.health = VehicleHealth(battery_pct=90.0, estimator_ok=True)
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF, max_s=v.t + 5)
+
+
+def test_a_position_jump_holds_then_resumes_on_a_consistent_track(sfield):
+    cfg, m, v = make_h(sfield)
+    to_flow(m, v, cfg)
+    v.integrity = (False, "reset counter stepped")
+    run_for(m, v, cfg, 0.2)
+    assert m.hold_cause == HoldCause.POSITION_JUMP and "reset counter" in m.reason
+    v.integrity = (True, "")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
+    assert m.transitions[-1].reason.cause == Cause.POSITION_BACK
+
+
+def test_restart_restores_a_fleet_hold_on_the_ground(sfield):
+    cfg, _, _ = make(sfield)
+    m = Mission(cfg, sfield, restored=AgentState(fleet_hold=True, laps=3))
+    v = HealthVehicle()
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND and silent(outs) and m.saved_state().fleet_hold
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF, max_s=v.t + 5)
+    assert m.laps == 0 and not m.saved_state().fleet_hold     # a new flight counts its own laps
+
+
+def test_restart_hands_off_stays_hands_off(sfield):
+    cfg, _, _ = make(sfield)
+    m = Mission(cfg, sfield, restored=AgentState(hands_off=True))
+    v = HealthVehicle()
+    outs = run_for(m, v, cfg, 2.0)
+    assert m.hands_off and silent(outs) and m.saved_state().hands_off
+
+
+# ---- state file and flight-log rotation ------------------------------------------------------
+
+def test_state_file_round_trip_and_corrupt_files_kept_aside(tmp_path, caplog):
+    p = tmp_path / "s" / "agent.json"
+    assert load_state(p) == AgentState()                       # first start
+    st = AgentState(hands_off=True, fleet_hold=False, laps=4, command_floors={"ab12": 17})
+    save_state(p, st)
+    assert load_state(p) == st and json.loads(p.read_text())["version"] == 1
+    for bad, field in (('{"version": 1, "laps": -1}', "laps"), ('{"version": 1, "hands_off": 1}', "hands_off"),
+                       ('{"version": 1, "command_floors": {"k": -2}}', "command_floors"),
+                       ('{"version": 2}', "version"), ("not json", "not JSON")):
+        p.write_text(bad)
+        assert load_state(p) == AgentState()
+        assert field in caplog.text and (p.parent / "agent.json.corrupt").read_text() == bad
+    assert default_state_path(3, "demo").name == "agent-demo-3.json"
+    assert default_state_path(3, None).name == "agent-local-3.json"
+
+
+def test_flight_logs_rotate_and_are_never_truncated(tmp_path):
+    p = tmp_path / "f.csv"
+    assert rotate(p) is None                                   # nothing to keep
+    for i in range(3):
+        FlightLog(p).close()
+        p.write_text(p.read_text() + f"flight {i}\n")
+    assert (tmp_path / "f.csv.1").read_text().endswith("flight 1\n")
+    assert (tmp_path / "f.csv.2").read_text().endswith("flight 0\n")
+    assert p.read_text().endswith("flight 2\n")
+    for _ in range(12):
+        p.write_text("x")
+        rotate(p, keep=3)
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["f.csv.1", "f.csv.2", "f.csv.3"]
