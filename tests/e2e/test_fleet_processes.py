@@ -46,8 +46,9 @@ PERSONALITY = {1: "px4", 2: "px4", 3: "px4", 4: "ardupilot"}
 FLYING = {"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"}
 START_DOWN_M = {"px4": -1.5, "ardupilot": 0.0}
 """Emulator start height (local NED D): the PX4 vehicles start hovering, armed, in AUTO.LOITER
-(the agent takes over in the air); the ArduPilot one starts on the ground (GUIDED, arm,
-takeoff).  Why not all on the ground: a stand-alone ``fisc-sim autopilot`` loads its numba
+(not their agents' vehicles: the ground hands them over with a signed ``takeover --agents 1,2,3``);
+the ArduPilot one starts on the ground and arms on the fleet's signed ``go`` (GUIDED, arm,
+takeoff), which it learns late, from the publisher's re-published fleet state.  Why not all on the ground: a stand-alone ``fisc-sim autopilot`` loads its numba
 plant kernel on the first airborne step (~0.4 s idle, >1 s on a loaded machine); the stalled
 emulator then catches up its physics before reading the queued setpoints and trips PX4's
 offboard-loss failsafe (COM_OF_LOSS_T 1 s), which the agent respects (hands-off hold)."""
@@ -128,10 +129,10 @@ def speed(agent: dict) -> float:
     return math.sqrt(sum(v * v for v in agent["velocity_m_s"]))
 
 
-def cmd(fleet: Fleet, name: str) -> dict:
-    """``fisc-ground cmd NAME`` signed with the ground key; its JSON line."""
+def cmd(fleet: Fleet, name: str, *extra) -> dict:
+    """``fisc-ground cmd NAME [EXTRA...]`` signed with the ground key; its JSON line."""
     out = ok(run_cli(ground("cmd", name, "--swarm", SWARM, "--zenoh-config", fleet.member_cfg,
-                            "--key", fleet.ground_key, "--ack-wait", "8")))
+                            "--key", fleet.ground_key, "--ack-wait", "8", *extra)))
     return json.loads(out.strip().splitlines()[-1])
 
 
@@ -163,7 +164,7 @@ def _start_vehicle(fleet: Fleet, agent_id: int) -> None:
     fleet.procs.start(f"autopilot-{agent_id}", cli("fisc-sim") + [
         "autopilot", "--mavlink", f"udpin:127.0.0.1:{port}", "--personality", PERSONALITY[agent_id],
         f"--start=-3,{east},{down}", "--sysid", agent_id])
-    fleet.procs.start(f"agent-{agent_id}", cli("fisc-agent") + ["--go", 
+    fleet.procs.start(f"agent-{agent_id}", cli("fisc-agent") + [
         "--zenoh-config", fleet.member_cfg, "--swarm", SWARM, "--trusted-key", fleet.ground_pub,
         "--mavlink", f"udpout:127.0.0.1:{port}", "--id", agent_id,
         "--origin", "0,0,-4", "--exit-policy", "loop", "--join-speed", "3", "--telemetry-rate", "5",
@@ -206,8 +207,13 @@ def fleet(tmp_path_factory, request):
             _start_vehicle(f, i)
     procs.start("publisher", ground("publish", map_path, "--swarm", SWARM, "--zenoh-config", hub))
     early = [i for i in AGENT_IDS if i != LATE_AGENT]
-    await_fleet(f, lambda a: a["map_sha256"] == good["sha256"], 45, "the early agents to receive the map", early)
-    # the publisher is serving: now the late joiner starts (it gets the map by query)
+    await_fleet(f, lambda a: a["map_sha256"] == good["sha256"] and a["state"] == "STANDBY"
+                and a["authority"] == "not-ours", 45, "the early agents to receive the map, hovering not theirs", early)
+    # the ground hands the hovering vehicles over, and gives the fleet its go
+    sent = cmd(f, "takeover", "--agents", ",".join(str(i) for i in early))
+    assert sent["target"] == early, sent
+    cmd(f, "go")
+    # the publisher is serving: now the late joiner starts (it gets the map and the go by query)
     _start_vehicle(f, LATE_AGENT)
     return f
 
