@@ -80,7 +80,7 @@ class VehicleHealth:
         if self.system_state in BAD_SYSTEM_STATES:
             out.append(f"autopilot state {self.system_state.value}")
         if min_battery_pct is not None and self.battery_pct is not None and self.battery_pct < min_battery_pct:
-            out.append(f"battery {self.battery_pct:.0f} % < {min_battery_pct:.0f} %")
+            out.append(f"battery {self.battery_pct:g} % < {min_battery_pct:g} %")
         if self.estimator_ok is False:
             out.append(f"estimator: {self.estimator_detail or 'not ok'}")
         return tuple(out)
