@@ -210,13 +210,13 @@ class MavlinkLink:
             n = 0
         if self.errors != errors_before:
             self.rlog.event("mavlink:transport_error", logging.WARNING, "MAVLink %s: %s (%d errors so far); "
-                            "reopening", self.endpoint.url, self.last_error, self.errors)
+                            "reopening", self.endpoint, self.last_error, self.errors)
         if self.transport.failed:
             now = self.clock()
             if self._last_reopen_s is None or now - self._last_reopen_s >= REOPEN_PERIOD_S:
                 self._last_reopen_s = now
                 if self.transport.reopen():
-                    log.warning("MAVLink %s reopened after: %s", self.endpoint.url, self.last_error)
+                    log.warning("MAVLink %s reopened after: %s", self.endpoint, self.last_error)
         return n
 
     def _drain(self) -> int:
