@@ -9,7 +9,8 @@ of a few metres, a GNSS glitch being corrected) passes it.  ``IntegrityMonitor``
   from where the previous fix and both velocities put it (dt from the autopilot's clock when both fixes
   carry it);
 - **estimator flags**: the autopilot reports its estimator unhealthy (PX4 ESTIMATOR_STATUS, ArduPilot
-  EKF_STATUS_REPORT; ``fisc_agent.flight.health.estimator_health``).
+  EKF_STATUS_REPORT; ``fisc_agent.flight.health.estimator_health``);
+- **autopilot reboot**: its boot time went backwards (SYSTEM_TIME), so its local frame may be new.
 
 After any of them the verdict is ``ok=False`` with the typed reason until the fixes have formed a
 consistent track (every step explained by the velocity, no new reset, estimator healthy) for
@@ -35,6 +36,8 @@ class DisruptionReason(StrEnum):
     """A fix moved farther than the velocity explains."""
     ESTIMATOR = "estimator"
     """The autopilot reports its estimator unhealthy (status flags)."""
+    AUTOPILOT_REBOOT = "autopilot-reboot"
+    """The autopilot rebooted: its local frame may have been set up anew."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +120,10 @@ class IntegrityMonitor:
         """The estimator reported ``steps`` position resets at ``t_s``."""
         if steps > 0:
             self._disrupt(t_s, DisruptionReason.RESET_COUNTER, f"estimator position reset (counter +{steps})")
+
+    def on_reboot(self, t_s: float) -> None:
+        """The autopilot rebooted at ``t_s``."""
+        self._disrupt(t_s, DisruptionReason.AUTOPILOT_REBOOT, "autopilot rebooted")
 
     def on_estimator(self, t_s: float, ok: bool, detail: str = "") -> None:
         """The autopilot's estimator status at ``t_s``: a change to not ok disrupts; while not ok no

@@ -35,6 +35,8 @@ from fisc_agent.flight.health import (VehicleHealth, battery_pct_of, estimator_h
 
 Vec = tuple[float, float, float]
 
+ODOMETRY_RATE_HZ = 10.0
+"""ODOMETRY is asked for its reset counter only (230 bytes a message: not at the position rate on a radio)."""
 RESET_COUNTER_MODULO = 256
 """ODOMETRY.reset_counter is a uint8: it wraps from 255 to 0."""
 
@@ -47,7 +49,7 @@ def stream_requests(autopilot: str | None, geodetic: bool, position_rate_hz: flo
            (MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0), (MAVLINK_MSG_ID_SYSTEM_TIME, 1.0),
            (MAVLINK_MSG_ID_HOME_POSITION, 0.5)]
     if autopilot != "ardupilot":
-        out += [(MAVLINK_MSG_ID_ESTIMATOR_STATUS, 2.0), (MAVLINK_MSG_ID_ODOMETRY, position_rate_hz)]
+        out += [(MAVLINK_MSG_ID_ESTIMATOR_STATUS, 2.0), (MAVLINK_MSG_ID_ODOMETRY, ODOMETRY_RATE_HZ)]
     if autopilot != "px4":
         out.append((MAVLINK_MSG_ID_EKF_STATUS_REPORT, 2.0))
     return tuple(out)

@@ -64,7 +64,7 @@ from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, Mo
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
 from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, SetpointSink, VehicleLink
 from fisc_agent.flight.frames import GeodeticAnchor
-from fisc_agent.mavlink.framing import AutopilotTracker, HeartbeatVerdict, parse_datagram
+from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
 from fisc_agent.mavlink.transport import MavutilStreamTransport, TcpClientTransport, UdpTransport
 from fisc_agent.flight.health import VehicleHealth
@@ -188,6 +188,11 @@ class MavlinkLink:
         return self.transport.errors + self._poll_errors
 
     @property
+    def send_drops(self) -> int:
+        """Sends dropped because the peer could not be reached right then (not a transport fault)."""
+        return self.transport.send_drops
+
+    @property
     def last_error(self) -> str:
         """The newest transport error, in words ("" if none)."""
         return self.transport.last_error
@@ -263,9 +268,13 @@ class MavlinkLink:
         src = msg.get_srcSystem()
         pinned = self.tracker.pinned_system
         if pinned is not None and src != pinned:
+            if mtype == "HEARTBEAT" and (msg.type in NON_VEHICLE_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID):
+                return  # a ground station or companion: normal on a shared link
             self.other_system_messages += 1
-            self.rlog.event("mavlink:other_system", logging.WARNING, "MAVLink: %s from system %d ignored (this agent "
-                            "flies system %d only)", mtype, src, pinned)
+            vehicle = mtype == "HEARTBEAT"
+            self.rlog.event("mavlink:other_system", logging.WARNING if vehicle else logging.INFO,
+                            "MAVLink: %s from system %d ignored (this agent flies system %d only)%s", mtype, src,
+                            pinned, ": another vehicle on this link" if vehicle else "")
             return
         if mtype == "HEARTBEAT":
             self._on_heartbeat(msg, addr)
@@ -316,6 +325,7 @@ class MavlinkLink:
             log.warning("autopilot system %s rebooted (its boot time went backwards, %d reboots seen): streams "
                         "requested again", self.target_system, self.health.autopilot_reboots)
             self._request_streams()
+            self.integrity_monitor.on_reboot(now)
         if update.reset_steps:
             self.integrity_monitor.on_reset(now, update.reset_steps)
         if update.estimator is not None:

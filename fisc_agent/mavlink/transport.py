@@ -9,6 +9,7 @@ calls ``reopen()`` on a later poll (which again never raises; a failed reopen st
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import socket
@@ -19,22 +20,29 @@ log = logging.getLogger(__name__)
 
 UDP_MAX_DATAGRAM = 65535
 STREAM_CHUNK = 4096
+UNREACHABLE = frozenset({errno.ENETUNREACH, errno.EHOSTUNREACH, errno.ENETDOWN, errno.EHOSTDOWN, errno.ECONNREFUSED})
+"""Send errors that say the peer cannot be reached now, not that the socket is broken."""
 
 
 class _Failures:
     """Error bookkeeping shared by the transports."""
 
     errors = 0
-    """OSErrors seen (receive, send, reopen)."""
+    """OSErrors of the transport itself (receive, send, reopen)."""
+    send_drops = 0
+    """Sends dropped without a transport fault (peer unreachable, send buffer full): not ``errors``."""
     last_error = ""
-    """The newest OSError, in words."""
+    """The newest error, in words."""
     failed = False
     """True after an error that needs ``reopen``."""
 
     def _fail(self, what: str, exc: BaseException, fatal: bool = True) -> None:
-        self.errors += 1
         self.last_error = f"{what}: {exc}"
-        self.failed = self.failed or fatal
+        if fatal:
+            self.errors += 1
+            self.failed = True
+        else:
+            self.send_drops += 1
 
 
 class UdpTransport(_Failures):
@@ -90,8 +98,11 @@ class UdpTransport(_Failures):
             return
         try:
             self.sock.sendto(buf, self.peer)
-        except OSError as exc:  # peer unreachable right now: the link timeout covers it
+        except (ConnectionRefusedError, BlockingIOError, InterruptedError) as exc:  # peer not up, buffer full
             self._fail("UDP send", exc, fatal=False)
+        except OSError as exc:
+            # no route or host right now: the link timeout covers it; anything else is the socket's fault
+            self._fail("UDP send", exc, fatal=exc.errno not in UNREACHABLE)
 
     def reopen(self) -> bool:
         """A fresh socket (same bound port for ``udpin``); True on success."""

@@ -110,3 +110,12 @@ def test_fixes_across_a_gap_are_not_compared_and_autopilot_time_is_preferred():
     mon.on_fix(10.0, (0.0, 0.0, 0.0), (5.0, 0.0, 0.0))
     mon.on_fix(10.0, (0.6, 0.0, 0.0), (5.0, 0.0, 0.0))
     assert mon.verdict.reason == DisruptionReason.JUMP
+
+
+def test_a_reboot_disrupts_until_a_consistent_track():
+    mon = IntegrityMonitor(CFG)
+    fly(mon, 0.0, 1.0, 0.0)
+    mon.on_reboot(1.0)
+    assert mon.verdict.reason == DisruptionReason.AUTOPILOT_REBOOT and mon.verdict.since_s == 1.0
+    assert not fly(mon, 1.125, 2.875, 1.125).ok
+    assert fly(mon, 3.0, 3.0, 3.0).ok

@@ -158,6 +158,7 @@ def test_unknown_messages_change_nothing():
 def test_stream_requests_per_autopilot():
     ids = lambda ap, geo=False: {m for m, _ in stream_requests(ap, geo, 50.0)}
     assert mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS in ids("px4") and mavlink.MAVLINK_MSG_ID_ODOMETRY in ids("px4")
+    assert dict(stream_requests("px4", False, 50.0))[mavlink.MAVLINK_MSG_ID_ODOMETRY] == 10.0   # not at 50 Hz
     assert mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT not in ids("px4")            # PX4: UNSUPPORTED (measured)
     assert mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT in ids("ardupilot")
     assert not {mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS, mavlink.MAVLINK_MSG_ID_ODOMETRY} & ids("ardupilot")  # DENIED

@@ -250,3 +250,18 @@ def test_a_small_jump_the_gate_accepts_is_a_disruption(link_factory, vehicles, c
     v = link.integrity
     assert link.latest_position().pos_ned_m[0] == pytest.approx(2.2)            # the gate let it through
     assert not v.ok and v.reason == DisruptionReason.JUMP
+
+
+def test_a_ground_station_on_the_link_is_not_counted_as_another_system(link_factory, vehicles):
+    link, ap, gcs = link_factory(), vehicles(1), vehicles(255, 190)
+    ap.send(link, ap.heartbeat(), ap.heartbeat())
+    gcs.send(link, mavlink.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3))      # MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID
+    assert link.other_system_messages == 0 and link.target_system == 1
+
+
+def test_an_autopilot_reboot_disrupts_the_integrity(link_factory, vehicles, clock):
+    link, ap = link_factory(), vehicles(1)
+    ap.send(link, ap.heartbeat(), ap.heartbeat(), mavlink.MAVLink_system_time_message(0, 60_000))
+    assert link.integrity.ok
+    ap.send(link, mavlink.MAVLink_system_time_message(0, 59_999))
+    assert link.integrity.reason == DisruptionReason.AUTOPILOT_REBOOT and not link.integrity.ok

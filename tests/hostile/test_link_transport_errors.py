@@ -48,8 +48,8 @@ def test_udp_socket_failure_is_counted_and_the_socket_reopened_on_the_same_port(
         assert poll_until(link, lambda: link.heartbeats == 1)
         link.udp.sock.close()                         # the socket dies under the link (EBADF on every call)
         link.send_velocity_ned(1.0, 0.0, 0.0)         # a send on the dead socket: counted, not raised
-        assert link.errors == 1 and link.transport_ok
-        assert link.poll() == 0                       # receive fails: counted, reopened at once (first time)
+        assert link.errors == 1 and not link.transport_ok
+        assert link.poll() == 0                       # receive fails too: counted, reopened at once (first time)
         assert link.errors == 2 and "UDP receive" in link.last_error and link.transport_ok
         assert link.udp.local_address[1] == port
         tx.sendto(heartbeat(), ("127.0.0.1", port))
@@ -139,3 +139,19 @@ def test_a_tcp_server_that_is_down_at_first_is_retried():
         link.close()
         if srv is not None:
             srv.close()
+
+
+def test_an_unreachable_udp_peer_is_no_transport_error():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()                                         # nobody listens: ICMP port unreachable
+    link = MavlinkLink(f"udpout:127.0.0.1:{port}")
+    try:
+        for _ in range(20):
+            link.send_heartbeat()
+            link.poll()
+            time.sleep(0.005)
+        assert link.errors == 0 and link.transport_ok
+    finally:
+        link.close()
