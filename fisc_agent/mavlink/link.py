@@ -266,6 +266,9 @@ class MavlinkLink:
     def _handle(self, msg, addr=None) -> None:
         mtype = msg.get_type()
         src = msg.get_srcSystem()
+        if src == 0:  # no sender has system id 0 (the broadcast address); PX4 SITL emits a few such frames
+            self.rlog.event("mavlink:system_0", logging.DEBUG, "MAVLink: %s from system id 0 ignored", mtype)
+            return
         pinned = self.tracker.pinned_system
         if pinned is not None and src != pinned:
             if mtype == "HEARTBEAT" and (msg.type in NON_VEHICLE_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID):

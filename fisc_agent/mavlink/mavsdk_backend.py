@@ -19,10 +19,12 @@ Mapping onto the runner's interface (one code path with the pymavlink link):
 - ``health``: battery % (``battery``), landed state (``landed_state``) and the estimator's local
   (and, with an anchor, global) position flags (``health``); the rest stays unknown.  ``integrity``:
   ``fisc_agent.flight.integrity`` over the fixes and the estimator flags (MAVSDK gives no reset counter);
-- **watchdog**: MAVSDK re-sends the last offboard setpoint on its own; when the control thread has
-  sent none for ``SETPOINT_STALL_S`` while offboard setpoints were streaming, the watchdog thread
-  calls ``offboard.stop()`` (PX4 then holds) and counts it in ``watchdog_trips``; the next
-  ``send_velocity_ned`` streams again (the Commander asks for OFFBOARD as after any hold);
+- **watchdog**: MAVSDK re-sends the last offboard setpoint on its own; when the vehicle flies OFFBOARD
+  and the control thread has sent no setpoint for ``SETPOINT_STALL_S``, the watchdog thread calls
+  ``offboard.stop()`` (MAVSDK stops streaming and requests Hold) and counts it in ``watchdog_trips``;
+  the next ``send_velocity_ned`` re-arms it.  Outside OFFBOARD it does nothing (the stop's Hold would
+  override a pilot or a failsafe), so MAVSDK's stale setpoint stream then goes on until the next
+  setpoint or ``close`` (PX4 ignores it outside OFFBOARD);
 - intents are MAVSDK's own actions: ``arm`` -> ``action.arm()``, ``set_mode(OFFBOARD)`` ->
   ``offboard.start()``, ``hold`` -> ``action.hold()``, ``land`` -> ``action.land()``,
   ``takeoff`` -> ``action.set_takeoff_altitude`` + ``action.takeoff()``.  The blocking calls run
@@ -62,9 +64,13 @@ LANDED_OF = {"ON_GROUND": LandedState.ON_GROUND, "IN_AIR": LandedState.IN_AIR, "
              "LANDING": LandedState.LANDING}
 
 
-def setpoint_stalled(last_setpoint_s: float | None, now_s: float, stall_s: float = SETPOINT_STALL_S) -> bool:
-    """True when setpoints were streaming (``last_setpoint_s`` not None) and the newest is older than ``stall_s``."""
-    return last_setpoint_s is not None and now_s - last_setpoint_s > stall_s
+def setpoint_stalled(last_setpoint_s: float | None, now_s: float, in_offboard: bool,
+                     stall_s: float = SETPOINT_STALL_S) -> bool:
+    """True when the watchdog must stop MAVSDK's setpoint stream: the vehicle flies OFFBOARD, setpoints
+    were streaming (``last_setpoint_s`` not None) and the newest is older than ``stall_s``.  Outside
+    OFFBOARD it never trips: ``offboard.stop()`` also requests Hold, which would override a pilot's or a
+    failsafe's mode."""
+    return in_offboard and last_setpoint_s is not None and now_s - last_setpoint_s > stall_s
 
 
 class DropOldestQueue:
@@ -349,7 +355,7 @@ class MavsdkLink:
     # ---- blocking MAVSDK calls on the worker -------------------------------------------
     def _watch(self) -> None:
         while not self._stop.wait(WATCHDOG_PERIOD_S):
-            if not setpoint_stalled(self._last_setpoint_s, self.clock()):
+            if not setpoint_stalled(self._last_setpoint_s, self.clock(), self.mode == ModeClass.OFFBOARD):
                 continue
             self._last_setpoint_s = None  # once per stall; the next setpoint re-arms the watchdog
             self.watchdog_trips += 1

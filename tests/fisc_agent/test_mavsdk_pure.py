@@ -42,11 +42,12 @@ def test_the_queue_never_blocks_a_producer_and_stays_bounded_under_threads():
 
 @pytest.mark.parametrize("age_s, stalled", [(0.0, False), (SETPOINT_STALL_S, False), (SETPOINT_STALL_S + 1e-6, True)])
 def test_setpoint_stall_boundary(age_s, stalled):
-    assert setpoint_stalled(10.0, 10.0 + age_s) is stalled
+    assert setpoint_stalled(10.0, 10.0 + age_s, in_offboard=True) is stalled
 
 
-def test_no_stall_before_any_setpoint():
-    assert not setpoint_stalled(None, 1e9)
+def test_no_stall_before_any_setpoint_or_outside_offboard():
+    assert not setpoint_stalled(None, 1e9, in_offboard=True)
+    assert not setpoint_stalled(10.0, 1e9, in_offboard=False)   # a pilot's mode: stop() would request Hold
 
 
 def test_mavsdk_landed_states_map_onto_ours():

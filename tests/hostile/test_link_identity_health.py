@@ -154,13 +154,15 @@ def test_target_system_bounds(system, ok):
             AutopilotTracker(target_system=system)
 
 
-def test_system_ids_0_and_255_are_other_systems_once_pinned(link_factory, vehicles):
-    link, ap, zero, gcs = link_factory(target_system=1), vehicles(1), vehicles(0), vehicles(255)
-    zero.send(link, zero.heartbeat())
+def test_system_id_0_is_never_a_vehicle_and_255_is_another_system(link_factory, vehicles):
+    link, zero = link_factory(), vehicles(0)
+    zero.send(link, zero.heartbeat(), zero.heartbeat(), local_position(1.0))
+    assert link.target_system is None and link.rlog.count("mavlink:system_0") == 3
+    link, ap, gcs = link_factory(target_system=1), vehicles(1), vehicles(255)
     gcs.send(link, gcs.heartbeat(), gcs.heartbeat(ARDUPILOT, ARMED))
     assert link.target_system is None
     ap.send(link, ap.heartbeat())
-    assert link.target_system == 1 and link.other_system_messages == 3
+    assert link.target_system == 1 and link.other_system_messages == 2
 
 
 # ------------------------------------------------------------------------------ acks matched to their command
