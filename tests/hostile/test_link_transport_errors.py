@@ -155,3 +155,30 @@ def test_an_unreachable_udp_peer_is_no_transport_error():
         assert link.errors == 0 and link.transport_ok
     finally:
         link.close()
+
+
+def test_a_serial_port_that_vanishes_is_counted_and_retried_without_raising():
+    """A pseudo-terminal stands in for a USB serial adapter; closing its master side is the adapter
+    going away (reads on the port fail with EIO, and the port cannot be opened again)."""
+    import os
+
+    master, slave = os.openpty()
+    path = os.ttyname(slave)
+    clock = SimClock()
+    link = MavlinkLink(f"{path}:57600", clock=clock)
+    try:
+        os.write(master, heartbeat())
+        assert poll_until(link, lambda: link.heartbeats == 1) and link.target_system == 1
+        os.close(master)
+        os.close(slave)
+        master = None
+        assert poll_until(link, lambda: link.errors >= 1)       # never raised
+        link.send_velocity_ned(0.0, 0.0, 0.0)
+        for _ in range(3):                                      # reopen attempts fail quietly, once a period
+            clock.t += REOPEN_PERIOD_S
+            link.poll()
+        assert not link.transport_ok and link.errors >= 2
+    finally:
+        if master is not None:
+            os.close(master)
+        link.close()
