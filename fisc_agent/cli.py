@@ -159,7 +159,7 @@ def make_link(cfg: AgentConfig):
     from fisc_agent.flight.position_gate import PositionGateConfig
 
     return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
-                       **({"target_system": cfg.target_system} if cfg.target_system is not None else {}),
+                       target_system=cfg.target_system,
                        anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz),
                        position_gate=PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
 

@@ -218,7 +218,7 @@ class Runner:
     def unix_time(self) -> float:
         """UNIX time [s] on the best clock the agent has: the autopilot's GNSS time when it reports one
         (SYSTEM_TIME), else the companion computer's clock (fleet-command freshness, entry windows)."""
-        gps = getattr(self.link, "health", VehicleHealth()).unix_time_at(self.clock())  # MERGE
+        gps = self.link.health.unix_time_at(self.clock())
         return gps if gps is not None else self.wall_clock()
 
     def snapshot(self) -> AgentSnapshot:
@@ -365,14 +365,13 @@ class Runner:
         if link_ok != self._link_was_ok:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
             self._link_was_ok = link_ok
-        health = getattr(link, "health", VehicleHealth())  # MERGE: link.health
-        integrity = getattr(link, "integrity", None)
+        health = link.health
+        integrity = link.integrity
         gps_unix = health.unix_time_at(now)
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
                                link.armed, mode, gps_unix if gps_unix is not None else self.wall_clock(),
                                None if sample is None else sample.autopilot_t_s, health,
-                               True if integrity is None else integrity.ok,
-                               "" if integrity is None or integrity.ok else str(integrity.reason))
+                               integrity.ok, "" if integrity.ok else f"{integrity.reason.value}: {integrity.detail}")
         out = self.mission.step(status)
 
         sp: Vec | None = None

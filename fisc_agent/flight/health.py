@@ -73,18 +73,6 @@ class VehicleHealth:
             return None
         return self.gps_unix_s + (now_s - self.gps_rx_s)
 
-    def problems(self, min_battery_pct: float | None = None) -> tuple[str, ...]:
-        """What is wrong with the vehicle, short phrases ("battery 18 % < 25 %", "estimator: ..."); ()
-        when nothing known is wrong (an unknown value is never a problem)."""
-        out: list[str] = []
-        if self.system_state in BAD_SYSTEM_STATES:
-            out.append(f"autopilot state {self.system_state.value}")
-        if min_battery_pct is not None and self.battery_pct is not None and self.battery_pct < min_battery_pct:
-            out.append(f"battery {self.battery_pct:g} % < {min_battery_pct:g} %")
-        if self.estimator_ok is False:
-            out.append(f"estimator: {self.estimator_detail or 'not ok'}")
-        return tuple(out)
-
 
 BAD_SYSTEM_STATES = frozenset({SystemState.CRITICAL, SystemState.EMERGENCY, SystemState.POWEROFF,
                                SystemState.FLIGHT_TERMINATION})

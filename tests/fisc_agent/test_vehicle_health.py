@@ -84,13 +84,18 @@ def test_bad_estimator_flags_differ_between_autopilots():
 
 
 def test_problems_at_the_battery_boundary_and_unknowns():
-    assert VehicleHealth().problems(25.0) == ()                       # nothing known: nothing wrong
-    assert VehicleHealth(battery_pct=25.0).problems(25.0) == ()       # equal: fine
-    assert VehicleHealth(battery_pct=24.9).problems(25.0) == ("battery 24.9 % < 25 %",)
-    assert VehicleHealth(battery_pct=5.0).problems(None) == ()        # no limit given
+    from fisc_agent.flight.readiness import health_problems
+
+    def texts(h, limit=None):
+        return tuple(p.text for p in health_problems(h, limit))
+
+    assert texts(VehicleHealth(), 25.0) == ()                          # nothing known: nothing wrong
+    assert texts(VehicleHealth(battery_pct=25.0), 25.0) == ()          # equal: fine
+    assert texts(VehicleHealth(battery_pct=24.9), 25.0) == ("battery 24.9 % < 25 %",)
+    assert texts(VehicleHealth(battery_pct=5.0), None) == ()           # no limit given
     h = VehicleHealth(system_state=SystemState.CRITICAL, estimator_ok=False, estimator_detail="GNSS glitch")
-    assert h.problems() == ("autopilot state critical", "estimator: GNSS glitch")
-    assert VehicleHealth(system_state=SystemState.STANDBY, estimator_ok=True).problems() == ()
+    assert texts(h) == ("estimator: GNSS glitch", "autopilot state critical")
+    assert texts(VehicleHealth(system_state=SystemState.STANDBY, estimator_ok=True)) == ()
 
 
 # --------------------------------------------------------------------------------- HealthReader
