@@ -35,6 +35,7 @@ from fisc_agent.flight.readiness import HealthProblem, health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
+from fisc_agent.map.separation import map_separation
 from fisc_agent.map.wall import map_wall
 from fisc_agent.flight.health import VehicleHealth
 
@@ -174,7 +175,7 @@ class Runner:
         if vmax > self.cfg.max_speed_m_s:
             log.warning("map commands up to %.2f m/s, above max speed %.2f m/s: setpoints will be clamped",
                         vmax, self.cfg.max_speed_m_s)
-        sfield = ScalarField(field, wall=map_wall(cmap.arrays))
+        sfield = ScalarField(field, wall=map_wall(cmap.arrays), separation=map_separation(cmap.body))
         if self.cfg.mode == "kinetic" and self.cfg.wall_margin_m is not None and sfield.wall is None:
             log.warning("map %s carries no real wall (duct_wall_m): the kinetic deviations turn at the CV "
                         "staircase only, whose outer cubes lie partly outside a real duct", cmap.sha256[:12])
