@@ -54,7 +54,7 @@ def test_replies_go_only_to_the_autopilot_not_to_every_sender(processes, map_fil
     """Finding 6: a stranger that sends the agent a few datagrams gets nothing back."""
     port = free_udp_port()
     agent = processes.start("agent", agent_argv(f"udpin:127.0.0.1:{port}", "--map", map_file,
-                                                "--trusted-key", ground_keys.pub_path))
+                                                "--trusted-key", ground_keys.pub_path, "--entry-stagger", "off"))
     start_emulator(processes, "autopilot", f"udpout:127.0.0.1:{port}", start="-3,0,0")  # on the ground: --go arms it
     assert log_has(agent, "mission ARM -> TAKEOFF", 30), processes.report()
     gcs = mav_encoder(200, 190)
@@ -74,7 +74,7 @@ def test_a_heartbeat_from_another_system_before_the_autopilot_does_not_capture_t
     autopilot (system 1) starts; the agent must still find, arm and fly the autopilot."""
     port = free_udp_port()
     agent = processes.start("agent", agent_argv(f"udpin:127.0.0.1:{port}", "--map", map_file,
-                                                "--trusted-key", ground_keys.pub_path))
+                                                "--trusted-key", ground_keys.pub_path, "--entry-stagger", "off"))
     assert log_has(agent, "fisc-agent 1:", 15), processes.report()
     other = mav_encoder(42, 1)
     stranger.sendto(other.heartbeat_encode(2, 12, 0, 0, 3).pack(other), ("127.0.0.1", port))
