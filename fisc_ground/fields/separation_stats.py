@@ -84,15 +84,19 @@ def _finite(ids: np.ndarray, pos_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return ids, pos
 
 
+def _nearest(ids: np.ndarray, pos: np.ndarray, tree: cKDTree) -> ClosestPair:
+    dist, nn = tree.query(pos, k=2)
+    i = int(np.argmin(dist[:, 1]))
+    a, b = int(ids[i]), int(ids[nn[i, 1]])
+    return ClosestPair(float(dist[i, 1]), min(a, b), max(a, b))
+
+
 def closest_pair(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
     """The closest two vehicles among ``pos_m`` (n, 3) with ``ids`` (n,); non-finite rows ignored."""
     ids, pos = _finite(ids, pos_m)
     if ids.size < 2:
         return ClosestPair(math.inf, -1, -1)
-    dist, nn = cKDTree(pos).query(pos, k=2)
-    i = int(np.argmin(dist[:, 1]))
-    a, b = int(ids[i]), int(ids[nn[i, 1]])
-    return ClosestPair(float(dist[i, 1]), min(a, b), max(a, b))
+    return _nearest(ids, pos, cKDTree(pos))
 
 
 def pair_keys(id_a: np.ndarray, id_b: np.ndarray) -> np.ndarray:
@@ -101,18 +105,24 @@ def pair_keys(id_a: np.ndarray, id_b: np.ndarray) -> np.ndarray:
     return np.unique(np.minimum(a, b) * _ID_LIMIT + np.maximum(a, b))
 
 
+def _close_keys(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float) -> np.ndarray:
+    if ids.size < 2 or d_min_m == 0:
+        return np.zeros(0, dtype=np.int64)
+    pairs = tree.query_pairs(d_min_m, output_type="ndarray")
+    if pairs.size:
+        d2 = np.sum((pos[pairs[:, 0]] - pos[pairs[:, 1]]) ** 2, axis=1)
+        pairs = pairs[d2 < d_min_m * d_min_m]  # strictly closer (query_pairs includes the distance itself)
+    return pair_keys(ids[pairs[:, 0]], ids[pairs[:, 1]])
+
+
 def pairs_closer_than(ids: np.ndarray, pos_m: np.ndarray, d_min_m: float) -> np.ndarray:
     """Keys (``pair_keys``) of every pair strictly closer than ``d_min_m``; non-finite rows ignored."""
     if not d_min_m >= 0:
         raise ValueError(f"d_min must be >= 0 m, is {d_min_m!r}")
     ids, pos = _finite(ids, pos_m)
-    if ids.size < 2 or d_min_m == 0:
+    if ids.size < 2:
         return np.zeros(0, dtype=np.int64)
-    pairs = cKDTree(pos).query_pairs(d_min_m, output_type="ndarray")
-    if pairs.size:
-        d = np.linalg.norm(pos[pairs[:, 0]] - pos[pairs[:, 1]], axis=1)
-        pairs = pairs[d < d_min_m]
-    return pair_keys(ids[pairs[:, 0]], ids[pairs[:, 1]])
+    return _close_keys(ids, pos, cKDTree(pos), d_min_m)
 
 
 def brute_force_closest(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
@@ -143,12 +153,14 @@ class ApproachTracker:
 
     def add(self, t_s: float, ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
         """Evaluate one time step; returns that step's closest pair."""
-        step = closest_pair(ids, pos_m)
+        ids, pos = _finite(ids, pos_m)
+        tree = cKDTree(pos) if ids.size >= 2 else None
+        step = ClosestPair(math.inf, -1, -1) if tree is None else _nearest(ids, pos, tree)
         self.steps += 1
         if step.distance_m < self._best.distance_m:
             self._best, self._best_t = step, float(t_s)
         if step.distance_m < self.d_min_m:
-            close = pairs_closer_than(ids, pos_m, self.d_min_m)
+            close = _close_keys(ids, pos, tree, self.d_min_m)
             self.near_misses += int(close.size - np.isin(close, self._close, assume_unique=True).sum())
             self._close = close
         else:
