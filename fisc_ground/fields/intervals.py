@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_ground.fields.axial_profile import (DEFAULT_SLICE_M, AxialProfile, SliceGeometry, axial_profile,
-                                              profile_scores, slice_geometry)
+from fisc_ground.fields.axial_profile import (DEFAULT_SLICE_M, PROFILE_QUANTITIES, AxialProfile, SliceGeometry,
+                                              axial_profile, profile_scores, slice_geometry)
 from fisc_ground.fields.bootstrap import DEFAULT_LEVEL, DEFAULT_REPLICATES, Interval, block_bootstrap, time_to_width_s
 from fisc_ground.fields.field_report import open_fraction
 from fisc_ground.fields.metrics import NORMALISATION, compared_mask, normalise, nrmse, pearson
@@ -111,6 +111,9 @@ class HonestStatistics:
     """``samples_per_cv``."""
     elapsed_s: float
     """Time span the samples cover [s] (for the time-to-width estimate)."""
+    band: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+    """``density`` / ``pressure`` -> (lo, hi) per slice: the interval of the min-max normalised swarm profile
+    (``normalised_profile``), for the figure's band."""
 
     def axial_profile_dict(self) -> dict:
         """metrics.json ``axial_profile``: per slice arrays and the four scores with their intervals."""
@@ -152,12 +155,39 @@ def _duration(t_s: float) -> str:
     return f"{t_s / 3600:.1f} h"
 
 
+def normalised_profile(prof: AxialProfile, quantity: str) -> tuple[np.ndarray, np.ndarray]:
+    """(swarm, CFD) profiles of ``quantity`` min-max normalised over the compared slices (NaN elsewhere,
+    and everywhere when either is constant)."""
+    sw = prof.swarm_density_kg_m3 if quantity == "density" else prof.swarm_pressure_pa
+    cfd = prof.cfd_density_kg_m3 if quantity == "density" else prof.cfd_pressure_pa
+    use = prof.compared & np.isfinite(sw) & np.isfinite(cfd)
+    out_s, out_c = np.full(sw.shape, np.nan), np.full(sw.shape, np.nan)
+    a, b = normalise(sw[use], "minmax"), normalise(cfd[use], "minmax")
+    if a is not None and b is not None:
+        out_s[use], out_c[use] = a, b
+    return out_s, out_c
+
+
 def honest_statistics(block_sums: dict[str, np.ndarray], inp: StatsInputs, elapsed_s: float,
                       n_boot: int = DEFAULT_REPLICATES, seed: int = 0, level: float = DEFAULT_LEVEL) -> HonestStatistics:
-    """Bootstrap every figure over the time blocks (``time_blocks.BlockAccumulator.sums``)."""
+    """Bootstrap every figure over the time blocks (``time_blocks.BlockAccumulator.sums``), and the
+    normalised profile slice by slice (the figure's band), on the same replicates."""
+    ns = inp.slices.x_m.size
+
+    def statistic(s: dict[str, np.ndarray]) -> dict[str, float]:
+        out = figures_of_sums(s, inp)
+        prof = axial_profile(s, inp.slices, inp.min_samples)
+        for q in PROFILE_QUANTITIES:
+            out.update({f"slice_{q}_{i}": v for i, v in enumerate(normalised_profile(prof, q)[0].tolist())})
+        return out
+
     bounds = {k: ((-1.0, 1.0) if "pearson" in k else (0.0, math.inf)) for k in FIGURES + PROFILE_FIGURES}
-    intervals = block_bootstrap(block_sums, lambda s: figures_of_sums(s, inp), n_boot, seed, level, bounds=bounds)
+    bounds.update({f"slice_{q}_{i}": (0.0, 1.0) for q in PROFILE_QUANTITIES for i in range(ns)})
+    res = block_bootstrap(block_sums, statistic, n_boot, seed, level, bounds=bounds)
+    band = {q: (np.array([res[f"slice_{q}_{i}"].lo for i in range(ns)]),
+                np.array([res[f"slice_{q}_{i}"].hi for i in range(ns)])) for q in PROFILE_QUANTITIES}
     total = {k: np.asarray(v, dtype=float).sum(axis=0) for k, v in block_sums.items()}
-    return HonestStatistics(intervals=intervals, profile=axial_profile(total, inp.slices, inp.min_samples),
+    return HonestStatistics(intervals={k: res[k] for k in FIGURES + PROFILE_FIGURES},
+                            profile=axial_profile(total, inp.slices, inp.min_samples),
                             samples=samples_per_cv(np.rint(total["count"]), inp.min_samples),
-                            elapsed_s=float(elapsed_s))
+                            elapsed_s=float(elapsed_s), band=band)
