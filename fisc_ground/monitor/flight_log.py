@@ -217,7 +217,7 @@ class FlightLog:
                 "t_s": t, "time_samples": int(f.n_time_samples), "n_cv_compared": int(fid["n_cv_compared"]),
                 **{f"{k}_{q}": fid[f"{k}_{q}"] for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")}
             }), log_time=lt)
-        self._scene_ch.log(fs.scene_update(t, wall, points), log_time=lt)
+        self._scene_ch.log(fs.scene_update(t, wall, points, d_min_m=agg.d_min_m), log_time=lt)
         return True
 
     def _wall_of(self, cmap: CommandMap) -> list:
