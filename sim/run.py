@@ -294,8 +294,12 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None, prese
 
 
 def simulate(config: RunConfig, cmap: CommandMap,
-             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None) -> RunResult:
+             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None,
+             measures: bool = True) -> RunResult:
     """Run the scenario on ``cmap`` and time-average the swarm fields (no file output).
+
+    ``measures``: also track the closest approach and bootstrap the figures' intervals (``False`` for the
+    paper companion, whose figures only stand beside the run's).
 
     ``progress(fraction_done)`` is called now and then (for a progress bar).  ``telemetry``: every
     ``sample_interval_s`` of the whole run, the fleet is also sent there as agent telemetry (state
@@ -351,7 +355,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
             mom = cv_moments(cv, swarm.velocity_map(), mass, cf.n_cv, target_cmd)
             acc.add_moments(mom)
             blocks.add_moments(k * config.dt_s, mom)
-        if (n_steps - k) % sep_every == 0:
+        if measures and (n_steps - k) % sep_every == 0:
             inside = swarm.assign() >= 0
             approach.add(k * config.dt_s, swarm.ids[inside], swarm.pos_m[inside])
         if telemetry is not None and (n_steps - k) % every == 0:
@@ -367,7 +371,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
     if progress is not None:
         progress(1.0)
     stats = honest_statistics(blocks.sums(), stats_inputs(cmap, config.min_samples),
-                              blocks.last_t_s - blocks.first_t_s + every * config.dt_s, seed=config.seed)
+                              blocks.last_t_s - blocks.first_t_s + every * config.dt_s, seed=config.seed) \
+        if measures else None
     fr = FieldRun(source=FieldSource.SIMULATION, cmap=cmap, fields=acc.result(), scale=scale,
                   min_samples=config.min_samples, scenario=config.scenario, mode=settings.mode,
                   collisions=config.collisions, snapshots=tuple(snapshots), statistics=stats)
@@ -375,7 +380,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
         config=config, field_run=fr, settings=settings, counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
         window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
         inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
-        collisions=None if collider is None else collider.stats.as_dict(), approach=approach.result())
+        collisions=None if collider is None else collider.stats.as_dict(),
+        approach=approach.result() if measures else None)
 
 
 def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
@@ -384,7 +390,7 @@ def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
     pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
     pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
         load_command_map(config.map, config.max_speed_m_s, "paper")
-    paper = simulate(pcfg, pmap)
+    paper = simulate(pcfg, pmap, measures=False)
     paper.metrics = report.compute_metrics(paper)
     return paper
 
