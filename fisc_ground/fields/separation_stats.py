@@ -9,7 +9,7 @@ previous step it was evaluated at (a pair that stays close over many steps is on
 that separates and closes again is two).
 
 Positions that are not finite (no fix, a dropped sample) are ignored, so are the vehicles they
-belong to at that step.  Vehicle ids must be distinct at one step, integers in 0 .. 2^31 - 1.
+belong to at that step.  Vehicle ids must be distinct at one step, integers in 0 .. 2^32 - 1 (telemetry's u32).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-_ID_LIMIT = 1 << 31
+_ID_LIMIT = 1 << 32
 
 
 @dataclass(frozen=True)
@@ -99,20 +99,38 @@ def closest_pair(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
     return _nearest(ids, pos, cKDTree(pos))
 
 
-def pair_keys(id_a: np.ndarray, id_b: np.ndarray) -> np.ndarray:
-    """Sorted unique int64 keys ``min << 31 | max`` of vehicle-id pairs (order within a pair ignored)."""
+def pair_keys(id_a: np.ndarray, id_b: np.ndarray, distinct: bool = False) -> np.ndarray:
+    """Sorted unique uint64 keys ``min << 32 | max`` of vehicle-id pairs (order within a pair ignored);
+    ``distinct``: the pairs are known to be distinct (a sort instead of ``np.unique``)."""
     a, b = np.asarray(id_a, dtype=np.int64), np.asarray(id_b, dtype=np.int64)
-    return np.unique(np.minimum(a, b) * _ID_LIMIT + np.maximum(a, b))
+    keys = (np.minimum(a, b).astype(np.uint64) << np.uint64(32)) | np.maximum(a, b).astype(np.uint64)
+    if distinct:
+        keys.sort()
+        return keys
+    return np.unique(keys)
+
+
+def _close_pairs(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float) -> tuple[np.ndarray, ClosestPair]:
+    """Keys of the pairs strictly closer than ``d_min_m`` and the closest of them (distance inf without)."""
+    none = ClosestPair(math.inf, -1, -1)
+    if ids.size < 2 or d_min_m == 0:
+        return np.zeros(0, dtype=np.uint64), none
+    pairs = tree.query_pairs(d_min_m, output_type="ndarray")
+    if not pairs.size:
+        return np.zeros(0, dtype=np.uint64), none
+    d2 = np.sum((pos[pairs[:, 0]] - pos[pairs[:, 1]]) ** 2, axis=1)
+    keep = d2 < d_min_m * d_min_m  # strictly closer (query_pairs includes the distance itself)
+    pairs, d2 = pairs[keep], d2[keep]
+    if not pairs.size:
+        return np.zeros(0, dtype=np.uint64), none
+    i = int(np.argmin(d2))
+    a, b = int(ids[pairs[i, 0]]), int(ids[pairs[i, 1]])
+    return pair_keys(ids[pairs[:, 0]], ids[pairs[:, 1]], distinct=True), \
+        ClosestPair(float(np.sqrt(d2[i])), min(a, b), max(a, b))
 
 
 def _close_keys(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float) -> np.ndarray:
-    if ids.size < 2 or d_min_m == 0:
-        return np.zeros(0, dtype=np.int64)
-    pairs = tree.query_pairs(d_min_m, output_type="ndarray")
-    if pairs.size:
-        d2 = np.sum((pos[pairs[:, 0]] - pos[pairs[:, 1]]) ** 2, axis=1)
-        pairs = pairs[d2 < d_min_m * d_min_m]  # strictly closer (query_pairs includes the distance itself)
-    return pair_keys(ids[pairs[:, 0]], ids[pairs[:, 1]])
+    return _close_pairs(ids, pos, tree, d_min_m)[0]
 
 
 def pairs_closer_than(ids: np.ndarray, pos_m: np.ndarray, d_min_m: float) -> np.ndarray:
@@ -121,7 +139,7 @@ def pairs_closer_than(ids: np.ndarray, pos_m: np.ndarray, d_min_m: float) -> np.
         raise ValueError(f"d_min must be >= 0 m, is {d_min_m!r}")
     ids, pos = _finite(ids, pos_m)
     if ids.size < 2:
-        return np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.uint64)
     return _close_keys(ids, pos, cKDTree(pos), d_min_m)
 
 
@@ -147,24 +165,25 @@ class ApproachTracker:
         self.d_min_m = float(d_min_m)
         self._best = ClosestPair(math.inf, -1, -1)
         self._best_t = math.nan
-        self._close = np.zeros(0, dtype=np.int64)
+        self._close = np.zeros(0, dtype=np.uint64)
         self.near_misses = 0
         self.steps = 0
 
     def add(self, t_s: float, ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
         """Evaluate one time step; returns that step's closest pair."""
         ids, pos = _finite(ids, pos_m)
-        tree = cKDTree(pos) if ids.size >= 2 else None
-        step = ClosestPair(math.inf, -1, -1) if tree is None else _nearest(ids, pos, tree)
         self.steps += 1
+        if ids.size < 2:
+            self._close = np.zeros(0, dtype=np.uint64)
+            return ClosestPair(math.inf, -1, -1)
+        tree = cKDTree(pos)
+        close, step = _close_pairs(ids, pos, tree, self.d_min_m)  # the closest pair, when closer than d_min
+        if not close.size:
+            step = _nearest(ids, pos, tree)
         if step.distance_m < self._best.distance_m:
             self._best, self._best_t = step, float(t_s)
-        if step.distance_m < self.d_min_m:
-            close = _close_keys(ids, pos, tree, self.d_min_m)
-            self.near_misses += int(close.size - np.isin(close, self._close, assume_unique=True).sum())
-            self._close = close
-        else:
-            self._close = np.zeros(0, dtype=np.int64)
+        self.near_misses += int(close.size - np.isin(close, self._close, assume_unique=True).sum())
+        self._close = close
         return step
 
     def result(self) -> ClosestApproach:

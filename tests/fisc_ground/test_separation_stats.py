@@ -76,6 +76,16 @@ def test_near_miss_counted_once_per_encounter():
     assert tr.result().near_misses == 1 + 2  # (3,5), then (3,9) and (5,9)
 
 
+def test_the_largest_telemetry_ids_pair_up():
+    big = np.array([2**32 - 2, 2**32 - 3, 5])
+    pos = np.array([[0.0, 0, 0], [0.5, 0, 0], [9.0, 0, 0]])
+    tr = ss.ApproachTracker(0.92)
+    tr.add(0.0, big, pos)
+    r = tr.result()
+    assert (r.id_a, r.id_b, r.near_misses) == (2**32 - 3, 2**32 - 2, 1)
+    assert ss.pairs_closer_than(big, pos, 0.92).size == 1
+
+
 def test_bad_input_named():
     with pytest.raises(ValueError, match="d_min"):
         ss.ApproachTracker(-1.0)
@@ -100,3 +110,18 @@ def test_common_time_base_interpolates_and_leaves_gaps():
     want = min(np.linalg.norm(pos[k, 0] - pos[k, 1]) for k in range(t.size)
                if np.isfinite(pos[k]).all())
     assert r.distance_m == pytest.approx(want)
+
+
+@pytest.mark.parametrize("d_min", [0.0, 0.05, 0.92, 5.0])
+def test_tracker_step_equals_brute_force_whether_or_not_pairs_are_close(d_min):
+    rng = np.random.default_rng(7)
+    tr = ss.ApproachTracker(d_min)
+    best = np.inf
+    for k in range(6):
+        pos = rng.uniform(0, 3, size=(40, 3))
+        ids = np.arange(40) * 3
+        got, want = tr.add(float(k), ids, pos), ss.brute_force_closest(ids, pos)
+        assert got.distance_m == pytest.approx(want.distance_m, rel=1e-12)
+        assert (got.id_a, got.id_b) == (want.id_a, want.id_b)
+        best = min(best, want.distance_m)
+    assert tr.result().distance_m == pytest.approx(best)
