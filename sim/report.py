@@ -126,7 +126,7 @@ def statistics_lines(m: dict) -> list[str]:
                   "slice / its CVs' volume, pressure from the slice's velocity spread, against the CFD's "
                   f"volume-weighted slice means; {int(sum(prof['compared']))} of {len(prof['x_m'])} slices compared."]
     if spc and spc.get("n_cv"):
-        lines += ["", f"Samples per CV: min {spc['min']}, median {_fmt(spc['median'])}, max {spc['max']}; "
+        lines += ["", f"Samples per CV: min {spc['min']}, median {spc['median']:.0f}, max {spc['max']}; "
                   f"{100 * spc['fraction_below_min_samples']:.0f} % of the {spc['n_cv']} CVs have fewer than "
                   f"{spc['min_samples']} (left out)."]
     return lines

@@ -166,7 +166,7 @@ def axial_profile_figure(stats: Any, title: str) -> Figure:
         ax.plot(x, cfd, "-", marker="o", markersize=3, color="C0", label="CFD, volume-weighted")
         ax.plot(x, sw, "--", marker="s", markersize=3, color="C1", label="swarm")
         r, e = stats.intervals[f"profile_pearson_{q}"], stats.intervals[f"profile_nrmse_{q}"]
-        ax.set_title(f"{q}: r {r.text()}, nRMSE {e.text()}", fontsize=9)
+        ax.set_title(f"{q}: r {r.text(3)}, nRMSE {e.text(3)}", fontsize=9)
         ax.set_xlabel("x [m]")
         ax.set_ylabel(f"normalised {q}")
         ax.grid(True, alpha=0.3)
