@@ -74,12 +74,17 @@ FIDELITY_SCHEMA = {
         "t_s": {"type": "number", "description": "receive time of the estimate [s]"},
         "time_samples": {"type": "integer"}, "n_cv_compared": {"type": "integer"},
         **{f"{k}_{q}": _FLOAT_OR_NULL for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")},
+        "closest_approach_m": {**_FLOAT_OR_NULL, "description": "distance of the closest two live agents now [m]"},
+        "d_min_m": {"type": "number", "description": "the map's designed spacing [m]"},
     },
 }
 ALARMS_SCHEMA = {
     "title": "fisc.Alarms", "type": "object", "description": "The monitor's alarms (empty list: none)",
     "properties": {"t_s": {"type": "number"}, "agents_heard": {"type": "integer"}, "stale": {"type": "integer"},
-                   "alarms": {"type": "array", "items": {"type": "string"}}},
+                   "alarms": {"type": "array", "items": {"type": "string"}},
+                   "closest_approach_m": {**_FLOAT_OR_NULL,
+                                          "description": "distance of the closest two live agents [m]"},
+                   "d_min_m": {"type": "number", "description": "the spacing the separation alarm holds [m]"}},
     "required": ["t_s", "alarms"],
 }
 STATES_SCHEMA = {
