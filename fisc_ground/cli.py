@@ -111,7 +111,8 @@ def run_score_flight(args: argparse.Namespace) -> int:
     from fisc_agent.map.codec import load_map
     from fisc_agent.map.wall import map_wall
     from fisc_ground.maps.duct_wall import duct_wall_from_reference
-    from fisc_ground.fields.flight_score import score_track, track_from_rows
+    from fisc_agent.map.separation import map_separation
+    from fisc_ground.fields.flight_score import score_track, track_from_rows, wall_track_from_rows
     from fisc_ground.reference.load import load_reference
 
     cmap = load_map(args.map)
@@ -121,8 +122,11 @@ def run_score_flight(args: argparse.Namespace) -> int:
         raise ValueError(f"{args.map}: the map records no reference; pass --reference")
     ref = load_reference(spec)
     wall = map_wall(cmap.arrays) or duct_wall_from_reference(ref)  # the wall the agent turned at, where carried
+    tracks = []
     for path in args.logs:
-        score = score_track(*track_from_rows(read_flight_log(path)), ref, cmap.scale, *args.x_range, wall=wall)
+        rows = read_flight_log(path)
+        tracks.append(wall_track_from_rows(rows))
+        score = score_track(*track_from_rows(rows), ref, cmap.scale, *args.x_range, wall=wall)
         if args.json:
             print(json.dumps({"log": str(path), **score.as_dict()}))
         else:
@@ -130,7 +134,43 @@ def run_score_flight(args: argparse.Namespace) -> int:
                   f"{' (held)' if score.held else ''}, max excursion {sig3(score.max_excursion_m)} m, "
                   f"velocity nRMSE {sig3(score.velocity_nrmse)} ({score.n_samples} samples, peak flown "
                   f"{sig3(score.peak_flown_m_s)} of {sig3(score.peak_target_m_s)} m/s), crossing {sig3(score.crossing_time_s)} s")
+    if len(args.logs) >= 2:
+        _print_fleet_approach(args, tracks, map_separation(cmap.body).d_min_m)
     return 0
+
+
+def _positive_seconds(text: str) -> float:
+    """argparse type: a finite number of seconds > 0."""
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
+    return v
+
+
+def _print_fleet_approach(args: argparse.Namespace, tracks: list, d_min_m: float) -> None:
+    """The fleet's closest approach over several logs on their shared wall clock (``wall_time_s``),
+    positions interpolated on a common ``--period`` time base; vehicles are named by their log."""
+    import numpy as np
+
+    from fisc_ground.fields.separation_stats import common_time_base, track_approach
+
+    t, pos = common_time_base(tracks, args.period, max_gap_s=args.max_gap)
+    res = track_approach(t, np.arange(len(tracks)), pos, d_min_m)
+    names = [str(p) for p in args.logs]
+    pair = [names[res.id_a], names[res.id_b]] if res.id_a >= 0 else None
+    if args.json:
+        print(json.dumps({"fleet": {**res.as_dict(), "closest_approach_logs": pair, "logs": names,
+                                    "period_s": args.period}}))
+    elif pair is None:
+        print(f"fleet of {len(names)} logs: never two vehicles with a position at the same wall time")
+    else:
+        print(f"fleet of {len(names)} logs: closest approach {sig3(res.distance_m)} m between {pair[0]} and {pair[1]} "
+              f"at wall time {res.time_s:.1f} s; {res.near_misses} near-misses < d_min {sig3(d_min_m)} m")
 
 
 def inspect_summary(cmap) -> dict:
@@ -394,7 +434,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", help="reference flow (default: the one recorded in the map)")
     p.add_argument("--x-range", nargs=2, type=float, default=(0.0, 15.0), metavar=("X_LO", "X_HI"),
                    help="the duct's axial extent scored [m]")
-    p.add_argument("--json", action="store_true", help="print one JSON object per log")
+    p.add_argument("--json", action="store_true", help="print one JSON object per log (and one 'fleet' object)")
+    p.add_argument("--period", type=_positive_seconds, default=0.1, metavar="S",
+                   help="common time base of several logs for the fleet's closest approach [s]")
+    p.add_argument("--max-gap", type=_positive_seconds, default=1.0, metavar="S",
+                   help="a vehicle's positions are not interpolated across gaps longer than this [s]")
     p.set_defaults(func=run_score_flight)
 
     try:

@@ -43,6 +43,10 @@ def compute_metrics(result: RunResult) -> dict:
         scale=result.scale, inflow_rate_per_s=result.inflow_rate_per_s, collisions=result.collisions,
         config=cfg.as_dict(),
     )
+    approach = getattr(result, "approach", None)
+    if approach is not None:
+        out.update(approach.as_dict())
+        out["separation_interval_s"] = cfg.separation_interval_s
     return json_safe(out)
 
 
@@ -90,6 +94,44 @@ def _fmt(v) -> str:
     return str(v)
 
 
+def separation_line(m: dict) -> str:
+    """The closest approach of metrics.json ``m`` as one sentence."""
+    d, ids, t = m.get("closest_approach_m"), m.get("closest_approach_ids"), m.get("closest_approach_time_s")
+    head = ("Closest approach: never two agents in the tunnel at once" if d is None else
+            f"Closest approach {d:.3f} m (agents {ids[0]} and {ids[1]} at t = {t:.1f} s)")
+    every = m.get("separation_interval_s")
+    return (f"{head}; {m['near_misses']} near-misses (pairs closer than d_min = {m['d_min_m']:.2f} m, the map's "
+            f"designed spacing, counted once per encounter) over {m.get('separation_steps')} evaluations"
+            + (f", one every {every:g} s of the agents in the tunnel." if every else "."))
+
+
+def statistics_lines(m: dict) -> list[str]:
+    """report.md lines of the bootstrap intervals, the axial profile and the samples per CV (none
+    when metrics.json ``m`` has no ``intervals``)."""
+    iv, prof, spc = m.get("intervals"), m.get("axial_profile"), m.get("samples_per_cv")
+    if not iv:
+        return []
+    n_blocks = next(iter(iv.values())).get("n_blocks")
+    lines = ["", "## How far the figures can be trusted", "",
+             f"95 % block-bootstrap intervals over {n_blocks} time blocks (basic intervals: for the figure with "
+             "unlimited samples; sampling noise inflates an nRMSE and deflates an r, by about the bias shown):", "",
+             "| figure | value | 95 % interval | noise bias |", "|---|---|---|---|"]
+    rows = [(k, iv[k]) for k in iv] + [(f"axial profile {k}", prof[k]) for k in
+                                       ("nrmse_density", "pearson_density", "nrmse_pressure", "pearson_pressure")
+                                       if prof and k in prof]
+    for k, d in rows:
+        lines.append(f"| {k} | {_fmt(d['value'])} | [{_fmt(d['lo'])}, {_fmt(d['hi'])}] | {_fmt(d.get('bias'))} |")
+    if prof:
+        lines += ["", f"Axial profile: per {prof['slice_m'] or 0:g} m slice, density = time-averaged agents in the "
+                  "slice / its CVs' volume, pressure from the slice's velocity spread, against the CFD's "
+                  f"volume-weighted slice means; {int(sum(prof['compared']))} of {len(prof['x_m'])} slices compared."]
+    if spc and spc.get("n_cv"):
+        lines += ["", f"Samples per CV: min {spc['min']}, median {spc['median']:.0f}, max {spc['max']}; "
+                  f"{100 * spc['fraction_below_min_samples']:.0f} % of the {spc['n_cv']} CVs have fewer than "
+                  f"{spc['min_samples']} (left out)."]
+    return lines
+
+
 def write_report_md(result: RunResult, path: Path) -> Path:
     """report.md: our metrics beside the paper's, agent counts, speed, figures."""
     m = result.metrics or compute_metrics(result)
@@ -128,6 +170,7 @@ def write_report_md(result: RunResult, path: Path) -> Path:
                   "A_j dx_j (the map's cv_open_fraction) instead:", ""]
         for name, d in m["other_densities"].items():
             lines.append(f"* {name}: nRMSE {_fmt(d['nrmse_density'])}, Pearson {_fmt(d['pearson_density'])}")
+    lines += statistics_lines(m)
     a = m["agents"]
     lines += ["", "## Agents", "",
               f"injected {a['injected']}, exited through the outlet {a['exited']}, escaped {a['escaped']}, "
@@ -137,6 +180,8 @@ def write_report_md(result: RunResult, path: Path) -> Path:
         lines.append(f"Reservoir source rate (eq. source_rate, summed over the inlet): {result.inflow_rate_per_s:.1f} agents/s.")
     if result.collisions:
         lines.append(f"Collisions: {result.collisions}.")
+    if m.get("d_min_m") is not None and m.get("near_misses") is not None:
+        lines += ["", "## Separation", "", separation_line(m)]
     lines += ["", "## Speed", "",
               f"{m['steps']} steps, {m['agent_steps']} agent-steps in {m['wall_time_s']:.2f} s wall "
               f"({_fmt(m['agent_steps_per_s'])} agent-steps/s).", ""]

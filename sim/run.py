@@ -31,7 +31,11 @@ from fisc_ground.fields.field_run import FieldRun, FieldSource
 from fisc_ground.monitor.flight_log import FlightLog, LogSettings, SimulatedTelemetry, map_bytes
 from fisc_ground.figures.forked import ForkedCall, can_fork
 from fisc_ground.fit.scaling import DEFAULT_MAX_SPEED_M_S
-from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields
+from fisc_ground.fields.intervals import honest_statistics, stats_inputs
+from fisc_ground.fields.separation_stats import ApproachTracker, ClosestApproach
+from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields, cv_moments
+from fisc_ground.fields.time_blocks import DEFAULT_BLOCK_S, BlockAccumulator
+from fisc_agent.map.separation import map_separation
 from sim import report
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant.fit import plant_preset
@@ -124,6 +128,13 @@ class RunConfig:
     recommended value (the preset's), as ``fisc-agent`` flies it."""
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
+    separation_interval_s: float = 5.0
+    """Interval between the closest-approach evaluations over the agents in the tunnel [s] (a multiple
+    of dt; each costs ~4-5 ms at 10^3 agents, most of it listing the ~10^4 pairs closer than d_min, so
+    every 5 s (61 evaluations of the 300 s run) keeps the main job within a few % of its time).
+    Near-misses are the pairs closer than the map's d_min at an evaluation that were not at the one before."""
+    block_s: float = DEFAULT_BLOCK_S
+    """Length of the time blocks of the bootstrap intervals [s] (``fisc_ground.fields.time_blocks``)."""
     snapshot_times_s: tuple[float, ...] = PAPER_SNAPSHOT_TIMES_S
     """Times of the XZ swarm snapshots (paper fig. 4) [s]; times beyond the run are skipped."""
     figures: bool = True
@@ -161,6 +172,10 @@ class RunConfig:
             raise ValueError(f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
         if self.sample_interval_s is not None and not self.sample_interval_s > 0:
             raise ValueError(f"sample_interval_s must be > 0, got {self.sample_interval_s!r}")
+        if not (self.separation_interval_s > 0 and math.isfinite(self.separation_interval_s)):
+            raise ValueError(f"separation_interval_s must be finite and > 0, got {self.separation_interval_s!r}")
+        if not (self.block_s > 0 and math.isfinite(self.block_s)):
+            raise ValueError(f"block_s must be finite and > 0, got {self.block_s!r}")
 
     def flight_settings(self, cmap: CommandMap) -> FlightSettings:
         """The settings flown on ``cmap``: explicit mode/look-ahead, else the preset's (paper) or the
@@ -231,6 +246,8 @@ class RunResult:
     """Written outputs by name."""
     paper: "RunResult | None" = None
     """``run``: the companion run of the paper's preset (``RunConfig.compare_paper``), else None."""
+    approach: ClosestApproach | None = None
+    """Closest approach and near-misses of the agents in the tunnel (every ``separation_interval_s``)."""
 
     @property
     def cmap(self) -> CommandMap:
@@ -277,8 +294,12 @@ def load_command_map(spec: str | None, max_speed_m_s: float | None = None, prese
 
 
 def simulate(config: RunConfig, cmap: CommandMap,
-             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None) -> RunResult:
+             progress: Callable[[float], None] | None = None, telemetry: SimulatedTelemetry | None = None,
+             measures: bool = True) -> RunResult:
     """Run the scenario on ``cmap`` and time-average the swarm fields (no file output).
+
+    ``measures``: also track the closest approach and bootstrap the figures' intervals (``False`` for the
+    paper companion, whose figures only stand beside the run's).
 
     ``progress(fraction_done)`` is called now and then (for a progress bar).  ``telemetry``: every
     ``sample_interval_s`` of the whole run, the fleet is also sent there as agent telemetry (state
@@ -309,11 +330,14 @@ def simulate(config: RunConfig, cmap: CommandMap,
         reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
                               settings.persistence_s if settings.mode == "kinetic" else None)
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
+    blocks = BlockAccumulator(cf.n_cv, config.block_s)
+    approach = ApproachTracker(map_separation(cmap.body).d_min_m)
     mass = float(cmap.body.get("agent_mass_kg", 1.0))
     n_steps = max(1, int(round(config.duration / config.dt_s)))
     window = min(config.window, n_steps * config.dt_s)
     first_sample = n_steps - int(round(window / config.dt_s))
     every = max(1, int(round(config.sample_interval / config.dt_s)))
+    sep_every = max(1, int(round(config.separation_interval_s / config.dt_s)))
     snap_steps = {int(round(t / config.dt_s)): t for t in config.snapshot_times_s if t <= n_steps * config.dt_s}
     snapshots: list[tuple[float, np.ndarray]] = []
     report_every = max(1, n_steps // 200)
@@ -328,7 +352,12 @@ def simulate(config: RunConfig, cmap: CommandMap,
             snapshots.append((snap_steps[k], swarm.pos_m.copy()))
         if k > first_sample and (n_steps - k) % every == 0:
             cv = swarm.assign()
-            acc.add(cv, swarm.velocity_map(), mass, target_cmd)
+            mom = cv_moments(cv, swarm.velocity_map(), mass, cf.n_cv, target_cmd)
+            acc.add_moments(mom)
+            blocks.add_moments(k * config.dt_s, mom)
+        if measures and (n_steps - k) % sep_every == 0:
+            inside = swarm.assign() >= 0
+            approach.add(k * config.dt_s, swarm.ids[inside], swarm.pos_m[inside])
         if telemetry is not None and (n_steps - k) % every == 0:
             cv = swarm.assign()
             telemetry.sample(k * config.dt_s, swarm.ids, swarm.pos_m, swarm.velocity_map(),
@@ -341,14 +370,18 @@ def simulate(config: RunConfig, cmap: CommandMap,
     wall = time.perf_counter() - t0
     if progress is not None:
         progress(1.0)
+    stats = honest_statistics(blocks.sums(), stats_inputs(cmap, config.min_samples),
+                              blocks.last_t_s - blocks.first_t_s + every * config.dt_s, seed=config.seed) \
+        if measures else None
     fr = FieldRun(source=FieldSource.SIMULATION, cmap=cmap, fields=acc.result(), scale=scale,
                   min_samples=config.min_samples, scenario=config.scenario, mode=settings.mode,
-                  collisions=config.collisions, snapshots=tuple(snapshots))
+                  collisions=config.collisions, snapshots=tuple(snapshots), statistics=stats)
     return RunResult(
         config=config, field_run=fr, settings=settings, counters=swarm.counters, alive=swarm.n, wall_time_s=wall,
         window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
         inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
-        collisions=None if collider is None else collider.stats.as_dict())
+        collisions=None if collider is None else collider.stats.as_dict(),
+        approach=approach.result() if measures else None)
 
 
 def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
@@ -357,7 +390,7 @@ def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
     pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
     pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
         load_command_map(config.map, config.max_speed_m_s, "paper")
-    paper = simulate(pcfg, pmap)
+    paper = simulate(pcfg, pmap, measures=False)
     paper.metrics = report.compute_metrics(paper)
     return paper
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from fisc_agent.map.codec import CommandMap
 from fisc_ground.fields.field_report import fidelity_for_columns, swarm_columns
+from fisc_ground.fields.intervals import HonestStatistics
 from fisc_ground.fields.swarm_fields import SwarmFields
 
 PRESSURE_DEFINITION = ("swarm_pressure = 2 m/(3 dV) <sum ||u_i - S v_target,j||^2> (eq. pressure_constraint, "
@@ -59,6 +60,9 @@ class FieldRun:
     """(t [s], positions (n, 3) in the map frame [m]) at the paper's fig. 4 snapshot times."""
     companion: "FieldRun | None" = None
     """The paper preset flown on the same CVs (``fisc-sim run``), shown beside this run in the figures."""
+    statistics: HonestStatistics | None = None
+    """The figures' bootstrap intervals, the axial profile and the samples per CV, where the producer kept
+    its samples per time block (``fisc_ground.fields.intervals``)."""
 
     @property
     def target_command_m_s(self) -> np.ndarray:
@@ -97,4 +101,7 @@ class FieldRun:
             map={"sha256": self.cmap.sha256, "map_version": self.cmap.map_version,
                  "reference": self.cmap.body.get("provenance", {}).get("reference", {}).get("name")},
         )
+        if self.statistics is not None:
+            out.update(intervals=self.statistics.intervals_dict(), axial_profile=self.statistics.axial_profile_dict(),
+                       samples_per_cv=self.statistics.samples)
         return out

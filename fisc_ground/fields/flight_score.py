@@ -119,3 +119,12 @@ def realised_spread_ratio(pos_m: np.ndarray, vel_m_s: np.ndarray, states: np.nda
     dev = np.asarray(vel_m_s, dtype=float)[ok] - c
     sigma = np.asarray(field.spread_m_s)[cv[ok]]
     return float(np.sqrt(np.mean(np.sum(dev ** 2, axis=1))) / np.sqrt(np.mean(sigma ** 2)))
+
+
+def wall_track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray]:
+    """(wall_time_s, pos_m) of the rows of a flight log that carry a position and a wall-clock time: the
+    clock several vehicles' logs share (``fisc_ground.fields.separation_stats.common_time_base``)."""
+    rows = [r for r in rows if r["x_m"] != "" and r.get("wall_time_s", "") != ""]
+    t = np.array([float(r["wall_time_s"]) for r in rows])
+    pos = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows]).reshape(-1, 3)
+    return t, pos

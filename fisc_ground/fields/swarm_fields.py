@@ -271,7 +271,13 @@ class FieldAccumulator:
     def add(self, cv_ids: np.ndarray, velocities_m_s: np.ndarray, masses_kg: np.ndarray | float,
             reference_velocity_m_s: np.ndarray | None = None) -> None:
         """Add one time sample of all agents (same arguments as ``instantaneous_fields``)."""
-        mom = cv_moments(cv_ids, velocities_m_s, masses_kg, self.n_cv, reference_velocity_m_s)
+        self.add_moments(cv_moments(cv_ids, velocities_m_s, masses_kg, self.n_cv, reference_velocity_m_s))
+
+    def add_moments(self, mom: CVMoments) -> None:
+        """Add one time sample already reduced to per-CV moments (``cv_moments``), e.g. when the same
+        sample also feeds a ``fisc_ground.fields.time_blocks.BlockAccumulator``."""
+        if mom.count.shape != (self.n_cv,):
+            raise ValueError(f"moments of {mom.count.shape[0]} CVs added to an accumulator of {self.n_cv}")
         self.count += mom.count
         self.mass_kg += mom.mass_kg
         self.momentum_kg_m_s += mom.momentum_kg_m_s

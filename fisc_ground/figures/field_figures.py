@@ -145,4 +145,31 @@ def run_figure_drawings(run: Any) -> dict[str, FigureDrawing]:
             run.min_samples).swarm}
     jobs["centreline"] = partial(  # fig. 10
         plots.centreline_profiles_figure, prof, title=f"Centreline profiles ({tag})", extra_swarm=extra)
+    if getattr(run, "statistics", None) is not None and run.statistics.band is not None:
+        jobs["axial_profile"] = partial(axial_profile_figure, run.statistics, f"Axial profile ({tag})")
     return jobs
+
+
+def axial_profile_figure(stats: Any, title: str) -> Figure:
+    """The axial profile (``fisc_ground.fields.intervals.HonestStatistics``): per 0.5 m slice, the swarm's
+    density and pressure against the CFD's volume-weighted slice means, each min-max normalised, the
+    swarm's with its 95 % bootstrap band; the panel titles give r and nRMSE with their intervals."""
+    from fisc_ground.fields.intervals import normalised_profile
+
+    fig, axes = plots.plt.subplots(1, 2, figsize=(10.0, 3.8), squeeze=False, layout="constrained")
+    axes = axes[0]
+    x = stats.profile.x_m
+    for ax, q in zip(axes, ("density", "pressure")):
+        sw, cfd = normalised_profile(stats.profile, q)
+        lo, hi = stats.band[q]
+        ax.fill_between(x, lo, hi, color="C1", alpha=0.25, linewidth=0, label="swarm, 95 % interval")
+        ax.plot(x, cfd, "-", marker="o", markersize=3, color="C0", label="CFD, volume-weighted")
+        ax.plot(x, sw, "--", marker="s", markersize=3, color="C1", label="swarm")
+        r, e = stats.intervals[f"profile_pearson_{q}"], stats.intervals[f"profile_nrmse_{q}"]
+        ax.set_title(f"{q}: r {r.text(3)}, nRMSE {e.text(3)}", fontsize=9)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel(f"normalised {q}")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(title)
+    return fig

@@ -22,15 +22,26 @@ import numpy as np
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import CommandMap
-from fisc_ground.monitor.alarms import LOW_BATTERY_PCT, fleet_alarms, id_list as _id_list
+from fisc_agent.map.separation import DEFAULT_D_MIN_M, map_separation
+from fisc_ground.monitor.alarms import LOW_BATTERY_PCT, fleet_alarms, id_list as _id_list, separation_alarm
 from fisc_ground.fields.field_run import FieldRun, FieldSource
-from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields
+from fisc_ground.fields.intervals import HonestStatistics, honest_statistics, stats_inputs
+from fisc_ground.fields.separation_stats import ApproachTracker
+from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields, cv_moments
+from fisc_ground.fields.time_blocks import DEFAULT_BLOCK_S, BlockAccumulator
 
 FLYING_STATES = frozenset({"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"})
 NO_AGENT = 0xFFFFFFFF
 """Key agent id of a message whose key names no valid agent (telemetry ids are u32)."""
 DEFAULT_MAX_AGENTS = 10_000
 """Agent ids the monitor tracks at most; messages from further new ids are counted, not shown."""
+STATS_EVERY_SAMPLES = 20
+"""The view's bootstrap intervals are recomputed after this many new fleet samples (a bootstrap costs
+~0.1 s; the samples, not a clock, decide, so a replay shows what the live view showed)."""
+STATS_REPLICATES = 100
+"""Bootstrap replicates of the live view (the reports use ``bootstrap.DEFAULT_REPLICATES``)."""
+TARGET_WIDTH = 0.1
+"""Interval width the view's time-to-width estimate aims at."""
 
 
 class AgentRoster:
@@ -109,6 +120,17 @@ class FleetView:
     """Messages from new agent ids refused because ``max_agents`` ids are already tracked."""
     by_authority: dict[str, int] | None = None
     """Live agents per authority (``telemetry_codec.AUTHORITIES``; ``unknown`` from version-1 agents)."""
+    closest_m: float | None = None
+    """Distance of the closest two live agents now [m] (None: fewer than two with a position)."""
+    closest_ids: tuple[int, int] | None = None
+    """Their ids."""
+    d_min_m: float = DEFAULT_D_MIN_M
+    """The spacing the separation alarm holds them to (the map's d_min) [m]."""
+    approach: dict | None = None
+    """Closest approach and near-misses over the fleet samples so far (``ClosestApproach.as_dict``)."""
+    statistics: tuple[str, ...] = ()
+    """How far the figures can be trusted: lines like ``profile density r 0.62 [0.41, 0.78]; interval < 0.1
+    wide in ~4 min at the current rate`` (empty until there are two time blocks)."""
 
 
 class TelemetryAggregator:
@@ -138,6 +160,12 @@ class TelemetryAggregator:
         self.cmap: CommandMap | None = None
         self.field: CommandField | None = None
         self.acc: FieldAccumulator | None = None
+        self.blocks: BlockAccumulator | None = None
+        self.d_min_m = DEFAULT_D_MIN_M
+        """The spacing of the separation alarm and the near-misses (the map's d_min) [m]."""
+        self.approach = ApproachTracker(self.d_min_m)
+        """Closest approach and near-misses of the live agents at every fleet sample."""
+        self._stats: tuple[int, int, HonestStatistics] | None = None
         if cmap is not None:
             self.set_map(cmap)
 
@@ -147,6 +175,11 @@ class TelemetryAggregator:
         self.cmap = cmap
         self.field = CommandField.from_map(cmap)
         self.acc = FieldAccumulator(cmap.n_cv, cmap.cell_size_m ** 3)
+        self.blocks = BlockAccumulator(cmap.n_cv, DEFAULT_BLOCK_S)
+        self._stats = None
+        d_min = map_separation(cmap.body).d_min_m
+        if d_min != self.d_min_m:
+            self.d_min_m, self.approach = d_min, ApproachTracker(d_min)
         self._mass_kg = float(cmap.body.get("agent_mass_kg", 1.0))
         self._target_cmd = cmap.scale * np.asarray(cmap["target_velocity_m_s"], dtype=float)
 
@@ -229,15 +262,18 @@ class TelemetryAggregator:
         return self.seen_s[:n] > t - self.stale_after_s
 
     def _sample(self, t: float) -> None:
-        if self.acc is None:
-            return
         live = self._live(t)
         rec = self.latest[: len(self.slots)][live]
         pos = rec["position_m"].astype(float)
+        self.approach.add(t, rec["agent_id"].astype(np.int64), pos)
+        if self.acc is None:
+            return
         vel = rec["velocity_m_s"].astype(float)
         good = np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1)
         cv = self.field.cv_of(pos[good]) if good.any() else np.zeros(0, dtype=np.int64)
-        self.acc.add(cv, vel[good], self._mass_kg, self._target_cmd)
+        mom = cv_moments(cv, vel[good], self._mass_kg, self.acc.n_cv, self._target_cmd)
+        self.acc.add_moments(mom)
+        self.blocks.add_moments(t, mom)
 
     # -- results -------------------------------------------------------------------------------
     @property
@@ -249,12 +285,36 @@ class TelemetryAggregator:
         """Time-averaged swarm fields so far (None without a map)."""
         return None if self.acc is None else self.acc.result()
 
-    def field_run(self, min_samples: int) -> FieldRun:
-        """The estimate so far as a ``FieldRun`` (source: replay of telemetry; needs a map)."""
+    def field_run(self, min_samples: int, with_statistics: bool = False) -> FieldRun:
+        """The estimate so far as a ``FieldRun`` (source: replay of telemetry; needs a map); with its
+        bootstrap intervals, axial profile and samples per CV when ``with_statistics``."""
         if self.cmap is None:
             raise ValueError("the aggregator has no map yet: no swarm fields to report")
         return FieldRun(source=FieldSource.REPLAY, cmap=self.cmap, fields=self.acc.result(), scale=self.cmap.scale,
-                        min_samples=int(min_samples), scenario="telemetry", mode="replay")
+                        min_samples=int(min_samples), scenario="telemetry", mode="replay",
+                        statistics=self.statistics(min_samples) if with_statistics else None)
+
+    def statistics(self, min_samples: int, n_boot: int | None = None) -> HonestStatistics | None:
+        """Bootstrap intervals, axial profile and samples per CV of the fields so far (None without a map)."""
+        if self.blocks is None:
+            return None
+        kw = {} if n_boot is None else {"n_boot": int(n_boot)}
+        return honest_statistics(self.blocks.sums(), stats_inputs(self.cmap, min_samples),
+                                 self.blocks.last_t_s - self.blocks.first_t_s + self.sample_period_s, **kw)
+
+    def _view_statistics(self, min_samples: int) -> tuple[str, ...]:
+        """The view's statistics lines, recomputed every ``STATS_EVERY_SAMPLES`` fleet samples."""
+        if self.blocks is None or self.blocks.n_blocks < 2:
+            return ()
+        n = self.acc.n_time_samples
+        if self._stats is None or self._stats[1] != min_samples or n >= self._stats[0] + STATS_EVERY_SAMPLES:
+            self._stats = (n, min_samples, self.statistics(min_samples, STATS_REPLICATES))
+        st = self._stats[2]
+        s = st.samples
+        return (st.progress_line("profile_pearson_density", TARGET_WIDTH),
+                st.progress_line("profile_pearson_pressure", TARGET_WIDTH),
+                f"samples per CV: min {s['min']}, median {s['median']:.0f}, max {s['max']}; "
+                f"{100 * s['fraction_below_min_samples']:.0f} % of CVs below {s['min_samples']}")
 
     def agents(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(agent ids, newest records, receive times) of every agent heard."""
@@ -262,8 +322,9 @@ class TelemetryAggregator:
         ids = np.fromiter(self.slots.keys(), dtype=np.int64, count=n)
         return ids, self.latest[:n].copy(), self.seen_s[:n].copy()
 
-    def view(self, now_s: float | None = None) -> FleetView:
-        """Fleet state for display; ``now_s`` defaults to the newest receive time."""
+    def view(self, now_s: float | None = None, min_samples: int = 10) -> FleetView:
+        """Fleet state for display; ``now_s`` defaults to the newest receive time; ``min_samples``: the
+        CVs and slices the statistics lines compare."""
         now = self._tmax if now_s is None else float(now_s)
         ids, rec, seen = self.agents()
         live = seen > now - self.stale_after_s
@@ -279,6 +340,9 @@ class TelemetryAggregator:
         for v in rec["map_version"][live].tolist():
             versions[int(v)] = versions.get(int(v), 0) + 1
         alarms = fleet_alarms(ids, rec, live, self.stale_after_s, self.low_battery_pct)
+        pair, sep_line = separation_alarm(ids[live], rec["position_m"][live].astype(float), self.d_min_m)
+        if sep_line is not None:
+            alarms.append(sep_line)
         flags = rec["flags"]
         flying = np.isin(states, list(FLYING_STATES))
         if self.field is not None:  # the monitor's own CV assignment from the reported position
@@ -311,4 +375,7 @@ class TelemetryAggregator:
         return FleetView(now_s=now, n_agents=len(ids), by_state=by_state, stale=stale, map_versions=versions,
                          alarms=tuple(alarms), messages=self.messages, bad_messages=self.bad_messages,
                          spoofed=self.spoofed, time_samples=0 if self.acc is None else self.acc.n_time_samples,
-                         off_roster=self.off_roster, over_cap=self.over_cap, by_authority=by_authority)
+                         off_roster=self.off_roster, over_cap=self.over_cap, by_authority=by_authority,
+                         closest_m=pair.distance_m if pair.id_a >= 0 else None,
+                         closest_ids=(pair.id_a, pair.id_b) if pair.id_a >= 0 else None, d_min_m=self.d_min_m,
+                         approach=self.approach.result().as_dict(), statistics=self._view_statistics(min_samples))

@@ -70,3 +70,18 @@ def fleet_alarms(ids: np.ndarray, records: np.ndarray, live: np.ndarray, stale_a
                           for c in records["cmd_refusal"][refused].tolist()})
         out.append(f"refused a fleet command ({', '.join(reasons)}): agents {id_list(ids[refused])}")
     return out
+
+
+def separation_alarm(ids: np.ndarray, pos_m: np.ndarray, d_min_m: float):
+    """The closest pair among agents ``ids`` at ``pos_m`` (the fresh ones; non-finite rows ignored) and the
+    alarm line when it is closer than ``d_min_m``:
+    ``separation: agents 3 and 5 at 0.41 m < d_min 0.92 m`` (``(+n more pairs)`` when others are too).
+    Returns ``(fisc_ground.fields.separation_stats.ClosestPair, line or None)``."""
+    from fisc_ground.fields.separation_stats import closest_pair, pairs_closer_than
+
+    pair = closest_pair(ids, pos_m)
+    if not pair.distance_m < d_min_m:
+        return pair, None
+    more = int(pairs_closer_than(ids, pos_m, d_min_m).size) - 1
+    return pair, (f"separation: agents {pair.id_a} and {pair.id_b} at {pair.distance_m:.2f} m < d_min {d_min_m:.2f} m"
+                  + (f" (+{more} more pairs)" if more > 0 else ""))

@@ -183,7 +183,8 @@ class FlightLog:
                 return False
             self._alarms = view.alarms
             self._alarms_ch.log({"t_s": float(view.now_s), "agents_heard": view.n_agents, "stale": len(view.stale),
-                                 "alarms": list(view.alarms)}, log_time=_ns(view.now_s))
+                                 "alarms": list(view.alarms), "closest_approach_m": view.closest_m,
+                                 "d_min_m": float(view.d_min_m)}, log_time=_ns(view.now_s))
         return True
 
     # -- derived scene -------------------------------------------------------------------------
@@ -215,9 +216,10 @@ class FlightLog:
             fid = agg.field_run(self.min_samples).fidelity()
             self._fidelity_ch.log(json_safe({
                 "t_s": t, "time_samples": int(f.n_time_samples), "n_cv_compared": int(fid["n_cv_compared"]),
-                **{f"{k}_{q}": fid[f"{k}_{q}"] for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")}
+                **{f"{k}_{q}": fid[f"{k}_{q}"] for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")},
+                "closest_approach_m": view.closest_m, "d_min_m": float(view.d_min_m),
             }), log_time=lt)
-        self._scene_ch.log(fs.scene_update(t, wall, points), log_time=lt)
+        self._scene_ch.log(fs.scene_update(t, wall, points, d_min_m=agg.d_min_m), log_time=lt)
         return True
 
     def _wall_of(self, cmap: CommandMap) -> list:

@@ -11,7 +11,8 @@ topic                         schema                 content
                                                      agent_id, state code, RGBA coloured by state
 ``/fisc/cvs``                 foxglove.PointCloud    one point per CV centre: running density
                                                      [kg/m^3], pressure [Pa], samples, RGBA by density
-``/fisc/scene``               foxglove.SceneUpdate   the duct wall (lines) and per-agent velocity arrows
+``/fisc/scene``               foxglove.SceneUpdate   the duct wall (lines), per-agent velocity arrows and
+                                                     d_min spheres (radius d_min / 2)
 ``/fisc/fidelity``            JSON schema            running nRMSE / Pearson against the map's CFD targets
 ``/fisc/states``              JSON schema            live agents per state, stale agents
 ``/fisc/alarms``              JSON schema            the monitor's alarms (``fisc_ground.monitor.alarms``),
@@ -73,12 +74,17 @@ FIDELITY_SCHEMA = {
         "t_s": {"type": "number", "description": "receive time of the estimate [s]"},
         "time_samples": {"type": "integer"}, "n_cv_compared": {"type": "integer"},
         **{f"{k}_{q}": _FLOAT_OR_NULL for k in ("nrmse", "pearson") for q in ("velocity", "pressure", "density")},
+        "closest_approach_m": {**_FLOAT_OR_NULL, "description": "distance of the closest two live agents now [m]"},
+        "d_min_m": {"type": "number", "description": "the map's designed spacing [m]"},
     },
 }
 ALARMS_SCHEMA = {
     "title": "fisc.Alarms", "type": "object", "description": "The monitor's alarms (empty list: none)",
     "properties": {"t_s": {"type": "number"}, "agents_heard": {"type": "integer"}, "stale": {"type": "integer"},
-                   "alarms": {"type": "array", "items": {"type": "string"}}},
+                   "alarms": {"type": "array", "items": {"type": "string"}},
+                   "closest_approach_m": {**_FLOAT_OR_NULL,
+                                          "description": "distance of the closest two live agents [m]"},
+                   "d_min_m": {"type": "number", "description": "the spacing the separation alarm holds [m]"}},
     "required": ["t_s", "alarms"],
 }
 STATES_SCHEMA = {
@@ -237,9 +243,11 @@ def wall_lines(centres_m: np.ndarray, cell_m: float, radius_of_x=None, rings: in
     return lines
 
 
-def scene_update(t_s: float, wall: list, points: np.ndarray, arrow_s: float = 0.5):
-    """``/fisc/scene`` SceneUpdate: entity ``duct_wall`` (the wall polylines) and entity ``velocity``
-    (one arrow per agent point, length = speed * ``arrow_s``, coloured by state)."""
+def scene_update(t_s: float, wall: list, points: np.ndarray, arrow_s: float = 0.5, d_min_m: float | None = None):
+    """``/fisc/scene`` SceneUpdate: entity ``duct_wall`` (the wall polylines), entity ``velocity``
+    (one arrow per agent point, length = speed * ``arrow_s``, coloured by state) and, given ``d_min_m``,
+    entity ``d_min``: one translucent sphere of radius d_min / 2 per agent (two spheres that touch are
+    two vehicles at d_min; overlapping ones are closer)."""
     m = _fg()
     ts = timestamp(t_s)
     grey = m.Color(r=0.6, g=0.6, b=0.65, a=0.6)
@@ -260,7 +268,15 @@ def scene_update(t_s: float, wall: list, points: np.ndarray, arrow_s: float = 0.
             shaft_length=0.7 * length, shaft_diameter=0.05, head_length=0.3 * length, head_diameter=0.12,
             color=m.Color(r=p[8] / 255, g=p[9] / 255, b=p[10] / 255, a=1.0)))
     arrow_entity = m.SceneEntity(timestamp=ts, frame_id=FRAME_ID, id="velocity", arrows=arrows)
-    return m.SceneUpdate(entities=[wall_entity, arrow_entity])
+    entities = [wall_entity, arrow_entity]
+    if d_min_m is not None and d_min_m > 0:
+        size = m.Vector3(x=float(d_min_m), y=float(d_min_m), z=float(d_min_m))  # diameter d_min
+        entities.append(m.SceneEntity(timestamp=ts, frame_id=FRAME_ID, id="d_min", spheres=[
+            m.SpherePrimitive(pose=m.Pose(position=m.Vector3(x=p[0], y=p[1], z=p[2]),
+                                          orientation=m.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+                              size=size, color=m.Color(r=p[8] / 255, g=p[9] / 255, b=p[10] / 255, a=0.15))
+            for p in points.tolist()]))
+    return m.SceneUpdate(entities=entities)
 
 
 def layout_json() -> str:

@@ -146,9 +146,10 @@ def replay(path: str | Path, out_dir: str | Path, cmap: CommandMap | None = None
         raise RecordingError(f"{path}: the recording holds no map; pass --map MAP")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    run = agg.field_run(min_samples)
+    run = agg.field_run(min_samples, with_statistics=True)
     paths = {"fields.csv": write_fields_csv(run, out / "fields.csv")}
     metrics = run.metrics()
+    metrics.update(agg.approach.result().as_dict())  # closest approach of the live agents at every fleet sample
     view = agg.view()
     metrics.update(recording=str(path), recorded_by=rec.settings.source, truncated=rec.truncated,
                    messages=view.messages, bad_messages=view.bad_messages, spoofed=view.spoofed,

@@ -43,6 +43,15 @@ def heatmap_text(cmap: CommandMap, values: np.ndarray, max_cols: int = 60) -> An
     return text
 
 
+def separation_text(view: FleetView) -> str:
+    """``now 0.41 m (agents 3, 5); since start 0.08 m, 2 near-misses < d_min 0.92 m``."""
+    now = "-" if view.closest_m is None else f"{view.closest_m:.2f} m (agents {view.closest_ids[0]}, {view.closest_ids[1]})"
+    a = view.approach or {}
+    best = a.get("closest_approach_m")
+    since = "" if best is None else f"; since start {best:.2f} m, {a.get('near_misses', 0)} near-misses"
+    return f"now {now}{since} < d_min {view.d_min_m:.2f} m" if since else f"now {now}; d_min {view.d_min_m:.2f} m"
+
+
 def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None, dropped: int, title: str,
            worker_errors: int = 0, last_error: str = "") -> Any:
     """The dashboard as one rich renderable."""
@@ -67,6 +76,10 @@ def render(view: FleetView, fields: SwarmFields | None, cmap: CommandMap | None,
     if worker_errors:
         info.add_row("worker errors", f"{worker_errors} batches failed; last: {last_error}", style="bold red")
     info.add_row("field samples", str(view.time_samples))
+    info.add_row("closest approach", separation_text(view),
+                 style="bold red" if view.closest_m is not None and view.closest_m < view.d_min_m else "")
+    for line in view.statistics:
+        info.add_row("", line)
     parts: list[Any] = [Panel(info, title=title), table]
     alarms = "\n".join(view.alarms) if view.alarms else "none"
     parts.append(Panel(alarms, title="alarms", style="bold red" if view.alarms else "green"))

@@ -270,3 +270,38 @@ def states_at(agents: list[dict], t_s: np.ndarray) -> np.ndarray:
         names = np.array([tr[0][1]] + [x[2] for x in tr], dtype=object)
         out[:, j] = names[np.searchsorted(times, t_s, side="right")]
     return out
+
+
+def emulated_approach(swarm: SwarmRun, transform: DeploymentTransform, d_min_m: float):
+    """Closest approach and near-misses over every fleet sample of all emulated vehicles with a finite
+    position (map frame; ``fisc_ground.fields.separation_stats``), whatever their state: what a ground
+    station sees."""
+    from fisc_ground.fields.separation_stats import ApproachTracker
+
+    tracker = ApproachTracker(d_min_m)
+    ids = np.asarray(swarm.agent_ids, dtype=np.int64)
+    for k, t in enumerate(np.asarray(swarm.sample_t_s, dtype=float).tolist()):
+        if math.isfinite(t):
+            tracker.add(t, ids, transform.ned_to_map(swarm.pos_ned_m[k]))
+    return tracker.result()
+
+
+def emulated_statistics(swarm: SwarmRun, cmap: CommandMap, transform: DeploymentTransform, window: np.ndarray,
+                        cv: np.ndarray, reference_velocity_m_s: np.ndarray, min_samples: int, block_s: float):
+    """The bootstrap intervals, axial profile and samples per CV (``fisc_ground.fields.intervals``) of the
+    samples ``ground_truth_fields`` averaged (``cv`` its (K, N) CV ids, -1 where not flowing)."""
+    from fisc_ground.fields.intervals import honest_statistics, stats_inputs
+    from fisc_ground.fields.swarm_fields import cv_moments
+    from fisc_ground.fields.time_blocks import BlockAccumulator
+
+    k, n = swarm.pos_ned_m.shape[:2]
+    vel = transform.vel_ned_to_map(swarm.vel_ned_m_s.reshape(-1, 3)).reshape(k, n, 3)
+    vel = np.where(np.isfinite(vel).all(axis=2, keepdims=True), vel, 0.0)
+    blocks = BlockAccumulator(cmap.n_cv, block_s)
+    mass = float(cmap.body.get("agent_mass_kg", 1.0))
+    t = np.asarray(swarm.sample_t_s, dtype=float)
+    for i in window:
+        blocks.add_moments(float(t[i]), cv_moments(cv[i], vel[i], mass, cmap.n_cv, reference_velocity_m_s))
+    dt = float(np.nanmedian(np.diff(t))) if t.size > 1 else 0.0
+    return honest_statistics(blocks.sums(), stats_inputs(cmap, min_samples),
+                             blocks.last_t_s - blocks.first_t_s + dt)

@@ -15,7 +15,9 @@ import numpy as np
 from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import CommandMap
-from sim.emulate.analysis import (compare_fields, entry_statistics, flowing_vehicles, ground_truth_fields,
+from fisc_agent.map.separation import map_separation
+from sim.emulate.analysis import (compare_fields, emulated_approach, emulated_statistics, entry_statistics,
+                                  flowing_vehicles, ground_truth_fields,
                                   matched_population, position_snapshots, realtime_summary, sample_window, states_at,
                                   steady_start_s, swarm_counters)
 from sim.emulate.config import LAUNCH_OVERHEAD_S, EmulateConfig
@@ -143,16 +145,20 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     rcfg = _run_config(config, map_path)
     t_win = swarm.sample_t_s[window] if window.size else np.array([0.0, 0.0])
     settings = rcfg.flight_settings(cmap)
+    stats = emulated_statistics(swarm, cmap, transform, window, cv, target_cmd, config.min_samples, rcfg.block_s)
     fr = FieldRun(source=FieldSource.EMULATION, cmap=cmap, fields=fields, scale=cmap.scale,
                   min_samples=config.min_samples, scenario=rcfg.scenario, mode=settings.mode,
-                  snapshots=tuple(position_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry)))
+                  snapshots=tuple(position_snapshots(swarm, cv, transform, PAPER_SNAPSHOT_TIMES_S, first_entry)),
+                  statistics=stats)
     rr = RunResult(config=rcfg, field_run=fr, settings=settings, counters=counters, alive=alive,
                    wall_time_s=swarm.duration_s, window_s=(float(np.nanmin(t_win)), float(np.nanmax(t_win))),
-                   inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None)
+                   inflow_rate_per_s=plan.inflow_rate_per_s, collisions=None,
+                   approach=emulated_approach(swarm, transform, map_separation(cmap.body).d_min_m))
     res = EmulateResult(config=config, run_result=rr, swarm=swarm, plan=plan, entries=entries,
                         realtime=realtime_summary(swarm, config.rate_hz, config.agents,
                                                   steady_start_s(plan, config.duration_s)))
     rr.metrics = report.compute_metrics(rr)
+    rr.metrics["separation_interval_s"] = config.sample_interval_s  # every fleet sample, every vehicle
     rr.metrics["emulation"] = json_safe({"entries": entries, "real_time": {
         k: v for k, v in res.realtime.items() if k not in ("agent_loops", "emulator_loops")}})
     res.paths["map"] = map_path
@@ -186,6 +192,14 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
                 [flowing_vehicles(m.fields) for m in [ref] + more])), "run_launched_population": flow_launched},
             "wall_time_s": sum(m.wall_time_s for m in [ref] + more + launched),
             "agents": ref.metrics.get("agents")}
+        res.comparison["separation"] = {k: rr.metrics.get(k) for k in (
+            "closest_approach_m", "closest_approach_time_s", "closest_approach_ids", "near_misses", "d_min_m")}
+        res.comparison["separation"]["run_reference"] = {k: ref.metrics.get(k) for k in (
+            "closest_approach_m", "near_misses", "d_min_m")}
+        res.comparison["axial_profile"] = {k: {"emulate": rr.metrics["axial_profile"][k],
+                                               "run": ref.metrics.get("axial_profile", {}).get(k)}
+                                           for k in ("pearson_density", "pearson_pressure", "nrmse_density",
+                                                     "nrmse_pressure")}
         res.paths["comparison"] = write_json(out / "comparison.json", res.comparison)
     if config.mcap is not None:
         res.paths["mcap"] = write_flight_log(Path(config.mcap), swarm, cmap, map_path, transform, cv,

@@ -242,3 +242,45 @@ def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_m
     assert score["crossed"] and not score["held"]
     assert score["max_excursion_m"] == pytest.approx(0.2, abs=0.02)   # the wall's narrowest station, sampled
     assert score["velocity_nrmse"] < 0.01                               # it flew S x the CFD at its nodes
+
+
+def _log(path, t_wall, xyz):
+    from fisc_agent.flight.flightlog import COLUMNS
+
+    lines = [",".join(COLUMNS)]
+    for k, (t, p) in enumerate(zip(t_wall, xyz)):
+        row = dict.fromkeys(COLUMNS, "")
+        row.update(time_s=f"{0.1 * k:.4f}", wall_time_s=f"{t:.4f}", state="FLOW", x_m=f"{p[0]:.4f}",
+                   y_m=f"{p[1]:.4f}", z_m=f"{p[2]:.4f}", vx_m_s="1.0", vy_m_s="0.0", vz_m_s="0.0")
+        lines.append(",".join(row[c] for c in COLUMNS))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_score_flight_of_several_logs_reports_the_fleets_closest_approach(default_map, tmp_path):
+    """Three vehicles at 1 m/s along x, on different wall-clock spans and sample times: b passes a at
+    0.41 m (a and b are 0.41 m apart in y, b starts 1 s later on the wall clock, 1 m behind: they are
+    abreast from t = 1001 s); c stays 2 m away.  The closest approach is between the logs of a and b, on
+    the wall clock, with positions interpolated between samples; one near-miss below d_min 0.92 m."""
+    t_a = 1000.0 + 0.1 * np.arange(100)
+    a = _log(tmp_path / "a.csv", t_a, [(1.0 * (t - 1000.0), 0.0, 0.0) for t in t_a])
+    t_b = 1001.05 + 0.1 * np.arange(80)  # samples between a's
+    b = _log(tmp_path / "b.csv", t_b, [(1.0 * (t - 1000.0), 0.41, 0.0) for t in t_b])
+    c = _log(tmp_path / "c.csv", t_a, [(1.0 * (t - 1000.0), -2.0, 0.0) for t in t_a])
+    out = fisc_ground("score-flight", str(a), str(b), str(c), "--map", str(default_map), "--json")
+    assert out.returncode == 0, out.stderr
+    objs = [json.loads(line) for line in out.stdout.splitlines()]
+    assert len(objs) == 4 and [o.get("log") for o in objs[:3]] == [str(a), str(b), str(c)]
+    fleet = objs[3]["fleet"]
+    assert fleet["closest_approach_m"] == pytest.approx(0.41, abs=1e-3)
+    assert set(fleet["closest_approach_logs"]) == {str(a), str(b)}
+    assert fleet["near_misses"] == 1 and fleet["d_min_m"] == pytest.approx(0.92, abs=0.01)
+    assert 1001.0 <= fleet["closest_approach_time_s"] <= 1010.0
+    text = fisc_ground("score-flight", str(a), str(c), "--map", str(default_map))
+    assert text.returncode == 0, text.stderr
+    assert "fleet of 2 logs: closest approach 2 m" in text.stdout and "0 near-misses" in text.stdout
+    # one log: no fleet line; a bad period is a usage error naming it
+    one = fisc_ground("score-flight", str(a), "--map", str(default_map))
+    assert "fleet" not in one.stdout
+    bad = fisc_ground("score-flight", str(a), str(b), "--map", str(default_map), "--period", "0")
+    assert bad.returncode == 2 and "--period" in bad.stderr

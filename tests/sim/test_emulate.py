@@ -304,6 +304,19 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     assert len(comparison["launched_population"]["nrmse_velocity"]["run_seeds"]) == 5
     assert (tmp_path / "run_reference" / "metrics.json").is_file()
     assert "Emulation (MAVLink in the loop)" in (tmp_path / "report.md").read_text()
+    # closest approach over every emulated vehicle (issue 37): in metrics.json, comparison.json and report.md,
+    # equal to the brute-force minimum over the fleet samples
+    from fisc_ground.fields.separation_stats import brute_force_closest
+
+    pos_map = [TF.ned_to_map(p) for p in res.swarm.pos_ned_m]
+    want = min(brute_force_closest(res.swarm.agent_ids, p).distance_m for p in pos_map)
+    assert metrics["closest_approach_m"] == pytest.approx(want, rel=1e-9)
+    assert comparison["separation"]["closest_approach_m"] == pytest.approx(want, rel=1e-9)
+    assert comparison["separation"]["d_min_m"] == pytest.approx(0.92, abs=0.01)
+    assert set(comparison["axial_profile"]) == {"pearson_density", "pearson_pressure", "nrmse_density",
+                                                "nrmse_pressure"}
+    assert {"intervals", "axial_profile", "samples_per_cv"} <= set(metrics)
+    assert "## Separation" in (tmp_path / "report.md").read_text()
     assert (tmp_path / "map.fiscmap").is_file()
     # the MCAP flight log opens with the mcap reader, every channel with its schema
     from mcap.reader import make_reader
