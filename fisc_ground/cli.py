@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 
 from fisc_agent.common.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
-                                   missing_extra, missing_dependency_message, number_or, setup_logging, sig3)
+                                   missing_extra, missing_dependency_message, number_or, positive_number, setup_logging,
+                                   sig3)
 from fisc_agent.map.separation import DEFAULT_POSITION_SIGMA_M, DEFAULT_VEHICLE_RADIUS_M
 from fisc_ground.fit.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
 from fisc_ground.fit.staircase import DEFAULT_STAIRCASE_CONTRAST
@@ -52,16 +53,6 @@ def _non_negative_m(flag: str):
             raise argparse.ArgumentTypeError(f"{flag} must be a finite number >= 0 m, got {text!r}")
         return value
     return parse
-
-
-def _length_scale(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--length-scale must be a number > 0, got {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"--length-scale must be a finite number > 0, got {text!r}")
-    return value
 
 
 def fit_config_from_args(args: argparse.Namespace):
@@ -137,19 +128,6 @@ def run_score_flight(args: argparse.Namespace) -> int:
     if len(args.logs) >= 2:
         _print_fleet_approach(args, tracks, map_separation(cmap.body).d_min_m)
     return 0
-
-
-def _positive_seconds(text: str) -> float:
-    """argparse type: a finite number of seconds > 0."""
-    import math
-
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number of seconds > 0")
-    return v
 
 
 def _print_fleet_approach(args: argparse.Namespace, tracks: list, d_min_m: float) -> None:
@@ -398,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--position-sigma", type=_non_negative_m("--position-sigma"), default=DEFAULT_POSITION_SIGMA_M,
                    metavar="M", help="1-sigma position error of a vehicle relative to its neighbours [m] (GNSS: "
                                      "nearby receivers share most of their error)")
-    s.add_argument("--length-scale", type=_length_scale, default=1.0, metavar="L",
+    s.add_argument("--length-scale", type=positive_number("a length scale L"), default=1.0, metavar="L",
                    help="fly the same flow in an airspace L times larger: lengths and CVs x L, speeds kept within "
                         "--max-speed, times x L (the tunnel holds about L^3 times the vehicles at one d_min)")
     p.set_defaults(func=run_fit)
@@ -435,9 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--x-range", nargs=2, type=float, default=(0.0, 15.0), metavar=("X_LO", "X_HI"),
                    help="the duct's axial extent scored [m]")
     p.add_argument("--json", action="store_true", help="print one JSON object per log (and one 'fleet' object)")
-    p.add_argument("--period", type=_positive_seconds, default=0.1, metavar="S",
+    p.add_argument("--period", type=positive_number("seconds"), default=0.1, metavar="S",
                    help="common time base of several logs for the fleet's closest approach [s]")
-    p.add_argument("--max-gap", type=_positive_seconds, default=1.0, metavar="S",
+    p.add_argument("--max-gap", type=positive_number("seconds"), default=1.0, metavar="S",
                    help="a vehicle's positions are not interpolated across gaps longer than this [s]")
     p.set_defaults(func=run_score_flight)
 

@@ -133,6 +133,20 @@ def number_or(word: str, value: object, what: str = "a number") -> Callable[[str
     return parse
 
 
+def positive_number(what: str = "a number") -> Callable[[str], float]:
+    """An argparse type: a finite number > 0; a bad value reads ``argument --flag: expected <what>
+    (a finite number > 0), got '<text>'``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value > 0):
+            raise argparse.ArgumentTypeError(f"expected {what} (a finite number > 0), got {text!r}")
+        return value
+    return parse
+
+
 def sig3(value: float | int | None) -> str:
     """``value`` rounded to three significant digits for a summary line (``n/a`` when missing;
     integers, which are counts, stay exact)."""
