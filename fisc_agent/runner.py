@@ -150,6 +150,7 @@ class Runner:
         self.overruns = 0
         self.faults = 0
         """Ticks that raised (caught: the vehicle holds, the loop goes on)."""
+        self._last_tick_s: float | None = None
         if cmap is not None:
             if not self.offer_map(cmap):
                 raise MapError(MapErrorKind.OTHER, "map was refused (see the log)")
@@ -341,6 +342,14 @@ class Runner:
 
     def _tick(self) -> MissionOutput:
         now = self.clock()
+        if self._last_tick_s is not None and now - self._last_tick_s > self.cfg.link_timeout_s:
+            # the agent itself stalled (SIGSTOP, swap, a hung thread): what queued up meanwhile is an old
+            # view of the vehicle, and read now it would look current (an autopilot failsafe's Land hidden
+            # behind old OFFBOARD heartbeats).  Drop it: the link reads as lost until a fresh HEARTBEAT.
+            log.warning("control loop stalled for %.1f s: discarding the MAVLink backlog, holding until the "
+                        "autopilot is heard afresh", now - self._last_tick_s)
+            self.link.discard_backlog()
+        self._last_tick_s = now
         cmds = self._apply_pending()
         for name in cmds:
             self.mission.command(name)

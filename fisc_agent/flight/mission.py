@@ -422,7 +422,9 @@ class Mission:
             return None, None, None, None
         if not self._hold_escalated and t - self._t_state >= self.cfg.hold_grace_s:
             self._hold_escalated = True
-            self._hold_latched = True
+            # a position jump ends when the track is consistent again, however long the estimator takes
+            # (a real EKF3 GPS glitch: 15 s); every other escalated hold waits for a resume
+            self._hold_latched = self._hold_latched or self.hold_cause != HoldCause.POSITION_JUMP
             log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
             return None, ModeClass.HOLD, None, None

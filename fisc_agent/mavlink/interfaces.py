@@ -77,5 +77,10 @@ class VehicleLink(PositionSource, SetpointSink, VehicleCommands, Protocol):
     def send_heartbeat(self) -> None:
         """Our own HEARTBEAT (a no-op where the library sends its own)."""
 
+    def discard_backlog(self) -> int:
+        """Drop, unread, whatever queued up while the agent was not reading (after the agent itself
+        stalled: that backlog is an old view of the vehicle, which a fresh stamp would pass off as
+        current); returns how many datagrams (0 where the library keeps no backlog)."""
+
     def close(self) -> None:
         """Release the connection."""

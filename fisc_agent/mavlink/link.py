@@ -106,6 +106,10 @@ def _import_mavutil():
     return mavutil
 
 
+MAX_BACKLOG_DISCARD = 100_000
+"""At most this many queued datagrams are dropped after a stall (a socket buffer holds far fewer)."""
+
+
 class MavlinkLink:
     """pymavlink connection to one autopilot: vehicle state, health, positions, setpoints, commands."""
 
@@ -472,6 +476,21 @@ class MavlinkLink:
     def send_heartbeat(self) -> None:
         """Send our HEARTBEAT as an onboard controller."""
         self.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
+
+    def discard_backlog(self) -> int:
+        """Read and drop what queued up on the socket or port while the agent stalled (bounded)."""
+        n = 0
+        try:
+            while n < MAX_BACKLOG_DISCARD:
+                got = self.udp.recv() if self.udp is not None else self.transport.recv()
+                if got is None:
+                    break
+                n += 1
+        except OSError as exc:
+            self.rlog.event("mavlink:discard", logging.WARNING, "MAVLink: discarding the backlog failed: %s", exc)
+        if n:
+            log.warning("discarded %d datagrams that queued up while the agent stalled (an old view of the vehicle)", n)
+        return n
 
     def close(self) -> None:
         """Release the socket or port."""

@@ -344,6 +344,10 @@ class MavsdkLink:
             results, self._results = self._results, []
         return results
 
+    def discard_backlog(self) -> int:
+        """Nothing to drop: MAVSDK's callbacks keep the newest state, not a queue of old messages."""
+        return 0
+
     def close(self) -> None:
         """Stop the action worker, the watchdog and MAVSDK's server."""
         self._stop.set()

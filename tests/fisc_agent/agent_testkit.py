@@ -137,6 +137,10 @@ class RecordingVehicle:
     def takeoff(self, alt_m):
         self.sent.append(("takeoff", alt_m))
 
+    def discard_backlog(self):
+        self.discarded = getattr(self, "discarded", 0) + 1
+        return 0
+
     def hold(self):
         from fisc_agent.mavlink.adapters import ModeClass
 

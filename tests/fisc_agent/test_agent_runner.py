@@ -10,7 +10,7 @@ from fisc_agent.mavlink.adapters import ModeClass
 from fisc_agent.config import AgentConfig
 from fisc_agent.mavlink.link import PositionSample, PositionSource, SetpointSink
 from fisc_agent.map.codec import MapError, decode_map
-from fisc_agent.flight.mission import State
+from fisc_agent.flight.mission import HoldCause, State
 from fisc_agent.runner import AgentSnapshot, Runner
 
 
@@ -356,3 +356,58 @@ def test_a_kinetic_agent_takes_the_maps_real_wall_and_says_when_there_is_none(ca
         r = Runner(cfg, MemoryLink(clock), m, clock=clock, sleep=clock.sleep, wall_clock=lambda: 1.7e9)
         assert (r.mission.sfield.wall is not None) == (m is cmap)
         assert ("carries no real wall" in caplog.text) == warned, caplog.text
+
+
+class StallingLink(MemoryLink):
+    """While the agent stalls, the vehicle's failsafe lands it; what queued up meanwhile (old OFFBOARD
+    heartbeats) would read as current unless the backlog is discarded."""
+
+    def __init__(self, clock):
+        super().__init__(clock)
+        self.backlog = 0        # polls' worth of old OFFBOARD heartbeats queued during a stall
+        self.discards = 0
+
+    def discard_backlog(self):
+        self.discards += 1
+        n, self.backlog = self.backlog, 0
+        return n
+
+    def poll(self):
+        if self.backlog:        # an old heartbeat: the mode the vehicle had, stamped now
+            self.backlog -= 1
+            self.last_heartbeat_t = self.clock()
+            return 1
+        if self.heartbeat_gap_s and self.clock() < self.stall_end_s + self.heartbeat_gap_s:
+            return 0            # the first fresh HEARTBEAT comes a little after the stall
+        return super().poll()
+
+    heartbeat_gap_s = 0.0
+    stall_end_s = 0.0
+
+
+def test_a_stalled_agent_drops_its_backlog_and_never_flies_over_a_failsafe_land():
+    cfg, clock, link, r = make(link=StallingLink)
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    real_mode = link.vehicle_mode
+    clock.sleep(cfg.link_timeout_s + 3.0)       # the agent is frozen (SIGSTOP) ...
+    link.vehicle_mode = ModeClass.LAND          # ... the autopilot's offboard-loss failsafe lands
+    link.backlog, link.stall_end_s, link.heartbeat_gap_s = 50, clock.t, 0.5
+    n_sp, n_cmd = len(link.setpoints), len(link.commands)
+    r.step()
+    assert link.discards == 1 and link.backlog == 0 and real_mode == ModeClass.OFFBOARD
+    assert r.mission.hold_cause == HoldCause.LINK_LOST and len(link.setpoints) == n_sp
+    tick_until(r, clock, lambda: r.mission.hands_off, max_s=2.0)   # the fresh HEARTBEAT says LAND
+    tick_until(r, clock, lambda: False if clock.t < link.stall_end_s + 3.0 else True, max_s=4.0)
+    # nothing sent since the stall (no setpoint, no mode request): the vehicle is still landing
+    assert len(link.setpoints) == n_sp and len(link.commands) == n_cmd and link.vehicle_mode == ModeClass.LAND
+
+
+def test_a_gap_of_the_link_timeout_is_the_stall_boundary():
+    cfg, clock, link, r = make(link=StallingLink)
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    clock.t = r._last_tick_s + cfg.link_timeout_s   # a gap of exactly --link-timeout is not a stall
+    r.step()
+    assert link.discards == 0
+    clock.t = r._last_tick_s + cfg.link_timeout_s + 1e-6   # just longer is
+    r.step()
+    assert link.discards == 1

@@ -264,6 +264,19 @@ def test_a_position_jump_holds_then_resumes_on_a_consistent_track(sfield):
     assert m.transitions[-1].reason.cause == Cause.POSITION_BACK
 
 
+def test_a_long_position_jump_escalates_to_hold_mode_and_still_resumes(sfield):
+    """A real EKF3 GPS glitch lasts ~15 s (SITL): the hold escalates to the autopilot's hold mode after
+    --hold-grace but, unlike a lost position, is not latched: a consistent track flies on."""
+    cfg, m, v = make_h(sfield, hold_grace_s=1.0)
+    to_flow(m, v, cfg)
+    v.integrity = (False, "estimator: GNSS glitch")
+    run_for(m, v, cfg, 5.0)
+    assert m.hold_cause == HoldCause.POSITION_JUMP and v.mode == "hold"
+    v.integrity = (True, "")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW and v.mode == "offboard", max_s=v.t + 2)
+    assert m.authority == Authority.COMMAND
+
+
 def test_restart_restores_a_fleet_hold_on_the_ground(sfield):
     cfg, _, _ = make(sfield)
     m = Mission(cfg, sfield, restored=AgentState(fleet_hold=True, laps=3))

@@ -267,3 +267,19 @@ def test_an_autopilot_reboot_disrupts_the_integrity(link_factory, vehicles, cloc
     assert link.integrity.ok
     ap.send(link, mavlink.MAVLink_system_time_message(0, 59_999))
     assert link.integrity.reason == DisruptionReason.AUTOPILOT_REBOOT and not link.integrity.ok
+
+
+def test_discard_backlog_drops_what_queued_up_unread(link_factory, vehicles):
+    """After the agent stalled, the datagrams queued meanwhile are dropped unread: the vehicle's mode
+    stays what it was before the stall (not the backlog's), and the next one is read as usual."""
+    link, v = link_factory(), vehicles(1)
+    v.send(link, v.heartbeat(), v.heartbeat())
+    seen = link.heartbeats
+    for _ in range(20):                      # the backlog: queued while nobody reads
+        v.sock.sendto(v.heartbeat(base_mode=1 | 128).pack(v.mav), link.udp.local_address)
+    time.sleep(0.1)
+    assert link.discard_backlog() == 20
+    assert link.discard_backlog() == 0       # empty: nothing more to drop
+    assert link.heartbeats == seen and not link.armed   # none of the armed heartbeats was read
+    v.send(link, v.heartbeat(base_mode=1 | 128))
+    assert link.heartbeats == seen + 1 and link.armed
