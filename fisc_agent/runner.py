@@ -441,7 +441,10 @@ class Runner:
                 log.debug("control loop overrun (%.1f ms late); re-synchronising", (now - next_t) * 1e3)
                 next_t = now
             elif next_t > now:
-                self.sleep(next_t - now)
+                try:
+                    self.sleep(next_t - now)
+                except (OSError, ValueError) as exc:  # a broken clock or sleep must not end the loop in flight
+                    self.rlog.event("loop:sleep", logging.ERROR, "control loop sleep failed (%s); ticking on", exc)
         return self.mission.state
 
     def shutdown(self, settle_s: float = 0.3) -> None:

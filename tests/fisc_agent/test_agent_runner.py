@@ -411,3 +411,16 @@ def test_a_gap_of_the_link_timeout_is_the_stall_boundary():
     clock.t = r._last_tick_s + cfg.link_timeout_s + 1e-6   # just longer is
     r.step()
     assert link.discards == 1
+
+
+def test_a_failing_sleep_does_not_end_the_loop():
+    """libfaketime's clock_nanosleep once raised EINVAL inside time.sleep: the loop logs it and ticks on."""
+    cfg, clock, link, r = make()
+
+    def bad_sleep(dt):
+        clock.sleep(dt)
+        raise OSError(22, "Invalid argument")
+
+    r.sleep = bad_sleep
+    assert r.run(max_duration_s=1.0) == r.mission.state and r.ticks >= 10
+    assert r.rlog.counts()["loop:sleep"] >= 9
