@@ -222,7 +222,10 @@ class Mission:
         self._pending.clear()
 
         # -- who is in charge ------------------------------------------------------------------
-        if foreign is not None and self.authority == Authority.COMMAND and self.state != State.DONE:
+        landed = not s.armed and (self.state in FLYING or self.state in (State.LAND, State.HOLD))
+        if foreign is not None and self.authority == Authority.COMMAND and self.state != State.DONE and not landed:
+            # (a mode change that comes with the disarm ends the flight, below: PX4 reports OFFBOARD again
+            # on the HEARTBEAT that says it disarmed after its landing)
             self._hands_off_now(t, foreign, s.armed or self._hold_armed)
         if pos is not None and s.vel_m_s is not None and s.position_age_s <= cfg.stale_timeout_s and s.integrity_ok:
             # at the fix's own time, the autopilot's where it gives one: the ticks and the autopilot's
@@ -246,7 +249,9 @@ class Mission:
             elif ph != PositionHealth.OK:
                 if self.state != State.HOLD:
                     self._hold(t, Reason(HoldCause.POSITION_STALE), latched=False, armed=s.armed)
-                if ph == PositionHealth.LOST and not self._hold_escalated:
+                # escalate only while the autopilot is heard: blind, a hold-mode request could land on
+                # a failsafe's Land (the link-lost hold follows at --link-timeout)
+                if ph == PositionHealth.LOST and not self._hold_escalated and s.heartbeat_age_s <= cfg.stale_timeout_s:
                     self._hold_escalated = True
                     self._hold_latched = True
                     log.warning("position lost for %.1f s: requesting the autopilot's hold mode", s.position_age_s)
@@ -351,7 +356,7 @@ class Mission:
                 self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 vel = None
         if self.state == State.HOLD:
-            vel, want_mode, want_armed, takeoff = self._hold_output(t)
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s)
         elif self.state == State.LAND:
             vel, want_mode = None, ModeClass.LAND
             if not s.armed:
@@ -417,10 +422,13 @@ class Mission:
         target = self.nav.waypoints[0] if self.state == State.JOIN else self.nav.target
         return self.nav.goto(pos, target, cfg.join_speed_m_s)
 
-    def _hold_output(self, t: float) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
+    def _hold_output(self, t: float, heard: bool = True) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
+        """The hold's output: zero velocity in offboard/guided for ``hold_grace_s``, then the autopilot's
+        hold mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent
+        blind could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
-        if not self._hold_escalated and t - self._t_state >= self.cfg.hold_grace_s:
+        if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:
             self._hold_escalated = True
             # a position jump ends when the track is consistent again, however long the estimator takes
             # (a real EKF3 GPS glitch: 15 s); every other escalated hold waits for a resume

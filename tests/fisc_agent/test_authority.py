@@ -327,3 +327,32 @@ def test_flight_logs_rotate_and_are_never_truncated(tmp_path):
         p.write_text("x")
         rotate(p, keep=3)
     assert sorted(q.name for q in tmp_path.iterdir()) == ["f.csv.1", "f.csv.2", "f.csv.3"]
+
+
+def test_a_mode_change_on_the_disarm_heartbeat_after_landing_is_a_landing(sfield):
+    """PX4 reports OFFBOARD again on the HEARTBEAT that says it disarmed after its landing: the flight
+    ends 'landed', not 'pilot override'."""
+    cfg, m, v = make_h(sfield)
+    to_flow(m, v, cfg)
+    m.command("land")
+    run(m, v, cfg, lambda m, v, o: m.state == State.LAND and v.mode == "land")
+    v.armed, v.mode = False, "offboard"          # touchdown: disarmed, and PX4's intended mode shows again
+    run_for(m, v, cfg, 0.1)
+    assert m.state == State.DONE and m.reason.cause == Cause.LANDED and m.authority == Authority.RELEASED
+
+
+def test_a_blind_position_hold_requests_no_mode_before_the_link_is_called_lost(sfield):
+    """Position and HEARTBEATs both stop (a cut link): no hold-mode request at --stale-timeout +
+    --hold-grace, where it could land on a failsafe's Land; with HEARTBEATs still heard it escalates."""
+    cfg, m, v = make_h(sfield, hold_grace_s=1.0)
+    to_flow(m, v, cfg)
+    requested = list(v.modes)
+    v.mute = True                                   # nothing heard, nothing received
+    outs = run_for(m, v, cfg, cfg.link_timeout_s - 0.1)
+    assert m.hold_cause == HoldCause.POSITION_STALE and all(o.want_mode != ModeClass.HOLD for o in outs)
+    assert v.modes == requested
+    cfg2, m2, v2 = make_h(sfield, hold_grace_s=1.0)
+    to_flow(m2, v2, cfg2)
+    v2.drop_position = True                         # only the position stops: the autopilot is heard
+    run_for(m2, v2, cfg2, cfg2.stale_timeout_s + cfg2.hold_grace_s + 0.2)
+    assert v2.mode == "hold"
