@@ -537,3 +537,24 @@ def signed_map_on_zenoh(d: Path) -> SignedMapOnZenoh:
     hub = write_zenoh_config(d / "hub.json5", [f"tcp/127.0.0.1:{port}"], [])
     member = write_zenoh_config(d / "member.json5", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"])
     return SignedMapOnZenoh(served, load_map(served, d / "ground.pub"), d / "ground.key", d / "ground.pub", hub, member)
+
+
+# ---- a ground station and PX4 log topics for the authority tests ------------------------------
+from .ground_station import GroundStation  # noqa: E402,F401 (the tests import it from the kit)
+
+
+def ulog_topic(path: Path, name: str) -> dict[str, np.ndarray] | None:
+    """One topic of a ULog as arrays (``timestamp`` in microseconds of PX4's clock), None if not logged."""
+    from pyulog import ULog
+
+    ds = [d for d in ULog(str(path), [name]).data_list if d.name == name]
+    return ds[0].data if ds else None
+
+
+def dedup(seq) -> list:
+    """``seq`` with consecutive repeats removed."""
+    out: list = []
+    for v in seq:
+        if not out or out[-1] != v:
+            out.append(v)
+    return out
