@@ -395,7 +395,8 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
                if k == 0 or n != nav[k - 1]]
     back_rows = [r for r in _rows(log) if float(r["wall_time_s"]) > back_wall]
     return {"how": how, "nav_states": dedup(nav.tolist()), "nav_changes_px4_s": changes,
-            "after_failsafe": dedup(nav[first_land:].tolist()), "ground_modes_from_landing": ground_modes,
+            "after_failsafe_armed": dedup(nav[first_land:][status["arming_state"][first_land:] == 2].tolist()),
+            "ground_modes_from_landing": ground_modes,
             "lost_to_land_s": landing.t_s - lost, "back_to_disarm_s": (disarmed.t_s - back) if disarmed else None,
             "height_when_back_m": height_back_m, "link_back_at_px4_s": boot_back, "rearmed": rearmed,
             "setpoints_after_back": 0 if ocm is None else int(np.sum(ocm["timestamp"] / 1e6 > boot_back + 0.5)),
@@ -405,7 +406,9 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
 
 
 def _assert_kept_landing(r: dict) -> None:
-    assert r["after_failsafe"] in ([PX4_NAV_AUTO_LAND], [PX4_NAV_AUTO_LAND, PX4_NAV_AUTO_LOITER]), r  # no OFFBOARD
+    # from the failsafe to the disarm only AUTO_LAND (once disarmed PX4 itself shows the user's intention,
+    # OFFBOARD, again: its offboard-loss Land is a mode fallback, Failsafe::checkModeFallback)
+    assert r["after_failsafe_armed"] == [PX4_NAV_AUTO_LAND], r
     assert r["ground_modes_from_landing"] == ["AUTO.LAND"] and r["back_to_disarm_s"] is not None, r
     assert not r["rearmed"], r
     assert r["setpoints_after_back"] == 0 and r["agent_setpoint_rows_after_back"] == 0, r
