@@ -37,6 +37,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 from fisc_agent.mavlink.adapters import ModeClass  # noqa: E402
 from fisc_agent.config import AgentConfig  # noqa: E402
 from fisc_agent.flight.control import ScalarField, clamp_velocity  # noqa: E402
+from fisc_agent.flight.health import VehicleHealth  # noqa: E402
+from fisc_agent.flight.integrity import IntegrityVerdict  # noqa: E402
 from fisc_agent.mavlink.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
 from fisc_agent.map.lookup import CommandField  # noqa: E402
 from fisc_agent.flight.mission import State  # noqa: E402
@@ -72,6 +74,8 @@ class BenchLink:
         self.nbytes = 0
         self.t0 = clock()
         self.speed = speed_m_s
+        self.health = VehicleHealth()          # settable
+        self.integrity = IntegrityVerdict()    # settable
 
     def poll(self):
         self.last_heartbeat_t = self.clock()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import signal
 import threading
 
@@ -21,6 +22,34 @@ from fisc_agent.common.names import prefix_arg, swarm_name_arg
 from fisc_agent.flight.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
+
+
+def _entry_stagger(text: str) -> float | None:
+    """``--entry-stagger``: seconds >= 0, ``auto`` (None: the map's admission period) or ``off`` (0)."""
+    if text == "auto":
+        return None
+    if text == "off":
+        return 0.0
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, 'auto' or 'off', got {text!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, 'auto' or 'off', got {text!r}")
+    return value
+
+
+def _entry_slots(text: str) -> int | None:
+    """``--entry-slots``: an integer >= 1 or ``auto`` (None)."""
+    if text == "auto":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1 or 'auto', got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1 or 'auto', got {text!r}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -80,10 +109,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
                    help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
                         "with --lookahead auto the identified value replaces it")
-    p.add_argument("--entry-stagger", type=float, default=AgentConfig.entry_stagger_s,
+    p.add_argument("--entry-stagger", type=_entry_stagger, default="auto", metavar="S|auto|off",
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
-                        "length on the UNIX clock (agent i: window i mod slots); 0: no stagger [s]")
-    p.add_argument("--entry-slots", type=int, default=AgentConfig.entry_slots, help="windows per entry-stagger cycle")
+                        "length on the shared clock (GNSS time; agent i: window i mod slots) [s]; auto: the map's "
+                        "admission period (fisc-ground inspect: 'admit one vehicle every ... s'), none on a map "
+                        "without one; 0 or off: no stagger")
+    p.add_argument("--entry-slots", type=_entry_slots, default="auto", metavar="N|auto",
+                   help="windows per entry-stagger cycle; auto: the map's budget of vehicles in the tunnel with the "
+                        "map's admission period, else 8")
     p.add_argument("--entry-radius-fraction", type=float, default=AgentConfig.entry_radius_fraction, metavar="F",
                    help="entry points spread over this fraction of the inlet radius (1: every inlet CV)")
     p.add_argument("--flight-log", help="write one CSV row per control tick to this file (fisc_agent.flight.flightlog)")
@@ -159,7 +192,7 @@ def make_link(cfg: AgentConfig):
     from fisc_agent.flight.position_gate import PositionGateConfig
 
     return MavlinkLink(cfg.mavlink_url, source_system=cfg.source_system, source_component=cfg.source_component,
-                       **({"target_system": cfg.target_system} if cfg.target_system is not None else {}),
+                       target_system=cfg.target_system,
                        anchor=cfg.geodetic_anchor, position_rate_hz=max(50.0, cfg.rate_hz),
                        position_gate=PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
 

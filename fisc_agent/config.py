@@ -55,12 +55,15 @@ class AgentConfig:
     recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""
     wall_margin_m: float | None = 0.8
     """``kinetic`` mode under streamline tracking: the deviation's outward radial component is mirrored
-    within this distance of the duct's real wall, where the map carries it (array ``duct_wall_m``,
+    within a margin of the duct's real wall, where the map carries it (array ``duct_wall_m``,
     ``fisc_agent.map.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
-    agents do (the staircase's outer cubes lie partly outside a real duct).  The margin must cover the
-    vehicle's overshoot and the error of its position estimate: on PX4 SITL (SIH) the altitude estimate
-    strayed up to 0.9 m from the ground truth, and with 0.8 m six passes went at most 0.17 m beyond the
-    wall by that truth (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
+    agents do (the staircase's outer cubes lie partly outside a real duct).  This is the margin where the
+    duct is wide; narrower, it shrinks to half the local radius, never below the map's d_min / 2
+    (``fisc_agent.map.wall.effective_margin_m``), so the deviations fill each cross-section instead of
+    folding onto the axis at the throat.  The margin must cover the vehicle's overshoot and the error of
+    its position estimate: on PX4 SITL (SIH) the altitude estimate strayed up to 0.9 m from the ground
+    truth, and with a fixed 0.8 m six passes went at most 0.17 m beyond the wall by that truth
+    (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
     tracking: TrackingConfig = TrackingConfig()
     """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.flight.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
@@ -117,13 +120,18 @@ class AgentConfig:
     keeps a real duct's wall clear; 1 spreads them over every inlet CV (``fisc-sim emulate``'s default).
     Ids 0..63 have 64 distinct points (``fisc_agent.flight.spacing.ENTRY_POINTS``), at least 0.193 x this
     fraction x the inlet radius apart when all lie in inlet CVs (0.6: 0.12 m on a 1 m inlet)."""
-    entry_stagger_s: float = 0.0
-    """Staggered entry: agents cross the inlet in windows of this length on the shared clock, agent i in
-    window ``i mod entry_slots`` (``control.entry_slot_open``); 0 = enter as soon as staged [s]."""
-    entry_slots: int = 8
+    entry_stagger_s: float | None = None
+    """Staggered entry: agents cross the inlet in windows of this length on the shared clock (on real
+    vehicles GNSS time, ``VehicleStatus.wall_time_s``), agent i in window ``i mod entry_slots``
+    (``control.entry_slot_open``); 0 = enter as soon as staged; None (``--entry-stagger auto``): the map's
+    admission period (``separation.admission_period_s``, ``fisc_agent.flight.spacing.entry_schedule``), no
+    stagger on a map without one [s]."""
+    entry_slots: int | None = None
     """Number of entry windows in a stagger cycle (agents with equal ``id mod entry_slots`` share one).
     Two ids share both their window and their entry point only if they are equal modulo
-    lcm(64, ``entry_slots``): never among ids 0..63."""
+    lcm(64, ``entry_slots``): never among ids 0..63.  None: with the map's admission period the map's
+    ``separation.max_in_tunnel`` (a fleet within the budget has a window per vehicle), else
+    ``spacing.DEFAULT_ENTRY_SLOTS`` (8)."""
     exit_clearance_m: float = 2.0
     """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
     exit_spacing_m: float = 1.5
@@ -187,8 +195,11 @@ class AgentConfig:
             need(math.isfinite(v) and v >= 0, f"{name} must be >= 0, is {v!r}")
         need(0.0 < self.entry_radius_fraction <= 1.0, "entry_radius_fraction must be in (0, 1]")
         need(self.laps >= 0, "laps must be >= 0")
-        need(math.isfinite(self.entry_stagger_s) and self.entry_stagger_s >= 0, "entry_stagger_s must be >= 0")
-        need(isinstance(self.entry_slots, int) and self.entry_slots >= 1, "entry_slots must be >= 1")
+        need(self.entry_stagger_s is None or (isinstance(self.entry_stagger_s, (int, float))
+                                              and math.isfinite(self.entry_stagger_s) and self.entry_stagger_s >= 0),
+             f"entry_stagger_s must be a finite number >= 0 seconds or None (auto), is {self.entry_stagger_s!r}")
+        need(self.entry_slots is None or (isinstance(self.entry_slots, int) and self.entry_slots >= 1),
+             f"entry_slots must be an integer >= 1 or None (auto), is {self.entry_slots!r}")
         need(self.source_system is None or 1 <= self.source_system <= 255, "source_system must be 1..255")
         need(self.target_system is None or 1 <= self.target_system <= 255, "target_system must be 1..255")
         need(self.min_battery_pct is None or 0.0 <= self.min_battery_pct < 100.0,

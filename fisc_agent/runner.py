@@ -35,6 +35,7 @@ from fisc_agent.flight.readiness import HealthProblem, health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
+from fisc_agent.map.separation import map_separation
 from fisc_agent.map.wall import map_wall
 from fisc_agent.flight.health import VehicleHealth
 
@@ -174,7 +175,7 @@ class Runner:
         if vmax > self.cfg.max_speed_m_s:
             log.warning("map commands up to %.2f m/s, above max speed %.2f m/s: setpoints will be clamped",
                         vmax, self.cfg.max_speed_m_s)
-        sfield = ScalarField(field, wall=map_wall(cmap.arrays))
+        sfield = ScalarField(field, wall=map_wall(cmap.arrays), separation=map_separation(cmap.body))
         if self.cfg.mode == "kinetic" and self.cfg.wall_margin_m is not None and sfield.wall is None:
             log.warning("map %s carries no real wall (duct_wall_m): the kinetic deviations turn at the CV "
                         "staircase only, whose outer cubes lie partly outside a real duct", cmap.sha256[:12])
@@ -218,7 +219,7 @@ class Runner:
     def unix_time(self) -> float:
         """UNIX time [s] on the best clock the agent has: the autopilot's GNSS time when it reports one
         (SYSTEM_TIME), else the companion computer's clock (fleet-command freshness, entry windows)."""
-        gps = getattr(self.link, "health", VehicleHealth()).unix_time_at(self.clock())  # MERGE
+        gps = self.link.health.unix_time_at(self.clock())
         return gps if gps is not None else self.wall_clock()
 
     def snapshot(self) -> AgentSnapshot:
@@ -365,14 +366,13 @@ class Runner:
         if link_ok != self._link_was_ok:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
             self._link_was_ok = link_ok
-        health = getattr(link, "health", VehicleHealth())  # MERGE: link.health
-        integrity = getattr(link, "integrity", None)
+        health = link.health
+        integrity = link.integrity
         gps_unix = health.unix_time_at(now)
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
                                link.armed, mode, gps_unix if gps_unix is not None else self.wall_clock(),
                                None if sample is None else sample.autopilot_t_s, health,
-                               True if integrity is None else integrity.ok,
-                               "" if integrity is None or integrity.ok else str(integrity.reason))
+                               integrity.ok, "" if integrity.ok else f"{integrity.reason.value}: {integrity.detail}")
         out = self.mission.step(status)
 
         sp: Vec | None = None

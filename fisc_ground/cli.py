@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
 from fisc_agent.common.cli_common import (EXIT_CODES_EPILOG, EXIT_FAILURE, EXIT_USAGE, add_logging_args, console_exit,
                                    missing_extra, missing_dependency_message, number_or, setup_logging, sig3)
+from fisc_agent.map.separation import DEFAULT_POSITION_SIGMA_M, DEFAULT_VEHICLE_RADIUS_M
 from fisc_ground.fit.scaling import DEFAULT_DISPERSION_RATIO, DEFAULT_MAX_SPEED_M_S, KINETIC_DISPERSION_RATIO
 from fisc_ground.fit.staircase import DEFAULT_STAIRCASE_CONTRAST
 from fisc_ground.fit.staggered import (AUTO_CONTINUITY_WEIGHTS, AUTO_DENSITY_AMPLITUDES, STATIC_VELOCITY_BUDGET,
@@ -39,6 +41,29 @@ def _scale(text: str) -> float | None:
     return value
 
 
+def _non_negative_m(flag: str):
+    """argparse type: a finite number of metres >= 0 (the error names ``flag``)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{flag} must be a number of metres, got {text!r}") from None
+        if not (math.isfinite(value) and value >= 0):
+            raise argparse.ArgumentTypeError(f"{flag} must be a finite number >= 0 m, got {text!r}")
+        return value
+    return parse
+
+
+def _length_scale(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--length-scale must be a number > 0, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"--length-scale must be a finite number > 0, got {text!r}")
+    return value
+
+
 def fit_config_from_args(args: argparse.Namespace):
     """The ``fisc_ground.maps.build.FitConfig`` of parsed ``fisc-ground fit`` arguments."""
     from fisc_ground.maps.build import FitConfig, fit_overrides
@@ -54,7 +79,8 @@ def fit_config_from_args(args: argparse.Namespace):
     return FitConfig(cell_size_m=args.cell_size, n_min=n_min, n_max=n_max, scale=args.scale,
                      max_speed_m_s=args.max_speed, kappa=args.kappa, dispersion_ratio=args.dispersion_ratio,
                      agent_mass_kg=args.agent_mass, min_nodes=args.min_nodes, seed=args.seed,
-                     staggered=args.preset != "paper", **design)
+                     staggered=args.preset != "paper", vehicle_radius_m=args.vehicle_radius,
+                     position_sigma_m=args.position_sigma, length_scale=args.length_scale, **design)
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -75,6 +101,7 @@ def run_fit(args: argparse.Namespace) -> int:
     print(f"wrote {args.output}: {meta['n_cv']} CVs, S={sig3(meta['scale'])}, kappa={sig3(meta['kappa'])}, "
           f"fit {sig3(fit['seconds'] * 1e3)} ms, velocity RMSE {sig3(fit['velocity_rmse'])} m/s, "
           f"pressure RMSE {sig3(fit['pressure_rmse'])}, {'signed' if key else 'unsigned'}, sha256 {sha[:16]}...")
+    print(f"  {separation_line(meta['separation'])}")
     return 0
 
 
@@ -111,6 +138,7 @@ def inspect_summary(cmap) -> dict:
     import dataclasses
 
     from fisc_agent.map.lookup import map_flight_settings
+    from fisc_ground.fit.length_scale import map_length_scale
 
     body = cmap.body
     return {
@@ -137,7 +165,38 @@ def inspect_summary(cmap) -> dict:
         "reversed_flow_cvs": int((cmap["target_velocity_m_s"][:, 0] < 0).sum()),
         "flight": dataclasses.asdict(map_flight_settings(cmap)),
         "design": body.get("staggered"),
+        "length_scale": map_length_scale(body),
+        "separation": separation_summary(body),
     }
+
+
+def separation_summary(body: dict) -> dict:
+    """The ``separation`` object of ``inspect --json``: the map's radius, sigma and d_min (the defaults
+    for a map without them), and its budget where recorded (None for maps fitted before issue 37)."""
+    from fisc_agent.map.separation import map_separation
+
+    sep = map_separation(body)
+    recorded = body.get("separation") or {}
+    out = {"vehicle_radius_m": sep.vehicle_radius_m, "position_sigma_m": sep.position_sigma_m,
+           "d_min_m": sep.d_min_m, "recorded": bool(recorded)}
+    for key in ("max_in_tunnel", "densest_nn_m", "near_fraction", "mean_transit_s", "flux_period_s",
+                "inlet_period_s", "admission_period_s", "limit", "in_tunnel_admitted", "tunnel_volume_m3"):
+        out[key] = recorded.get(key)
+    return out
+
+
+def separation_line(sep: dict) -> str:
+    """What a map allows, in one sentence (``fisc-ground fit`` and ``inspect``)."""
+    d = sep["d_min_m"]
+    if sep.get("max_in_tunnel") is None:
+        return (f"d_min = {sig3(d)} m (r {sig3(sep['vehicle_radius_m'])} m, sigma {sig3(sep['position_sigma_m'])} m); "
+                "no budget recorded (a map fitted before issue 37: refit it)")
+    return (f"at most {sep['max_in_tunnel']} vehicles in the tunnel at once at d_min = {sig3(d)} m (densest CV: "
+            f"expected nearest neighbour {sig3(sep['densest_nn_m'])} m, {sep['near_fraction']:.0%} of its vehicles "
+            f"inside d_min as a random gas); admit one vehicle every {sig3(sep['admission_period_s'])} s "
+            f"(set by the {sep['limit']}: flux budget {sig3(sep['flux_period_s'])} s, inlet spacing "
+            f"{sig3(sep['inlet_period_s'])} s), {sig3(sep['in_tunnel_admitted'])} in the tunnel on average over "
+            f"a mean transit of {sig3(sep['mean_transit_s'])} s")
 
 
 def _unique(a):
@@ -175,6 +234,10 @@ def run_inspect(args: argparse.Namespace) -> int:
           + (f", persistence {flight['persistence_s']:g} s" if flight["mode"] == "kinetic" else "")
           + (" (recommended)" if summary["schema_version"] >= 2 else " (schema 1: the paper's Algorithm 1)"))
     print(f"  design       : {_design_line(summary['design'])}")
+    L = summary["length_scale"]
+    print(f"  length scale : L = {L:g}" + ("" if L == 1 else f" (lengths x{L:g}, speeds x1, times x{L:g} against "
+                                                            "the reference)"))
+    print(f"  separation   : {separation_line(summary['separation'])}")
     return 0
 
 
@@ -288,6 +351,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "at the CFD velocity follow the CFD's density pattern with contrast C become CVs "
                         f"(default {DEFAULT_STAIRCASE_CONTRAST:g}); off: every cube the reference covers "
                         "(docs/staircase.md, 'The designed staircase')")
+    s = p.add_argument_group("separation and size (docs/deployment.md, 'Separation and the tunnel's size')")
+    s.add_argument("--vehicle-radius", type=_non_negative_m("--vehicle-radius"), default=DEFAULT_VEHICLE_RADIUS_M,
+                   metavar="M", help="vehicle radius r, props included [m]; with --position-sigma it sets the spacing "
+                                     "the map is designed for, d_min = 2 r + 3 sqrt(2) sigma")
+    s.add_argument("--position-sigma", type=_non_negative_m("--position-sigma"), default=DEFAULT_POSITION_SIGMA_M,
+                   metavar="M", help="1-sigma position error of a vehicle relative to its neighbours [m] (GNSS: "
+                                     "nearby receivers share most of their error)")
+    s.add_argument("--length-scale", type=_length_scale, default=1.0, metavar="L",
+                   help="fly the same flow in an airspace L times larger: lengths and CVs x L, speeds kept within "
+                        "--max-speed, times x L (the tunnel holds about L^3 times the vehicles at one d_min)")
     p.set_defaults(func=run_fit)
 
     p = sub.add_parser("inspect", help="verify a map and summarise it",

@@ -28,6 +28,7 @@ from fisc_agent.map.lookup import (
     return_command,
 )
 from fisc_agent.map.codec import MapError, MapErrorKind
+from fisc_agent.map.separation import Separation
 from fisc_agent.map.wall import DuctWall, reflect_at_wall
 from fisc_agent.flight.spacing import ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, hold_altitude_m, lattice_hold_points
 
@@ -46,10 +47,13 @@ estimates).  With one quarter, the same test's closest approach in the duct was 
 class ScalarField:
     """One-point lookups on a ``CommandField`` (map frame), without numpy in the hot path."""
 
-    def __init__(self, field: CommandField, wall: DuctWall | None = None) -> None:
+    def __init__(self, field: CommandField, wall: DuctWall | None = None, separation: Separation | None = None) -> None:
         self.field = field
         self.wall = wall
         """The duct's real wall where the map carries it (``fisc_agent.map.wall.map_wall``), else None."""
+        self.separation = separation if separation is not None else Separation()
+        """The map's separation and budget (``fisc_agent.map.separation.map_separation``): d_min sets the
+        duct-adapted wall margin, the budget the default admission (``spacing.entry_schedule``)."""
         self._ox, self._oy, self._oz = (float(v) for v in field.origin_m)
         self._l = float(field.cell_size_m)
         self._nx, self._ny, self._nz = (int(s) for s in field.grid_cv.shape)
@@ -116,8 +120,8 @@ class ScalarField:
         simulator's rule; its state is kept here, shared with ``flight``).  Zero outside the CVs or
         on a map without a fitted spread.  Streamline tracking adds it to its parcel
         (``fisc_agent.flight.tracking.ParcelTracker.step``).  ``wall_margin_m`` given and the map carrying
-        the duct's real wall: the outward radial part is mirrored within that distance of it
-        (``fisc_agent.map.wall.reflect_at_wall``)."""
+        the duct's real wall: the outward radial part is mirrored within the margin of it, adapted to the
+        local radius and the map's d_min (``fisc_agent.map.wall.effective_margin_m``, ``reflect_at_wall``)."""
         cv = self.cv_of(*pos)
         spread = self.field.spread_m_s
         if cv < 0 or spread is None:
@@ -128,7 +132,7 @@ class ScalarField:
             self.field, point, np.array([agent_id]), t_s, self.settings().persistence_s, st,
             None if vel is None else np.array([vel], dtype=float))
         if wall_margin_m is not None and self.wall is not None:
-            d = reflect_at_wall(point, d, self.wall, wall_margin_m)
+            d = reflect_at_wall(point, d, self.wall, wall_margin_m, self.separation.d_min_m)
         s = float(spread[cv])
         return (s * float(d[0, 0]), s * float(d[0, 1]), s * float(d[0, 2]))
 

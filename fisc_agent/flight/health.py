@@ -72,3 +72,67 @@ class VehicleHealth:
         if self.gps_unix_s is None or self.gps_rx_s is None:
             return None
         return self.gps_unix_s + (now_s - self.gps_rx_s)
+
+
+BAD_SYSTEM_STATES = frozenset({SystemState.CRITICAL, SystemState.EMERGENCY, SystemState.POWEROFF,
+                               SystemState.FLIGHT_TERMINATION})
+"""HEARTBEAT.system_status values that are a health problem in themselves."""
+
+_SYSTEM_STATE_OF = {1: SystemState.BOOT, 2: SystemState.CALIBRATING, 3: SystemState.STANDBY, 4: SystemState.ACTIVE,
+                    5: SystemState.CRITICAL, 6: SystemState.EMERGENCY, 7: SystemState.POWEROFF,
+                    8: SystemState.FLIGHT_TERMINATION}
+_LANDED_STATE_OF = {1: LandedState.ON_GROUND, 2: LandedState.IN_AIR, 3: LandedState.TAKEOFF, 4: LandedState.LANDING}
+
+
+def system_state_of(mav_state: int) -> SystemState:
+    """HEARTBEAT.system_status (MAV_STATE) as a ``SystemState`` (UNINIT and unknown values: ``UNKNOWN``)."""
+    return _SYSTEM_STATE_OF.get(int(mav_state), SystemState.UNKNOWN)
+
+
+def landed_state_of(mav_landed_state: int) -> LandedState:
+    """EXTENDED_SYS_STATE.landed_state (MAV_LANDED_STATE) as a ``LandedState`` (UNDEFINED: ``UNKNOWN``)."""
+    return _LANDED_STATE_OF.get(int(mav_landed_state), LandedState.UNKNOWN)
+
+
+def battery_pct_of(battery_remaining: int) -> float | None:
+    """SYS_STATUS / BATTERY_STATUS.battery_remaining [%] (-1 or outside 0..100: not reported -> None)."""
+    value = int(battery_remaining)
+    return float(value) if 0 <= value <= 100 else None
+
+
+# ESTIMATOR_STATUS_FLAGS (PX4) and EKF_STATUS_FLAGS (ArduPilot) share bits 0..9.
+FLAG_ATTITUDE = 1
+FLAG_VELOCITY_HORIZ = 2
+FLAG_VELOCITY_VERT = 4
+FLAG_POS_HORIZ_REL = 8
+FLAG_POS_VERT_ABS = 32
+FLAG_CONST_POS_MODE = 128
+PX4_GPS_GLITCH = 1024
+"""ESTIMATOR_GPS_GLITCH (PX4)."""
+PX4_ACCEL_ERROR = 2048
+"""ESTIMATOR_ACCEL_ERROR (PX4)."""
+AP_UNINITIALIZED = 1024
+"""EKF_UNINITIALIZED (ArduPilot; the same bit as PX4's GPS glitch)."""
+AP_GPS_GLITCHING = 32768
+"""EKF_GPS_GLITCHING (ArduPilot)."""
+
+_REQUIRED = ((FLAG_ATTITUDE, "no attitude"), (FLAG_VELOCITY_HORIZ, "no horizontal velocity"),
+             (FLAG_VELOCITY_VERT, "no vertical velocity"), (FLAG_POS_HORIZ_REL, "no horizontal position"),
+             (FLAG_POS_VERT_ABS, "no vertical position"))
+
+
+def estimator_health(flags: int, ardupilot: bool) -> tuple[bool, str]:
+    """(ok, what is wrong) from PX4 ESTIMATOR_STATUS.flags (``ardupilot=False``) or ArduPilot
+    EKF_STATUS_REPORT.flags (``ardupilot=True``).  Ok needs attitude, horizontal and vertical
+    velocity, a relative horizontal and an absolute vertical position, and no constant-position mode,
+    GNSS glitch, accelerometer error (PX4) or uninitialised filter (ArduPilot).
+
+    The constant-position flag is a problem on ArduPilot only: PX4 also sets it for a vehicle at rest
+    (measured on PX4 SITL, landed and disarmed: flags 1023)."""
+    flags = int(flags)
+    wrong = [text for bit, text in _REQUIRED if not flags & bit]
+    bad = ((FLAG_CONST_POS_MODE, "constant-position mode"), (AP_UNINITIALIZED, "uninitialised"),
+           (AP_GPS_GLITCHING, "GNSS glitch")) if ardupilot else (
+        (PX4_GPS_GLITCH, "GNSS glitch"), (PX4_ACCEL_ERROR, "accelerometer error"))
+    wrong += [text for bit, text in bad if flags & bit]
+    return not wrong, ", ".join(wrong)

@@ -16,10 +16,14 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
                                        entry_slot_open, goto_velocity, join_waypoints, lap_return_waypoints)
 from fisc_agent.flight.identify import ResponseRecorder, VehicleResponse
+from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.lookup import POINT_MODES
+from fisc_agent.map.separation import Separation
 
 log = logging.getLogger("fisc_agent.flight.mission")
+_NO_BUDGET = Separation()
+"""A map's separation before the map is known (no budget)."""
 
 
 class Navigator:
@@ -43,12 +47,18 @@ class Navigator:
         self.entry_lead_s = 0.0
         self.entry_cleared = False
         self.target: Vec | None = None
+        self.schedule = entry_schedule(cfg.entry_stagger_s, cfg.entry_slots, _NO_BUDGET)
+        """The entry windows in use (``spacing.entry_schedule``): the configured ones, or the map's budget."""
 
     def set_map(self, sfield: ScalarField) -> None:
         """Use a new map (the mission re-plans a join or return in progress)."""
         self.sfield = sfield
         self.geom = MapGeometry.from_field(sfield.field)
         self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
+        schedule = entry_schedule(self.cfg.entry_stagger_s, self.cfg.entry_slots, sfield.separation)
+        if schedule != self.schedule:
+            self._log_schedule(schedule, sfield)
+        self.schedule = schedule
         self.tracker.x_outlet_m = self.geom.x_outlet_m
         self.tracker.clear()  # a parcel of the old map means nothing in the new one
         mode = sfield.settings(self.cfg.mode).mode
@@ -62,6 +72,20 @@ class Navigator:
                         "wall: docs/deployment.md); flying the map's staggered field")
         if self.response is None:
             self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self.lookahead_s())
+
+    def _log_schedule(self, schedule: EntrySchedule, sfield: ScalarField) -> None:
+        sep = sfield.separation
+        if schedule.source is ScheduleSource.MAP:
+            log.info("entry: the map's admission budget, one window of %.2f s per vehicle, %d per cycle (at most %s "
+                     "vehicles in the tunnel at d_min %.2f m)", schedule.stagger_s, schedule.slots,
+                     sep.max_in_tunnel, sep.d_min_m)
+            if self.cfg.agent_id >= schedule.slots:
+                log.warning("agent id %d is beyond the map's %d entry windows: it shares the window of id %d (a fleet "
+                            "larger than the map's budget)", self.cfg.agent_id, schedule.slots,
+                            self.cfg.agent_id % schedule.slots)
+        elif schedule.source is ScheduleSource.NONE:
+            log.warning("the map records no admission budget (fitted before issue 37): entering without a stagger; "
+                        "refit it or give --entry-stagger SECONDS")
 
     # ---- identification ------------------------------------------------------------------
     def record_response(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
@@ -101,7 +125,7 @@ class Navigator:
         # launch point, reached over the tunnel (``lap_return_waypoints``).
         wait_at: Vec | None = None
         route: list[Vec] = []
-        if cfg.entry_stagger_s > 0:
+        if self.schedule.stagger_s > 0:
             if wait_where_planned:
                 wait_at = pos
             elif home is not None:
@@ -126,11 +150,11 @@ class Navigator:
         while self.wp_index < last and distance(pos, self.waypoints[self.wp_index]) < cfg.waypoint_radius_m:
             self.wp_index += 1
         if self.wp_index > self.wait_index and not self.entry_cleared:  # at the wait point (or past a copy)
-            if not entry_slot_open(wall_time_s + self.entry_lead_s, cfg.agent_id, cfg.entry_stagger_s,
-                                   cfg.entry_slots):
+            if not entry_slot_open(wall_time_s + self.entry_lead_s, cfg.agent_id, self.schedule.stagger_s,
+                                   self.schedule.slots):
                 return self.goto(pos, self.waypoints[self.wait_index], cfg.join_speed_m_s)
             self.entry_cleared = True
-            if cfg.entry_stagger_s > 0:
+            if self.schedule.stagger_s > 0:
                 log.info("entry slot open: on to the inlet")
         if self.wp_index == last and cv >= 0:
             return None

@@ -13,11 +13,7 @@ from enum import StrEnum
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import MapGeometry, Vec
-from fisc_agent.flight.health import SystemState, VehicleHealth
-
-BAD_SYSTEM_STATES = frozenset({SystemState.CRITICAL, SystemState.EMERGENCY, SystemState.FLIGHT_TERMINATION,
-                               SystemState.POWEROFF})
-"""HEARTBEAT.system_status values in which nothing may arm (MAV_STATE)."""
+from fisc_agent.flight.health import BAD_SYSTEM_STATES, VehicleHealth
 
 
 class HealthKind(StrEnum):
@@ -60,7 +56,7 @@ def health_problems(health: VehicleHealth, min_battery_pct: float | None) -> tup
     """What is wrong with the vehicle by its own report; () when nothing is."""
     out = []
     if battery_low(health, min_battery_pct):
-        out.append(HealthProblem(HealthKind.BATTERY, f"battery {health.battery_pct:.0f} % < {min_battery_pct:.0f} %"))
+        out.append(HealthProblem(HealthKind.BATTERY, f"battery {health.battery_pct:g} % < {min_battery_pct:g} %"))
     if health.estimator_ok is False:
         out.append(HealthProblem(HealthKind.ESTIMATOR, "estimator: " + (health.estimator_detail or "not healthy")))
     if health.system_state in BAD_SYSTEM_STATES:

@@ -13,6 +13,10 @@ landing spots beyond the outlet, and the distance checks that state their guaran
   agents, whatever their ids, hold and land (straight down from their hold) at least ``spacing_m``
   apart horizontally.  The sites are integer pairs, ordered by integer keys: every agent computes
   the same layout, on any machine.
+- **Admission.**  ``entry_schedule`` resolves the entry windows an agent uses: given ones, or by
+  default the map's admission budget (``fisc_agent.map.separation``): windows of the map's admission
+  period, one per vehicle of its ``max_in_tunnel``, so a fleet within the budget is admitted one vehicle
+  per period, decentralised (slots by id on the shared clock).
 - **Altitude.**  Every hold spot is at one altitude: the tunnel's axis height, raised to at least
   ``HOLD_FLOOR_MARGIN_M`` above the tunnel's floor (its lowest CV face) and to at least a given
   lower bound (the take-off height above the vehicle's home: the ground is not in the map, the home
@@ -22,8 +26,12 @@ landing spots beyond the outlet, and the distance checks that state their guaran
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
+
+from fisc_agent.map.separation import Separation
 
 ENTRY_POINTS = 64
 """Entry points per inlet disc (``control.entry_points``): agent ids 0..63 have one each."""
@@ -32,6 +40,8 @@ VOGEL_64_MIN_SPACING = 0.1932
 (r_k = sqrt((k + 1/2) / 64), theta_k = k x golden angle), rounded down; checked in the tests."""
 HOLD_FLOOR_MARGIN_M = 1.0
 """Least height of a hold spot above the tunnel's floor (its lowest CV face) [m]."""
+DEFAULT_ENTRY_SLOTS = 8
+"""Entry windows per cycle when neither the configuration nor the map's budget gives a number."""
 DISTANCE_TOLERANCE_M = 1e-9
 """Rounding allowance of ``check_min_distance``: a layout whose points are exactly the bound apart
 passes although floating point puts some pairs 1e-16 m closer [m]."""
@@ -106,3 +116,41 @@ def lattice_hold_points(n: int, x0_m: float, y_axis_m: float, z_m: float, pitch_
         raise ValueError(f"lattice_hold_points: non-finite origin {(x0_m, y_axis_m, z_m)!r}")
     s = hold_sites(n).astype(float)
     return np.column_stack([x0_m + s[:, 0] * pitch_m, y_axis_m + s[:, 1] * pitch_m, np.full(len(s), float(z_m))])
+
+
+class ScheduleSource(StrEnum):
+    """Where an agent's entry windows come from."""
+
+    GIVEN = "given"
+    """``--entry-stagger`` SECONDS (0: none)."""
+    MAP = "map"
+    """The map's admission budget (``separation.admission_period_s``)."""
+    NONE = "none"
+    """Auto, but the map records no budget (fitted before issue 37): no stagger."""
+
+
+@dataclass(frozen=True)
+class EntrySchedule:
+    """The entry windows one agent uses (``control.entry_slot_open``'s arguments)."""
+
+    stagger_s: float
+    """Window length [s]; 0: no stagger (enter as soon as staged)."""
+    slots: int
+    """Windows per cycle (agent i owns window i mod slots)."""
+    source: ScheduleSource
+    """Where they come from."""
+
+
+def entry_schedule(stagger_s: float | None, slots: int | None, separation: Separation) -> EntrySchedule:
+    """The entry windows of an agent configured with ``stagger_s`` / ``slots`` (None: auto) on a map
+    with ``separation``.  Auto stagger: the map's admission period, with ``slots`` auto its
+    ``max_in_tunnel`` windows per cycle (a cycle of ``max_in_tunnel`` admission periods, at least the
+    mean transit time); a map without a budget: no stagger.  Auto slots otherwise: ``DEFAULT_ENTRY_SLOTS``."""
+    if stagger_s is not None:
+        return EntrySchedule(float(stagger_s), DEFAULT_ENTRY_SLOTS if slots is None else int(slots),
+                             ScheduleSource.GIVEN)
+    period = separation.admission_period_s
+    if period is None:
+        return EntrySchedule(0.0, DEFAULT_ENTRY_SLOTS if slots is None else int(slots), ScheduleSource.NONE)
+    n = slots if slots is not None else (separation.max_in_tunnel or DEFAULT_ENTRY_SLOTS)
+    return EntrySchedule(float(period), int(n), ScheduleSource.MAP)

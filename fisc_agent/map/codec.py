@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from fisc_agent.map.separation import map_separation
 from fisc_agent.map.wall import WALL_ARRAY, DuctWall
 
 MAGIC = b"FISCMAP\x00"
@@ -268,8 +269,23 @@ def _check_schema(body: dict, arrays: dict[str, np.ndarray]) -> None:
             DuctWall.from_array(wall)
         except ValueError as exc:
             raise MapError(MapErrorKind.SCHEMA, f"array {WALL_ARRAY!r}: {exc}") from exc
+    _check_design_keys(body)
     if version >= 2:
         _check_schema_2(body, arrays)
+
+
+def _check_design_keys(body: dict) -> None:
+    """Optional in every version (issue 37): the ``separation`` table (``fisc_agent.map.separation``)
+    and the ``length_scale`` (a finite number > 0); maps without them read as the defaults."""
+    if "separation" in body:
+        try:
+            map_separation(body)
+        except (ValueError, TypeError) as exc:
+            raise MapError(MapErrorKind.SCHEMA, f"header {exc}") from exc
+    if "length_scale" in body:
+        v = body["length_scale"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < float("inf")):
+            raise MapError(MapErrorKind.SCHEMA, f"header length_scale must be a finite number > 0, is {v!r}")
 
 
 def _check_schema_2(body: dict, arrays: dict[str, np.ndarray]) -> None:

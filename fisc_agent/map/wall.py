@@ -7,6 +7,13 @@ wall itself (array ``duct_wall_m``: stations x and radius, the duct axisymmetric
 axis as DESIGN.md section 2 takes it; ``fisc_ground.maps.duct_wall.duct_wall_from_reference`` derives it
 from the CFD nodes), and an onboard agent flying the ``kinetic`` mode keeps its deviation inside it
 (``reflect_at_wall``).  The simulator's agents fly the staircase and do not use it.
+
+The margin adapts to the duct (``effective_margin_m``, issue 37): the configured margin (0.8 m, which
+covers PX4's estimator excursions) is a cap used where the duct is wide; where it narrows, the margin
+shrinks to ``WALL_MARGIN_FRACTION`` of the local radius so the inner part of the cross-section stays
+free for the deviations (with 0.8 m at the throat's 0.78 m radius every deviation folded onto the
+axis), but never below d_min / 2: the clearance a vehicle keeps from the wall is the one it keeps
+from a neighbour's half of the spacing (its radius and its share of the position error).
 """
 
 from __future__ import annotations
@@ -65,9 +72,38 @@ def map_wall(arrays: Mapping[str, np.ndarray]) -> DuctWall | None:
     return None if rows is None else DuctWall.from_array(rows)
 
 
-def reflect_at_wall(points_m: np.ndarray, deviation_m_s: np.ndarray, wall: DuctWall, margin_m: float) -> np.ndarray:
-    """(m, 3) deviations with the radial component mirrored where it heads outward within ``margin_m``
-    of the wall (radius >= wall radius - margin at the point's x); the others unchanged.
+WALL_MARGIN_FRACTION = 0.5
+"""Where the duct is narrower than margin / this, the margin is this fraction of the local radius
+(``effective_margin_m``): the deviations turn in the outer half of the radius and fly free in the inner
+half."""
+
+
+def effective_margin_m(radius_m: np.ndarray | float, margin_m: float, d_min_m: float | None,
+                       fraction: float = WALL_MARGIN_FRACTION) -> np.ndarray:
+    """The wall margin at a station of local duct radius ``radius_m`` [m]:
+    ``min(margin, max(d_min / 2, fraction x R))``.
+
+    ``margin_m`` (the configured margin) is the cap, used where ``fraction x R >= margin``; narrower,
+    the margin is ``fraction x R``, never below ``d_min / 2`` (a vehicle's share of the spacing), and
+    never above the configured margin (a smaller one, e.g. with motion capture, is kept).  ``d_min_m``
+    None: the configured margin everywhere (the rule before issue 37).  Where d_min / 2 >= R the whole
+    cross-section turns outward deviations inward: the duct is too narrow to deviate in, and the vehicle
+    flies the axis."""
+    r = np.asarray(radius_m, dtype=float)
+    if not (np.isfinite(margin_m) and margin_m >= 0):
+        raise ValueError(f"wall margin must be a finite number >= 0 m, is {margin_m!r}")
+    if d_min_m is None:
+        return np.full_like(r, float(margin_m))
+    if not (np.isfinite(d_min_m) and d_min_m >= 0) or not (0.0 < fraction <= 1.0):
+        raise ValueError(f"effective_margin_m: d_min {d_min_m!r} must be >= 0 m and the fraction {fraction!r} in (0, 1]")
+    return np.minimum(float(margin_m), np.maximum(0.5 * float(d_min_m), fraction * r))
+
+
+def reflect_at_wall(points_m: np.ndarray, deviation_m_s: np.ndarray, wall: DuctWall, margin_m: float,
+                    d_min_m: float | None = None) -> np.ndarray:
+    """(m, 3) deviations with the radial component mirrored where it heads outward within the margin
+    of the wall (radius >= wall radius - margin at the point's x); the others unchanged.  The margin is
+    ``margin_m``, or with ``d_min_m`` given the duct-adapted ``effective_margin_m`` at the point's x.
 
     Map frame, the axis along x.  Stateless: a deviation that keeps pointing outward is mirrored at every
     call inside the zone, so a point moved by it stays near the zone's inner edge instead of crossing
@@ -78,7 +114,8 @@ def reflect_at_wall(points_m: np.ndarray, deviation_m_s: np.ndarray, wall: DuctW
     safe = np.where(r > 0, r, 1.0)
     ny, nz = p[:, 1] / safe, p[:, 2] / safe
     radial = d[:, 1] * ny + d[:, 2] * nz
-    mirror = (r > 0) & (radial > 0) & (r >= wall.radius_at(p[:, 0]) - margin_m)
+    R = wall.radius_at(p[:, 0])
+    mirror = (r > 0) & (radial > 0) & (r >= R - effective_margin_m(R, margin_m, d_min_m))
     k = np.where(mirror, 2.0 * radial, 0.0)
     d[:, 1] -= k * ny
     d[:, 2] -= k * nz

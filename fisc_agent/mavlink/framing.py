@@ -11,11 +11,16 @@ Two decisions a hostile or broken peer on the MAVLink side must not be able to b
 
 2. **Identity.**  ``AutopilotTracker`` decides which (system, component, sender address) is the
    autopilot.  Only its HEARTBEATs change armed state, mode and autopilot type, and only its
-   other messages (positions, acks) are used.  The first vehicle HEARTBEAT locks on; the lock
-   moves to another vehicle only while the locked one is disarmed and either silent for
-   ``relock_after_s`` or of an unknown autopilot type while the other is PX4/ArduPilot.  So a
-   stray HEARTBEAT from another component (a camera, a GCS, a forged one) changes nothing, and
-   a HEARTBEAT from another system before the autopilot starts cannot hold the agent forever.
+   other messages (positions, acks) are used.  With ``target_system`` given, only that system id
+   can be the autopilot.  Otherwise the first vehicle HEARTBEAT locks on *provisionally*; a second
+   HEARTBEAT from it (a PX4 or ArduPilot) *pins* its system id for the life of the tracker (the default
+   ``--target-system``: the first autopilot heard).  A provisional lock may still move to another
+   system while the locked one is disarmed and either silent for ``relock_after_s`` or of an
+   unknown autopilot type while the other is PX4/ArduPilot (so a single stray or forged HEARTBEAT
+   before the autopilot starts cannot hold the agent forever); a pinned one never does.  The same
+   system may be re-locked from a new address or component (a reconnect, an autopilot reboot) under
+   the same rule: disarmed, and silent or of an unknown type.  A stray HEARTBEAT from another
+   component (a camera, a GCS, a forged one) changes nothing.
 
 A MAVLink 1/2 link without message signing cannot tell a forger that copies the autopilot's
 system, component and (UDP) address from the autopilot; see docs/deployment.md.
@@ -137,16 +142,27 @@ class HeartbeatVerdict(str, Enum):
 class AutopilotTracker:
     """Chooses the autopilot and attributes messages to it (pure; times come in)."""
 
-    def __init__(self, relock_after_s: float = 3.0, known_autopilot: Callable[[int], bool] | None = None) -> None:
+    def __init__(self, relock_after_s: float = 3.0, known_autopilot: Callable[[int], bool] | None = None,
+                 target_system: int | None = None, pin_after_heartbeats: int = 2) -> None:
         if not relock_after_s > 0:
             raise ValueError(f"relock_after_s must be > 0, got {relock_after_s}")
+        if target_system is not None and not 1 <= int(target_system) <= 255:
+            raise ValueError(f"target_system must be a MAVLink system id 1..255, got {target_system}")
+        if pin_after_heartbeats < 1:
+            raise ValueError(f"pin_after_heartbeats must be >= 1, got {pin_after_heartbeats}")
         self.relock_after_s = float(relock_after_s)
         self._known = known_autopilot or (lambda a: a in (3, 12))  # ArduPilot, PX4
+        self.pinned_system: int | None = None if target_system is None else int(target_system)
+        """The only system id that can be the autopilot (given, or pinned after ``pin_after_heartbeats``)."""
+        self.pinned_by_user = target_system is not None
+        """True when ``pinned_system`` was given (``--target-system``), not learnt."""
+        self.pin_after_heartbeats = int(pin_after_heartbeats)
         self.target: AutopilotId | None = None
         self.target_autopilot: int | None = None
         self.target_armed = False
         self.last_heartbeat_s: float | None = None
         self.relocks = 0
+        self._target_heartbeats = 0
 
     def is_autopilot(self, system: int, component: int, address: Hashable | None) -> bool:
         """True when a message comes from the locked autopilot (False before any lock)."""
@@ -160,14 +176,26 @@ class AutopilotTracker:
             return HeartbeatVerdict.NOT_A_VEHICLE
         if self.is_autopilot(system, component, address):
             self.target_autopilot, self.target_armed, self.last_heartbeat_s = int(autopilot), bool(armed), now_s
+            self._target_heartbeats += 1
+            self._maybe_pin()
             return HeartbeatVerdict.AUTOPILOT
+        if self.pinned_system is not None and int(system) != self.pinned_system:
+            return HeartbeatVerdict.FOREIGN
         if self.target is not None and not self._may_relock(int(autopilot), now_s):
             return HeartbeatVerdict.FOREIGN
         if self.target is not None:
             self.relocks += 1
         self.target = AutopilotId(int(system), int(component), address)
         self.target_autopilot, self.target_armed, self.last_heartbeat_s = int(autopilot), bool(armed), now_s
+        self._target_heartbeats = 1
+        self._maybe_pin()
         return HeartbeatVerdict.LOCKED
+
+    def _maybe_pin(self) -> None:
+        # only a PX4/ArduPilot is pinned: an unknown autopilot type still gives way to one
+        if self.pinned_system is None and self._target_heartbeats >= self.pin_after_heartbeats \
+                and self._known(self.target_autopilot or 0):
+            self.pinned_system = self.target.system
 
     def _may_relock(self, autopilot: int, now_s: float) -> bool:
         if self.target_armed:

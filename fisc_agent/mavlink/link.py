@@ -22,21 +22,34 @@ component (and UDP address) change its armed state, mode and type or deliver pos
 acks.  Every position fix passes ``fisc_agent.flight.position_gate`` (finite, reachable from the last
 accepted fix) before it becomes ``latest_position``.  Refusals are counted in ``rlog`` and
 logged at most once per 5 s per kind.
+
+One vehicle per link: ``target_system`` (``--target-system``) names the only system id the link
+listens to; without it the first PX4/ArduPilot heard is pinned for the life of the link
+(``framing.AutopilotTracker``).  Messages of other systems are ignored and counted
+(``other_system_messages``).  A COMMAND_ACK is used only when it is addressed to us (its
+target_system/target_component are our source ids) and answers a command we sent in the last
+``ACK_WINDOW_S``.
+
+Health and integrity: ``health`` (``VehicleHealth``, from ``health_reader.HealthReader``) and
+``integrity`` (``IntegrityVerdict`` of ``fisc_agent.flight.integrity.IntegrityMonitor`` over the
+gated fixes, the ODOMETRY reset counter and the estimator flags).  The link asks for the streams
+these need (``health_reader.stream_requests``) on locking on and again after an autopilot reboot.
+
+The link cannot die: an ``OSError`` of the socket, serial port or TCP connection never leaves
+``poll`` or a send; it is counted (``errors``, ``last_error``), logged at most every 5 s, and the
+transport is reopened on a later poll (every ``REOPEN_PERIOD_S``).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-import socket
 import time
-from dataclasses import dataclass
-from typing import Callable, Protocol, runtime_checkable
+from typing import Callable
 
 from pymavlink.dialects.v20.ardupilotmega import (MAV_AUTOPILOT_INVALID, MAV_CMD_SET_MESSAGE_INTERVAL,
-                                                  MAV_FRAME_LOCAL_NED, MAV_STATE_ACTIVE, MAV_TYPE_ONBOARD_CONTROLLER,
-                                                  MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
-                                                  MAVLINK_MSG_ID_LOCAL_POSITION_NED,
+                                                  MAV_FRAME_LOCAL_NED, MAV_RESULT_ACCEPTED, MAV_STATE_ACTIVE,
+                                                  MAV_TYPE_ONBOARD_CONTROLLER,
                                                   POSITION_TARGET_TYPEMASK_AX_IGNORE,
                                                   POSITION_TARGET_TYPEMASK_AY_IGNORE,
                                                   POSITION_TARGET_TYPEMASK_AZ_IGNORE,
@@ -46,13 +59,21 @@ from pymavlink.dialects.v20.ardupilotmega import (MAV_AUTOPILOT_INVALID, MAV_CMD
                                                   POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
                                                   POSITION_TARGET_TYPEMASK_Z_IGNORE)
 
-from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, ModeClass, VehicleCommands, arm_command,
-                                 autopilot_from_heartbeat, command_result, is_armed)
+from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, ModeClass, arm_command,
+                                         autopilot_from_heartbeat, command_result, is_armed)
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
+from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, SetpointSink, VehicleLink
 from fisc_agent.flight.frames import GeodeticAnchor
-from fisc_agent.mavlink.framing import AutopilotTracker, HeartbeatVerdict, parse_datagram
+from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
+from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
+from fisc_agent.mavlink.transport import MavutilStreamTransport, TcpClientTransport, UdpTransport
+from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.flight.integrity import IntegrityConfig, IntegrityMonitor, IntegrityVerdict
 from fisc_agent.flight.position_gate import PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
+
+__all__ = ["MavlinkLink", "PositionSample", "PositionSource", "SetpointSink", "VehicleLink", "UdpTransport",
+           "TYPEMASK_VELOCITY_ONLY"]
 
 log = logging.getLogger(__name__)
 
@@ -67,68 +88,12 @@ POLL_BUDGET_S = 0.01
 """At most this long per ``poll`` (a flood of datagrams must not stretch a control tick)."""
 RELOCK_AFTER_S = 3.0
 """A disarmed autopilot silent this long may be replaced by another vehicle (``AutopilotTracker``)."""
-UDP_MAX_DATAGRAM = 65535
 MAX_ACKS_KEPT = 32
 LOG_PERIOD_S = 5.0
-
-
-@dataclass(frozen=True)
-class PositionSample:
-    """One position fix in local NED (or anchor NED in geodetic mode)."""
-
-    t_s: float
-    """Local monotonic receive time [s]."""
-    pos_ned_m: tuple[float, float, float]
-    """Position [m]."""
-    vel_ned_m_s: tuple[float, float, float]
-    """Velocity [m/s]."""
-    autopilot_t_s: float | None = None
-    """The autopilot's own time of the fix (the message's ``time_boot_ms``) [s]; None when the source
-    gives none (MAVSDK's callbacks)."""
-
-
-@runtime_checkable
-class PositionSource(Protocol):
-    """Where the runner reads the vehicle's position from."""
-    def latest_position(self) -> PositionSample | None:
-        """The newest fix, or None if none arrived yet."""
-
-
-@runtime_checkable
-class SetpointSink(Protocol):
-    """Where the runner streams its velocity setpoints to."""
-    def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
-        """Send one velocity-only setpoint in MAV_FRAME_LOCAL_NED [m/s]."""
-
-
-class VehicleLink(PositionSource, SetpointSink, VehicleCommands, Protocol):
-    """Everything the runner needs from a link to one autopilot."""
-
-    autopilot: str | None
-    """``px4`` / ``ardupilot`` as the autopilot announces itself; None while unknown."""
-    armed: bool
-    """Armed flag of the vehicle."""
-    last_heartbeat_t: float | None
-    """Local monotonic time of the newest sign of life [s]; None: never."""
-
-    @property
-    def mode(self) -> ModeClass:
-        """The vehicle's mode class (``UNKNOWN`` before the first HEARTBEAT or ``use_adapter``)."""
-
-    def use_adapter(self, adapter: Adapter) -> None:
-        """The autopilot flavour to encode intents and decode modes with (chosen by the runner)."""
-
-    def poll(self) -> int:
-        """Handle whatever arrived (non-blocking); returns how many messages."""
-
-    def pop_results(self) -> list[CommandResult]:
-        """The autopilot's answers to commands since the last call, oldest first."""
-
-    def send_heartbeat(self) -> None:
-        """Our own HEARTBEAT (a no-op where the library sends its own)."""
-
-    def close(self) -> None:
-        """Release the connection."""
+REOPEN_PERIOD_S = 1.0
+"""A failed transport is reopened at most this often [s]."""
+ACK_WINDOW_S = 30.0
+"""A COMMAND_ACK answers a command of ours only if we sent that command id within this long [s]."""
 
 
 def _import_mavutil():
@@ -141,65 +106,18 @@ def _import_mavutil():
     return mavutil
 
 
-class UdpTransport:
-    """One non-blocking UDP socket that sends only to the autopilot's address.
-
-    ``udpin``: bound to the endpoint; ``peer`` is None (nothing is sent) until the link locks on
-    an autopilot and sets it.  ``udpout``: an ephemeral socket; ``peer`` is the endpoint (the
-    agent talks first so that the autopilot learns its address).  ``write`` is what a pymavlink
-    ``MAVLink`` encoder calls."""
-
-    def __init__(self, endpoint: Endpoint) -> None:
-        self.listening = endpoint.kind == "udpin"
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setblocking(False)
-        self.peer: tuple[str, int] | None = None
-        if self.listening:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            self.sock.bind((endpoint.host, int(endpoint.port)))
-        else:
-            try:
-                host = socket.gethostbyname(endpoint.host)
-            except OSError as exc:  # no DNS yet: sendto resolves the name on each send
-                log.warning("cannot resolve %s (%s); will retry on every send", endpoint.host, exc)
-                host = endpoint.host
-            self.peer = (host, int(endpoint.port))
-
-    @property
-    def local_address(self) -> tuple[str, int]:
-        """The (host, port) this socket is bound to."""
-        return self.sock.getsockname()
-
-    def recv(self) -> tuple[bytes, tuple[str, int]] | None:
-        """One datagram and its sender, or None when none is waiting."""
-        try:
-            return self.sock.recvfrom(UDP_MAX_DATAGRAM)
-        except (BlockingIOError, InterruptedError):
-            return None
-        except ConnectionRefusedError:  # ICMP port unreachable from an earlier send (peer not up yet)
-            return None
-
-    def write(self, buf: bytes) -> None:
-        """Send ``buf`` to the autopilot's address (dropped until the autopilot has been heard)."""
-        if self.peer is None:
-            return
-        try:
-            self.sock.sendto(buf, self.peer)
-        except OSError as exc:  # peer unreachable right now: the link timeout covers it
-            log.debug("MAVLink send to %s:%d failed: %s", *self.peer, exc)
-
-    def close(self) -> None:
-        """Close the socket."""
-        self.sock.close()
-
-
 class MavlinkLink:
-    """pymavlink connection to one autopilot: vehicle state, positions, setpoints, commands."""
+    """pymavlink connection to one autopilot: vehicle state, health, positions, setpoints, commands."""
 
     def __init__(self, endpoint: Endpoint | str, source_system: int | None = None, source_component: int = 191,
                  anchor: GeodeticAnchor | None = None, position_rate_hz: float = 50.0,
                  clock: Callable[[], float] = time.monotonic,
-                 position_gate: PositionGateConfig | None = None) -> None:
+                 position_gate: PositionGateConfig | None = None, target_system: int | None = None,
+                 integrity: IntegrityConfig | None = None) -> None:
+        """``target_system``: the only MAVLink system id to fly (None: the first PX4/ArduPilot heard,
+        then pinned); ``integrity``: thresholds of the position integrity monitor."""
+        from pymavlink.dialects.v20 import ardupilotmega as mavlink2
+
         self.endpoint = parse_endpoint(endpoint) if isinstance(endpoint, str) else endpoint
         self.anchor = anchor
         self.clock = clock
@@ -209,27 +127,28 @@ class MavlinkLink:
         """Counters of refused MAVLink input (``mavlink:<kind>``) and their rate-limited log."""
         self.bad_bytes = 0
         """Received bytes that were not part of a valid frame."""
-        self.tracker = AutopilotTracker(RELOCK_AFTER_S)
+        self.tracker = AutopilotTracker(RELOCK_AFTER_S, target_system=target_system)
         self.position_gate = PositionGate(position_gate)
+        self._integrity_cfg = integrity
+        self.integrity_monitor = IntegrityMonitor(integrity)
+        """Judges the gated fixes, reset counter and estimator flags (``integrity``)."""
+        self.health_reader = self._new_health_reader()
         self.udp: UdpTransport | None = None
-        self.conn = None
         if self.endpoint.kind in ("udpin", "udpout"):
-            from pymavlink.dialects.v20 import ardupilotmega as mavlink2
-
             self.udp = UdpTransport(self.endpoint)
-            self.mav = mavlink2.MAVLink(self.udp, srcSystem=source_system or 255, srcComponent=source_component)
-            self._decoder = mavlink2.MAVLink(None)
-        else:  # serial and TCP are byte streams: pymavlink's stream parser
-            mavutil = _import_mavutil()
-            kwargs = dict(source_system=source_system or 255, source_component=source_component, autoreconnect=True)
-            if self.endpoint.kind == "serial":
-                kwargs["baud"] = self.endpoint.baud
-            self.conn = mavutil.mavlink_connection(self.endpoint.device, **kwargs)
-            self.mav = self.conn.mav
+            self.transport = self.udp
+        elif self.endpoint.kind == "tcp":
+            self.transport = TcpClientTransport(self.endpoint)
+        else:  # serial, tcpin: pymavlink's port handling, our parser
+            self.transport = MavutilStreamTransport(self.endpoint, _import_mavutil())
+        self.mav = mavlink2.MAVLink(self.transport, srcSystem=source_system or 255, srcComponent=source_component)
+        self._decoder = mavlink2.MAVLink(None)
+        self._decoder.robust_parsing = True
         self.autopilot: str | None = None
         self.adapter: Adapter | None = None
         """Encodes intents and decodes modes (``use_adapter``)."""
         self.target_system: int | None = None
+        """System id of the autopilot the link is locked on (None before the first HEARTBEAT)."""
         self.target_component: int = 1
         self.armed = False
         self.base_mode = 0
@@ -238,13 +157,74 @@ class MavlinkLink:
         self.heartbeats = 0
         self._position: PositionSample | None = None
         self._acks: list[tuple[int, int]] = []
+        self._sent_commands: dict[int, float] = {}
         self.status_texts: list[str] = []
         self.setpoints_sent = 0
+        self.other_system_messages = 0
+        """Messages from other MAVLink system ids (another vehicle, a GCS), ignored."""
+        self.stream_requests_refused = 0
+        """SET_MESSAGE_INTERVAL requests the autopilot refused (ArduPilot: ESTIMATOR_STATUS, ODOMETRY; PX4:
+        EKF_STATUS_REPORT: expected)."""
+        self._poll_errors = 0
+        self._last_reopen_s: float | None = None
+
+    def _new_health_reader(self) -> HealthReader:
+        return HealthReader(None if self.anchor is None else self.anchor.geodetic_to_ned)
+
+    # ---- health, integrity, errors --------------------------------------------------------
+    @property
+    def health(self) -> VehicleHealth:
+        """The autopilot's own view of its health (``VehicleHealth``; unknown where it reports none)."""
+        return self.health_reader.health
+
+    @property
+    def integrity(self) -> IntegrityVerdict:
+        """Whether the position may be flown on: ``ok``, or the disruption's typed ``reason`` and since when."""
+        return self.integrity_monitor.verdict
+
+    @property
+    def errors(self) -> int:
+        """Transport errors so far (receive, send, reopen: a serial re-enumeration, a TCP reset...)."""
+        return self.transport.errors + self._poll_errors
+
+    @property
+    def send_drops(self) -> int:
+        """Sends dropped because the peer could not be reached right then (not a transport fault)."""
+        return self.transport.send_drops
+
+    @property
+    def last_error(self) -> str:
+        """The newest transport error, in words ("" if none)."""
+        return self.transport.last_error
+
+    @property
+    def transport_ok(self) -> bool:
+        """False while the transport has failed and is not reopened yet."""
+        return not self.transport.failed
 
     # ---- receive -------------------------------------------------------------------------
     def poll(self) -> int:
         """Drain received messages (non-blocking, at most ``POLL_BUDGET_S``); returns how many
-        were handled."""
+        were handled.  Never raises on a transport error (see ``errors``)."""
+        errors_before = self.errors
+        try:
+            n = self._drain()
+        except OSError as exc:  # belt and braces: the transports catch their own
+            self._poll_errors += 1
+            self.transport.failed, self.transport.last_error = True, f"poll: {exc}"
+            n = 0
+        if self.errors != errors_before:
+            self.rlog.event("mavlink:transport_error", logging.WARNING, "MAVLink %s: %s (%d errors so far); "
+                            "reopening", self.endpoint, self.last_error, self.errors)
+        if self.transport.failed:
+            now = self.clock()
+            if self._last_reopen_s is None or now - self._last_reopen_s >= REOPEN_PERIOD_S:
+                self._last_reopen_s = now
+                if self.transport.reopen():
+                    log.warning("MAVLink %s reopened after: %s", self.endpoint, self.last_error)
+        return n
+
+    def _drain(self) -> int:
         n = 0
         t_end = time.monotonic() + POLL_BUDGET_S
         while n < MAX_MESSAGES_PER_POLL and time.monotonic() < t_end:
@@ -261,27 +241,50 @@ class MavlinkLink:
                                     len(data), *addr)
                 for msg in scan.messages:
                     n += 1
-                    self._handle(msg, addr)
+                    self._handle_safely(msg, addr)
                 continue
-            msg = self.conn.recv_msg()
-            if msg is None:
+            data = self.transport.recv()
+            if data is None:
                 break
-            n += 1
-            if msg.get_type() == "BAD_DATA":
-                self.rlog.event("mavlink:bad_bytes", logging.WARNING, "MAVLink: bad data dropped (%s)",
-                                getattr(msg, "reason", "?"))
-                continue
-            self._handle(msg, None)
+            for msg in self._decoder.parse_buffer(data) or ():
+                n += 1
+                if msg.get_type() == "BAD_DATA":
+                    self.bad_bytes += len(msg.get_msgbuf())
+                    self.rlog.event("mavlink:bad_bytes", logging.WARNING, "MAVLink: bad data dropped (%s)",
+                                    getattr(msg, "reason", "?"))
+                    continue
+                self._handle_safely(msg, None)
         return n
+
+    def _handle_safely(self, msg, addr) -> None:
+        try:
+            self._handle(msg, addr)
+        except Exception as exc:  # a message we cannot digest must not stop the control loop
+            self.rlog.event("mavlink:handler_error", logging.ERROR, "MAVLink: %s from system %d could not be "
+                            "handled: %r", msg.get_type(), msg.get_srcSystem(), exc)
 
     def _handle(self, msg, addr=None) -> None:
         mtype = msg.get_type()
+        src = msg.get_srcSystem()
+        if src == 0:  # no sender has system id 0 (the broadcast address); PX4 SITL emits a few such frames
+            self.rlog.event("mavlink:system_0", logging.DEBUG, "MAVLink: %s from system id 0 ignored", mtype)
+            return
+        pinned = self.tracker.pinned_system
+        if pinned is not None and src != pinned:
+            if mtype == "HEARTBEAT" and (msg.type in NON_VEHICLE_TYPES or msg.autopilot == MAV_AUTOPILOT_INVALID):
+                return  # a ground station or companion: normal on a shared link
+            self.other_system_messages += 1
+            vehicle = mtype == "HEARTBEAT"
+            self.rlog.event("mavlink:other_system", logging.WARNING if vehicle else logging.INFO,
+                            "MAVLink: %s from system %d ignored (this agent flies system %d only)%s", mtype, src,
+                            pinned, ": another vehicle on this link" if vehicle else "")
+            return
         if mtype == "HEARTBEAT":
             self._on_heartbeat(msg, addr)
             return
-        if not self.tracker.is_autopilot(msg.get_srcSystem(), msg.get_srcComponent(), addr):
+        if not self.tracker.is_autopilot(src, msg.get_srcComponent(), addr):
             self.rlog.event("mavlink:foreign_message", logging.DEBUG, "MAVLink: %s from system %d component %d "
-                            "(not the autopilot) ignored", mtype, msg.get_srcSystem(), msg.get_srcComponent())
+                            "(not the autopilot) ignored", mtype, src, msg.get_srcComponent())
             return
         if mtype == "LOCAL_POSITION_NED":
             if self.anchor is None:
@@ -293,24 +296,68 @@ class MavlinkLink:
                 self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
                                                     msg.time_boot_ms * 1e-3))
         elif mtype == "COMMAND_ACK":
-            self._acks.append((int(msg.command), int(msg.result)))
-            del self._acks[:-MAX_ACKS_KEPT]  # bounded even if nobody pops them
+            self._on_ack(msg)
         elif mtype == "STATUSTEXT":
             text = str(msg.text).rstrip("\x00")
             self.status_texts.append(text)
             del self.status_texts[:-50]
             log.info("autopilot: %s", text)
+        else:
+            self._on_health(msg)
+
+    def _on_ack(self, msg) -> None:
+        command, result = int(msg.command), int(msg.result)
+        ours = (int(msg.target_system), int(msg.target_component)) == (self.mav.srcSystem, self.mav.srcComponent)
+        sent = self._sent_commands.get(command)
+        if not ours or sent is None or self.clock() - sent > ACK_WINDOW_S:
+            self.rlog.event("mavlink:unmatched_ack", logging.WARNING, "MAVLink: COMMAND_ACK of command %d to system "
+                            "%d component %d ignored (%s)", command, msg.target_system, msg.target_component,
+                            "not addressed to us" if not ours else "no such command sent")
+            return
+        if command == MAV_CMD_SET_MESSAGE_INTERVAL:  # stream requests are the link's own business
+            if result != MAV_RESULT_ACCEPTED:
+                self.stream_requests_refused += 1
+            return
+        self._acks.append((command, result))
+        del self._acks[:-MAX_ACKS_KEPT]  # bounded even if nobody pops them
+
+    def _on_health(self, msg) -> None:
+        now = self.clock()
+        update = self.health_reader.on_message(msg, now)
+        if update.rebooted:
+            log.warning("autopilot system %s rebooted (its boot time went backwards, %d reboots seen): streams "
+                        "requested again", self.target_system, self.health.autopilot_reboots)
+            self._request_streams()
+            self.integrity_monitor.on_reboot(now)
+        if update.reset_steps:
+            self.integrity_monitor.on_reset(now, update.reset_steps)
+        if update.estimator is not None:
+            self.integrity_monitor.on_estimator(now, *update.estimator)
+        self._log_integrity()
+
+    def _log_integrity(self) -> None:
+        for event in self.integrity_monitor.pop_events():
+            v = event.verdict
+            if v.ok:
+                log.warning("position integrity OK again: re-anchored at NED %s after a consistent track of %.1f s",
+                            tuple(round(float(x), 2) for x in event.reanchored_ned_m or ()),
+                            self.integrity_monitor.cfg.consistent_s)
+            else:
+                log.warning("position integrity DISRUPTED (%s): %s", v.reason.value, v.detail)
 
     def _offer_position(self, sample: PositionSample) -> None:
         verdict = self.position_gate.check(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s)
         if verdict.accepted:
             self._position = sample
+            self.integrity_monitor.on_fix(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s, sample.autopilot_t_s)
+            self._log_integrity()
         else:
             self.rlog.event(f"position:{verdict.value}", logging.WARNING, "position fix rejected (%s): NED %s",
                             verdict.value, tuple(round(float(v), 2) for v in sample.pos_ned_m))
 
     def _on_heartbeat(self, msg, addr=None) -> None:
         src, comp = msg.get_srcSystem(), msg.get_srcComponent()
+        pinned_before = self.tracker.pinned_system
         verdict = self.tracker.on_heartbeat(src, comp, addr, msg.type, msg.autopilot, is_armed(msg.base_mode),
                                             self.clock())
         if verdict == HeartbeatVerdict.NOT_A_VEHICLE:
@@ -325,8 +372,10 @@ class MavlinkLink:
             relock = self.target_system is not None
             self.target_system, self.target_component = src, comp
             self.autopilot = autopilot_from_heartbeat(msg.autopilot)
-            self._position = None  # never mix fixes of two vehicles
+            self._position = None  # never mix fixes of two vehicles (or of two boots)
             self.position_gate = PositionGate(self.position_gate.cfg)
+            self.integrity_monitor = IntegrityMonitor(self._integrity_cfg)
+            self.health_reader = self._new_health_reader()
             self.armed, self.last_heartbeat_t = False, None
             (log.warning if relock else log.info)(
                 "autopilot %s: system %d component %d (%s)%s", "changed to" if relock else "found", src, comp,
@@ -336,17 +385,21 @@ class MavlinkLink:
                 self.udp.peer = addr  # replies go to the autopilot only
             if self._fixed_source is None:
                 self.mav.srcSystem = src
-            self._request_position_stream()
+            self._request_streams()
+        if pinned_before is None and self.tracker.pinned_system is not None:
+            log.info("flying MAVLink system %d only from now on (pinned: the first autopilot heard)",
+                     self.tracker.pinned_system)
+        self.health_reader.on_message(msg, self.clock())
         self.base_mode, self.custom_mode = int(msg.base_mode), int(msg.custom_mode)
         self.armed = is_armed(msg.base_mode)
         self.last_heartbeat_t = self.clock()
         self.heartbeats += 1
 
-    def _request_position_stream(self) -> None:
-        msg_id = MAVLINK_MSG_ID_GLOBAL_POSITION_INT if self.anchor is not None else MAVLINK_MSG_ID_LOCAL_POSITION_NED
-        interval_us = 1e6 / self.position_rate_hz
-        self.send_command(CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), interval_us, 0, 0, 0, 0, 0),
-                                      "position message interval"))
+    def _request_streams(self) -> None:
+        """Ask the autopilot for the position and health streams (``health_reader.stream_requests``)."""
+        for msg_id, rate_hz in stream_requests(self.autopilot, self.anchor is not None, self.position_rate_hz):
+            self.send_command(CommandLong(MAV_CMD_SET_MESSAGE_INTERVAL, (float(msg_id), 1e6 / rate_hz, 0, 0, 0, 0, 0),
+                                          "message interval"))
 
     def latest_position(self) -> PositionSample | None:
         """The newest gated position fix, or None if none arrived yet."""
@@ -412,6 +465,7 @@ class MavlinkLink:
     def send_command(self, cmd: CommandLong) -> None:
         """Send one COMMAND_LONG to the autopilot (its answer comes back through ``pop_results``)."""
         p = cmd.params
+        self._sent_commands[int(cmd.command)] = self.clock()
         self.mav.command_long_send(self.target_system or 1, self.target_component, cmd.command, 0,
                                    p[0], p[1], p[2], p[3], p[4], p[5], p[6])
 
@@ -420,8 +474,5 @@ class MavlinkLink:
         self.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
 
     def close(self) -> None:
-        """Release the UDP socket or the pymavlink connection."""
-        if self.udp is not None:
-            self.udp.close()
-        else:
-            self.conn.close()
+        """Release the socket or port."""
+        self.transport.close()

@@ -14,11 +14,23 @@ Mapping onto the runner's interface (one code path with the pymavlink link):
   local position, at the same rate) stands in, plus the receive-time gap since it
   (``autopilot_time``);
 - ``send_velocity_ned`` -> ``offboard.set_velocity_ned`` (yaw held at the current heading);
+- with a geodetic anchor the fixes come from ``position`` and carry the newest ``velocity_ned``
+  (MAVSDK's position has no velocity);
+- ``health``: battery % (``battery``), landed state (``landed_state``) and the estimator's local
+  (and, with an anchor, global) position flags (``health``); the rest stays unknown.  ``integrity``:
+  ``fisc_agent.flight.integrity`` over the fixes and the estimator flags (MAVSDK gives no reset counter);
+- **watchdog**: MAVSDK re-sends the last offboard setpoint on its own; when the vehicle flies OFFBOARD
+  and the control thread has sent no setpoint for ``SETPOINT_STALL_S``, the watchdog thread calls
+  ``offboard.stop()`` (MAVSDK stops streaming and requests Hold) and counts it in ``watchdog_trips``;
+  the next ``send_velocity_ned`` re-arms it.  Outside OFFBOARD it does nothing (the stop's Hold would
+  override a pilot or a failsafe), so MAVSDK's stale setpoint stream then goes on until the next
+  setpoint or ``close`` (PX4 ignores it outside OFFBOARD);
 - intents are MAVSDK's own actions: ``arm`` -> ``action.arm()``, ``set_mode(OFFBOARD)`` ->
   ``offboard.start()``, ``hold`` -> ``action.hold()``, ``land`` -> ``action.land()``,
   ``takeoff`` -> ``action.set_takeoff_altitude`` + ``action.takeoff()``.  The blocking calls run
-  on a worker thread; each outcome comes back as a ``CommandResult`` (``pop_results``) so the
-  ``Commander`` retries and logs refusals as with pymavlink.
+  on a worker thread from a queue bounded at ``MAX_QUEUED_JOBS`` (when full the oldest job is dropped
+  and counted in ``jobs_dropped``); each outcome comes back as a ``CommandResult`` (``pop_results``) so
+  the ``Commander`` retries and logs refusals as with pymavlink.
 """
 
 from __future__ import annotations
@@ -29,12 +41,70 @@ import threading
 import time
 from typing import Callable
 
+from dataclasses import replace
+
+from fisc_agent.flight.frames import GeodeticAnchor
+from fisc_agent.flight.health import LandedState, VehicleHealth
+from fisc_agent.flight.integrity import IntegrityMonitor, IntegrityVerdict
 from fisc_agent.mavlink.adapters import Adapter, CommandKind, CommandResult, ModeClass
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
-from fisc_agent.flight.frames import GeodeticAnchor
-from fisc_agent.mavlink.link import PositionSample
+from fisc_agent.mavlink.interfaces import PositionSample
 
 log = logging.getLogger(__name__)
+
+MAX_QUEUED_JOBS = 16
+"""Commands waiting for the MAVSDK worker; beyond this the oldest is dropped (``jobs_dropped``)."""
+SETPOINT_STALL_S = 0.5
+"""No setpoint from the control thread for longer than this stops MAVSDK's setpoint stream [s]."""
+WATCHDOG_PERIOD_S = 0.1
+"""How often the watchdog looks [s]."""
+
+#: MAVSDK telemetry LandedState name -> ``LandedState``.
+LANDED_OF = {"ON_GROUND": LandedState.ON_GROUND, "IN_AIR": LandedState.IN_AIR, "TAKING_OFF": LandedState.TAKEOFF,
+             "LANDING": LandedState.LANDING}
+
+
+def setpoint_stalled(last_setpoint_s: float | None, now_s: float, in_offboard: bool,
+                     stall_s: float = SETPOINT_STALL_S) -> bool:
+    """True when the watchdog must stop MAVSDK's setpoint stream: the vehicle flies OFFBOARD, setpoints
+    were streaming (``last_setpoint_s`` not None) and the newest is older than ``stall_s``.  Outside
+    OFFBOARD it never trips: ``offboard.stop()`` also requests Hold, which would override a pilot's or a
+    failsafe's mode."""
+    return in_offboard and last_setpoint_s is not None and now_s - last_setpoint_s > stall_s
+
+
+class DropOldestQueue:
+    """A thread-safe FIFO of at most ``maxsize`` items; a put on a full queue drops the oldest (counted)."""
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"maxsize must be >= 1, got {maxsize}")
+        self._q: queue.Queue = queue.Queue(maxsize)
+        self._put_lock = threading.Lock()
+        self.dropped = 0
+        """Items dropped because the queue was full."""
+
+    def put(self, item) -> None:
+        """Append ``item``; drops the oldest item first when full (never blocks)."""
+        with self._put_lock:
+            while True:
+                try:
+                    self._q.put_nowait(item)
+                    return
+                except queue.Full:
+                    try:
+                        self._q.get_nowait()
+                        self.dropped += 1
+                    except queue.Empty:
+                        pass
+
+    def get(self, timeout_s: float | None = None):
+        """The oldest item (blocks up to ``timeout_s``; raises ``queue.Empty`` after it)."""
+        return self._q.get(timeout=timeout_s)
+
+    def qsize(self) -> int:
+        """Items waiting."""
+        return self._q.qsize()
 
 #: An ODOMETRY time stamp older than this (receive time) no longer dates a position fix [s].
 ODOMETRY_STAMP_MAX_AGE_S = 0.5
@@ -87,7 +157,14 @@ class MavsdkLink:
         self._heading_deg = 0.0
         self._results: list[CommandResult] = []
         self._lock = threading.Lock()
-        self._jobs: queue.Queue = queue.Queue()
+        self._jobs = DropOldestQueue(MAX_QUEUED_JOBS)
+        self._health = VehicleHealth()
+        self._integrity = IntegrityMonitor()
+        self._vel_ned: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._last_setpoint_s: float | None = None
+        self._stop = threading.Event()
+        self.watchdog_trips = 0
+        """Times the watchdog stopped MAVSDK's setpoint stream (the control thread had stalled)."""
         self._mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.COMPANION_COMPUTER))
         url = mavsdk_url(self.endpoint)
         result = self._mavsdk.add_any_connection(url)
@@ -109,6 +186,8 @@ class MavsdkLink:
         self._subscribe()
         self._worker = threading.Thread(target=self._work, daemon=True, name="mavsdk-commands")
         self._worker.start()
+        self._watchdog = threading.Thread(target=self._watch, daemon=True, name="mavsdk-watchdog")
+        self._watchdog.start()
 
     # ---- telemetry callbacks (MAVSDK threads) -----------------------------------------
     def _subscribe(self) -> None:
@@ -118,6 +197,10 @@ class MavsdkLink:
             t.subscribe_odometry(self._on_odometry)  # for its time stamp only (``autopilot_time``)
         else:
             t.subscribe_position(self._on_global)
+            t.subscribe_velocity_ned(self._on_velocity)
+        t.subscribe_battery(self._on_battery)
+        t.subscribe_landed_state(self._on_landed)
+        t.subscribe_health(self._on_health)
         t.subscribe_armed(self._on_armed)
         t.subscribe_flight_mode(self._on_mode)
         t.subscribe_heading(lambda h, _ud=None: setattr(self, "_heading_deg", float(h.heading_deg)))
@@ -128,9 +211,21 @@ class MavsdkLink:
     def _on_pos_vel(self, pv, _ud=None) -> None:
         p, v = pv.position, pv.velocity
         now = self.clock()
-        self._position = PositionSample(now, (p.north_m, p.east_m, p.down_m), (v.north_m_s, v.east_m_s, v.down_m_s),
-                                        autopilot_time(self._odometry_stamp, now))
+        self._set_position(PositionSample(now, (p.north_m, p.east_m, p.down_m), (v.north_m_s, v.east_m_s, v.down_m_s),
+                                          autopilot_time(self._odometry_stamp, now)))
         self._alive()
+
+    def _set_position(self, sample: PositionSample) -> None:
+        with self._lock:
+            self._integrity.on_fix(sample.t_s, sample.pos_ned_m, sample.vel_ned_m_s, sample.autopilot_t_s)
+            self._log_integrity()
+        self._position = sample
+
+    def _log_integrity(self) -> None:
+        for event in self._integrity.pop_events():
+            v = event.verdict
+            log.warning("position integrity %s", "OK again (re-anchored)" if v.ok else
+                        f"DISRUPTED ({v.reason.value}): {v.detail}")
 
     def _on_odometry(self, odo, _ud=None) -> None:
         if odo.time_usec > 0:
@@ -138,10 +233,27 @@ class MavsdkLink:
 
     def _on_global(self, pos, _ud=None) -> None:
         ned = self.anchor.geodetic_to_ned(pos.latitude_deg, pos.longitude_deg, pos.absolute_altitude_m)
-        prev = self._position
-        vel = prev.vel_ned_m_s if prev is not None else (0.0, 0.0, 0.0)
-        self._position = PositionSample(self.clock(), ned, vel)
+        self._set_position(PositionSample(self.clock(), ned, self._vel_ned))
         self._alive()
+
+    def _on_velocity(self, v, _ud=None) -> None:
+        self._vel_ned = (float(v.north_m_s), float(v.east_m_s), float(v.down_m_s))
+
+    def _on_battery(self, b, _ud=None) -> None:
+        pct = float(b.remaining_percent)
+        if int(getattr(b, "id", 0)) == 0 and 0.0 <= pct <= 100.0:  # NaN: not reported
+            self._health = replace(self._health, battery_pct=pct)
+
+    def _on_landed(self, state, _ud=None) -> None:
+        self._health = replace(self._health, landed=LANDED_OF.get(getattr(state, "name", ""), LandedState.UNKNOWN))
+
+    def _on_health(self, h, _ud=None) -> None:
+        ok = bool(h.is_local_position_ok) and (self.anchor is None or bool(h.is_global_position_ok))
+        detail = "" if ok else "no local position" if not h.is_local_position_ok else "no global position"
+        self._health = replace(self._health, estimator_ok=ok, estimator_detail=detail)
+        with self._lock:
+            self._integrity.on_estimator(self.clock(), ok, detail)
+            self._log_integrity()
 
     def _on_armed(self, armed, _ud=None) -> None:
         self.armed = bool(armed)
@@ -156,6 +268,21 @@ class MavsdkLink:
     def mode(self) -> ModeClass:
         """The vehicle's mode class from MAVSDK's flight mode (``UNKNOWN`` before the first one)."""
         return self._mode if self.last_heartbeat_t is not None else ModeClass.UNKNOWN
+
+    @property
+    def health(self) -> VehicleHealth:
+        """Battery %, landed state and estimator position flags from MAVSDK's telemetry; the rest unknown."""
+        return self._health
+
+    @property
+    def integrity(self) -> IntegrityVerdict:
+        """Position integrity over MAVSDK's fixes and estimator flags (``fisc_agent.flight.integrity``)."""
+        return self._integrity.verdict
+
+    @property
+    def jobs_dropped(self) -> int:
+        """Commands dropped because the worker's queue was full."""
+        return self._jobs.dropped
 
     def use_adapter(self, adapter: Adapter) -> None:
         """MAVSDK encodes the commands itself; only PX4's semantics are supported."""
@@ -173,8 +300,12 @@ class MavsdkLink:
         return self._position
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
-        """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held."""
-        self._offboard.set_velocity_ned(self._VelocityNedYaw(vn, ve, vd, self._heading_deg))
+        """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held (never raises)."""
+        self._last_setpoint_s = self.clock()
+        try:
+            self._offboard.set_velocity_ned(self._VelocityNedYaw(vn, ve, vd, self._heading_deg))
+        except Exception as exc:  # a flying agent never crashes on a setpoint
+            log.warning("MAVSDK set_velocity_ned failed: %r", exc)
 
     def arm(self) -> None:
         """Queue MAVSDK's ``action.arm``; its answer arrives through ``pop_results``."""
@@ -214,12 +345,27 @@ class MavsdkLink:
         return results
 
     def close(self) -> None:
-        """Stop the action worker and MAVSDK's server."""
+        """Stop the action worker, the watchdog and MAVSDK's server."""
+        self._stop.set()
         self._jobs.put(None)
         self._worker.join(timeout=2)
+        self._watchdog.join(timeout=2)
         self._mavsdk.destroy()
 
     # ---- blocking MAVSDK calls on the worker -------------------------------------------
+    def _watch(self) -> None:
+        while not self._stop.wait(WATCHDOG_PERIOD_S):
+            if not setpoint_stalled(self._last_setpoint_s, self.clock(), self.mode == ModeClass.OFFBOARD):
+                continue
+            self._last_setpoint_s = None  # once per stall; the next setpoint re-arms the watchdog
+            self.watchdog_trips += 1
+            log.error("no setpoint from the control loop for %.1f s: stopping MAVSDK's offboard setpoint stream",
+                      SETPOINT_STALL_S)
+            try:
+                self._offboard.stop()
+            except Exception as exc:  # offboard may not be active: then there was no stream to stop
+                log.warning("MAVSDK offboard.stop failed: %r", exc)
+
     def _work(self) -> None:
         while True:
             job = self._jobs.get()

@@ -16,7 +16,10 @@ import numpy as np
 from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S
 from fisc_agent.map.lookup import PAPER_SETTINGS, FlightSettings
 from fisc_agent.map.codec import CommandMap, decode_map, encode_map, load_map
+from fisc_agent.map.separation import DEFAULT_POSITION_SIGMA_M, DEFAULT_VEHICLE_RADIUS_M, Separation
 from fisc_agent.map.wall import WALL_ARRAY
+from fisc_ground.fit.length_scale import check_length_scale, scale_reference, time_ratio
+from fisc_ground.fit.separation_budget import relative_density, separation_budget
 from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.fit.fitting import fit_rmse, fit_velocities
 from fisc_ground.fit.partition import ControlVolumes, cv_open_fraction, partition_field
@@ -48,7 +51,7 @@ class FitConfig:
     """Parameters of one map build; all of them are recorded in the map's provenance."""
 
     cell_size_m: float = 0.5
-    """CV edge length l [m] (paper: 0.5 m)."""
+    """CV edge length l at length scale 1 [m] (paper: 0.5 m); the map's cubes are ``length_scale`` x this."""
     n_min: int = 2
     """Smallest candidate agent count N per CV (paper: 2)."""
     n_max: int = 10
@@ -102,7 +105,15 @@ class FitConfig:
     lookahead_s: float = DEFAULT_FLIGHT.lookahead_s
     """Recommended command look-ahead [s] written into a schema-2 map."""
     persistence_s: float = DEFAULT_FLIGHT.persistence_s
-    """Recommended persistence of the kinetic deviation [s] written into a schema-2 map."""
+    """Recommended persistence of the kinetic deviation at length scale 1 [s] written into a schema-2 map
+    (times ``length_scale``: a flow time, ``fisc_ground.fit.length_scale``)."""
+    vehicle_radius_m: float = DEFAULT_VEHICLE_RADIUS_M
+    """Vehicle radius r of the separation the map is designed for [m] (``fisc_agent.map.separation``)."""
+    position_sigma_m: float = DEFAULT_POSITION_SIGMA_M
+    """Relative position uncertainty sigma (1 sigma) of that separation [m]; d_min = 2 r + 3 sqrt(2) sigma."""
+    length_scale: float = 1.0
+    """L: fly the same flow in an airspace L times larger (lengths x L, velocities kept within
+    ``max_speed_m_s``, times x L; ``fisc_ground.fit.length_scale``)."""
 
     @property
     def staggered_config(self) -> StaggeredConfig:
@@ -126,6 +137,15 @@ class FitConfig:
         c = self.staircase_contrast
         if c is not None and not 0.0 < c < 1.0:
             raise ValueError(f"staircase_contrast must lie in (0, 1) (None: every covered cube), got {c!r}")
+        if not self.separation.d_min_m > 0:
+            raise ValueError("vehicle_radius_m and position_sigma_m are both 0: d_min = 0 m designs no separation "
+                             "(give a radius or a sigma > 0)")
+        check_length_scale(self.length_scale)
+
+    @property
+    def separation(self) -> Separation:
+        """The separation this build designs for (``fisc_agent.map.separation``)."""
+        return Separation(self.vehicle_radius_m, self.position_sigma_m)
 
 
 
@@ -151,10 +171,16 @@ def _software_version() -> str:
 
 
 def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Partition, fit and scale; returns the map header fields and arrays (ready for ``encode_map``)."""
-    cvs: ControlVolumes = partition_field(field, cell_size_m=config.cell_size_m, min_nodes=config.min_nodes,
+    """Partition, fit and scale; returns the map header fields and arrays (ready for ``encode_map``).
+
+    With ``config.length_scale`` L the reference's lengths and the cube edge are L times larger
+    (``fisc_ground.fit.length_scale``)."""
+    length_scale = check_length_scale(config.length_scale)
+    field = scale_reference(field, length_scale)
+    cell_size = config.cell_size_m * length_scale
+    cvs: ControlVolumes = partition_field(field, cell_size_m=cell_size, min_nodes=config.min_nodes,
                                           staircase_contrast=config.staircase_contrast if config.staggered else None)
-    cell_volume = config.cell_size_m ** 3
+    cell_volume = cell_size ** 3
     p = cvs.target_pressure_gauge_pa
     if config.kappa is None:
         ratio = config.dispersion_ratio
@@ -204,7 +230,8 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                  sc.velocity_limit)
         f = config.flight
         extra = {"schema_version": 2,
-                 "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s, "persistence_s": f.persistence_s},
+                 "flight": {"mode": f.mode, "lookahead_s": f.lookahead_s,
+                            "persistence_s": f.persistence_s * time_ratio(length_scale)},
                  "staggered": {"max_divergence": st.max_divergence, "continuity_weight": st.continuity_weight,
                                "continuity_weight_mode": _mode(sc.continuity_weight),
                                "weight_exponent": sc.weight_exponent, "axial_weight": sc.axial_weight,
@@ -217,6 +244,11 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
                                                            else DEFAULT_MIN_STEP_OPEN)}}
     else:
         extra = {"schema_version": 1}
+    sep = config.separation
+    budget = separation_budget(cvs.index, relative_density(arrays.get("cv_design_density"), cvs.target_density_kg_m3),
+                               scale * cvs.target_velocity_m_s[:, 0], cell_size, sep.d_min_m)
+    log.info("separation: d_min %.3g m, at most %d vehicles in the tunnel, one admitted per %.3g s (%s)",
+             sep.d_min_m, budget.max_in_tunnel, budget.admission_period_s, budget.limit.value)
     now = datetime.now(timezone.utc)
     meta = {
         "map_version": int(config.map_version if config.map_version is not None else time.time() * 1000),
@@ -224,13 +256,16 @@ def build_map(field: ReferenceField, config: FitConfig = FitConfig()) -> tuple[d
         "software_version": _software_version(),
         "frame": {"name": "reference", "axis": [1.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]},
         "n_cv": int(cvs.center_m.shape[0]),
-        "grid": {"origin_m": [float(v) for v in cvs.origin_m], "cell_size_m": float(config.cell_size_m),
+        "grid": {"origin_m": [float(v) for v in cvs.origin_m], "cell_size_m": float(cell_size),
                  "shape": [int(s) for s in cvs.grid_cv.shape]},
         "n_range": [int(config.n_min), int(config.n_max)],
         "scale": float(scale),
         "kappa": float(kappa),
         "agent_mass_kg": float(config.agent_mass_kg),
         "max_speed_m_s": float(config.max_speed_m_s),
+        "length_scale": float(length_scale),
+        "separation": {"vehicle_radius_m": float(sep.vehicle_radius_m), "position_sigma_m": float(sep.position_sigma_m),
+                       **budget.as_header()},
         "fit": {
             "seconds": float(fit.seconds),
             "velocity_rmse": float(vel_rmse),

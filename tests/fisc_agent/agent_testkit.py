@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.flight.integrity import IntegrityVerdict
+
 
 
 def tunnel_arrays(length_m: float = 3.0, radius_m: float = 1.0, cell_m: float = 0.5, speed_m_s: float = 2.0,
@@ -122,6 +125,8 @@ class RecordingVehicle:
 
     def __init__(self):
         self.sent = []           # ("arm",), ("set_mode", ModeClass), ("takeoff", alt_m)
+        self.health = VehicleHealth()          # settable: the autopilot's health as a link reports it
+        self.integrity = IntegrityVerdict()    # settable: the link's position integrity verdict
 
     def arm(self):
         self.sent.append(("arm",))

@@ -71,7 +71,7 @@ class Flight:
 
 
 def agent_cfg(url, **kw):
-    base = dict(mavlink_url=url, agent_id=3, go=True, origin_ned_m=(0.0, 0.0, -4.0), takeoff_alt_m=1.0, max_speed_m_s=5.0,
+    base = dict(mavlink_url=url, agent_id=3, go=True, entry_stagger_s=0.0, origin_ned_m=(0.0, 0.0, -4.0), takeoff_alt_m=1.0, max_speed_m_s=5.0,
                 max_accel_m_s2=6.0, join_speed_m_s=3.0, climb_speed_m_s=2.0, exit_clearance_m=1.0)
     base.update(kw)
     return AgentConfig(**base)

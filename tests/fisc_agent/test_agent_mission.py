@@ -720,3 +720,34 @@ def test_a_failed_identification_is_tried_once_and_logged_once(sfield, caplog):
         run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
     assert m.response is None
     assert sum("not identified" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_by_default_agents_enter_in_their_windows_of_the_maps_admission_budget():
+    """``entry_stagger_s`` None (``--entry-stagger auto``, the default): the shipped map's admission
+    period and budget set the windows (``spacing.entry_schedule``); agents 2 and 3 cross the inlet one
+    period apart, in the windows they own; ``0`` enters at once."""
+    from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource
+    from fisc_agent.map.separation import map_separation
+    from fisc_ground.maps.build import load_shipped_default_map
+
+    cmap = load_shipped_default_map()
+    sep = map_separation(cmap.body)
+    sf = ScalarField(CommandField.from_map(cmap), separation=sep)
+    period, slots = sep.admission_period_s, sep.max_in_tunnel
+    cycle = period * slots
+    wall0 = math.ceil(1e6 / cycle) * cycle            # a cycle starts at wall0
+    phases = {}
+    for agent_id in (2, 3):
+        cfg, m, v = make(sf, agent_id=agent_id, lookahead_auto=False)
+        assert cfg.entry_stagger_s is None and cfg.entry_slots is None
+        assert m.nav.schedule == EntrySchedule(period, slots, ScheduleSource.MAP)
+        while v.t < 120.0 and m.state != State.FLOW:
+            v.apply(m.step(v.status()._replace(wall_time_s=wall0 + v.t)), cfg)
+        assert m.state == State.FLOW
+        t_in = next(t.t_s for t in m.transitions if t.dst == State.FLOW)
+        phases[agent_id] = math.fmod(wall0 + t_in, cycle)
+    for agent_id, phase in phases.items():   # in its own window (it leaves early by its flight to staging)
+        assert agent_id * period - 1.0 <= phase < (agent_id + 1) * period, (agent_id, phase, period)
+    assert phases[3] - phases[2] == pytest.approx(period, abs=0.5)
+    cfg, m, v = make(sf, agent_id=2, lookahead_auto=False, entry_stagger_s=0.0)
+    assert m.nav.schedule.stagger_s == 0.0 and m.nav.schedule.source is ScheduleSource.GIVEN

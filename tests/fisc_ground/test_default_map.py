@@ -1,6 +1,7 @@
 """The shipped ready-made map equals a fresh fit of the embedded default."""
 
 import numpy as np
+import pytest
 
 from fisc_agent.map.codec import REQUIRED_ARRAYS
 from fisc_ground.maps.build import build_default_map, load_shipped_default_map
@@ -21,6 +22,12 @@ def test_shipped_default_map_matches_a_fresh_fit():
         assert shipped.body["staggered"][key] == fresh.body["staggered"][key], key
     for name in ("face_u_x_m_s", "face_u_y_m_s", "face_u_z_m_s", "cv_design_density"):
         np.testing.assert_allclose(shipped[name], fresh[name], rtol=0, atol=1e-9, err_msg=name)
+    # issue 37: the separation it is designed for and its budget, at length scale 1
+    assert shipped.body["length_scale"] == fresh.body["length_scale"] == 1.0
+    assert shipped.body["separation"].keys() == fresh.body["separation"].keys()
+    for key, value in fresh.body["separation"].items():
+        assert shipped.body["separation"][key] == (value if isinstance(value, (str, int)) else
+                                                   pytest.approx(value, rel=1e-9)), key
 
 
 def test_default_map_carries_the_open_volume_fraction():

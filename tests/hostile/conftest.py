@@ -153,7 +153,8 @@ def rss_mb(pid: int) -> float:
 
 
 def start_emulator(procs: Processes, name: str, mavlink: str, start: str = "-3,0,-1.5", sysid: int = 1):
-    """``fisc-sim autopilot`` (PX4 personality; D < 0: hovering, armed, in AUTO.LOITER)."""
+    """``fisc-sim autopilot`` (PX4 personality; D < 0: hovering, armed, in AUTO.LOITER: not the agent's
+    vehicle until a signed takeover addressed to it)."""
     return procs.start(name, cli("fisc-sim") + ["autopilot", "--mavlink", mavlink, "--personality", "px4",
                                                 f"--start={start}", "--sysid", sysid])
 
@@ -228,7 +229,7 @@ class Flight:
 def flight(tmp_path_factory, ground_keys, request):
     """One agent flying loops through the tunnel (map version 100 over Zenoh)."""
     from fisc_agent.zenoh.keys import Keys
-    from fisc_ground.zenoh.fleet import TelemetryListener
+    from fisc_ground.zenoh.fleet import TelemetryListener, make_command, send_command
     from fisc_ground.zenoh.publish import MapServer
 
     d = tmp_path_factory.mktemp("flight")
@@ -251,6 +252,9 @@ def flight(tmp_path_factory, ground_keys, request):
         f = Flight(procs, agent, emulator, relay, hub, server, listener, ground_keys, member_cfg, 100,
                    LogCursor(agent.log_path))
         f.serve(100)
+        # the emulator starts hovering: not the agent's until the ground hands it over (signed, addressed)
+        assert poll(lambda: f.state() == "STANDBY", 40.0), f"agent not standing by ({f.state()})\n{f.report()}"
+        send_command(hub, Keys("fisc", SWARM), make_command("takeover", SWARM, (AGENT_ID,)), ground_keys.seed)
         f.wait_flying(60.0)
         yield f
     finally:

@@ -55,8 +55,8 @@ def test_replies_go_only_to_the_autopilot_not_to_every_sender(processes, map_fil
     port = free_udp_port()
     agent = processes.start("agent", agent_argv(f"udpin:127.0.0.1:{port}", "--map", map_file,
                                                 "--trusted-key", ground_keys.pub_path))
-    start_emulator(processes, "autopilot", f"udpout:127.0.0.1:{port}")
-    assert log_has(agent, "already flying: taking over", 30), processes.report()
+    start_emulator(processes, "autopilot", f"udpout:127.0.0.1:{port}", start="-3,0,0")  # on the ground: --go arms it
+    assert log_has(agent, "mission ARM -> TAKEOFF", 30), processes.report()
     gcs = mav_encoder(200, 190)
     hb = gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs)  # a GCS heartbeat: MAV_TYPE_GCS, MAV_AUTOPILOT_INVALID
     got = 0
@@ -71,7 +71,7 @@ def test_replies_go_only_to_the_autopilot_not_to_every_sender(processes, map_fil
 def test_a_heartbeat_from_another_system_before_the_autopilot_does_not_capture_the_agent(
         processes, map_file, ground_keys, stranger):
     """Finding 6: one HEARTBEAT from system 42 (PX4, disarmed) reaches the agent before the
-    autopilot (system 1) starts; the agent must still find, take over and fly the autopilot."""
+    autopilot (system 1) starts; the agent must still find, arm and fly the autopilot."""
     port = free_udp_port()
     agent = processes.start("agent", agent_argv(f"udpin:127.0.0.1:{port}", "--map", map_file,
                                                 "--trusted-key", ground_keys.pub_path))
@@ -79,8 +79,8 @@ def test_a_heartbeat_from_another_system_before_the_autopilot_does_not_capture_t
     other = mav_encoder(42, 1)
     stranger.sendto(other.heartbeat_encode(2, 12, 0, 0, 3).pack(other), ("127.0.0.1", port))
     assert log_has(agent, "autopilot found: system 42", 5), processes.report()
-    start_emulator(processes, "autopilot", f"udpout:127.0.0.1:{port}")
+    start_emulator(processes, "autopilot", f"udpout:127.0.0.1:{port}", start="-3,0,0")  # on the ground: --go arms it
     assert log_has(agent, "autopilot changed to: system 1", 15), processes.report()
-    assert log_has(agent, "already flying: taking over", 15), processes.report()
+    assert log_has(agent, "mission ARM -> TAKEOFF", 15), processes.report()
     assert log_has(agent, "mission JOIN -> FLOW", 25), processes.report()
     assert agent.alive

@@ -87,6 +87,8 @@ FIT = {
     "--min-nodes": "FitConfig.min_nodes", "--seed": "FitConfig.seed", "--preset": "FitConfig.staggered",
     "--continuity-weight": "FitConfig.continuity_weight", "--density-amplitude": "FitConfig.density_amplitude",
     "--dispersion-ratio": "FitConfig.dispersion_ratio", "--staircase-contrast": "FitConfig.staircase_contrast",
+    "--vehicle-radius": "FitConfig.vehicle_radius_m", "--position-sigma": "FitConfig.position_sigma_m",
+    "--length-scale": "FitConfig.length_scale",
 }
 FIT_NO_FIELD = {
     "-o": "the map file written (run_fit's output), not a fit setting",

@@ -315,7 +315,7 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
         summary = make_reader(fh).get_summary()
     topics = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
     assert set(topics) == {fs.TOPIC_AGENTS, fs.TOPIC_CVS, fs.TOPIC_SCENE, fs.TOPIC_FIDELITY, fs.TOPIC_STATES,
-                           fs.TOPIC_TELEMETRY, fs.TOPIC_MAP, fs.TOPIC_SETTINGS}
+                           fs.TOPIC_TELEMETRY, fs.TOPIC_MAP, fs.TOPIC_SETTINGS, fs.TOPIC_ALARMS}
     assert topics[fs.TOPIC_AGENTS].name == "foxglove.PointCloud" and topics[fs.TOPIC_AGENTS].encoding == "protobuf"
     assert topics[fs.TOPIC_SCENE].name == "foxglove.SceneUpdate"
     assert all(sc.data for sc in topics.values())
