@@ -32,7 +32,8 @@ from fisc_agent.flight.flightlog import read_flight_log
 
 from .conftest import Processes, cli, poll, run_cli
 from .ground_station import (COPTER_GUIDED, COPTER_LAND, PX4_HOLD, PX4_LAND, PX4_NAV_AUTO_LAND,
-                             PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_TAKEOFF, PX4_NAV_OFFBOARD, PX4_OFFBOARD, PX4_TAKEOFF)
+                             PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_TAKEOFF, PX4_NAV_OFFBOARD, PX4_OFFBOARD, PX4_TAKEOFF,
+                             mode_name)
 from .sitl_kit import (PX4_TUNED_PARAMS, ArduPilotSitl, GroundStation, LinkCut, Px4Sitl, dataflash_log,
                        dataflash_modes_and_texts, dedup, ground, ok, px4_ulog, signed_map_on_zenoh, ulog_topic)
 
@@ -48,6 +49,8 @@ no offboard_control_mode, the Hold's horizontal target fixed to 1 mm).  PX4's Ho
 1.80 m with ``PX4_TUNED_PARAMS``, 2.12 m at 5 m with the stock gains, as a slow 15-20 s swing of 1-1.5 m
 about the fixed target that PX4's own estimate follows to within 0.4 m.  Issue 36's 1 m cannot be told
 apart from that; the restarted agent of the issue flew the vehicle 11 m away."""
+NO_WINDOWS = ("--entry-stagger", "off")
+"""A lone vehicle needs no admission window (the map's admission period would make it wait up to ~20 s)."""
 HANDS_OFF_WATCH_S = 3.0
 """How long the ground's mode must stay before and after a swarm-wide ``resume`` [s] (the agent's mode
 requests repeat every second: three would be missed by none)."""
@@ -284,7 +287,7 @@ def test_px4_no_arming_without_a_go_and_the_ground_takes_over_in_arm_takeoff_flo
             procs.stop(first)
             gcs.set_mode(PX4_HOLD)  # the ground puts its vehicle back as it was
             # -- no arming without a go --------------------------------------------------------------
-            agent = _agent(procs, "agent1", d / "agent1.csv", "px4", "--takeoff-alt", 4.0, *zenoh)
+            agent = _agent(procs, "agent1", d / "agent1.csv", "px4", "--takeoff-alt", 4.0, *NO_WINDOWS, *zenoh)
             assert poll(lambda: _count(agent, r"-> STANDBY") or not agent.alive, 90.0, 0.1), procs.report()
             waited = time.monotonic()
             telemetry = _status(g)
@@ -359,7 +362,7 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
         procs = Processes(tmp_path / "logs")
         try:
             gcs.connect()
-            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, port=link.agent_port)
+            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, *NO_WINDOWS, port=link.agent_port)
             assert poll(lambda: _count(agent, r"-> JOIN") or not agent.alive, 90.0, 0.05) and agent.alive, \
                 procs.report()
             if how == "freeze":
@@ -384,7 +387,7 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
             assert agent.alive or agent.popen.returncode == 0, procs.report()
         finally:
             procs.stop_all()
-        ground_modes = gcs.modes_between(landing.t_s, end)
+        ground_modes = dedup(mode_name(b.custom_mode, "px4") for b in gcs.beats_between(landing.t_s, end) if b.armed)
         rearmed = bool(disarmed) and any(b.armed for b in gcs.beats_between(disarmed.t_s))
         ulog_path = px4_ulog(run, 0)
     status = ulog_topic(ulog_path, "vehicle_status")
@@ -396,7 +399,7 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
     back_rows = [r for r in _rows(log) if float(r["wall_time_s"]) > back_wall]
     return {"how": how, "nav_states": dedup(nav.tolist()), "nav_changes_px4_s": changes,
             "after_failsafe_armed": dedup(nav[first_land:][status["arming_state"][first_land:] == 2].tolist()),
-            "ground_modes_from_landing": ground_modes,
+            "ground_modes_armed_from_landing": ground_modes,
             "lost_to_land_s": landing.t_s - lost, "back_to_disarm_s": (disarmed.t_s - back) if disarmed else None,
             "height_when_back_m": height_back_m, "link_back_at_px4_s": boot_back, "rearmed": rearmed,
             "setpoints_after_back": 0 if ocm is None else int(np.sum(ocm["timestamp"] / 1e6 > boot_back + 0.5)),
@@ -409,7 +412,7 @@ def _assert_kept_landing(r: dict) -> None:
     # from the failsafe to the disarm only AUTO_LAND (once disarmed PX4 itself shows the user's intention,
     # OFFBOARD, again: its offboard-loss Land is a mode fallback, Failsafe::checkModeFallback)
     assert r["after_failsafe_armed"] == [PX4_NAV_AUTO_LAND], r
-    assert r["ground_modes_from_landing"] == ["AUTO.LAND"] and r["back_to_disarm_s"] is not None, r
+    assert r["ground_modes_armed_from_landing"] == ["AUTO.LAND"] and r["back_to_disarm_s"] is not None, r
     assert not r["rearmed"], r
     assert r["setpoints_after_back"] == 0 and r["agent_setpoint_rows_after_back"] == 0, r
     assert r["height_when_back_m"] > 0.5, r   # the link came back while the vehicle was still in the air
@@ -436,3 +439,57 @@ def test_px4_failsafe_land_while_the_agent_is_frozen_is_not_overridden_when_it_r
     r = _failsafe_land_flight(shared_path, tmp_path, map_path, "freeze")
     print(json.dumps(r))
     _assert_kept_landing(r)
+
+
+# ---- vehicle health: a draining battery ends the laps at the exit -------------------------------------
+MIN_BATTERY_PCT = 60.0
+BATTERY_DRAIN_S = 80.0
+"""PX4's battery simulator (``battery_simulator``, SIM_BAT_ENABLE) drains a full battery in SIM_BAT_DRAIN
+seconds while armed, down to SIM_BAT_MIN_PCT: 80 s puts 60 % about 32 s after arming, inside the first
+pass (flown 23-43 s after arming on this host)."""
+
+
+@pytest.mark.timeout(240)
+def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tmp_path, map_path):
+    """``--exit-policy loop --laps 0`` (no limit) and ``--min-battery 60``; PX4's simulated battery drains
+    (SIM_BAT_DRAIN 80 s, floor SIM_BAT_MIN_PCT 20 %).  The agent finishes the pass it is in, flies to its
+    exit point and lands there (``--low-battery-action land``): PX4's ULog shows the agent's AUTO.LAND past
+    the outlet with battery_status below 60 %, then the disarm; no pass starts below 60 %."""
+    log = tmp_path / "agent1.csv"
+    params = {**PX4_TUNED_PARAMS, "SIM_BAT_DRAIN": BATTERY_DRAIN_S, "SIM_BAT_MIN_PCT": 20.0}
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run, GroundStation("px4") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, *NO_WINDOWS, "--exit-policy", "loop",
+                           "--laps", 0, "--min-battery", MIN_BATTERY_PCT, "--low-battery-action", "land")
+            assert poll(lambda: gcs.armed() or not agent.alive, 60.0, 0.1), procs.report()
+            disarmed = poll(lambda: (lambda b: b if b and not b.armed else None)(gcs.last_beat()) or
+                            (None if agent.alive else "agent exited"), 150.0, 0.2)
+            assert disarmed and disarmed != "agent exited", procs.report()
+            assert poll(lambda: not agent.alive, 10.0, 0.2), procs.report()  # its flight is over: DONE
+        finally:
+            procs.stop_all()
+        ulog_path = px4_ulog(run, 0)
+    status, battery = ulog_topic(ulog_path, "vehicle_status"), ulog_topic(ulog_path, "battery_status")
+    truth = ulog_topic(ulog_path, "vehicle_local_position_groundtruth")
+    nav, t_nav = status["nav_state"], status["timestamp"]
+    first_land = int(np.flatnonzero(nav == PX4_NAV_AUTO_LAND)[0])
+
+    def at(data, key, t_us):
+        return float(data[key][min(np.searchsorted(data["timestamp"], t_us), len(data[key]) - 1)])
+
+    console = _console(agent)
+    low = re.search(r"battery (\d+) % below (\d+) % after lap (\d+): to the exit, then land", console)
+    passes = len(re.findall(r"-> FLOW", console))
+    report = {"nav_states": dedup(nav.tolist()), "agent_states": dedup(r["state"] for r in _rows(log)),
+              "low_battery_line": low.group(0) if low else None, "passes_started": passes,
+              "battery_at_land_pct": 100 * at(battery, "remaining", t_nav[first_land]),
+              "x_at_land_m": at(truth, "x", t_nav[first_land]), "z_at_land_m": at(truth, "z", t_nav[first_land]),
+              "land_to_disarm_s": (t_nav[-1] - t_nav[first_land]) / 1e6, "exit_code": agent.popen.returncode}
+    print(json.dumps(report))
+    assert low and int(low.group(3)) == passes, report            # the pass in progress finished, no new one
+    assert report["nav_states"][-2:] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND] or \
+        report["nav_states"][-3:-1] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND], report   # the agent's land
+    assert report["battery_at_land_pct"] < MIN_BATTERY_PCT and report["x_at_land_m"] > 15.0, report  # at the exit
+    assert report["agent_states"][-3:] == ["EXIT", "LAND", "DONE"] and report["exit_code"] == 0, report
