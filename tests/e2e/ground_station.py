@@ -101,6 +101,7 @@ class _Seen:
     glob: list[Fix] = field(default_factory=list)
     acks: list[tuple[float, int, int]] = field(default_factory=list)
     texts: list[str] = field(default_factory=list)
+    params: dict[str, float] = field(default_factory=dict)
 
 
 class GroundStation:
@@ -171,6 +172,8 @@ class GroundStation:
                 self._seen.acks.append((t, int(m.command), int(m.result)))
             elif kind == "STATUSTEXT":
                 self._seen.texts.append(str(m.text))
+            elif kind == "PARAM_VALUE":
+                self._seen.params[str(m.param_id)] = float(m.param_value)
 
     # ---- what the ground sees -------------------------------------------------------------
     def wait(self, pred, timeout_s: float, what: str, period_s: float = 0.05):
@@ -264,6 +267,19 @@ class GroundStation:
                            lambda: (lambda b: b if b is not None and b.custom_mode == custom_mode else None)(
                                self.last_beat()), timeout_s, f"mode {mode_name(custom_mode, self.autopilot)}")
         return beat.t_s
+
+    def set_param(self, name: str, value: float, timeout_s: float = 10.0) -> None:
+        """PARAM_SET a REAL32 parameter until the autopilot's PARAM_VALUE echoes ``value``."""
+        def send() -> None:
+            with self._send_lock:
+                self._m.mav.param_set_send(self.target, 1, name.encode(), float(value), 9)  # MAV_PARAM_TYPE_REAL32
+
+        def echoed() -> bool:
+            with self._lock:
+                got = self._seen.params.get(name)
+            return got is not None and abs(got - value) <= 1e-6 * max(1.0, abs(value))
+
+        self._until(send, echoed, timeout_s, f"parameter {name} = {value}")
 
     def arm(self, timeout_s: float = 15.0) -> None:
         """Arm (MAV_CMD_COMPONENT_ARM_DISARM) until the HEARTBEAT says armed."""

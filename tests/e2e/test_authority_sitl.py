@@ -493,3 +493,52 @@ def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tm
         report["nav_states"][-3:-1] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND], report   # the agent's land
     assert report["battery_at_land_pct"] < MIN_BATTERY_PCT and report["x_at_land_m"] > 15.0, report  # at the exit
     assert report["agent_states"][-3:] == ["EXIT", "LAND", "DONE"] and report["exit_code"] == 0, report
+
+
+# ---- vehicle health: a GPS glitch makes the agent hold, then recover ------------------------------------
+GLITCH_DEG = 0.0003
+"""SIM_GPS1_GLTCH_X: ArduPilot's SITL adds it to the simulated fix's latitude in degrees (SIM_GPS.cpp): about
+33 m north, beyond EKF3's EK3_GLITCH_RAD (25 m), so EKF3 reports the glitch ("GPS Glitch or Compass error")."""
+
+GLITCH_NEVER_RECOVERS = (
+    "agent bug (issue 36 item 4 'resume only on a consistent track'; mission.py's docstring: a position-jump "
+    "hold 'resumes by itself once the fix is good again'): a real EKF3 GPS glitch lasts longer than --hold-grace "
+    "(measured: flagged 'GNSS glitch' 38.9 s, 'Glitch cleared' 53.7 s, integrity OK 55.9 s for a 6 s glitch), so "
+    "the POSITION_JUMP hold escalates to BRAKE after 2 s, and Mission._hold_output latches every escalated hold "
+    "(_hold_latched = True), which the auto-resume branch (hold_cause in AUTO_RESUMING and not _hold_latched) "
+    "then refuses: DataFlash GUIDED -> BRAKE and never GUIDED again; the agent stays in HOLD until a fleet resume.")
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.xfail(strict=True, reason=GLITCH_NEVER_RECOVERS)
+def test_arducopter_gps_glitch_makes_the_agent_hold_then_recover(shared_path, tmp_path, map_path):
+    """One ArduCopter flown by ``fisc-agent --go``; in FLOW the ground sets SIM_GPS1_GLTCH_X (about 33 m) for
+    5 s, then clears it.  The agent holds on the estimator's GNSS-glitch flag (EKF_STATUS_REPORT), and once
+    the track is consistent again it flies on: DataFlash GUIDED, the hold (BRAKE), GUIDED again."""
+    log = tmp_path / "agent1.csv"
+    with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1) as run, GroundStation("ardupilot") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "ardupilot", "--go", "--map", map_path, *NO_WINDOWS)
+            assert poll(lambda: _count(agent, r"-> FLOW") or not agent.alive, 150.0, 0.1), procs.report()
+            time.sleep(2.0)
+            glitched = time.monotonic()
+            gcs.set_param("SIM_GPS1_GLTCH_X", GLITCH_DEG)
+            time.sleep(5.0)
+            gcs.set_param("SIM_GPS1_GLTCH_X", 0.0)
+            held = poll(lambda: re.search(r"-> HOLD \(position jump: ([^)]*)\)", _console(agent)), 5.0, 0.1)
+            consistent = poll(lambda: _count(agent, r"position integrity OK again"), 40.0, 0.2)
+            recovered = poll(lambda: re.search(r"HOLD -> (FLOW|RETURN|JOIN|EXIT) ", _console(agent)), 10.0, 0.2)
+            ground_modes = gcs.modes_between(glitched)
+            assert agent.alive, procs.report()
+        finally:
+            procs.stop_all()
+        modes, _ = dataflash_modes_and_texts(dataflash_log(run, 0))
+    report = {"hold_reason": held.group(1) if held else None, "integrity_ok_again": bool(consistent),
+              "recovered_to": recovered.group(1) if recovered else None, "ground_modes_from_glitch": ground_modes,
+              "dataflash_modes": modes, "agent_states": dedup(r["state"] for r in _rows(log))}
+    print(json.dumps(report))
+    assert held and "glitch" in held.group(1).lower(), report
+    assert consistent and recovered, report
+    assert ground_modes[:2] == ["GUIDED", "BRAKE"] and "GUIDED" in ground_modes[2:], report
