@@ -163,7 +163,8 @@ def test_px4_restart_in_the_air_in_the_grounds_hold_changes_no_mode_and_sends_no
     rows = _rows(log)
     report = {"modes_seen_by_ground": modes, "nav_states_in_window": nav_window,
               "nav_states_whole_log": dedup(status["nav_state"].tolist()), "watched_s": t1 - t0,
-              "px4_clock_window_s": boot1 - boot0, "truth_moved_m": moved_m, "truth_moved_horizontal_m": float(np.max(np.hypot(*(pos[:, :2] - pos[0, :2]).T))),
+              "px4_clock_window_s": boot1 - boot0, "truth_moved_m": moved_m,
+              "truth_moved_horizontal_m": float(np.max(np.hypot(*(pos[:, :2] - pos[0, :2]).T))),
               "truth_moved_vertical_m": float(np.max(np.abs(pos[:, 2] - pos[0, 2]))), "truth_samples": len(k),
               "hold_target_moved_m": target_moved_m,
               "offboard_control_mode_samples": 0 if ocm is None else len(ocm["timestamp"]),
