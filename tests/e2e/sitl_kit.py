@@ -537,3 +537,77 @@ def signed_map_on_zenoh(d: Path) -> SignedMapOnZenoh:
     hub = write_zenoh_config(d / "hub.json5", [f"tcp/127.0.0.1:{port}"], [])
     member = write_zenoh_config(d / "member.json5", ["tcp/127.0.0.1:0"], [f"tcp/127.0.0.1:{port}"])
     return SignedMapOnZenoh(served, load_map(served, d / "ground.pub"), d / "ground.key", d / "ground.pub", hub, member)
+
+
+# ---- a ground station and PX4 log topics for the authority tests ------------------------------
+from .ground_station import GroundStation  # noqa: E402,F401 (the tests import it from the kit)
+
+
+def ulog_topic(path: Path, name: str) -> dict[str, np.ndarray] | None:
+    """One topic of a ULog as arrays (``timestamp`` in microseconds of PX4's clock), None if not logged."""
+    from pyulog import ULog
+
+    ds = [d for d in ULog(str(path), [name]).data_list if d.name == name]
+    return ds[0].data if ds else None
+
+
+def dedup(seq) -> list:
+    """``seq`` with consecutive repeats removed."""
+    out: list = []
+    for v in seq:
+        if not out or out[-1] != v:
+            out.append(v)
+    return out
+
+
+class LinkCut:
+    """A UDP relay between an autopilot's API port and an agent, that can cut the link both ways.
+
+    ``with LinkCut(14540) as cut:`` binds udp ``autopilot_port`` (where the SITL sends its API link) and
+    relays every datagram to the agent at ``127.0.0.1:cut.agent_port`` (run the agent with ``--mavlink
+    udpin:0.0.0.0:<agent_port>``) and the agent's back to the autopilot's address.  ``cut.down = True``
+    drops everything in both directions (the radio or cable gone), ``False`` relays again: the agent and
+    the autopilot both keep running, unlike a frozen process."""
+
+    def __init__(self, autopilot_port: int = 14540) -> None:
+        import socket
+        import threading
+
+        from .conftest import free_udp_port
+
+        self.agent_port = free_udp_port()
+        self.down = False
+        self.dropped = 0
+        self._ap = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._ap.bind(("0.0.0.0", autopilot_port))
+        self._ag = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._ag.bind(("127.0.0.1", 0))
+        self._ap_addr: tuple[str, int] | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="link-cut", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import select
+
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._ap, self._ag], [], [], 0.1)
+            for s in ready:
+                data, addr = s.recvfrom(65535)
+                if self.down:
+                    self.dropped += 1
+                    continue
+                if s is self._ap:
+                    self._ap_addr = addr
+                    self._ag.sendto(data, ("127.0.0.1", self.agent_port))
+                elif self._ap_addr is not None:
+                    self._ap.sendto(data, self._ap_addr)
+
+    def __enter__(self) -> "LinkCut":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._ap.close()
+        self._ag.close()

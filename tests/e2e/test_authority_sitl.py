@@ -1,0 +1,581 @@
+"""Who flies the vehicle, on the real autopilots (issue 36 item 8; docs/deployment.md section 5 "Authority").
+
+Each test runs real PX4 (SIH) or ArduCopter SITL from ``../shared/sitl`` and a ground station as
+QGroundControl or MAVProxy would be one (``GroundStation``: udp 14550, ordinary COMMAND_LONGs), and
+judges the agent by what the *autopilot* did: every HEARTBEAT mode the ground station received, PX4's
+ULog (vehicle_status.nav_state, offboard_control_mode, SIH's ground truth) and ArduPilot's DataFlash
+MODE messages.  The agent's own flight log and console only say where it was when something happened.
+
+- a restart on an airborne vehicle: PX4 in Hold after the ground's take-off, ArduCopter landing in the
+  ground's LAND: the agent (``--go``) changes no mode and sends no setpoint;
+- no arming without a go, then a signed fleet ``go`` arms;
+- the ground takes the vehicle in ARM, TAKEOFF, FLOW and a fleet hold: the agent is hands-off, a
+  swarm-wide ``resume`` does not take the vehicle back, ``resume --agents 1`` does;
+- PX4's offboard-loss failsafe lands the vehicle while the agent is frozen (SIGSTOP): when the agent
+  comes back the vehicle keeps landing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fisc_agent.flight.flightlog import read_flight_log
+
+from .conftest import Processes, cli, poll, run_cli
+from .ground_station import (COPTER_GUIDED, COPTER_LAND, PX4_HOLD, PX4_LAND, PX4_NAV_AUTO_LAND,
+                             PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_TAKEOFF, PX4_NAV_OFFBOARD, PX4_OFFBOARD, PX4_TAKEOFF,
+                             mode_name)
+from .sitl_kit import (PX4_TUNED_PARAMS, ArduPilotSitl, GroundStation, LinkCut, Px4Sitl, dataflash_log,
+                       dataflash_modes_and_texts, dedup, ground, ok, px4_ulog, signed_map_on_zenoh, ulog_topic)
+
+pytestmark = [pytest.mark.sitl, pytest.mark.slow]
+
+SWARM = "authsitl"
+WATCH_S = 25.0
+"""How long a restarted agent is watched on an airborne vehicle (issue 36: 25 s)."""
+MAX_HOLD_WANDER_M = 2.5
+"""Bound on SIH's true displacement in PX4's own Hold over the 25 s (no agent input at all: no OFFBOARD,
+no offboard_control_mode, the Hold's horizontal target fixed to 1 mm).  PX4's Hold alone wanders in SIH
+(2026-12-05, this 2-core host under load, one vehicle): 0.88 m at 2.5 m with the stock gains, 1.46 and
+1.80 m with ``PX4_TUNED_PARAMS``, 2.12 m at 5 m with the stock gains, as a slow 15-20 s swing of 1-1.5 m
+about the fixed target that PX4's own estimate follows to within 0.4 m.  Issue 36's 1 m cannot be told
+apart from that; the restarted agent of the issue flew the vehicle 11 m away."""
+NO_WINDOWS = ("--entry-stagger", "off")
+"""A lone vehicle needs no admission window (the map's admission period would make it wait up to ~20 s)."""
+HANDS_OFF_WATCH_S = 3.0
+"""How long the ground's mode must stay before and after a swarm-wide ``resume`` [s] (the agent's mode
+requests repeat every second: three would be missed by none)."""
+
+
+@pytest.fixture(scope="module")
+def map_path(tmp_path_factory) -> Path:
+    """The embedded default map (``fisc-ground fit cd_nozzle_inviscid``)."""
+    path = tmp_path_factory.mktemp("map") / "tunnel.fiscmap"
+    ok(run_cli(ground("fit", "cd_nozzle_inviscid", "-o", path)))
+    return path
+
+
+def _agent(procs: Processes, name: str, log: Path, autopilot: str, *extra, port: int = 14540):
+    """``fisc-agent --id 1`` on the SITL's API link (udp ``port``), flight log ``log``, ``extra`` options."""
+    return procs.start(name, cli("fisc-agent") + ["--mavlink", f"udpin:0.0.0.0:{port}", "--id", 1, "--autopilot",
+                                                  autopilot, "--flight-log", log, *extra])
+
+
+def _console(proc) -> str:
+    try:
+        return proc.log_path.read_text(errors="replace")
+    except OSError:
+        return ""
+
+
+def _count(proc, pattern: str) -> int:
+    """How often ``pattern`` (regex) occurs in the agent's console so far."""
+    return len(re.findall(pattern, _console(proc)))
+
+
+def _last_state(proc) -> str | None:
+    """The state the agent's console says it entered last (``mission A -> B``)."""
+    states = re.findall(r"mission \w+ -> (\w+)", _console(proc))
+    return states[-1] if states else None
+
+
+def _rows(log: Path) -> list[dict[str, str]]:
+    try:
+        return read_flight_log(log)
+    except (OSError, KeyError):
+        return []
+
+
+def _setpoints(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    """Flight-log rows in which the agent streamed a setpoint."""
+    return [r for r in rows if r["sp_x_m_s"] != ""]
+
+
+class AgentBug(AssertionError):
+    """A check that fails because of a known agent bug (the test is ``xfail(strict=True, raises=AgentBug)``:
+    any other failure, e.g. of the set-up, still fails the test)."""
+
+
+def _window(data: dict[str, np.ndarray] | None, boot0_s: float, boot1_s: float) -> np.ndarray:
+    """Indices of a ULog topic's samples in ``[boot0_s, boot1_s]`` (PX4's clock)."""
+    if data is None:
+        return np.array([], dtype=int)
+    t = data["timestamp"] / 1e6
+    return np.flatnonzero((t >= boot0_s) & (t <= boot1_s))
+
+
+def _horizontal_m(a, b) -> float:
+    """Horizontal distance between two GLOBAL_POSITION_INT fixes [m]."""
+    dn = (b.lat_deg - a.lat_deg) * 111_320.0
+    de = (b.lon_deg - a.lon_deg) * 111_320.0 * math.cos(math.radians(a.lat_deg))
+    return math.hypot(dn, de)
+
+
+# ---- restart on an airborne vehicle ----------------------------------------------------------------
+@pytest.mark.timeout(240)
+def test_px4_restart_in_the_air_in_the_grounds_hold_changes_no_mode_and_sends_no_setpoint(shared_path, tmp_path,
+                                                                                           map_path):
+    """The ground station arms and takes off (AUTO.TAKEOFF, then PX4's own Hold); ``fisc-agent --go`` started
+    then is ``not-ours``: for 25 s no mode change (every HEARTBEAT AUTO.LOITER, no OFFBOARD nav_state), no
+    setpoint (no offboard_control_mode in PX4's log), and SIH's ground truth moves less than 1 m."""
+    log = tmp_path / "agent1.csv"
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1) as run, GroundStation("px4") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            gcs.arm()
+            gcs.takeoff(2.5)
+            gcs.wait(lambda: gcs.mode() == PX4_HOLD, 20.0, "PX4's own AUTO.LOITER after the take-off")
+            started = time.monotonic()
+            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path)
+            assert poll(lambda: _count(agent, r"-> STANDBY") or not agent.alive, 30.0, 0.1) and agent.alive, \
+                procs.report()
+            standby_after_s = time.monotonic() - started
+            boot0, t0 = gcs.local().boot_s, time.monotonic()
+            time.sleep(WATCH_S)
+            boot1, t1 = gcs.local().boot_s, time.monotonic()
+            assert agent.alive, procs.report()
+        finally:
+            procs.stop_all()
+        after_stop = time.monotonic()
+        time.sleep(2.0)  # the agent's shutdown leaves a vehicle that is not its own alone
+        modes = gcs.modes_between(started)
+        ulog_path = px4_ulog(run, 0)
+    status = ulog_topic(ulog_path, "vehicle_status")
+    ocm = ulog_topic(ulog_path, "offboard_control_mode")
+    truth = ulog_topic(ulog_path, "vehicle_local_position_groundtruth")
+    nav_window = sorted(set(status["nav_state"][_window(status, boot0, boot1)].tolist()))
+    k = _window(truth, boot0, boot1)
+    pos = np.column_stack([truth["x"][k], truth["y"][k], truth["z"][k]])
+    moved_m = float(np.max(np.linalg.norm(pos - pos[0], axis=1)))
+    sp = ulog_topic(ulog_path, "vehicle_local_position_setpoint")   # PX4's own Hold target
+    j = _window(sp, boot0, boot1)
+    target_moved_m = float(np.max(np.hypot(sp["x"][j] - sp["x"][j[0]], sp["y"][j] - sp["y"][j[0]])))
+    rows = _rows(log)
+    report = {"modes_seen_by_ground": modes, "nav_states_in_window": nav_window,
+              "nav_states_whole_log": dedup(status["nav_state"].tolist()), "watched_s": t1 - t0,
+              "px4_clock_window_s": boot1 - boot0, "truth_moved_m": moved_m,
+              "truth_moved_horizontal_m": float(np.max(np.hypot(*(pos[:, :2] - pos[0, :2]).T))),
+              "truth_moved_vertical_m": float(np.max(np.abs(pos[:, 2] - pos[0, 2]))), "truth_samples": len(k),
+              "hold_target_moved_m": target_moved_m,
+              "offboard_control_mode_samples": 0 if ocm is None else len(ocm["timestamp"]),
+              "agent_standby_after_s": standby_after_s, "agent_states": dedup(r["state"] for r in rows),
+              "agent_setpoint_rows": len(_setpoints(rows))}
+    print(json.dumps(report))
+    assert t1 - t0 >= WATCH_S and after_stop > t1 and len(k) > 100, report
+    assert modes == ["AUTO.LOITER"], report                       # the ground's Hold, every HEARTBEAT
+    assert nav_window == [PX4_NAV_AUTO_LOITER], report
+    assert PX4_NAV_OFFBOARD not in status["nav_state"], report    # never OFFBOARD, in the whole flight
+    assert ocm is None or len(ocm["timestamp"]) == 0, report      # PX4 received no offboard setpoint
+    assert target_moved_m < 0.05, report   # PX4's Hold target stayed put: nobody asked the vehicle to move
+    assert moved_m < MAX_HOLD_WANDER_M, report
+    assert report["agent_setpoint_rows"] == 0 and set(report["agent_states"]) <= {"WAIT_POSITION", "STANDBY"}, report
+    assert rows[-1]["reason"].startswith("vehicle armed by someone else: not ours"), rows[-1]
+    assert "-> not-ours" in _console(agent), _console(agent)[-2000:]
+
+
+@pytest.mark.timeout(300)
+def test_arducopter_restart_while_the_ground_lands_it_keeps_landing_where_the_ground_said(shared_path, tmp_path,
+                                                                                           map_path):
+    """The ground takes off in GUIDED and switches to LAND at 5 m; ``fisc-agent --go`` started then changes no
+    mode: the DataFlash log has no GUIDED after LAND, the vehicle lands within 1 m of where LAND was
+    commanded, and the withdrawn go does not re-arm it once landed."""
+    log = tmp_path / "agent1.csv"
+    with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1) as run, GroundStation("ardupilot") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            gcs.set_mode(COPTER_GUIDED)
+            gcs.arm(timeout_s=60.0)  # ArduCopter arms once its EKF uses GPS (README: 36-41 s after start)
+            gcs.takeoff(5.0)
+            land_seen = gcs.set_mode(COPTER_LAND)
+            at_land = gcs.global_fix()
+            agent = _agent(procs, "agent1", log, "ardupilot", "--go", "--map", map_path)
+            gcs.wait(lambda: not gcs.armed(), 60.0, "disarmed after the ground's LAND")
+            landed, disarmed_at = gcs.global_fix(), time.monotonic()
+            saw_not_ours = _count(agent, r"-> not-ours")
+            time.sleep(5.0)  # on the ground, disarmed: the go was withdrawn, nothing re-arms it
+            assert agent.alive, procs.report()
+        finally:
+            procs.stop_all()
+        modes, texts = dataflash_modes_and_texts(dataflash_log(run, 0))
+        ground_modes = gcs.modes_between(land_seen)
+        rearmed = any(b.armed for b in gcs.beats_between(disarmed_at))
+    rows = _rows(log)
+    report = {"dataflash_modes": modes, "modes_seen_by_ground_after_land": ground_modes,
+              "land_to_disarm_s": disarmed_at - land_seen, "landed_from_land_point_m": _horizontal_m(at_land, landed),
+              "land_commanded_at_m": at_land.rel_alt_m, "agent_states": dedup(r["state"] for r in rows),
+              "agent_setpoint_rows": len(_setpoints(rows)), "rearmed": rearmed}
+    print(json.dumps(report))
+    assert COPTER_LAND in modes and COPTER_GUIDED not in modes[modes.index(COPTER_LAND):], report
+    assert ground_modes == ["LAND"] and not rearmed, report
+    assert report["landed_from_land_point_m"] < 1.0, report
+    assert saw_not_ours and report["agent_setpoint_rows"] == 0, (report, _console(agent)[-2000:])
+    assert not any("Crash" in t for t in texts), texts
+
+
+# ---- no arming without a go; the ground takes over in every state ----------------------------------
+def _fleet(g, *args) -> None:
+    ok(run_cli(ground("cmd", *args, "--swarm", SWARM, "--zenoh-config", g.member, "--key", g.ground_key,
+                      "--ack-wait", 0)))
+
+
+def _status(g) -> dict:
+    out = ok(run_cli(ground("status", "--swarm", SWARM, "--zenoh-config", g.member, "--json", "--wait", 1.5)))
+    agents = [a for a in json.loads(out)["agents"] if a["id"] == 1]
+    return agents[0] if agents else {}
+
+
+def _hands_off_for_good(gcs: GroundStation, g, agent, state: str, ground_mode: int, changed_s: float) -> dict:
+    """After the ground changed the mode (seen at ``changed_s``) while the agent was in ``state``: the agent
+    says hands-off in that state, the ground's mode stays, a swarm-wide resume changes nothing, and
+    ``resume --agents 1`` gives the vehicle back (OFFBOARD within 10 s).  Returns the measurements."""
+    name = {PX4_HOLD: "AUTO.LOITER", PX4_LAND: "AUTO.LAND", PX4_TAKEOFF: "AUTO.TAKEOFF"}[ground_mode]
+    said = poll(lambda: re.search(rf"pilot override: mode changed to \w+ in {state}, hands off", _console(agent)),
+                5.0, 0.1)
+    assert said, f"the agent did not go hands-off in {state}: {_console(agent)[-2500:]}"
+    time.sleep(HANDS_OFF_WATCH_S)
+    n_resume = _count(agent, r"fleet command resume \(swarm-wide\)")
+    _fleet(g, "resume")
+    assert poll(lambda: _count(agent, r"fleet command resume \(swarm-wide\)") > n_resume, 10.0, 0.1), \
+        _console(agent)[-2000:]
+    time.sleep(HANDS_OFF_WATCH_S)
+    before_given_back = time.monotonic()
+    held = gcs.modes_between(changed_s, before_given_back)
+    assert held == [name], (state, held)
+    _fleet(g, "resume", "--agents", 1)
+    back = gcs.wait(lambda: (lambda b: b if b and b.custom_mode == PX4_OFFBOARD else None)(gcs.last_beat()),
+                    10.0, f"OFFBOARD after resume --agents 1 (hands-off in {state})")
+    return {"state": state, "ground_mode_kept": held, "kept_s": before_given_back - changed_s,
+            "given_back_after_s": back.t_s - before_given_back}
+
+
+@pytest.mark.timeout(480)
+def test_px4_no_arming_without_a_go_and_the_ground_takes_over_in_arm_takeoff_flow_and_a_fleet_hold(shared_path,
+                                                                                                  tmp_path):
+    """One PX4 vehicle, agents on Zenoh with the signed map.
+
+    ARM: an agent with ``--go``; the ground switches to AUTO.TAKEOFF while it arms: hands-off in ARM, the
+    vehicle stays disarmed in the ground's mode, no resume arms it.  Then a fresh agent without ``--go``
+    waits 15 s (disarmed, STANDBY, telemetry ``waiting``) until a signed ``go`` arms it.  TAKEOFF, FLOW and
+    the fleet hold (after the agent's own AUTO.LOITER, the ground picks AUTO.LAND): each time hands-off,
+    the ground's mode stays through a swarm-wide ``resume``, and ``resume --agents 1`` gives it back.
+    PX4's ULog: the nav_state sequence is exactly the agent's and the ground's changes, nothing else."""
+    d = tmp_path
+    g = signed_map_on_zenoh(d)
+    zenoh = ["--swarm", SWARM, "--zenoh-config", g.member, "--trusted-key", g.ground_pub]
+    report: dict = {}
+    with Px4Sitl(shared_path("sitl", "px4"), d, 1, params=PX4_TUNED_PARAMS) as run, GroundStation("px4") as gcs:
+        procs = Processes(d / "logs")
+        try:
+            procs.start("publisher", ground("publish", g.served, "--swarm", SWARM, "--zenoh-config", g.hub))
+            gcs.connect()
+            # -- ARM: the ground changes the mode while the agent arms ---------------------------------
+            first = _agent(procs, "agent_arm", d / "agent_arm.csv", "px4", "--go", "--state-file", "off", *zenoh)
+            assert poll(lambda: _count(first, r"mission \w+ -> ARM") or not first.alive, 90.0, 0.02), procs.report()
+            changed = gcs.set_mode(PX4_TAKEOFF)
+            said = poll(lambda: re.search(r"pilot override: mode changed to \w+ in (\w+), hands off",
+                                          _console(first)), 5.0, 0.1)
+            assert said, _console(first)[-2500:]
+            time.sleep(HANDS_OFF_WATCH_S)
+            _fleet(g, "resume")
+            _fleet(g, "resume", "--agents", 1)
+            assert poll(lambda: _count(first, r"fleet command resume \(addressed\)"), 10.0, 0.1), _console(first)
+            time.sleep(HANDS_OFF_WATCH_S)
+            beats = gcs.beats_between(changed)
+            report["arm"] = {"hands_off_in": said.group(1), "modes": gcs.modes_between(changed),
+                             "armed_beats": sum(b.armed for b in beats), "watched_s": beats[-1].t_s - changed}
+            assert said.group(1) == "ARM" and report["arm"]["modes"] == ["AUTO.TAKEOFF"], report
+            assert report["arm"]["armed_beats"] == 0, report
+            procs.stop(first)
+            gcs.set_mode(PX4_HOLD)  # the ground puts its vehicle back as it was
+            # -- no arming without a go --------------------------------------------------------------
+            agent = _agent(procs, "agent1", d / "agent1.csv", "px4", "--takeoff-alt", 5.0, *NO_WINDOWS, *zenoh)
+            assert poll(lambda: _count(agent, r"-> STANDBY") or not agent.alive, 90.0, 0.1), procs.report()
+            waited = time.monotonic()
+            telemetry = _status(g)
+            time.sleep(max(0.0, 15.0 - (time.monotonic() - waited)))
+            beats = gcs.beats_between(waited)
+            report["no_go"] = {"watched_s": beats[-1].t_s - waited, "armed_beats": sum(b.armed for b in beats),
+                               "modes": gcs.modes_between(waited), "state": telemetry.get("state"),
+                               "authority": telemetry.get("authority")}
+            assert report["no_go"]["watched_s"] >= 14.0 and report["no_go"]["armed_beats"] == 0, report
+            assert report["no_go"]["modes"] == ["AUTO.LOITER"], report
+            assert (telemetry.get("state"), telemetry.get("authority")) == ("STANDBY", "waiting"), telemetry
+            go = time.monotonic()
+            _fleet(g, "go")
+            report["go_to_armed_s"] = gcs.wait(lambda: (lambda b: b if b and b.armed else None)(gcs.last_beat()),
+                                               20.0, "armed after the signed go").t_s - go
+            # -- TAKEOFF -----------------------------------------------------------------------------
+            # taken above 3 m of the agent's 5, in TAKEOFF: PX4 detects a Hold just above the ground as landed
+            # and disarms; near 2 m EKF2 resets its position once, which holds the agent for 2 s (a jump hold)
+            gcs.wait(lambda: gcs.global_fix().rel_alt_m > 3.0 and _last_state(agent) == "TAKEOFF", 20.0,
+                     "3 m into the agent's take-off")
+            report["takeoff"] = _hands_off_for_good(gcs, g, agent, "TAKEOFF", PX4_HOLD, gcs.set_mode(PX4_HOLD))
+            # -- FLOW --------------------------------------------------------------------------------
+            n_flow = _count(agent, r"-> FLOW")
+            assert poll(lambda: _count(agent, r"-> FLOW") > n_flow, 90.0, 0.05), _console(agent)[-2000:]
+            changed = gcs.set_mode(PX4_HOLD)
+            telemetry = poll(lambda: (lambda s: s if s.get("authority") == "hands-off" else None)(_status(g)), 10.0, 0)
+            report["flow"] = _hands_off_for_good(gcs, g, agent, "FLOW", PX4_HOLD, changed)
+            report["flow"]["telemetry_authority"] = (telemetry or {}).get("authority")
+            assert telemetry, "telemetry never said hands-off"
+            # -- a fleet hold: the agent's own AUTO.LOITER, then the ground lands -----------------------
+            _fleet(g, "hold")
+            gcs.wait(lambda: gcs.mode() == PX4_HOLD, 15.0, "the agent's AUTO.LOITER in the fleet hold")
+            report["hold"] = _hands_off_for_good(gcs, g, agent, "HOLD", PX4_LAND, gcs.set_mode(PX4_LAND))
+            assert agent.alive, procs.report()
+        finally:
+            procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
+        nav = dedup(ulog_topic(px4_ulog(run, 0), "vehicle_status")["nav_state"].tolist())
+    report["nav_states"] = nav
+    print(json.dumps(report, default=str))
+    # PX4 logs from boot: Hold on the ground / the ground's AUTO.TAKEOFF in ARM (no OFFBOARD before it) / the
+    # ground's Hold back / OFFBOARD (the go) / the ground's Hold in TAKEOFF / given back / the ground's Hold in
+    # FLOW / given back / the agent's fleet hold / the ground's Land / given back / the shutdown hold (SIGTERM)
+    expected = [PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_TAKEOFF, PX4_NAV_AUTO_LOITER, PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LOITER,
+                PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LOITER, PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_LAND,
+                PX4_NAV_OFFBOARD]
+    assert nav[:len(expected)] == expected and nav[len(expected):] in ([], [PX4_NAV_AUTO_LOITER]), report
+
+
+# ---- a link loss during which PX4's failsafe lands ----------------------------------------------------
+LOST_S = 6.0
+"""How long the link is gone: longer than PX4's COM_OF_LOSS_T (0.5 s here) and the agent's --link-timeout (3 s)."""
+
+LOST_AT_M = 6.0
+"""Height above home at which the link is lost [m] (the agent joins the map 10 m above its start)."""
+
+FROZEN_AGENT_BUG = (
+    "agent bug (issue 36 'never override a failsafe's Land'): a frozen agent (SIGSTOP 6 s in JOIN) resumes "
+    "streaming setpoints from its stale view before it reads a fresh HEARTBEAT: its first polls after the stall "
+    "drain the UDP backlog from before the failsafe and stamp those HEARTBEATs (OFFBOARD) with the current time, "
+    "so the link looks alive and the mode unchanged.  PX4's offboard-loss Land is a mode *fallback* "
+    "(Failsafe::checkModeFallback: nav_state_user_intention stays OFFBOARD), which PX4 clears by itself as soon "
+    "as the offboard setpoint stream returns.  Measured twice: ULog nav_state OFFBOARD -> AUTO_LAND (0.8-1.4 s "
+    "after the stop) -> OFFBOARD 0.1-0.8 s after SIGCONT, with no mode request from the agent, which never saw "
+    "AUTO.LAND (6 setpoint rows in JOIN after SIGCONT); one run flew on through FLOW to its exit hold, the other "
+    "held on a 3.5 m 'position jump' (stale backlog fix vs fresh fix).  Fix: after a tick gap or a heartbeat gap "
+    "longer than --link-timeout, send no setpoint until a HEARTBEAT received after the gap (not from the backlog) "
+    "confirms OFFBOARD/GUIDED.")
+
+
+def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str) -> dict:
+    """Fly with PX4's offboard-loss action Land; in JOIN, lose the agent's link for ``LOST_S`` (``how``:
+    ``cut``, a relay drops every datagram both ways while both ends run; ``freeze``, SIGSTOP the agent),
+    then restore it and watch PX4 until it has landed and disarmed.  Returns the measurements."""
+    log = tmp_path / "agent1.csv"
+    params = {**PX4_TUNED_PARAMS, "COM_OBL_RC_ACT": 4, "COM_OF_LOSS_T": 0.5}  # 4: Land (PX4 commander params)
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run, GroundStation("px4") as gcs, \
+            LinkCut(14540) as link:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, *NO_WINDOWS, port=link.agent_port)
+            assert poll(lambda: _count(agent, r"-> JOIN") or not agent.alive, 90.0, 0.05) and agent.alive, \
+                procs.report()
+            # high enough that PX4's Land is still under way when the link returns (from 2.5 m it had landed)
+            gcs.wait(lambda: gcs.global_fix().rel_alt_m > LOST_AT_M, 30.0, f"{LOST_AT_M} m in the agent's join")
+            if how == "freeze":
+                os.killpg(agent.popen.pid, signal.SIGSTOP)
+            else:
+                link.down = True
+            lost = time.monotonic()
+            landing = gcs.wait(lambda: (lambda b: b if b and b.custom_mode == PX4_LAND else None)(gcs.last_beat()),
+                               10.0, "PX4's failsafe AUTO.LAND")
+            time.sleep(max(0.0, LOST_S - (time.monotonic() - lost)))
+            height_back_m, boot_back = gcs.global_fix().rel_alt_m, gcs.local().boot_s
+            if how == "freeze":
+                os.killpg(agent.popen.pid, signal.SIGCONT)
+            else:
+                link.down = False
+            back, back_wall = time.monotonic(), time.time()
+
+            def landed_or_taken_back():
+                b = gcs.last_beat()
+                if b is not None and not b.armed:
+                    return b
+                # OFFBOARD while armed after the link is back: the failsafe was overridden, no need to wait on
+                return "offboard" if any(x.armed and x.custom_mode == PX4_OFFBOARD
+                                         for x in gcs.beats_between(back)) else None
+
+            ended = poll(landed_or_taken_back, 40.0, 0.05)
+            disarmed = ended if ended != "offboard" else None
+            end = disarmed.t_s if disarmed else time.monotonic()
+            if disarmed:
+                time.sleep(3.0)
+            # the agent ends its flight once the vehicle is disarmed (DONE, exit 0); it must not have crashed
+            assert agent.alive or agent.popen.returncode == 0, procs.report()
+        finally:
+            procs.stop_all()
+        ground_modes = dedup(mode_name(b.custom_mode, "px4") for b in gcs.beats_between(landing.t_s, end) if b.armed)
+        rearmed = bool(disarmed) and any(b.armed for b in gcs.beats_between(disarmed.t_s))
+        ulog_path = px4_ulog(run, 0)
+    status = ulog_topic(ulog_path, "vehicle_status")
+    ocm = ulog_topic(ulog_path, "offboard_control_mode")
+    nav = status["nav_state"]
+    first_land = int(np.flatnonzero(nav == PX4_NAV_AUTO_LAND)[0])
+    changes = [(round(float(t) / 1e6, 2), int(n)) for k, (t, n) in enumerate(zip(status["timestamp"], nav))
+               if k == 0 or n != nav[k - 1]]
+    back_rows = [r for r in _rows(log) if float(r["wall_time_s"]) > back_wall]
+    return {"how": how, "nav_states": dedup(nav.tolist()), "nav_changes_px4_s": changes,
+            "after_failsafe_armed": dedup(nav[first_land:][status["arming_state"][first_land:] == 2].tolist()),
+            "ground_modes_armed_from_landing": ground_modes,
+            "lost_to_land_s": landing.t_s - lost, "back_to_disarm_s": (disarmed.t_s - back) if disarmed else None,
+            "height_when_back_m": height_back_m, "link_back_at_px4_s": boot_back, "rearmed": rearmed,
+            "setpoints_after_back": 0 if ocm is None else int(np.sum(ocm["timestamp"] / 1e6 > boot_back + 0.5)),
+            "agent_states_after_back": dedup(r["state"] for r in back_rows),
+            "agent_reasons_after_back": dedup(r["reason"] for r in back_rows)[:3],
+            "agent_setpoint_rows_after_back": len(_setpoints(back_rows)), "dropped_datagrams": link.dropped}
+
+
+def _assert_kept_landing(r: dict) -> None:
+    # from the failsafe to the disarm only AUTO_LAND (once disarmed PX4 itself shows the user's intention,
+    # OFFBOARD, again: its offboard-loss Land is a mode fallback, Failsafe::checkModeFallback)
+    assert r["after_failsafe_armed"] == [PX4_NAV_AUTO_LAND], r
+    assert r["ground_modes_armed_from_landing"] == ["AUTO.LAND"] and r["back_to_disarm_s"] is not None, r
+    assert not r["rearmed"], r
+    assert r["setpoints_after_back"] == 0 and r["agent_setpoint_rows_after_back"] == 0, r
+    assert r["height_when_back_m"] > 0.5, r   # the link came back while the vehicle was still in the air
+
+
+@pytest.mark.timeout(240)
+def test_px4_failsafe_land_during_a_link_cut_is_not_overridden_when_the_link_returns(shared_path, tmp_path,
+                                                                                      map_path):
+    """COM_OBL_RC_ACT = 4 (Land), COM_OF_LOSS_T = 0.5 s.  The link between agent and PX4 is cut for 6 s while
+    the agent joins the map (both keep running): PX4 lands.  When the link returns the vehicle keeps landing:
+    no OFFBOARD after the failsafe (ULog nav_state and every HEARTBEAT), no setpoint after the link is back
+    (offboard_control_mode, the agent's log), disarmed on the ground and not re-armed."""
+    r = _failsafe_land_flight(shared_path, tmp_path, map_path, "cut")
+    print(json.dumps(r))
+    _assert_kept_landing(r)
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.xfail(strict=True, raises=AgentBug, reason=FROZEN_AGENT_BUG)
+def test_px4_failsafe_land_while_the_agent_is_frozen_is_not_overridden_when_it_runs_again(shared_path, tmp_path,
+                                                                                           map_path):
+    """As the link cut, but the agent itself stalls (SIGSTOP for 6 s, then SIGCONT): a companion computer
+    that hangs.  PX4 lands; when the agent runs again the vehicle must keep landing."""
+    r = _failsafe_land_flight(shared_path, tmp_path, map_path, "freeze")
+    print(json.dumps(r))
+    assert r["lost_to_land_s"] < 5.0 and r["height_when_back_m"] > 0.5, r   # the set-up itself: real failures
+    try:
+        _assert_kept_landing(r)
+    except AssertionError as exc:
+        raise AgentBug(str(exc)) from None
+
+
+# ---- vehicle health: a draining battery ends the laps at the exit -------------------------------------
+MIN_BATTERY_PCT = 60.0
+BATTERY_DRAIN_S = 80.0
+"""PX4's battery simulator (``battery_simulator``, SIM_BAT_ENABLE) drains a full battery in SIM_BAT_DRAIN
+seconds while armed, down to SIM_BAT_MIN_PCT: 80 s puts 60 % about 32 s after arming, inside the first
+pass (flown 23-43 s after arming on this host)."""
+
+
+@pytest.mark.timeout(240)
+def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tmp_path, map_path):
+    """``--exit-policy loop --laps 0`` (no limit) and ``--min-battery 60``; PX4's simulated battery drains
+    (SIM_BAT_DRAIN 80 s, floor SIM_BAT_MIN_PCT 20 %).  The agent finishes the pass it is in, flies to its
+    exit point and lands there (``--low-battery-action land``): PX4's ULog shows the agent's AUTO.LAND past
+    the outlet with battery_status below 60 %, then the disarm; no pass starts below 60 %."""
+    log = tmp_path / "agent1.csv"
+    params = {**PX4_TUNED_PARAMS, "SIM_BAT_DRAIN": BATTERY_DRAIN_S, "SIM_BAT_MIN_PCT": 20.0}
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run, GroundStation("px4") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, *NO_WINDOWS, "--exit-policy", "loop",
+                           "--laps", 0, "--min-battery", MIN_BATTERY_PCT, "--low-battery-action", "land")
+            assert poll(lambda: gcs.armed() or not agent.alive, 60.0, 0.1), procs.report()
+            disarmed = poll(lambda: (lambda b: b if b and not b.armed else None)(gcs.last_beat()) or
+                            (None if agent.alive else "agent exited"), 150.0, 0.2)
+            assert disarmed and disarmed != "agent exited", procs.report()
+            assert poll(lambda: not agent.alive, 10.0, 0.2), procs.report()  # its flight is over: DONE
+        finally:
+            procs.stop_all()
+        ulog_path = px4_ulog(run, 0)
+    status, battery = ulog_topic(ulog_path, "vehicle_status"), ulog_topic(ulog_path, "battery_status")
+    truth = ulog_topic(ulog_path, "vehicle_local_position_groundtruth")
+    nav, t_nav = status["nav_state"], status["timestamp"]
+    first_land = int(np.flatnonzero(nav == PX4_NAV_AUTO_LAND)[0])
+
+    def at(data, key, t_us):
+        return float(data[key][min(np.searchsorted(data["timestamp"], t_us), len(data[key]) - 1)])
+
+    console = _console(agent)
+    low = re.search(r"battery (\d+) % below (\d+) % after lap (\d+): to the exit, then land", console)
+    passes = len(re.findall(r"-> FLOW", console))
+    report = {"nav_states": dedup(nav.tolist()), "agent_states": dedup(r["state"] for r in _rows(log)),
+              "low_battery_line": low.group(0) if low else None, "passes_started": passes,
+              "battery_at_land_pct": 100 * at(battery, "remaining", t_nav[first_land]),
+              "x_at_land_m": at(truth, "x", t_nav[first_land]), "z_at_land_m": at(truth, "z", t_nav[first_land]),
+              "land_to_disarm_s": (t_nav[-1] - t_nav[first_land]) / 1e6, "exit_code": agent.popen.returncode}
+    print(json.dumps(report))
+    assert low and int(low.group(3)) == passes, report            # the pass in progress finished, no new one
+    assert report["nav_states"][-2:] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND] or \
+        report["nav_states"][-3:-1] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND], report   # the agent's land
+    assert report["battery_at_land_pct"] < MIN_BATTERY_PCT and report["x_at_land_m"] > 15.0, report  # at the exit
+    assert report["agent_states"][-3:] == ["EXIT", "LAND", "DONE"] and report["exit_code"] == 0, report
+
+
+# ---- vehicle health: a GPS glitch makes the agent hold, then recover ------------------------------------
+GLITCH_DEG = 0.0003
+"""SIM_GPS1_GLTCH_X: ArduPilot's SITL adds it to the simulated fix's latitude in degrees (SIM_GPS.cpp): about
+33 m north, beyond EKF3's EK3_GLITCH_RAD (25 m), so EKF3 reports the glitch ("GPS Glitch or Compass error")."""
+
+GLITCH_NEVER_RECOVERS = (
+    "agent bug (issue 36 item 4 'resume only on a consistent track'; mission.py's docstring: a position-jump "
+    "hold 'resumes by itself once the fix is good again'): a real EKF3 GPS glitch lasts longer than --hold-grace "
+    "(measured: flagged 'GNSS glitch' 38.9 s, 'Glitch cleared' 53.7 s, integrity OK 55.9 s for a 6 s glitch), so "
+    "the POSITION_JUMP hold escalates to BRAKE after 2 s, and Mission._hold_output latches every escalated hold "
+    "(_hold_latched = True), which the auto-resume branch (hold_cause in AUTO_RESUMING and not _hold_latched) "
+    "then refuses: DataFlash GUIDED -> BRAKE and never GUIDED again; the agent stays in HOLD until a fleet resume.")
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.xfail(strict=True, raises=AgentBug, reason=GLITCH_NEVER_RECOVERS)
+def test_arducopter_gps_glitch_makes_the_agent_hold_then_recover(shared_path, tmp_path, map_path):
+    """One ArduCopter flown by ``fisc-agent --go``; in FLOW the ground sets SIM_GPS1_GLTCH_X (about 33 m) for
+    5 s, then clears it.  The agent holds on the estimator's GNSS-glitch flag (EKF_STATUS_REPORT), and once
+    the track is consistent again it flies on: DataFlash GUIDED, the hold (BRAKE), GUIDED again."""
+    log = tmp_path / "agent1.csv"
+    with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1) as run, GroundStation("ardupilot") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "ardupilot", "--go", "--map", map_path, *NO_WINDOWS)
+            assert poll(lambda: _count(agent, r"-> FLOW") or not agent.alive, 150.0, 0.1), procs.report()
+            time.sleep(2.0)
+            glitched = time.monotonic()
+            gcs.set_param("SIM_GPS1_GLTCH_X", GLITCH_DEG)
+            time.sleep(5.0)
+            gcs.set_param("SIM_GPS1_GLTCH_X", 0.0)
+            held = poll(lambda: re.search(r"FLOW -> HOLD \(position jump: ([^)]*)\)", _console(agent)), 5.0, 0.1)
+            n_ok = _count(agent, r"position integrity OK again")
+            consistent = poll(lambda: _count(agent, r"position integrity OK again") > n_ok, 40.0, 0.2)
+            after = len(_console(agent))
+            recovered = poll(lambda: re.search(r"HOLD -> (FLOW|RETURN|JOIN|EXIT) ", _console(agent)[after:]), 10.0, 0.2)
+            ground_modes = gcs.modes_between(glitched)
+            assert agent.alive, procs.report()
+        finally:
+            procs.stop_all()
+        modes, _ = dataflash_modes_and_texts(dataflash_log(run, 0))
+    report = {"hold_reason": held.group(1) if held else None, "integrity_ok_again": bool(consistent),
+              "recovered_to": recovered.group(1) if recovered else None, "ground_modes_from_glitch": ground_modes,
+              "dataflash_modes": modes, "agent_states": dedup(r["state"] for r in _rows(log))}
+    print(json.dumps(report))
+    assert held and "glitch" in held.group(1).lower(), report          # the hold: a real failure if missing
+    assert consistent and ground_modes[:2] == ["GUIDED", "BRAKE"], report
+    if not (recovered and "GUIDED" in ground_modes[2:]):
+        raise AgentBug(f"no recovery after the glitch: {report}")
