@@ -37,7 +37,8 @@ class FlightScore:
     crossed: bool
     """The pass reached x > x_hi in FLOW/EXIT without a hold before it."""
     held: bool
-    """A HOLD began before the pass crossed (geofence, failsafe, fleet hold)."""
+    """A HOLD began during the pass, after it entered the flow and before it crossed (geofence, failsafe,
+    fleet hold); a hold before the entry (a take-off's position-jump hold) is not part of the pass."""
     max_excursion_m: float
     """Largest distance outside the wall for x_lo <= x <= x_hi (negative: always inside) [m]."""
     velocity_nrmse: float
@@ -71,7 +72,7 @@ def score_track(time_s: np.ndarray, pos_m: np.ndarray, vel_m_s: np.ndarray, stat
     exc = r[scored] - wall.radius_at(x[scored])
     max_exc = float(exc.max()) if exc.size else math.nan
     crossed_idx = np.flatnonzero((x > x_hi_m) & np.isin(states, ("FLOW", "EXIT")))
-    hold_idx = np.flatnonzero(states == "HOLD")
+    hold_idx = np.flatnonzero((states == "HOLD") & after_entry)
     first_cross = int(crossed_idx[0]) if crossed_idx.size else None
     held = bool(hold_idx.size and (first_cross is None or hold_idx[0] < first_cross))
     crossed = first_cross is not None and not held

@@ -1,0 +1,47 @@
+"""``score_track``: what counts as a pass, a hold during it and a crossing (pure, synthetic tracks)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fisc_ground.fields.flight_score import score_track
+from fisc_ground.reference.builtin import load_builtin
+
+
+@pytest.fixture(scope="module")
+def ref():
+    return load_builtin("cd_nozzle_inviscid")
+
+
+def track(states: list[str], x: list[float]):
+    n = len(states)
+    t = np.arange(n, dtype=float)
+    pos = np.column_stack([np.asarray(x, float), np.zeros(n), np.zeros(n)])
+    vel = np.column_stack([np.full(n, 1.0), np.zeros(n), np.zeros(n)])
+    return t, pos, vel, np.asarray(states)
+
+
+def test_a_hold_before_the_entry_is_not_part_of_the_pass(ref):
+    t, pos, vel, st = track(["TAKEOFF", "HOLD", "TAKEOFF", "JOIN", "FLOW", "FLOW", "FLOW", "EXIT"],
+                            [-3, -3, -3, -1, 1, 8, 14, 16])
+    s = score_track(t, pos, vel, st, ref, 0.5)
+    assert s.crossed and not s.held and s.crossing_time_s == pytest.approx(3.0)
+
+
+def test_a_hold_in_the_flow_before_the_crossing_is_held(ref):
+    t, pos, vel, st = track(["JOIN", "FLOW", "HOLD", "FLOW", "FLOW", "EXIT"], [-1, 1, 2, 3, 14, 16])
+    s = score_track(t, pos, vel, st, ref, 0.5)
+    assert s.held and not s.crossed
+
+
+def test_a_hold_after_the_crossing_is_the_exit_hold(ref):
+    t, pos, vel, st = track(["JOIN", "FLOW", "FLOW", "EXIT", "HOLD"], [-1, 1, 14, 16, 17])
+    s = score_track(t, pos, vel, st, ref, 0.5)
+    assert s.crossed and not s.held
+
+
+def test_no_entry_no_crossing(ref):
+    t, pos, vel, st = track(["TAKEOFF", "HOLD", "JOIN"], [-3, -3, -1])
+    s = score_track(t, pos, vel, st, ref, 0.5)
+    assert not s.crossed and not s.held and s.n_samples == 0
