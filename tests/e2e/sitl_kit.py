@@ -226,13 +226,14 @@ class Px4Sitl(_SitlSet):
 
 
 class ArduPilotSitl(_SitlSet):
-    """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters whose pre-arm checks pass."""
+    """``with ArduPilotSitl(shared/sitl/ardupilot, tmp, n) as run:`` N ArduCopters whose pre-arm checks pass;
+    ``params`` are set at boot on every instance (start.sh's ``SITL_EXTRA_PARAMS``)."""
 
     def __init__(self, shared_ap: Path, work: Path, n: int = 1, spacing_m: float | None = None,
-                 ready_timeout_s: float = 90.0) -> None:
+                 ready_timeout_s: float = 90.0, params: dict[str, float] | None = None) -> None:
         self.shared = shared_ap
         self.run_dir = work / "ap-run"
-        self.n, self.spacing_m = n, spacing_m
+        self.n, self.spacing_m, self.params = n, spacing_m, dict(params or {})
         self.ready_timeout_s = ready_timeout_s
         self._lock = MachineLock()
 
@@ -240,6 +241,8 @@ class ArduPilotSitl(_SitlSet):
         env = dict(os.environ, AP_SITL_RUN=str(self.run_dir))
         if self.spacing_m is not None:
             env["SITL_SPACING_M"] = str(self.spacing_m)
+        if self.params:  # start.sh: boot-time parameters of every instance (SIM_BATT_* only act at boot)
+            env["SITL_EXTRA_PARAMS"] = " ".join(f"{k}={v}" for k, v in self.params.items())
         return env
 
     def _start(self) -> SitlRun:

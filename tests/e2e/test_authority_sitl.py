@@ -28,7 +28,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fisc_agent.flight.control import MapGeometry
 from fisc_agent.flight.flightlog import read_flight_log
+from fisc_agent.map.codec import load_map
+from fisc_agent.map.lookup import CommandField
 
 from .conftest import Processes, cli, poll, run_cli
 from .ground_station import (COPTER_GUIDED, COPTER_LAND, PX4_HOLD, PX4_LAND, PX4_NAV_AUTO_LAND,
@@ -506,6 +509,96 @@ def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tm
     assert report["nav_states"][-2:] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND] or \
         report["nav_states"][-3:-1] == [PX4_NAV_OFFBOARD, PX4_NAV_AUTO_LAND], report   # the agent's land
     assert report["battery_at_land_pct"] < MIN_BATTERY_PCT and report["x_at_land_m"] > 15.0, report  # at the exit
+    assert report["agent_states"][-3:] == ["EXIT", "LAND", "DONE"] and report["exit_code"] == 0, report
+
+
+AP_MIN_BATTERY_PCT = 75.0
+AP_BATT_CAPACITY_MAH = 700.0
+"""ArduCopter's reported battery (BATT_MONITOR 4, copter.parm) is 100 * (1 - used mAh / BATT_CAPACITY); its SITL
+quad draws 23-31 A while flying (DataFlash BAT.Curr, 2026-12-05), about 7.8 mAh/s: 700 mAh, set at boot,
+puts 75 % about 25 s after arming, inside the first pass (flown 15-35 s after arming on this host), and
+leaves about 36 % at the disarm.  SIM_BATT_CAP_AH is not set: in this build the quad's simulated voltage
+stayed at SIM_BATT_VOLTAGE (12.60 V) over 706 mAh with SIM_BATT_CAP_AH 1.0 set at boot, so only
+BATT_CAPACITY drives the percentage (BATTERY_STATUS.battery_remaining, SYS_STATUS)."""
+
+
+def _dataflash_series(path: Path) -> dict[str, list[tuple[float, float]]]:
+    """(boot s, value) series of an ArduPilot DataFlash log: ``mode`` (MODE.Mode), ``battery_pct``
+    (BAT.RemPct), ``north_m`` (XKF1.PN of the primary core) and ``armed`` (ARM.ArmState)."""
+    from pymavlink import DFReader
+
+    log = DFReader.DFReader_binary(str(path))
+    out: dict[str, list[tuple[float, float]]] = {"mode": [], "battery_pct": [], "north_m": [], "armed": []}
+    while True:
+        m = log.recv_match(type=["MODE", "BAT", "XKF1", "ARM"])
+        if m is None:
+            return out
+        t, kind = m.TimeUS / 1e6, m.get_type()
+        if kind == "MODE":
+            out["mode"].append((t, float(m.Mode)))
+        elif kind == "BAT":
+            out["battery_pct"].append((t, float(m.RemPct)))
+        elif kind == "XKF1" and m.C == 0:
+            out["north_m"].append((t, float(m.PN)))
+        elif kind == "ARM":
+            out["armed"].append((t, float(m.ArmState)))
+
+
+def _at(series: list[tuple[float, float]], t_s: float) -> float:
+    """The last value of ``series`` at or before ``t_s`` (the first one if none is)."""
+    before = [v for t, v in series if t <= t_s]
+    return before[-1] if before else series[0][1]
+
+
+@pytest.mark.timeout(300)
+def test_arducopter_battery_below_min_ends_the_laps_at_the_exit(shared_path, tmp_path, map_path):
+    """``--exit-policy loop --laps 0`` (no limit) and ``--min-battery 75``; ArduCopter's reported battery drains
+    (BATT_CAPACITY 700 mAh at boot).  The agent finishes the pass it is in, flies to its exit point and
+    lands there: ArduCopter's DataFlash log shows GUIDED, then the agent's LAND past the outlet with BAT.RemPct
+    below 75 %, then the disarm; no pass starts below 75 %; the agent exits 0.
+
+    Measured (2026-12-05, this 2-core host, another SITL test run waiting on the lock): BAT.RemPct crossed 75 %
+    about 25 s after arming, inside the first pass (FLOW 14.6-34.7 s after arming).  Run 1: "battery 64 % below
+    75 % after lap 1", LAND at 61 % and x 16.78 m (outlet 15 m), disarm 22.8 s after LAND, arm to disarm
+    59.9 s, 104 s from the SITL start to the end.  Run 2: 64 %, LAND at 61 % and x 16.77 m, 22.8 s, 60.0 s,
+    104 s."""
+    x_outlet_m = MapGeometry.from_field(CommandField.from_map(load_map(map_path))).x_outlet_m
+    log = tmp_path / "agent1.csv"
+    params = {"BATT_CAPACITY": AP_BATT_CAPACITY_MAH}
+    with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1, params=params) as run, \
+            GroundStation("ardupilot") as gcs:
+        procs = Processes(tmp_path / "logs")
+        try:
+            gcs.connect()
+            agent = _agent(procs, "agent1", log, "ardupilot", "--go", "--map", map_path, *NO_WINDOWS,
+                           "--exit-policy", "loop", "--laps", 0, "--min-battery", AP_MIN_BATTERY_PCT)
+            assert poll(lambda: gcs.armed() or not agent.alive, 60.0, 0.1), procs.report()
+            armed_at = time.monotonic()
+            disarmed = poll(lambda: (lambda b: b if b and not b.armed else None)(gcs.last_beat()) or
+                            (None if agent.alive else "agent exited"), 120.0, 0.2)
+            assert disarmed and disarmed != "agent exited", procs.report()
+            assert poll(lambda: not agent.alive, 10.0, 0.2), procs.report()  # its flight is over: DONE
+        finally:
+            procs.stop_all()
+        df = _dataflash_series(dataflash_log(run, 0))
+    modes = dedup(int(v) for _, v in df["mode"])
+    lands = [t for t, v in df["mode"] if int(v) == COPTER_LAND]
+    disarms = [t for t, v in df["armed"] if v == 0.0]
+    console = _console(agent)
+    low = re.search(r"battery (\d+) % below (\d+) % after lap (\d+): to the exit, then land", console)
+    passes = len(re.findall(r"-> FLOW", console))
+    t_land = lands[0] if lands else math.nan
+    report = {"dataflash_modes": modes, "agent_states": dedup(r["state"] for r in _rows(log)),
+              "low_battery_line": low.group(0) if low else None, "passes_started": passes,
+              "battery_at_land_pct": _at(df["battery_pct"], t_land) if lands else None,
+              "x_at_land_m": _at(df["north_m"], t_land) if lands else None, "x_outlet_m": x_outlet_m,
+              "land_to_disarm_s": (disarms[-1] - t_land) if lands and disarms else None,
+              "arm_to_disarm_s": disarmed.t_s - armed_at, "exit_code": agent.popen.returncode}
+    print(json.dumps(report))
+    assert low and int(low.group(3)) == passes, report            # the pass in progress finished, no new one
+    assert modes[-2:] == [COPTER_GUIDED, COPTER_LAND] and len(lands) >= 1, report   # the agent's LAND, nothing after
+    assert report["battery_at_land_pct"] < AP_MIN_BATTERY_PCT and report["x_at_land_m"] > x_outlet_m, report
+    assert disarms and disarms[-1] > t_land, report               # landed and disarmed in LAND
     assert report["agent_states"][-3:] == ["EXIT", "LAND", "DONE"] and report["exit_code"] == 0, report
 
 
