@@ -630,6 +630,8 @@ def test_arducopter_gps_glitch_makes_the_agent_hold_then_recover(shared_path, tm
             n_ok = _count(agent, r"position integrity OK again")
             consistent = poll(lambda: _count(agent, r"position integrity OK again") > n_ok, 40.0, 0.2)
             recovered = poll(lambda: re.search(r"HOLD -> (FLOW|RETURN|JOIN|EXIT) ", _console(agent)[after:]), 10.0, 0.2)
+            # the agent's GUIDED request reaches the ground's HEARTBEATs a moment after its transition
+            poll(lambda: "GUIDED" in gcs.modes_between(glitched)[2:], 5.0, 0.1)
             ground_modes = gcs.modes_between(glitched)
             assert agent.alive, procs.report()
         finally:
