@@ -17,10 +17,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 _ID_LIMIT = 1 << 32
+
+
+def _kdtree(pos: np.ndarray) -> Any:
+    """``scipy.spatial.cKDTree`` of ``pos``, imported here: the monitor imports this module, and
+    ``fisc-ground``'s parser must load without scipy to name the missing extra."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(pos)
 
 
 @dataclass(frozen=True)
@@ -84,7 +93,7 @@ def _finite(ids: np.ndarray, pos_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return ids, pos
 
 
-def _nearest(ids: np.ndarray, pos: np.ndarray, tree: cKDTree) -> ClosestPair:
+def _nearest(ids: np.ndarray, pos: np.ndarray, tree: Any) -> ClosestPair:
     dist, nn = tree.query(pos, k=2)
     i = int(np.argmin(dist[:, 1]))
     a, b = int(ids[i]), int(ids[nn[i, 1]])
@@ -96,7 +105,7 @@ def closest_pair(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
     ids, pos = _finite(ids, pos_m)
     if ids.size < 2:
         return ClosestPair(math.inf, -1, -1)
-    return _nearest(ids, pos, cKDTree(pos))
+    return _nearest(ids, pos, _kdtree(pos))
 
 
 def pair_keys(id_a: np.ndarray, id_b: np.ndarray, distinct: bool = False) -> np.ndarray:
@@ -110,7 +119,7 @@ def pair_keys(id_a: np.ndarray, id_b: np.ndarray, distinct: bool = False) -> np.
     return np.unique(keys)
 
 
-def _close_pairs(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float) -> tuple[np.ndarray, ClosestPair]:
+def _close_pairs(ids: np.ndarray, pos: np.ndarray, tree: Any, d_min_m: float) -> tuple[np.ndarray, ClosestPair]:
     """Keys of the pairs strictly closer than ``d_min_m`` and the closest of them (distance inf without)."""
     none = ClosestPair(math.inf, -1, -1)
     if ids.size < 2 or d_min_m == 0:
@@ -129,7 +138,7 @@ def _close_pairs(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float
         ClosestPair(float(np.sqrt(d2[i])), min(a, b), max(a, b))
 
 
-def _close_keys(ids: np.ndarray, pos: np.ndarray, tree: cKDTree, d_min_m: float) -> np.ndarray:
+def _close_keys(ids: np.ndarray, pos: np.ndarray, tree: Any, d_min_m: float) -> np.ndarray:
     return _close_pairs(ids, pos, tree, d_min_m)[0]
 
 
@@ -140,7 +149,7 @@ def pairs_closer_than(ids: np.ndarray, pos_m: np.ndarray, d_min_m: float) -> np.
     ids, pos = _finite(ids, pos_m)
     if ids.size < 2:
         return np.zeros(0, dtype=np.uint64)
-    return _close_keys(ids, pos, cKDTree(pos), d_min_m)
+    return _close_keys(ids, pos, _kdtree(pos), d_min_m)
 
 
 def brute_force_closest(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
@@ -176,7 +185,7 @@ class ApproachTracker:
         if ids.size < 2:
             self._close = np.zeros(0, dtype=np.uint64)
             return ClosestPair(math.inf, -1, -1)
-        tree = cKDTree(pos)
+        tree = _kdtree(pos)
         close, step = _close_pairs(ids, pos, tree, self.d_min_m)  # the closest pair, when closer than d_min
         if not close.size:
             step = _nearest(ids, pos, tree)

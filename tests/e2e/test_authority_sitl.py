@@ -481,9 +481,9 @@ def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tm
             agent = _agent(procs, "agent1", log, "px4", "--go", "--map", map_path, *NO_WINDOWS, "--exit-policy", "loop",
                            "--laps", 0, "--min-battery", MIN_BATTERY_PCT, "--low-battery-action", "land")
             assert poll(lambda: gcs.armed() or not agent.alive, 60.0, 0.1), procs.report()
-            disarmed = poll(lambda: (lambda b: b if b and not b.armed else None)(gcs.last_beat()) or
-                            (None if agent.alive else "agent exited"), 150.0, 0.2)
-            assert disarmed and disarmed != "agent exited", procs.report()
+            # the ground's 1 Hz HEARTBEAT view may lag the agent, which exits as soon as it sees the disarm
+            disarmed = poll(lambda: (lambda b: b if b and not b.armed else None)(gcs.last_beat()), 150.0, 0.2)
+            assert disarmed, procs.report()
             assert poll(lambda: not agent.alive, 10.0, 0.2), procs.report()  # its flight is over: DONE
         finally:
             procs.stop_all()
