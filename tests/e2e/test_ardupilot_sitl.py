@@ -49,7 +49,8 @@ def test_one_arducopter_from_the_ground_through_the_duct_and_out_then_brake_hold
     with ArduPilotSitl(shared_path("sitl", "ardupilot"), tmp_path, 1) as run:
         procs = Processes(tmp_path / "logs")
         try:
-            agent = procs.start("agent1", cli("fisc-agent") + ["--go", 
+            agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for
+                "--go", "--entry-stagger", "off",
                 "--map", path, "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "ardupilot",
                 "--flight-log", log])
             assert poll(lambda: _exit_held(log, 10.0) or not agent.alive, 180.0, 0.5) and agent.alive, \

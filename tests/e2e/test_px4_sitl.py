@@ -70,7 +70,8 @@ def _one_pass(shared_path, tmp_path, tunnel, log: Path, args: list, held_s: floa
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=PX4_TUNED_PARAMS) as run:
         procs = Processes(tmp_path / "logs")
         try:
-            agent = procs.start("agent1", cli("fisc-agent") + ["--go", 
+            agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for
+                "--go", "--entry-stagger", "off",
                 "--map", tunnel[0], "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "px4",
                 "--flight-log", log, *args])
             done = poll(lambda: _held_for(log, held_s) or not agent.alive, 150.0, 0.5)
@@ -161,7 +162,8 @@ def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run:
         procs = Processes(tmp_path / "logs")
         try:
-            agent = procs.start("agent1", cli("fisc-agent") + ["--go", 
+            agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for
+                "--go", "--entry-stagger", "off",
                 "--map", tunnel[0], "--mavlink", "udpin:0.0.0.0:14540", "--id", 1, "--autopilot", "px4",
                 "--flight-log", log])
 
