@@ -57,10 +57,10 @@ class AgentConfig:
     """``kinetic`` mode under streamline tracking: the deviation's outward radial component is mirrored
     within a margin of the duct's real wall, where the map carries it (array ``duct_wall_m``,
     ``fisc_agent.map.wall``) [m]; None: the deviation reflects at the CV staircase only, as the simulator's
-    agents do (the staircase's outer cubes lie partly outside a real duct).  This is the margin where the
-    duct is wide; narrower, it shrinks to half the local radius, never below the map's d_min / 2
-    (``fisc_agent.map.wall.effective_margin_m``), so the deviations fill each cross-section instead of
-    folding onto the axis at the throat.  The margin must cover the vehicle's overshoot and the error of
+    agents do (the staircase's outer cubes lie partly outside a real duct).  Onboard the margin is fixed:
+    the duct-adapted margin (``fisc_agent.map.wall.effective_margin_m``: half the local radius, never below
+    d_min / 2, so the deviations fill the throat instead of folding onto its axis) took a real PX4 0.43 m
+    beyond the wall by SIH's ground truth, and waits for issue 37's real-swarm flights.  The margin must cover the vehicle's overshoot and the error of
     its position estimate: on PX4 SITL (SIH) the altitude estimate strayed up to 0.9 m from the ground
     truth, and with a fixed 0.8 m six passes went at most 0.17 m beyond the wall by that truth
     (docs/deployment.md).  With motion-capture positions a smaller margin keeps more of the deviation."""
