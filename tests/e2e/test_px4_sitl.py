@@ -124,8 +124,9 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
 
 def test_explicit_kinetic_mode_on_px4_turns_its_deviation_before_the_real_wall(shared_path, tmp_path, tunnel):
     """``--mode kinetic`` under tracking on one real PX4: the deviations (the swarm's pressure) are flown
-    and mirrored within the wall margin of the map's real wall (``duct_wall_m``): ``--wall-margin`` (0.8 m)
-    where the duct is wide, half the local radius but at least d_min / 2 where it narrows.
+    and mirrored within ``--wall-margin`` (default 0.8 m) of the map's real wall (``duct_wall_m``).  (The
+    duct-adapted margin of issue 37 took one flight 0.43 m beyond the wall by the ground truth: the agent
+    keeps the fixed one.)
 
     Measured (docs/deployment.md, six flights): -0.43 to -0.52 m by PX4's estimate, -0.10 to +0.17 m by
     SIH's ground truth (whose altitude PX4's estimate misses by up to 0.9 m), realised spread 0.73-1.04;
@@ -138,9 +139,7 @@ def test_explicit_kinetic_mode_on_px4_turns_its_deviation_before_the_real_wall(s
     truth = score_track(t_true, pos_true, vel_true, states_true, ref, scale, wall=wall)
     spread = realised_spread_ratio(pos_true, vel_true, states_true, CommandField.from_map(load_map(tunnel[0])))
     assert score.crossed and not score.held and truth.crossed, (score, truth)
-    # by its own estimate inside the real wall: the margin follows the local radius (at the throat
-    # max(d_min / 2, R / 2) = 0.46 m, issue 37), so the deviations fill the cross-section instead of the axis
-    assert score.max_excursion_m < 0.0, score
+    assert score.max_excursion_m < -0.3, score          # by its own estimate, well inside the real wall
     assert truth.max_excursion_m < MAX_EXCURSION_M, truth
     assert spread > 0.6, spread                          # the deviations were flown (staggered: ~0.46)
     print(json.dumps({"score": score.as_dict(), "truth": truth.as_dict(), "realised_spread": spread}))
