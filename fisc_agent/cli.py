@@ -12,7 +12,8 @@ import math
 import signal
 import threading
 
-from fisc_agent.common.cli_common import ExitCode, add_logging_args, console_exit, number_or, setup_logging
+from fisc_agent.common.cli_common import (ExitCode, add_logging_args, console_exit, number_or, positive_number,
+                                         setup_logging)
 from fisc_agent.config import AUTOPILOTS, BACKENDS, EXIT_POLICIES, GEOFENCE_POLICIES, AgentConfig
 from fisc_agent.mavlink.endpoints import EndpointError, parse_endpoint
 from fisc_agent.flight.frames import GeodeticAnchor, parse_floats
@@ -140,6 +141,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default=AgentConfig.exit_policy,
                    help="after the outlet: hold position, land, or loop back to the inlet")
     p.add_argument("--laps", type=int, default=AgentConfig.laps, help="with --exit-policy loop: passes before holding (0: no limit)")
+    p.add_argument("--exit-clearance", type=positive_number("metres"), default=AgentConfig.exit_clearance_m,
+                   metavar="M", help="with --exit-policy hold/land: the first row of hold spots this far past the outlet [m]")
+    p.add_argument("--exit-spacing", type=positive_number("metres"), default=AgentConfig.exit_spacing_m,
+                   metavar="M", help="with --exit-policy hold/land: least horizontal distance between two hold "
+                                     "(and landing) spots [m]")
     p.add_argument("--wall-margin", type=number_or("off", None, "metres"), default=AgentConfig.wall_margin_m,
                    metavar="M|off",
                    help="--mode kinetic under tracking: keep the deviation this far inside the duct's real wall "
@@ -173,7 +179,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,
-        exit_policy=a.exit_policy, laps=a.laps, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
+        exit_policy=a.exit_policy, laps=a.laps, exit_clearance_m=a.exit_clearance, exit_spacing_m=a.exit_spacing, entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
         entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
         wall_margin_m=a.wall_margin,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system, go=a.go,

@@ -132,14 +132,19 @@ class AgentConfig:
     lcm(64, ``entry_slots``): never among ids 0..63.  None: with the map's admission period the map's
     ``separation.max_in_tunnel`` (a fleet within the budget has a window per vehicle), else
     ``spacing.DEFAULT_ENTRY_SLOTS`` (8)."""
-    exit_clearance_m: float = 2.0
-    """With exit ``hold``/``land``: stop this far downstream of the outlet plane [m]."""
-    exit_spacing_m: float = 1.5
+    exit_clearance_m: float = 5.0
+    """With exit ``hold``/``land``: the first row of hold spots lies this far downstream of the outlet
+    plane; the exit climbs over the spots until ``exit_clearance_m - exit_spacing_m`` beyond the outlet
+    (``control.exit_waypoints``), so a vehicle keeps moving downstream as it leaves the stream
+    (with 0.5 m of room, a leader slowed there and its follower came within 0.47 m on real PX4) [m]."""
+    exit_spacing_m: float = 3.0
     """With exit ``hold``/``land``: least horizontal distance between two agents' hold spots, and so
     between their landing spots (``control.hold_point``: a square lattice of this pitch in the horizontal
     plane from ``exit_clearance_m`` beyond the outlet, agent i on the i-th site nearest the axis; any two
     ids, not only 0..49, are at least this far apart).  Spots are at the axis height, at least
-    ``spacing.HOLD_FLOOR_MARGIN_M`` above the tunnel's floor [m]."""
+    ``spacing.HOLD_FLOOR_MARGIN_M`` above the tunnel's floor.  The default leaves d_min between two
+    neighbours that each wander 1.1 m in the autopilot's hold (PX4 SIH's Hold, ground truth: with a
+    1.5 m pitch two held vehicles came within 0.82 m) [m]."""
     go: bool = False
     """Permission to arm and fly one flight given on the command line (``--go``: a bench or SITL
     flight); without it the agent waits disarmed for a fleet ``go`` / ``start-at``."""

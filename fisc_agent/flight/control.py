@@ -380,6 +380,27 @@ def lap_return_waypoints(pos: Vec, wait_at: Vec, geom: MapGeometry, margin_m: fl
     return [(x, y, z_top), (wait_at[0], y, z_top), (wait_at[0], wait_at[1], z_top), wait_at]
 
 
+OVERFLY_M = 1.5
+"""Least height of an exit's transit above the hold spots it passes over [m]: d_min (0.92 m by default)
+plus the vertical wander of a held PX4 (SIH ground truth against its estimate: up to 0.4 m)."""
+
+
+def exit_waypoints(pos: Vec, spot: Vec, geom: MapGeometry, clearance_m: float, pitch_m: float,
+                   margin_m: float = 1.0, overfly_m: float = OVERFLY_M) -> list[Vec]:
+    """Waypoints of the exit from past the outlet ``pos`` to the agent's hold spot ``spot``
+    (``hold_point``, ``clearance_m`` beyond the outlet, the others ``pitch_m`` apart).
+
+    Over the holding vehicles, never through them: up to the transit height while moving on to
+    ``clearance_m - pitch_m`` beyond the outlet (the climb ends one pitch short of the first row of spots),
+    across at that height to above ``spot``, and straight down to it.  The transit height is
+    ``margin_m`` above the tunnel's bounding box and at least ``overfly_m`` above the spots.  Flown
+    straight from the outlet, later vehicles passed between the ones already holding: six PX4 SITL
+    vehicles came 0.29 m apart (SIH ground truth).  Returns ``[climb, above spot, spot]``."""
+    z_top = max(geom.hi_m[2] + margin_m, spot[2] + overfly_m)
+    x, y, _ = pos
+    return [(max(x, geom.x_outlet_m + clearance_m - pitch_m), y, z_top), (spot[0], spot[1], z_top), spot]
+
+
 def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:
     """May agent ``agent_id`` cross the inlet now?  Decentralised staggered entry on a shared clock.
 

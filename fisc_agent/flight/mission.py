@@ -31,7 +31,7 @@ import logging
 
 from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
-from fisc_agent.flight.control import ZERO, ScalarField, Vec, distance, goto_velocity, hold_point
+from fisc_agent.flight.control import ZERO, ScalarField, Vec, distance, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.flight.mission_types import (FLYING, Authority, Cause, FleetOrder, HoldCause, MissionCommand,
                                              MissionOutput, Reason, State, Transition, VehicleStatus)
@@ -198,8 +198,7 @@ class Mission:
             self.nav.plan_return(pos)
         elif dst == State.EXIT and pos is not None and self.geom is not None:
             floor = None if self._home is None else self._home[2] + self.cfg.takeoff_alt_m  # never below take-off height
-            self.nav.target = hold_point(self.cfg.agent_id, self.geom, self.geom.x_outlet_m + self.cfg.exit_clearance_m,
-                                         self.cfg.exit_spacing_m, min_z_m=floor)
+            self.nav.plan_exit(pos, floor)
         elif dst == State.TAKEOFF:  # resuming an interrupted takeoff (a hold cuts ArduPilot's climb short)
             self._climb_by_velocity = (pos is not None and self._home is not None
                                        and pos[2] > self._home[2] + AIRBORNE_ABOVE_HOME_M)
@@ -333,7 +332,7 @@ class Mission:
                 vel = nav.return_velocity(pos)
         elif st == State.EXIT:
             want_mode = ModeClass.OFFBOARD
-            vel = nav.goto(pos, nav.target, cfg.join_speed_m_s)
+            vel = nav.exit_velocity(pos)
             if distance(pos, nav.target) < cfg.waypoint_radius_m:
                 if self._exit_policy(s) is ExitPolicy.LAND:
                     self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
@@ -419,8 +418,9 @@ class Mission:
                                                                  f"to the exit, then {cfg.low_battery_action.value}"), pos)
         else:
             self._enter(t, State.EXIT, Reason(Cause.PASSED_OUTLET, f"passed the outlet (lap {self.laps})"), pos)
-        target = self.nav.waypoints[0] if self.state == State.JOIN else self.nav.target
-        return self.nav.goto(pos, target, cfg.join_speed_m_s)
+        if self.state == State.JOIN:
+            return self.nav.goto(pos, self.nav.waypoints[0], cfg.join_speed_m_s)
+        return self.nav.exit_velocity(pos)
 
     def _hold_output(self, t: float, heard: bool = True) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
         """The hold's output: zero velocity in offboard/guided for ``hold_grace_s``, then the autopilot's

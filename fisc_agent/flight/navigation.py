@@ -14,7 +14,8 @@ from typing import Callable
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
-                                       entry_slot_open, goto_velocity, join_waypoints, lap_return_waypoints)
+                                       entry_slot_open, exit_waypoints, goto_velocity, hold_point, join_waypoints,
+                                       lap_return_waypoints)
 from fisc_agent.flight.identify import ResponseRecorder, VehicleResponse
 from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule
 from fisc_agent.flight.tracking import ParcelTracker
@@ -47,6 +48,9 @@ class Navigator:
         self.entry_lead_s = 0.0
         self.entry_cleared = False
         self.target: Vec | None = None
+        self.exit_route: list[Vec] = []
+        """The exit's waypoints (``plan_exit``), ending at ``target``, the agent's hold spot."""
+        self.exit_index = 0
         self.schedule = entry_schedule(cfg.entry_stagger_s, cfg.entry_slots, _NO_BUDGET)
         """The entry windows in use (``spacing.entry_schedule``): the configured ones, or the map's budget."""
 
@@ -165,6 +169,24 @@ class Navigator:
             crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
             vel = (max(vel[0], crawl), vel[1], vel[2])
         return vel
+
+    def plan_exit(self, pos: Vec, min_z_m: float | None) -> None:
+        """The exit from past the outlet ``pos`` to the agent's hold spot (``target``), over the spots
+        of the others (``control.exit_waypoints``).  ``min_z_m``: the spot's least altitude."""
+        assert self.geom is not None
+        cfg = self.cfg
+        self.target = hold_point(cfg.agent_id, self.geom, self.geom.x_outlet_m + cfg.exit_clearance_m,
+                                 cfg.exit_spacing_m, min_z_m=min_z_m)
+        self.exit_route = exit_waypoints(pos, self.target, self.geom, cfg.exit_clearance_m, cfg.exit_spacing_m,
+                                         cfg.keepout_margin_m)
+        self.exit_index = 0
+
+    def exit_velocity(self, pos: Vec) -> Vec:
+        """EXIT's velocity: along ``exit_route`` at the join speed."""
+        last = len(self.exit_route) - 1
+        while self.exit_index < last and distance(pos, self.exit_route[self.exit_index]) < self.cfg.waypoint_radius_m:
+            self.exit_index += 1
+        return self.goto(pos, self.exit_route[self.exit_index], self.cfg.join_speed_m_s)
 
     def plan_return(self, pos: Vec) -> None:
         """Geofence return: head for the CV nearest to ``pos``."""

@@ -9,7 +9,8 @@ import pytest
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, entry_point, entry_points,
-                                       entry_slot_open, hold_point, hold_points)
+                                       entry_slot_open, exit_waypoints, hold_point, hold_points,
+                                       OVERFLY_M)
 from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
                                        hold_altitude_m, hold_sites, lattice_hold_points, min_pairwise_distance_m)
 from fisc_agent.map.lookup import CommandField
@@ -110,16 +111,16 @@ def test_hold_sites_are_distinct_nearest_first_and_deterministic():
 def test_fifty_holds_are_the_default_spacing_apart_horizontally_beyond_the_outlet(maps, name):
     g, _ = maps[name]
     cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=0)
-    assert cfg.exit_spacing_m == 1.5
+    assert cfg.exit_spacing_m == 3.0                           # >= 1.5 m (issue 36), 3 m for PX4's Hold wander
     x0 = g.x_outlet_m + cfg.exit_clearance_m
     pts = hold_points(50, g, x0, cfg.exit_spacing_m)
-    d = check_min_distance(pts[:, :2], 1.5, "50 exit holds")   # horizontal: landing spots too
-    assert d == pytest.approx(1.5, abs=1e-9)                   # the lattice's pitch, not looser
+    d = check_min_distance(pts[:, :2], 3.0, "50 exit holds")   # horizontal: landing spots too
+    assert d == pytest.approx(3.0, abs=1e-9)                   # the lattice's pitch, not looser
     assert pts[:, 0].min() == pytest.approx(x0) and np.all(pts[:, 0] >= x0 - 1e-12)
-    # boundaries: ids 0, 49 and 50 are their rows of the layout; 50 is 1.5 m or more from all of 0..49
-    assert [hold_point(k, g, x0, 1.5) for k in (0, 49)] == [tuple(pts[k]) for k in (0, 49)]
-    p50 = np.array(hold_point(50, g, x0, 1.5))
-    assert np.linalg.norm(pts[:, :2] - p50[:2], axis=1).min() >= 1.5 - 1e-9
+    # boundaries: ids 0, 49 and 50 are their rows of the layout; 50 is a pitch or more from all of 0..49
+    assert [hold_point(k, g, x0, 3.0) for k in (0, 49)] == [tuple(pts[k]) for k in (0, 49)]
+    p50 = np.array(hold_point(50, g, x0, 3.0))
+    assert np.linalg.norm(pts[:, :2] - p50[:2], axis=1).min() >= 3.0 - 1e-9
     assert hold_point(0, g, x0, 1.5)[:2] == pytest.approx((x0, g.inlet_center_yz_m[0]))
 
 
@@ -162,3 +163,49 @@ def test_hold_spots_never_below_the_floor_or_the_home_takeoff_height(maps):
     # ... and with the home 1 m below the axis: 1.5 m above the axis
     assert hold_point(7, g, 5.0, 1.5, min_z_m=-1.0 + takeoff_m)[2] == pytest.approx(1.5)
     assert hold_point(7, g, 5.0, 1.5, min_z_m=1.5)[:2] == hold_point(7, g, 5.0, 1.5)[:2]  # only z moves
+
+
+# ---- the exit route: over the holding vehicles, never between them ---------------------------------
+def _route_clearance_m(path: list, others: np.ndarray) -> float:
+    """Least 3-D distance from the polyline ``path`` to any point of ``others`` [m]."""
+    best = math.inf
+    for a, b in zip(path[:-1], path[1:]):
+        s = np.linspace(0.0, 1.0, 200)[:, None]
+        seg = np.asarray(a) + s * (np.asarray(b) - np.asarray(a))
+        best = min(best, float(np.min(np.linalg.norm(seg[:, None, :] - others[None, :, :], axis=2))))
+    return best
+
+
+@pytest.mark.parametrize("name", ["tunnel", "default"])
+def test_every_exit_route_keeps_a_pitch_from_the_other_fifty_spots(maps, name):
+    g, _ = maps[name]
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=0)
+    pitch, clearance = cfg.exit_spacing_m, cfg.exit_clearance_m
+    spots = hold_points(50, g, g.x_outlet_m + clearance, pitch)
+    rng = np.random.default_rng(0)
+    worst = math.inf
+    for k in range(50):
+        # leaving anywhere across the outlet, just past it (one tick's flight: up to 0.5 m)
+        pos = (g.x_outlet_m + rng.uniform(0.0, 0.5), *(np.asarray(g.inlet_center_yz_m) + rng.uniform(-0.7, 0.7, 2)))
+        route = exit_waypoints(pos, tuple(spots[k]), g, clearance, pitch, cfg.keepout_margin_m)
+        assert route[-1] == tuple(spots[k])
+        assert route[-2][:2] == route[-1][:2]                     # the last leg is straight down
+        assert route[0][2] == route[1][2] >= max(g.hi_m[2] + cfg.keepout_margin_m, spots[k][2] + OVERFLY_M)
+        assert route[0][0] >= g.x_outlet_m + clearance - pitch   # still moving downstream while it climbs
+        worst = min(worst, _route_clearance_m([pos] + route, np.delete(spots, k, axis=0)))
+    assert worst >= min(pitch, OVERFLY_M) - 1e-9 and OVERFLY_M >= 1.5
+    # the old straight route passed between the holding vehicles: id 5's flew within a pitch of id 0's spot
+    straight = [(g.x_outlet_m, *g.inlet_center_yz_m), tuple(spots[5])]
+    assert _route_clearance_m(straight, np.delete(spots, 5, axis=0)) < pitch
+
+
+def test_an_exit_carried_past_the_climb_point_climbs_where_it_is(maps):
+    g, _ = maps["tunnel"]
+    spot = hold_point(3, g, g.x_outlet_m + 2.0, 1.5)
+    at = g.x_outlet_m + 0.5                                   # the climb point: clearance - pitch
+    assert exit_waypoints((at - 0.1, 0.0, 0.0), spot, g, 2.0, 1.5)[0][0] == at    # moves on to it
+    assert exit_waypoints((at, 0.0, 0.0), spot, g, 2.0, 1.5)[0][0] == at          # equal
+    assert exit_waypoints((at + 0.1, 0.0, 0.0), spot, g, 2.0, 1.5)[0][0] == at + 0.1   # never back
+    # a spot far above the tunnel (a high home): transit OVERFLY_M above it
+    high = (spot[0], spot[1], g.hi_m[2] + 5.0)
+    assert exit_waypoints((at, 0.0, 0.0), high, g, 2.0, 1.5)[1][2] == pytest.approx(high[2] + OVERFLY_M)
