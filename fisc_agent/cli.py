@@ -110,6 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
                    help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
                         "with --lookahead auto the identified value replaces it")
+    t.add_argument("--online-gain-time", type=number_or("off", 0.0, "seconds"), default=TrackingConfig.online_gain_time_s,
+                   metavar="S|off",
+                   help="with --lookahead auto: learn the vehicle's steady velocity gain again through the pass, "
+                        "forgetting over this time, and set the feed-forward gain from it [s]; off: keep the gain "
+                        "identified before the pass")
     p.add_argument("--entry-stagger", type=_entry_stagger, default="auto", metavar="S|auto|off",
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
                         "length on the shared clock (GNSS time; agent i: window i mod slots) [s]; auto: the map's "
@@ -175,7 +180,8 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         lookahead_auto=a.lookahead == "auto" and not paper,
         tracking=TrackingConfig(gain_1_s=0.0 if paper else a.track_gain, integral_gain_1_s2=a.track_integral_gain,
                                 max_correction_m_s=a.track_max_correction,
-                                feedforward_gain=1.0 if paper else a.feedforward_gain),
+                                feedforward_gain=1.0 if paper else a.feedforward_gain,
+                                online_gain_time_s=a.online_gain_time),
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,

@@ -31,6 +31,22 @@ MIN_EXCITATION_M_S = 0.5
 """The setpoints must span at least this speed range on some axis [m/s]."""
 
 
+FEEDFORWARD_MIN = 1.0
+"""Least feed-forward gain: the agent never commands less than the field's velocity."""
+FEEDFORWARD_MAX = 1.5
+"""Largest feed-forward gain: never more than 50 % above the field's velocity."""
+ONLINE_MIN_SPEED_M_S = 0.3
+"""``OnlineGain`` gives no estimate while the modelled setpoint's RMS speed is below this [m/s]."""
+
+
+def feedforward_from_gain(gain: float) -> float:
+    """The feed-forward gain that cancels a steady velocity ``gain``: 1 / gain within
+    [FEEDFORWARD_MIN, FEEDFORWARD_MAX] (a gain of 0, inf or NaN gives the nearer bound, NaN the least)."""
+    if not gain > 0.0:
+        return FEEDFORWARD_MAX if gain == 0.0 else FEEDFORWARD_MIN
+    return min(FEEDFORWARD_MAX, max(FEEDFORWARD_MIN, 1.0 / gain))
+
+
 @dataclass(frozen=True)
 class VehicleResponse:
     """The identified horizontal velocity response of one vehicle."""
@@ -63,12 +79,14 @@ class VehicleResponse:
 
     @property
     def feedforward_gain(self) -> float:
-        """1 / gain_bound, bounded to [1, 1.5] (never amplify more than 50 %, never attenuate).
+        """1 / gain_bound, bounded to [FEEDFORWARD_MIN, FEEDFORWARD_MAX] (never amplify more than
+        50 %, never attenuate).
 
         The conservative bound, not the whole window's gain: a real PX4 fleet whose vehicles
         applied 1 / gain (1.02-1.20) crossed the duct in 17.3-20.5 s on the same airframe, and one
-        caught up with the vehicle that had entered 2.4 s before it (0.41 m)."""
-        return min(1.5, max(1.0, 1.0 / self.gain_bound))
+        caught up with the vehicle that had entered 2.4 s before it (0.41 m).  In the duct the
+        gain is learnt again from the flight itself (``OnlineGain``)."""
+        return feedforward_from_gain(self.gain_bound)
 
 
 def _fit_lag(t: np.ndarray, u: np.ndarray, v: np.ndarray, h: float,
@@ -158,3 +176,63 @@ class ResponseRecorder:
             return None
         a = np.asarray(self._rows)
         return fit_response(a[:, 0], a[:, 1:3], a[:, 3:5])
+
+
+class OnlineGain:
+    """The vehicle's steady horizontal velocity gain, learnt again from every tick of the pass (pure).
+
+    Identification before the pass sees an integrating velocity loop in take-off and join: stock
+    PX4 gains (``MPC_XY_VEL_P_ACC`` 1.8, ``_I_ACC`` 0.4) against SIH's drag settle at 0.80-0.85 of
+    the setpoint until the integrator catches up, and the halves' fits disagree, so the conservative
+    ``VehicleResponse.feedforward_gain`` stays at 1.  Here the setpoint ``u`` streamed is passed
+    through the identified lag (``lag_s``: a first-order model ``m``, unit gain), and the gain is the
+    least-squares ratio of the measured velocity ``v`` to it with exponential forgetting::
+
+        m <- m + (1 - exp(-dt / lag)) (u - m)
+        g = <v . m> / <m . m>           (each <.> low-passed with time constant forget_s)
+
+    The lag is modelled, so the pass's accelerations do not read as a gain.  None until
+    ``forget_s`` of samples and an RMS modelled speed of ``ONLINE_MIN_SPEED_M_S``."""
+
+    def __init__(self, lag_s: float, forget_s: float) -> None:
+        if not (math.isfinite(lag_s) and lag_s >= 0.0):
+            raise ValueError(f"OnlineGain: lag_s must be finite and >= 0, is {lag_s!r}")
+        if not (math.isfinite(forget_s) and forget_s > 0.0):
+            raise ValueError(f"OnlineGain: forget_s must be finite and > 0, is {forget_s!r}")
+        self.lag_s = lag_s
+        """The modelled lag (identified look-ahead: lag plus dead time) [s]."""
+        self.forget_s = forget_s
+        """Forgetting time constant of the averages [s]."""
+        self._model: tuple[float, float] | None = None
+        self._t_s: float | None = None
+        self._vm = 0.0
+        self._mm = 0.0
+        self._weight = 0.0   # the same low pass of 1: <.> / _weight is a weighted mean
+        self._seen_s = 0.0
+
+    def update(self, t_s: float, sp_xy_m_s: tuple[float, float], vel_xy_m_s: tuple[float, float]) -> None:
+        """One tick: the horizontal setpoint sent and the velocity measured.  Non-finite samples and
+        gaps over 0.5 s (a hold, a lap's return) restart the model, keeping the averages."""
+        if not all(math.isfinite(x) for x in (t_s, *sp_xy_m_s, *vel_xy_m_s)):
+            return
+        prev_t, self._t_s = self._t_s, t_s
+        if self._model is None or prev_t is None or not 0.0 < t_s - prev_t <= 0.5:
+            self._model = (float(sp_xy_m_s[0]), float(sp_xy_m_s[1]))
+            return
+        dt = t_s - prev_t
+        k = 1.0 - math.exp(-dt / self.lag_s) if self.lag_s > 0.0 else 1.0
+        mx, my = self._model
+        mx, my = mx + k * (sp_xy_m_s[0] - mx), my + k * (sp_xy_m_s[1] - my)
+        self._model = (mx, my)
+        w = min(1.0, dt / self.forget_s)
+        self._vm += w * (vel_xy_m_s[0] * mx + vel_xy_m_s[1] * my - self._vm)
+        self._mm += w * (mx * mx + my * my - self._mm)
+        self._weight += w * (1.0 - self._weight)
+        self._seen_s += dt
+
+    @property
+    def gain(self) -> float | None:
+        """The gain learnt so far, or None (too few samples or too slow a flight)."""
+        if self._seen_s < self.forget_s or self._mm < self._weight * ONLINE_MIN_SPEED_M_S ** 2:
+            return None
+        return self._vm / self._mm

@@ -117,9 +117,11 @@ class Mission:
             self.nav.plan_return(self._last_pos)
 
     def observe_response(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
-        """Record a streamed setpoint and the measured velocity (TAKEOFF and JOIN) for identification."""
+        """A streamed setpoint and the measured velocity: identification (TAKEOFF, JOIN), the gain (FLOW)."""
         if self.state in (State.TAKEOFF, State.JOIN):
             self.nav.record_response(t, sp_m_s, vel_m_s)
+        elif self.state == State.FLOW:
+            self.nav.adapt(t, sp_m_s, vel_m_s)
 
     def command(self, order: FleetOrder | MissionCommand | str) -> None:
         """Queue a fleet order (a bare command or name is a swarm-wide one); applied at the next step."""

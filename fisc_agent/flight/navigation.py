@@ -9,6 +9,7 @@ towards a point corrected for the velocity-estimate bias.
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import replace
 from typing import Callable
 
@@ -16,7 +17,7 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
                                        entry_slot_open, exit_waypoints, goto_velocity, hold_point, join_waypoints,
                                        lap_return_waypoints)
-from fisc_agent.flight.identify import ResponseRecorder, VehicleResponse
+from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.lookup import POINT_MODES
@@ -42,6 +43,9 @@ class Navigator:
         """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
         self.recorder = ResponseRecorder()
         self._identify_tried = False
+        self.online_gain: OnlineGain | None = None
+        """The gain learnt again through the passes (``adapt``), once the response is identified."""
+        self._logged_feedforward = math.nan
         self.waypoints: list[Vec] = []
         self.wp_index = 0
         self.wait_index = 0
@@ -96,6 +100,26 @@ class Navigator:
         """Record a streamed setpoint and the measured velocity for identification."""
         if self.response is None:
             self.recorder.add(t, (sp_m_s[0], sp_m_s[1]), (vel_m_s[0], vel_m_s[1]))
+
+    def adapt(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
+        """FLOW: learn the vehicle's steady gain again from the setpoint streamed and the velocity
+        measured (``identify.OnlineGain``) and fly its feed-forward gain (only with the response
+        identified in flight, ``online_gain_time_s`` > 0)."""
+        tau = self.tracker.cfg.online_gain_time_s
+        if self.response is None or tau <= 0.0:
+            return
+        if self.online_gain is None:
+            self.online_gain = OnlineGain(self.response.lookahead_s, tau)
+        self.online_gain.update(t, (sp_m_s[0], sp_m_s[1]), (vel_m_s[0], vel_m_s[1]))
+        g = self.online_gain.gain
+        if g is None:
+            return
+        ff = feedforward_from_gain(g)
+        if abs(ff - self.tracker.cfg.feedforward_gain) >= 0.005:
+            self.tracker.cfg = replace(self.tracker.cfg, feedforward_gain=ff)
+        if not abs(ff - self._logged_feedforward) < 0.05:
+            self._logged_feedforward = ff
+            log.info("velocity gain learnt in the pass: %.2f -> feed-forward gain %.2f", g, ff)
 
     def identify(self) -> None:
         """Fit the velocity response once (``lookahead_auto``) and tune the tracker's feed-forward."""

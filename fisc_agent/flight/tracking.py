@@ -87,10 +87,14 @@ class TrackingConfig:
     feedforward_gain: float = 1.0
     """Multiplies the field's command: the inverse of the vehicle's steady velocity gain (an autopilot
     whose velocity loop settles below its setpoint, e.g. against drag, flies ``gain * setpoint``)."""
+    online_gain_time_s: float = 3.0
+    """With the response identified in flight (``--lookahead auto``): forgetting time of the steady
+    velocity gain learnt again through the pass (``identify.OnlineGain``), which then sets
+    ``feedforward_gain`` [s]; 0: off (the gain identified before the pass is kept)."""
 
     def __post_init__(self) -> None:
         for name in ("gain_1_s", "integral_gain_1_s2", "max_correction_m_s", "max_integral_m_s", "lookahead_s",
-                     "bias_time_constant_s", "max_bias_m_s"):
+                     "bias_time_constant_s", "max_bias_m_s", "online_gain_time_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"tracking: {name} must be finite and >= 0, is {v!r}")

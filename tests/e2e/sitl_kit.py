@@ -40,12 +40,6 @@ HOME_LAT_DEG, HOME_LON_DEG, HOME_ALT_M = 47.397742, 8.545594, 489.4
 MAP_ANCHOR = f"{HOME_LAT_DEG},{HOME_LON_DEG},{HOME_ALT_M + 10.0},0"
 """``--geodetic-anchor`` of the map origin: 10 m above the shared SITL home, x axis north."""
 
-PX4_TUNED_PARAMS = {"MPC_XY_VEL_P_ACC": 3.5, "MPC_XY_VEL_I_ACC": 1.5}
-"""PX4's horizontal velocity loop tuned for SIH's airframe (docs/deployment.md): with the stock
-gains (1.8 / 0.4) the loop settles at 0.80-0.85 of its setpoint against SIH's linear drag
-(SIH_KDV = 1) until the integrator catches up, identified in flight as a 0.85-0.9 s lag."""
-
-
 MACHINE_LOCK = Path("/tmp/fisc-sitl.lock")
 """One set of SITL vehicles per machine at a time: both autopilots' instances use fixed ports
 (udp 14540+i, 14550, PX4's 18570+i and 4560+i) and PX4 its command sockets ``/tmp/px4-sock-<i>``,

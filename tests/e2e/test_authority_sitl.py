@@ -37,7 +37,7 @@ from .conftest import Processes, cli, poll, run_cli
 from .ground_station import (COPTER_GUIDED, COPTER_LAND, PX4_HOLD, PX4_LAND, PX4_NAV_AUTO_LAND,
                              PX4_NAV_AUTO_LOITER, PX4_NAV_AUTO_TAKEOFF, PX4_NAV_OFFBOARD, PX4_OFFBOARD, PX4_TAKEOFF,
                              mode_name)
-from .sitl_kit import (PX4_TUNED_PARAMS, ArduPilotSitl, GroundStation, LinkCut, Px4Sitl, dataflash_log,
+from .sitl_kit import (ArduPilotSitl, GroundStation, LinkCut, Px4Sitl, dataflash_log,
                        dataflash_modes_and_texts, dedup, ground, ok, px4_ulog, signed_map_on_zenoh, ulog_topic)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow]
@@ -49,7 +49,7 @@ MAX_HOLD_WANDER_M = 2.5
 """Bound on SIH's true displacement in PX4's own Hold over the 25 s (no agent input at all: no OFFBOARD,
 no offboard_control_mode, the Hold's horizontal target fixed to 1 mm).  PX4's Hold alone wanders in SIH
 (2026-12-05, this 2-core host under load, one vehicle): 0.88 m at 2.5 m with the stock gains, 1.46 and
-1.80 m with ``PX4_TUNED_PARAMS``, 2.12 m at 5 m with the stock gains, as a slow 15-20 s swing of 1-1.5 m
+1.80 m with tuned velocity gains (``MPC_XY_VEL_P_ACC`` 3.5, ``_I_ACC`` 1.5), 2.12 m at 5 m with the stock gains, as a slow 15-20 s swing of 1-1.5 m
 about the fixed target that PX4's own estimate follows to within 0.4 m.  Issue 36's 1 m cannot be told
 apart from that; the restarted agent of the issue flew the vehicle 11 m away."""
 NO_WINDOWS = ("--entry-stagger", "off")
@@ -272,7 +272,7 @@ def test_px4_no_arming_without_a_go_and_the_ground_takes_over_in_arm_takeoff_flo
     g = signed_map_on_zenoh(d)
     zenoh = ["--swarm", SWARM, "--zenoh-config", g.member, "--trusted-key", g.ground_pub]
     report: dict = {}
-    with Px4Sitl(shared_path("sitl", "px4"), d, 1, params=PX4_TUNED_PARAMS) as run, GroundStation("px4") as gcs:
+    with Px4Sitl(shared_path("sitl", "px4"), d, 1) as run, GroundStation("px4") as gcs:
         procs = Processes(d / "logs")
         try:
             procs.start("publisher", ground("publish", g.served, "--swarm", SWARM, "--zenoh-config", g.hub))
@@ -359,7 +359,7 @@ def _failsafe_land_flight(shared_path, tmp_path: Path, map_path: Path, how: str)
     ``cut``, a relay drops every datagram both ways while both ends run; ``freeze``, SIGSTOP the agent),
     then restore it and watch PX4 until it has landed and disarmed.  Returns the measurements."""
     log = tmp_path / "agent1.csv"
-    params = {**PX4_TUNED_PARAMS, "COM_OBL_RC_ACT": 4, "COM_OF_LOSS_T": 0.5}  # 4: Land (PX4 commander params)
+    params = {"COM_OBL_RC_ACT": 4, "COM_OF_LOSS_T": 0.5}  # 4: Land (PX4 commander params)
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run, GroundStation("px4") as gcs, \
             LinkCut(14540) as link:
         procs = Processes(tmp_path / "logs")
@@ -473,7 +473,7 @@ def test_px4_battery_below_min_battery_ends_the_laps_at_the_exit(shared_path, tm
     exit point and lands there (``--low-battery-action land``): PX4's ULog shows the agent's AUTO.LAND past
     the outlet with battery_status below 60 %, then the disarm; no pass starts below 60 %."""
     log = tmp_path / "agent1.csv"
-    params = {**PX4_TUNED_PARAMS, "SIM_BAT_DRAIN": BATTERY_DRAIN_S, "SIM_BAT_MIN_PCT": 20.0}
+    params = {"SIM_BAT_DRAIN": BATTERY_DRAIN_S, "SIM_BAT_MIN_PCT": 20.0}
     with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run, GroundStation("px4") as gcs:
         procs = Processes(tmp_path / "logs")
         try:

@@ -30,7 +30,7 @@ from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, PX4_TUNED_PARAMS, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
+from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
                        truth_on_wall_clock, ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
@@ -90,7 +90,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
             out.append(rows[-1]["state"] if rows else "")
         return out
 
-    with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=3.0, params=PX4_TUNED_PARAMS) as run:
+    with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=3.0) as run:
         procs = Processes(d / "logs")
         try:
             procs.start("publisher", ground("publish", served, "--swarm", SWARM, "--zenoh-config", hub))

@@ -24,7 +24,7 @@ from fisc_agent.map.codec import load_map
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import PX4_TUNED_PARAMS, Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
+from .sitl_kit import Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -67,7 +67,7 @@ def _score(log: Path, tunnel):
 def _one_pass(shared_path, tmp_path, tunnel, log: Path, args: list, held_s: float):
     """One PX4 and one ``fisc-agent`` (``args`` added) from the ground through the duct until the exit
     hold has lasted ``held_s``; returns the agent's process and PX4's ULog."""
-    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=PX4_TUNED_PARAMS) as run:
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1) as run:   # stock parameters
         procs = Processes(tmp_path / "logs")
         try:
             agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for
@@ -157,8 +157,8 @@ def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct
     without one PX4 SITL logged "Matching flight task was not able to run" and the vehicle sank
     6 m and drifted 3.5 m sideways within 10 s."""
     log = tmp_path / "agent1.csv"
-    params = {**PX4_TUNED_PARAMS, "COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 0.5}
-    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run:
+    params = {"COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 0.5}
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1) as run:   # stock parameters
         procs = Processes(tmp_path / "logs")
         try:
             agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for
