@@ -45,8 +45,8 @@ def _add_run(sub) -> None:
                    help=f"time-average the fields over the last S seconds (default: {RESERVOIR_WINDOW_S:g} for "
                         "reservoir, the whole run for seed)")
     p.add_argument("--plant", choices=tuple(PLANT_PRESETS), default="paper",
-                   help="vehicle model: the paper's quadrotor, or px4-sih (fitted to real PX4 SITL flights; "
-                        "sim.plant.fit)")
+                   help="vehicle model: the paper's quadrotor, or px4-sih (fitted to real PX4 SITL flights with stock "
+                        "parameters; px4-sih-tuned: a tuned velocity loop; sim.plant.fit)")
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="default: schema-2 map (continuity-consistent staggered field, designed density) flown "
                         "with its recommended settings; paper: the paper's Algorithm 1 (schema-1 map, mean "

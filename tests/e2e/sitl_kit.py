@@ -425,6 +425,18 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str) -> WallTruth:
     return WallTruth(rate * t_gt + offset, p_gt, rate, cost ** 0.5)
 
 
+def truth_pass(truth: WallTruth, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
+               near_axis_m: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(t_s, pos_m, vel_m_s, states)`` of a fleet vehicle's ground truth (``truth_on_wall_clock``)
+    for ``score_track``, as ``truth_track`` gives them for a lone vehicle: the velocity by central
+    differences on PX4's own clock (the wall clock runs ``clock_rate`` faster), the pass by
+    ``pass_states``."""
+    keep = np.concatenate([[True], np.diff(truth.wall_s) > 0])
+    t, pos = truth.wall_s[keep], truth.pos_m[keep]
+    vel = np.gradient(pos, t, axis=0) * truth.clock_rate
+    return t, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m)
+
+
 def pass_states(pos_m: np.ndarray, vel_m_s: np.ndarray, x_lo_m: float, x_hi_m: float,
                 near_axis_m: float) -> np.ndarray:
     """(n,) ``FLOW`` from the first forward motion inside ``[x_lo_m, x_hi_m]`` within ``near_axis_m`` of

@@ -5,13 +5,16 @@ so the agents share the map frame through a geodetic anchor (GLOBAL_POSITION_INT
 fits and signs the map and publishes it (``fisc-ground publish``); ``fisc-ground status --json``
 must list every agent with the map's sha256; a fleet ``hold`` / ``resume`` is acknowledged and
 flown; a newer map signed by a stranger, served mid-flight, is refused by every agent, which
-keep flying.  Entries are staggered on the shared clock (``--entry-stagger``): the streamlines
-converge towards the throat.  The vehicles must stay ``MIN_SEPARATION_M`` apart by SIH's ground
+keep flying.  The agents run with stock PX4 parameters and their default flags (issue 37): they are
+admitted from the map's flux budget (``--entry-stagger auto``, windows on the shared clock), and learn
+their vehicle's velocity gain in flight.  The vehicles must stay ``MIN_SEPARATION_M`` apart by SIH's ground
 truth (not PX4's estimates, off by up to 0.5 m) over the whole flight: they wait for their
 windows above their own launch points, fly ``LAPS`` passes (``--exit-policy loop``: a lap's return
 flies back over the tunnel and waits above its launch point again, ``control.lap_return_waypoints``)
-and then hold after the outlet each at its own point (``control.hold_point``).  ``FISC_SITL_FLEET``
-sets the fleet size (default 3), ``FISC_SITL_FLEET_LAPS`` the passes (default 1).
+and then hold after the outlet each at its own point (``control.hold_point``), reached over the
+others (``control.exit_waypoints``).  Every uninterrupted pass must score a ground-truth velocity
+nRMSE of at most ``MAX_VELOCITY_NRMSE``.  ``FISC_SITL_FLEET`` sets the fleet size (default 6),
+``FISC_SITL_FLEET_LAPS`` the passes (default 1).
 """
 
 from __future__ import annotations
@@ -31,26 +34,24 @@ from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
 from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
-                       truth_on_wall_clock, ulog_summary)
+                       truth_on_wall_clock, truth_pass, ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
-N = int(os.environ.get("FISC_SITL_FLEET", "3"))
+N = int(os.environ.get("FISC_SITL_FLEET", "6"))
 LAPS = int(os.environ.get("FISC_SITL_FLEET_LAPS", "1"))
 """``FISC_SITL_FLEET_LAPS=2`` flies two passes (measured: 1.11 m closest by the ground truth, 136 s)."""
 FLEET_HOLD = os.environ.get("FISC_SITL_FLEET_HOLD", "1") != "0"
 """``FISC_SITL_FLEET_HOLD=0`` leaves out the fleet hold/resume (a clean pass, to measure crossings)."""
 SWARM = "sitl"
-# Entries start in the first quarter of 4 s windows (``control.ENTRY_OPEN_FRACTION``): at least 3 s
-# apart.  The history: 2 s windows entered from their first half gave closest approaches of
-# 0.81-1.49 m and once 0.24 m; 3 s gave once 0.41 m, when the vehicles' identified feed-forward
-# gains differed by 18 % (the feed-forward now takes only the shortfall both halves of the
-# identification window agree on); 4 s gave once 0.16 m in CI, from entries 2.3 s apart at the
-# inlet's 0.45 m/s.  Those figures came from PX4's estimates; SIH's ground truth (now the judge)
-# put one of them, 0.52 m by the estimates, at 0.27 m.  With quarter-window starts, waiting above the
-# launch points and spaced hold points (three runs): 1.57-2.47 m in the duct, 0.93-1.38 m over the
-# whole flight (two vehicles holding past the outlet, PX4's estimate error and Hold drift included).
-STAGGER_S = 4.0
+# The history of the spacing: manual windows (``--entry-stagger``) of 2-4 s gave closest approaches
+# of 0.16-0.41 m at times (PX4's estimates; SIH's ground truth, now the judge, put one at 0.27 m);
+# with 4 s windows, waiting above the launch points and spaced hold points, three vehicles kept
+# 0.93-1.38 m over the whole flight.  Six on a 1.5 m hold lattice reached straight from the outlet:
+# 0.29 and 0.47 m (a leader climbing at the outlet, two neighbours in PX4's Hold); over the spots
+# on the 3 m lattice: 1.02 m.
+MAX_VELOCITY_NRMSE = 0.10
+"""Issue 37: every vehicle's axial-velocity nRMSE against the CFD (SIH's ground truth)."""
 MIN_SEPARATION_M = 0.5
 
 
@@ -95,11 +96,10 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
         try:
             procs.start("publisher", ground("publish", served, "--swarm", SWARM, "--zenoh-config", hub))
             for i in range(N):
-                procs.start(f"agent{i}", cli("fisc-agent") + ["--go", 
+                procs.start(f"agent{i}", cli("fisc-agent") + ["--go",
                     "--swarm", SWARM, "--zenoh-config", member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
-                    "--geodetic-anchor", MAP_ANCHOR, "--entry-stagger", STAGGER_S, "--entry-slots", max(N, 2),
-                    "--exit-policy", "loop", "--laps", LAPS, "--flight-log", logs[i]])
+                    "--geodetic-anchor", MAP_ANCHOR, "--exit-policy", "loop", "--laps", LAPS, "--flight-log", logs[i]])
             # every agent got the signed map and reports it
             seen = poll(lambda: (lambda s: s if len(s) == N and all(a["map_sha256"] == good.sha256 for a in s.values())
                                  else None)(status()), 90.0, 0.0)
@@ -139,16 +139,20 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
     scores = [score_track(t.t_s, t.pos_m, t.vel_m_s, t.states, ref, good.scale, wall=wall) for t in tracks]
     truths = [truth_on_wall_clock(p, t, MAP_ANCHOR) for p, t in zip(ulog_paths, tracks)]
     sep = min_separation_m([(w.wall_s, w.pos_m) for w in truths])
+    truth_scores = [score_track(*truth_pass(w), ref, good.scale, wall=wall) for w in truths]
     passes = [sum(1 for a, b in zip(t.states, t.states[1:]) if a == "JOIN" and b == "FLOW") for t in tracks]
     report = {"hold_ack": out, "min_separation_m": sep, "passes": passes,
               "min_separation_estimated_m": min_separation_m([(t.wall_s, t.pos_m) for t in tracks]),
               "clock_fit_rms_m": [w.fit_rms_m for w in truths], "scores": [s.as_dict() for s in scores],
-              "crossing_s": [s.crossing_time_s for s in scores]}
+              "crossing_s": [s.crossing_time_s for s in scores], "truth": [s.as_dict() for s in truth_scores]}
     print(json.dumps(report, default=str))
-    for i, s in enumerate(scores):
-        assert s.max_excursion_m < 0.3, (i, s)
+    for i, (s, tr) in enumerate(zip(scores, truth_scores)):
+        assert s.max_excursion_m < 0.3 and tr.max_excursion_m < 0.3, (i, s, tr)
         assert FLEET_HOLD or (s.crossed and not s.held), (i, s)
         assert s.n_samples > 50, (i, s)
+        if not s.held:   # a pass the fleet hold did not interrupt
+            assert tr.crossed and tr.velocity_nrmse <= MAX_VELOCITY_NRMSE, (i, tr, s)
+    assert sum(not s.held for s in scores) >= N // 2, report   # the hold came early: most passes are whole
     assert passes == [LAPS] * N, report
     assert all(w.fit_rms_m < 0.1 for w in truths), report   # the clocks matched: the truth is on the wall clock
     assert sep >= MIN_SEPARATION_M, report

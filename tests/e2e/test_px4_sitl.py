@@ -157,8 +157,8 @@ def test_offboard_loss_px4_failsafe_takes_over_and_the_vehicle_stays_in_the_duct
     without one PX4 SITL logged "Matching flight task was not able to run" and the vehicle sank
     6 m and drifted 3.5 m sideways within 10 s."""
     log = tmp_path / "agent1.csv"
-    params = {"COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 0.5}
-    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1) as run:   # stock parameters
+    params = {"COM_OBL_RC_ACT": 5, "COM_OF_LOSS_T": 0.5}   # the failsafe docs/deployment.md asks for; gains stock
+    with Px4Sitl(shared_path("sitl", "px4"), tmp_path, 1, params=params) as run:
         procs = Processes(tmp_path / "logs")
         try:
             agent = procs.start("agent1", cli("fisc-agent") + [  # a lone vehicle: no admission windows to wait for

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import MapGeometry, ScalarField, clamp_velocity, distance
+from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, MapGeometry, ScalarField, clamp_velocity, distance
 from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand
@@ -653,9 +653,11 @@ def test_staggered_agents_wait_above_their_launch_points_and_enter_the_windows_t
         assert abs(first[1] - 3.0 * agent_id) < 0.1      # it waited above its own launch point
     assert max(waited_at.values()) > 2.0, waited_at      # someone had to wait for a window
     assert min(moved_after.values()) > 0.25, moved_after  # then flew to the inlet without stopping (crawl 0.3)
-    # the time from its window's opening to the crossing is the same for all: each left early by its own flight
+    # the time from its window's opening to the crossing is the same for all (each left early by its own
+    # flight), up to the window's open part: an agent at its wait point after its time to leave (here
+    # agent 2, 3 m farther, with the join's lag allowance) leaves while the window is still open
     delay = [(entered[i] - wall0 - stagger * i) % (3 * stagger) for i in range(3)]
-    assert max(delay) - min(delay) < 0.5, delay
+    assert max(delay) - min(delay) <= ENTRY_OPEN_FRACTION * stagger, delay
     order = sorted(entered.values())
     assert min(b - a for a, b in zip(order, order[1:])) >= 0.75 * stagger - 0.5, entered
 
@@ -704,10 +706,11 @@ def test_staggered_laps_wait_for_their_window_above_their_launch_points(sfield):
                 their_wait = np.array([0.0, 3.0 * other, -3.0 + cfg.takeoff_alt_m])
                 assert min(np.linalg.norm(p - their_wait) for t, p, speed in lap_join if t < arrived) > 2.5
         # it crossed the inlet the same time after its window opened as on its first pass (both
-        # flights to the staging point were led by their own approach time)
+        # flights to the staging point were led by their own approach time), up to the window's open
+        # part (a first join that reached its wait point after its time to leave)
         first, second = [(wall0 + tr.t_s - stagger * agent_id) % (slots * stagger)
                          for tr in m.transitions if tr.dst == State.FLOW][:2]
-        assert abs(second - first) < 0.5, (first, second)
+        assert abs(second - first) <= ENTRY_OPEN_FRACTION * stagger, (first, second)
     assert max(waited_s.values()) > 1.0, waited_s                  # someone had to wait for a window
 
 

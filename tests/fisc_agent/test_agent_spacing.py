@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, entry_point, entry_points,
+from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, approach_time_s, entry_point,
+                                       entry_points, speed_for_arrival,
                                        entry_slot_open, exit_waypoints, hold_point, hold_points,
                                        OVERFLY_M)
 from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
                                        hold_altitude_m, hold_sites, lattice_hold_points, min_pairwise_distance_m)
+from fisc_agent.flight.navigation import Navigator
 from fisc_agent.map.lookup import CommandField
 
 
@@ -209,3 +211,53 @@ def test_an_exit_carried_past_the_climb_point_climbs_where_it_is(maps):
     # a spot far above the tunnel (a high home): transit OVERFLY_M above it
     high = (spot[0], spot[1], g.hi_m[2] + 5.0)
     assert exit_waypoints((at, 0.0, 0.0), high, g, 2.0, 1.5)[1][2] == pytest.approx(high[2] + OVERFLY_M)
+
+
+# ---- the join arrives at its staging point when its window opens -----------------------------------
+def test_speed_for_arrival_inverts_the_approach_time_within_its_bounds():
+    legs = [3.0, 8.0, 1.5]
+    t_at = {v: sum(approach_time_s(d, v, 0.3) for d in legs) for v in (0.3, 1.0, 2.0, 3.0)}
+    assert speed_for_arrival(legs, t_at[2.0], 0.3, 0.3, 3.0) == pytest.approx(2.0, rel=1e-6)
+    assert speed_for_arrival(legs, t_at[1.0], 0.3, 0.3, 3.0) == pytest.approx(1.0, rel=1e-6)
+    assert speed_for_arrival(legs, t_at[3.0], 0.3, 0.3, 3.0) == 3.0           # equal: the cap
+    assert speed_for_arrival(legs, t_at[3.0] * 0.99, 0.3, 0.3, 3.0) == 3.0    # late even at the cap
+    assert speed_for_arrival(legs, 0.0, 0.3, 0.3, 3.0) == 3.0                 # due now
+    assert speed_for_arrival(legs, -1.0, 0.3, 0.3, 3.0) == 3.0                # overdue
+    assert speed_for_arrival(legs, t_at[0.3] * 1.01, 0.3, 0.3, 3.0) == 0.3    # early even crawling
+    assert speed_for_arrival([], 5.0, 0.3, 0.3, 3.0) == 0.3                   # there already
+    with pytest.raises(ValueError, match="lo <= hi"):
+        speed_for_arrival(legs, 5.0, 0.3, 3.0, 2.0)
+
+
+def _staging_times_s(maps, lag_s, gain):
+    """A vehicle with a first-order lag ``lag_s`` and a steady ``gain`` (stock PX4 on SIH: 0.9 s, 0.84) joins from 8 m below and 8 m beside the inlet:
+    when it reaches its staging point and when it crosses the inlet, each minus the time it was due
+    at the staging point [s]."""
+    g, sfield = maps["tunnel"]
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=3, entry_stagger_s=2.89, entry_slots=13,
+                      lookahead_auto=False)
+    nav = Navigator(cfg)
+    nav.set_map(sfield)
+    pos = np.array([g.x_inlet_m + 0.6, 8.0, -8.0])
+    nav.plan_join(tuple(pos), None, wait_where_planned=True)
+    vel, dt, last, at_s = np.zeros(3), 0.05, len(nav.waypoints) - 1, None
+    k = 1.0 - math.exp(-dt / lag_s) if lag_s > 0 else 1.0
+    for step in range(4000):
+        t = step * dt
+        cmd = nav.join_step(tuple(pos), sfield.cv_of(*pos), t)
+        if nav.wp_index == last and at_s is None:
+            at_s = t
+        if cmd is None or (at_s is not None and pos[0] >= g.x_inlet_m):
+            assert nav.staging_due_s is not None and at_s is not None
+            return at_s - nav.staging_due_s, t - nav.staging_due_s
+        vel += k * (gain * np.asarray(cmd) - vel)
+        pos = pos + vel * dt
+    raise AssertionError("never crossed the inlet")
+
+
+@pytest.mark.parametrize("lag_s, gain", [(0.0, 1.0), (0.9, 0.84), (1.2, 0.75)])
+def test_a_lagging_vehicle_reaches_its_staging_point_when_due_and_waits_there_if_early(maps, lag_s, gain):
+    """The governor's reach: a vehicle with lag 1.5 s and gain 0.6 arrives 1.5 s late even so."""
+    at_s, inlet = _staging_times_s(maps, lag_s, gain)
+    assert -1.0 < at_s < 0.3, at_s       # on time: early by under a second (it then waits), never late
+    assert 0.0 <= inlet < 5.0, inlet     # across the inlet only once due, at the inlet's crawl

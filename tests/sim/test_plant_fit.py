@@ -9,8 +9,10 @@ from fisc_agent.flight.flightlog import read_flight_log
 from sim.plant.model import PlantParams
 from sim.plant.fit import PLANT_PRESETS, fit_plant, flight_log_arrays, plant_preset, replay, split_segments
 
-FLIGHT = Path(__file__).resolve().parents[1] / "data" / "px4_sih_flight.csv"
-"""JOIN and FLOW rows of ``fisc-agent --flight-log`` on ../shared/sitl/px4 (tuned velocity loop)."""
+DATA = Path(__file__).resolve().parents[1] / "data"
+FLIGHTS = {"px4-sih": DATA / "px4_sih_stock_flight.csv", "px4-sih-tuned": DATA / "px4_sih_flight.csv"}
+"""JOIN and FLOW rows of ``fisc-agent --flight-log`` on ../shared/sitl/px4: stock parameters, and the
+velocity loop tuned (``MPC_XY_VEL_P_ACC`` 3.5, ``_I_ACC`` 1.5)."""
 
 
 def test_fit_recovers_a_known_plant_from_its_own_response():
@@ -24,16 +26,18 @@ def test_fit_recovers_a_known_plant_from_its_own_response():
     assert fit.params.tau_v_s == pytest.approx(0.3, abs=0.08)
 
 
-def test_the_px4_sih_preset_reproduces_a_real_px4_flight_better_than_the_papers_plant():
-    t, sp, v = flight_log_arrays(read_flight_log(FLIGHT))
+@pytest.mark.parametrize("name, bound", [("px4-sih", 0.095), ("px4-sih-tuned", 0.085)])
+def test_each_px4_sih_preset_reproduces_its_real_px4_flight_better_than_the_other_models(name, bound):
+    t, sp, v = flight_log_arrays(read_flight_log(FLIGHTS[name]))
     segs = split_segments(t, sp, v)
     assert sum(len(s[0]) for s in segs) > 300
 
     def rms(p):
         return float(np.sqrt(np.mean(np.concatenate([replay(p, a, b, c[0]) - c for a, b, c in segs]) ** 2)))
 
-    px4, paper = rms(plant_preset("px4-sih")), rms(PLANT_PRESETS["paper"])
-    assert px4 < 0.085 and px4 < 0.8 * paper, (px4, paper)
+    own = rms(plant_preset(name))
+    others = {other: rms(p) for other, p in PLANT_PRESETS.items() if other != name}
+    assert own < bound and all(own < 0.9 * r for r in others.values()), (own, others)
 
 
 def test_unknown_preset_names_the_choices():
