@@ -25,9 +25,10 @@ Model.
   CV's scaled axial command [m/s]).  The flux period is ``tau / max_in_tunnel``.  The inlet adds a
   floor: vehicles admitted one after another must enter at least d_min apart along the axis at the
   inlet's designed speed u_in, and an agent starts across in the first ``ENTRY_OPEN_FRACTION`` of its
-  window (``fisc_agent.flight.control.entry_slot_open``), so two consecutive entries are
-  ``(1 - ENTRY_OPEN_FRACTION) x period`` apart: the inlet period is
-  ``d_min / ((1 - ENTRY_OPEN_FRACTION) u_in)``.  The admission period is the larger of the two
+  window (``fisc_agent.flight.control.entry_slot_open``) and within ``ENTRY_TIMING_TOLERANCE_S`` of
+  its due time (a real vehicle's lag), so two consecutive entries are ``(1 - ENTRY_OPEN_FRACTION) x
+  period - ENTRY_TIMING_TOLERANCE_S`` apart: the inlet period is
+  ``(d_min / u_in + ENTRY_TIMING_TOLERANCE_S) / (1 - ENTRY_OPEN_FRACTION)``.  The admission period is the larger of the two
   (``limit`` says which); admitted at it, the tunnel holds ``tau / period`` vehicles on average.
 """
 
@@ -39,7 +40,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from fisc_agent.flight.control import ENTRY_OPEN_FRACTION
+from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
 
 GAMMA_4_3 = math.gamma(4.0 / 3.0)
 """Gamma(4/3) = 0.8930 of the Poisson gas's mean nearest-neighbour distance."""
@@ -158,7 +159,7 @@ def separation_budget(cv_index: np.ndarray, rho: np.ndarray, u_axial_m_s: np.nda
     n_dense = n_max * rho_max / (vol * total)
     tau = l * total / q
     flux_period = tau / n_max
-    inlet_period = d / ((1.0 - ENTRY_OPEN_FRACTION) * u_in)
+    inlet_period = (d / u_in + ENTRY_TIMING_TOLERANCE_S) / (1.0 - ENTRY_OPEN_FRACTION)
     period = max(flux_period, inlet_period)
     return SeparationBudget(
         d_min_m=d, max_in_tunnel=int(n_max), densest_nn_m=poisson_nn_mean_m(n_dense),

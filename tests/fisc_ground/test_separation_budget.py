@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.flight.control import ENTRY_OPEN_FRACTION
+from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
 from fisc_ground.fit.separation_budget import (GAMMA_4_3, AdmissionLimit, near_fraction, poisson_density_for_nn,
                                                poisson_nn_mean_m, relative_density, separation_budget)
 
@@ -58,7 +58,7 @@ def test_near_fraction_at_the_budget_is_one_minus_exp_of_minus_gamma_cubed():
 
 def test_uniform_box_budget_is_volume_over_the_poisson_volume():
     """Uniform density and speed U in an nx x m block of cubes l: N_max = floor(n* V), tau = nx l / U,
-    the flux period tau / N_max, the inlet period d / ((1 - f) U)."""
+    the flux period tau / N_max, the inlet period (d / U + t_tol) / (1 - f)."""
     l, d, U = 0.5, 0.92, 1.3
     idx = box(30, 4, 4)
     b = separation_budget(idx, np.ones(len(idx)), np.full(len(idx), U), l, d)
@@ -68,7 +68,7 @@ def test_uniform_box_budget_is_volume_over_the_poisson_volume():
     assert b.densest_nn_m >= d and poisson_nn_mean_m((b.max_in_tunnel + 1) / volume) < d  # the largest such N
     assert b.mean_transit_s == pytest.approx(30 * l / U)
     assert b.flux_period_s == pytest.approx(b.mean_transit_s / b.max_in_tunnel)
-    assert b.inlet_period_s == pytest.approx(d / ((1 - ENTRY_OPEN_FRACTION) * U))
+    assert b.inlet_period_s == pytest.approx((d / U + ENTRY_TIMING_TOLERANCE_S) / (1 - ENTRY_OPEN_FRACTION))
     assert b.admission_period_s == max(b.flux_period_s, b.inlet_period_s)
     assert b.in_tunnel_admitted == pytest.approx(b.mean_transit_s / b.admission_period_s)
     assert b.in_tunnel_admitted <= b.max_in_tunnel
@@ -112,8 +112,8 @@ def test_the_inlet_or_the_flux_sets_the_admission():
     b = separation_budget(idx, rho, slow_inlet, 0.5, 0.92)
     assert b.limit is AdmissionLimit.INLET and b.admission_period_s == b.inlet_period_s
     assert b.inlet_speed_m_s == pytest.approx(0.1)
-    long_idx = box(200, 1, 1)   # a long thin tunnel at d_min 0.3: the inlet clears a vehicle faster than the flux budget
-    b = separation_budget(long_idx, np.ones(200), np.full(200, 5.0), 0.5, 0.3)
+    long_idx = box(200, 1, 1)   # a long thin fast tunnel: the inlet clears a vehicle faster than the flux budget
+    b = separation_budget(long_idx, np.ones(200), np.full(200, 5.0), 0.5, 0.92)
     assert b.flux_period_s > b.inlet_period_s and b.limit is AdmissionLimit.FLUX
 
 
