@@ -13,8 +13,8 @@ windows above their own launch points, fly ``LAPS`` passes (``--exit-policy loop
 flies back over the tunnel and waits above its launch point again, ``control.lap_return_waypoints``)
 and then hold after the outlet each at its own point (``control.hold_point``), reached over the
 others (``control.exit_waypoints``).  Every uninterrupted pass must score a ground-truth velocity
-nRMSE of at most ``MAX_VELOCITY_NRMSE``.  ``FISC_SITL_FLEET`` sets the fleet size (default 3; six
-with the default flags came within 0.29-0.39 m at the staging points and the exit's climb, issue 37),
+nRMSE of at most ``MAX_VELOCITY_NRMSE``.  ``FISC_SITL_FLEET`` sets the fleet size (default 6, issue
+37's fleet),
 ``FISC_SITL_FLEET_LAPS`` the passes (default 1).
 """
 
@@ -39,7 +39,7 @@ from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, ok, px4_ulog, signed_
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
-N = int(os.environ.get("FISC_SITL_FLEET", "3"))
+N = int(os.environ.get("FISC_SITL_FLEET", "6"))
 LAPS = int(os.environ.get("FISC_SITL_FLEET_LAPS", "1"))
 """``FISC_SITL_FLEET_LAPS=2`` flies two passes (measured: 1.11 m closest by the ground truth, 136 s)."""
 FLEET_HOLD = os.environ.get("FISC_SITL_FLEET_HOLD", "1") != "0"
@@ -50,11 +50,15 @@ SWARM = "sitl"
 # with 4 s windows, waiting above the launch points and spaced hold points, three vehicles kept
 # 0.93-1.38 m over the whole flight.  Six on a 1.5 m hold lattice reached straight from the outlet:
 # 0.29 and 0.47 m (a leader climbing at the outlet, two neighbours in PX4's Hold); over the spots
-# on the 3 m lattice: 1.02 m.
+# on the 3 m lattice: 1.02 m.  With the default flags (the map's admission windows of 2.89 s), 0.29-0.39 m
+# at the staging points and the exit's climb; with the joins' arrival governor, the exit's corners flown
+# through and the admission's 1 s timing tolerance (4.23 s windows): 1.38-1.76 m (two runs).
 MAX_VELOCITY_NRMSE = 0.20
 """A regression bound on every vehicle's axial-velocity nRMSE against the CFD (SIH's ground truth).
-Issue 37 asks for 0.10: stock PX4 fleets on 2026-12-05 scored 0.063-0.155 over 15 passes (one of
-three flights had every pass within 0.10), so 0.10 is not met yet."""
+Issue 37 asks for 0.10: stock PX4 fleets on 2026-12-05 scored 0.063-0.157 over 27 passes (one of
+five flights had every pass within 0.10), so 0.10 is not met yet.  By the ground truth the vehicles
+fly 0.2-0.4 m/s too fast in the diverging part, where PX4's velocity integrator, wound up while
+it lagged the acceleration, overshoots: a steady gain (``identify.OnlineGain``) cannot model it."""
 MIN_SEPARATION_M = 0.5
 
 
