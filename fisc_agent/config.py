@@ -123,7 +123,7 @@ class AgentConfig:
     entry_stagger_s: float | None = None
     """Staggered entry: agents cross the inlet in windows of this length on the shared clock (on real
     vehicles GNSS time, ``VehicleStatus.wall_time_s``), agent i in window ``i mod entry_slots``
-    (``control.entry_slot_open``); 0 = enter as soon as staged; None (``--entry-stagger auto``): the map's
+    (``spacing.entry_slot_open``); 0 = enter as soon as staged; None (``--entry-stagger auto``): the map's
     admission period (``separation.admission_period_s``, ``fisc_agent.flight.spacing.entry_schedule``), no
     stagger on a map without one [s]."""
     entry_slots: int | None = None

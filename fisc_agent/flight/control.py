@@ -35,18 +35,6 @@ from fisc_agent.flight.spacing import ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, hold_al
 Vec = tuple[float, float, float]
 ZERO: Vec = (0.0, 0.0, 0.0)
 GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
-ENTRY_OPEN_FRACTION = 0.25
-"""Fraction of its entry window in which an agent may start across the inlet (``entry_slot_open``).
-Entries in neighbouring windows are then at least ``(1 - ENTRY_OPEN_FRACTION) x stagger`` apart.
-With one half, a late arrival in its window entered ``stagger / 2`` before the next agent: on real PX4
-(the SITL fleet test, 4 s windows) two vehicles so entered 2.3 s apart at the inlet's 0.45 m/s, and
-the one that crossed 1 s faster came within 0.27 m of the other (SIH ground truth; 0.52 m by PX4's
-estimates).  With one quarter, the same test's closest approach in the duct was 1.57-2.47 m."""
-ENTRY_TIMING_TOLERANCE_S = 1.0
-"""How far from its due time a join reaches its staging point and starts across (``speed_for_arrival``
-and the 1 s per-leg allowance: up to about 1 s early, then it waits; a stock PX4 with lag 0.9 s).  The
-map's admission budget keeps consecutive entries d_min apart despite it (``separation_budget``): with
-windows of d_min / ((1 - ENTRY_OPEN_FRACTION) u_in) alone, six real PX4 came within 0.29-0.39 m."""
 
 
 class ScalarField:
@@ -427,22 +415,6 @@ def exit_waypoints(pos: Vec, spot: Vec, geom: MapGeometry, clearance_m: float, p
     z_top = max(geom.hi_m[2] + margin_m, spot[2] + overfly_m)
     x, y, _ = pos
     return [(max(x, geom.x_outlet_m + clearance_m - pitch_m), y, z_top), (spot[0], spot[1], z_top), spot]
-
-
-def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:
-    """May agent ``agent_id`` cross the inlet now?  Decentralised staggered entry on a shared clock.
-
-    Time is cut into a cycle of ``slots`` windows of ``stagger_s``; agent i owns window
-    ``i mod slots`` and starts across in its first ``ENTRY_OPEN_FRACTION``, so two agents with
-    different windows enter at least ``(1 - ENTRY_OPEN_FRACTION) x stagger_s`` apart (the spacing
-    they keep is that gap times the flow's speed, least at the inlet and outlet) and no agent waits
-    longer than one cycle.  ``stagger_s = 0``: always open (no stagger).
-    """
-    if stagger_s <= 0.0 or slots <= 1:
-        return True
-    phase = math.fmod(wall_time_s, stagger_s * slots)
-    start = (int(agent_id) % slots) * stagger_s
-    return start <= phase < start + ENTRY_OPEN_FRACTION * stagger_s
 
 
 def check_map(field: CommandField, mode: str | None) -> list[str]:

@@ -15,10 +15,10 @@ from typing import Callable
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
-                                       entry_slot_open, exit_waypoints, goto_velocity, hold_point, join_waypoints,
-                                       lap_return_waypoints, speed_for_arrival)
+                                       exit_waypoints, goto_velocity, hold_point, join_waypoints, lap_return_waypoints,
+                                       speed_for_arrival)
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
-from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule
+from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule, entry_slot_open
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.lookup import POINT_MODES
 from fisc_agent.map.separation import Separation

@@ -25,7 +25,7 @@ Model.
   CV's scaled axial command [m/s]).  The flux period is ``tau / max_in_tunnel``.  The inlet adds a
   floor: vehicles admitted one after another must enter at least d_min apart along the axis at the
   inlet's designed speed u_in, and an agent starts across in the first ``ENTRY_OPEN_FRACTION`` of its
-  window (``fisc_agent.flight.control.entry_slot_open``) and within ``ENTRY_TIMING_TOLERANCE_S`` of
+  window (``fisc_agent.flight.spacing.entry_slot_open``) and within ``ENTRY_TIMING_TOLERANCE_S`` of
   its due time (a real vehicle's lag), so two consecutive entries are ``(1 - ENTRY_OPEN_FRACTION) x
   period - ENTRY_TIMING_TOLERANCE_S`` apart: the inlet period is
   ``(d_min / u_in + ENTRY_TIMING_TOLERANCE_S) / (1 - ENTRY_OPEN_FRACTION)``.  The admission period is the larger of the two
@@ -40,7 +40,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
+from fisc_agent.flight.spacing import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
 
 GAMMA_4_3 = math.gamma(4.0 / 3.0)
 """Gamma(4/3) = 0.8930 of the Poisson gas's mean nearest-neighbour distance."""
@@ -95,7 +95,8 @@ class SeparationBudget:
     flux_period_s: float
     """tau / ``max_in_tunnel``: the admission period of the flux budget [s]."""
     inlet_period_s: float
-    """d_min / ((1 - ENTRY_OPEN_FRACTION) u_in): consecutive entries d_min apart along the axis [s]."""
+    """(d_min / u_in + ENTRY_TIMING_TOLERANCE_S) / (1 - ENTRY_OPEN_FRACTION): consecutive entries d_min
+    apart along the axis [s]."""
     admission_period_s: float
     """One vehicle admitted per this period: the larger of the two [s]."""
     limit: AdmissionLimit

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, MapGeometry, ScalarField, clamp_velocity, distance
+from fisc_agent.flight.control import MapGeometry, ScalarField, clamp_velocity, distance
+from fisc_agent.flight.spacing import ENTRY_OPEN_FRACTION
 from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand
@@ -594,7 +595,7 @@ def test_join_corrects_the_velocity_estimate_bias_and_crosses_at_its_entry_point
 
 
 def test_entry_slots_stagger_agents_on_the_shared_clock():
-    from fisc_agent.flight.control import entry_slot_open
+    from fisc_agent.flight.spacing import entry_slot_open
 
     open_at = {i: [t / 10 for t in range(0, 240) if entry_slot_open(1000.0 + t / 10, i, 2.0, 6)] for i in range(6)}
     assert all(open_at[i] for i in range(6))

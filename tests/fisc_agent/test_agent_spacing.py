@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, approach_time_s, entry_point,
-                                       entry_points, speed_for_arrival,
-                                       entry_slot_open, exit_waypoints, hold_point, hold_points,
-                                       OVERFLY_M)
+from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
+                                       entry_point, entry_points, exit_waypoints, hold_point, hold_points,
+                                       speed_for_arrival)
 from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
-                                       hold_altitude_m, hold_sites, lattice_hold_points, min_pairwise_distance_m)
+                                       entry_slot_open, hold_altitude_m, hold_sites, lattice_hold_points,
+                                       min_pairwise_distance_m)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.map.lookup import CommandField
 

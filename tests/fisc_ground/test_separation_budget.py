@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.flight.control import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
+from fisc_agent.flight.spacing import ENTRY_OPEN_FRACTION, ENTRY_TIMING_TOLERANCE_S
 from fisc_ground.fit.separation_budget import (GAMMA_4_3, AdmissionLimit, near_fraction, poisson_density_for_nn,
                                                poisson_nn_mean_m, relative_density, separation_budget)
 
