@@ -388,15 +388,20 @@ def test_arducopter_no_arming_without_a_go_and_the_ground_takes_over_in_takeoff_
             gcs.connect()
             agent = _agent(procs, "agent1", d / "agent1.csv", "ardupilot", "--takeoff-alt", 5.0, *NO_WINDOWS, *zenoh)
             _no_go_then_the_ground_takes_over(gcs, g, procs, agent, "STABILIZE", COPTER_BRAKE, COPTER_LAND, report)
+            flying_again = time.monotonic()   # given back after the ground's LAND: the agent flies on in GUIDED
+            time.sleep(HANDS_OFF_WATCH_S)
+            report["modes_after_the_last_give_back"] = gcs.modes_between(flying_again)
+            assert report["modes_after_the_last_give_back"] == ["GUIDED"] and agent.alive, report
         finally:
             procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
         modes, texts = dataflash_modes_and_texts(dataflash_log(run, 0))
     report["dataflash_modes"] = modes
     print(json.dumps(report, default=str))
     assert not any("Crash" in t for t in texts), texts
-    # STABILIZE on the ground / GUIDED (the go) / the ground's BRAKE in TAKEOFF / given back / the ground's BRAKE
+    # DataFlash logs from the go on (the log opens as the agent asks for GUIDED and arms; STABILIZE before it is
+    # the ground's view above): GUIDED (the go) / the ground's BRAKE in TAKEOFF / given back / the ground's BRAKE
     # in FLOW / given back / the agent's fleet hold (BRAKE) / the ground's LAND / given back / the shutdown hold
-    expected = [0, COPTER_GUIDED, COPTER_BRAKE, COPTER_GUIDED, COPTER_BRAKE, COPTER_GUIDED, COPTER_BRAKE, COPTER_LAND,
+    expected = [COPTER_GUIDED, COPTER_BRAKE, COPTER_GUIDED, COPTER_BRAKE, COPTER_GUIDED, COPTER_BRAKE, COPTER_LAND,
                 COPTER_GUIDED]
     assert modes[:len(expected)] == expected and modes[len(expected):] in ([], [COPTER_BRAKE]), report
 
