@@ -378,9 +378,9 @@ def test_arducopter_no_arming_without_a_go_and_the_ground_takes_over_in_takeoff_
     and the agent's ARM is then one GUIDED request and one arm command (accepted at once), too quick for a
     ground station to come between them reliably.
 
-    Measured (2026-12-05, this 2-core host, other sessions' SITL runs queued on the lock): three runs, the first
-    expecting a STABILIZE that DataFlash does not log (it opens at the go), the next two passing.  No arming
-    over 14.6 s of HEARTBEATs in STANDBY; go to armed 0.57-1.55 s; the ground's BRAKE kept 6.5-6.6 s in TAKEOFF and
+    Measured (2026-12-05, this 2-core host, other sessions' SITL runs queued on the lock): four runs, the first
+    expecting a STABILIZE that DataFlash does not log (it opens at the go), the next three passing.  No arming
+    over 14.5-14.6 s of HEARTBEATs in STANDBY; go to armed 0.54-1.55 s; the ground's BRAKE kept 6.5-6.6 s in TAKEOFF and
     8.2-8.6 s in FLOW, its LAND 6.4-6.6 s in the hold (given back at 6.8-7.0 m); GUIDED again 0.31-0.62 s after
     ``resume --agents 1``; DataFlash [4, 17, 4, 17, 4, 17, 9, 4, 17] each time.  About 105 s from the SITL start
     to the end (pre-arm checks passing 24 s after start), plus the wait for the lock."""
