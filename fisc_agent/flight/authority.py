@@ -40,6 +40,12 @@ class AuthorityCause(str, Enum):
 MODE_ECHO_S = 3.0
 """A mode the agent asked for within this long counts as its own when the autopilot reports it [s]
 (the autopilot's answer and HEARTBEAT arrive up to a few hundred ms late; retries repeat the request)."""
+SUPERSEDED_ECHO_S = 1.0
+"""A mode the agent asked for and then stopped asking for (it wants another one now) counts as its own
+for this long only [s]: the autopilot's late answer to the old request.  With ``MODE_ECHO_S`` for it
+too, a PX4 ground station's Hold 1-2 s after the agent's own brief Hold request (a position-jump hold
+that ended on the next tick) read as the agent's own, and the agent took OFFBOARD back from the ground
+for 10 s (real PX4 SITL, the authority test)."""
 
 
 @dataclass
@@ -55,12 +61,16 @@ class ModeWatch:
     """How long a wanted mode stays the agent's own [s]."""
     last_seen: ModeClass = ModeClass.UNKNOWN
     """The last known mode reported."""
+    superseded_echo_s: float = SUPERSEDED_ECHO_S
+    """How long a wanted mode stays the agent's own once it wants another one [s]."""
     _wanted_at: dict[ModeClass, float] = field(default_factory=dict)
+    _current: ModeClass | None = None
 
     def want(self, t_s: float, mode: ModeClass | None) -> None:
         """The agent wants ``mode`` at ``t_s`` (None: it wants none)."""
         if mode is not None:
             self._wanted_at[mode] = t_s
+            self._current = mode
 
     def observe(self, t_s: float, mode: ModeClass) -> ModeClass | None:
         """The foreign mode the vehicle changed to at ``t_s``, or None (no change, or one the agent asked for)."""
@@ -70,13 +80,15 @@ class ModeWatch:
         if previous in (ModeClass.UNKNOWN, mode):
             return None
         asked = self._wanted_at.get(mode)
-        if asked is not None and t_s - asked <= self.echo_s:
+        window = self.echo_s if self._current in (None, mode) else min(self.echo_s, self.superseded_echo_s)
+        if asked is not None and t_s - asked <= window:
             return None
         return mode
 
     def forget(self) -> None:
         """Forget what was wanted (authority lost: from now on every change is foreign)."""
         self._wanted_at.clear()
+        self._current = None
 
 
 class FleetAction(Enum):

@@ -335,7 +335,7 @@ class Mission:
         elif st == State.EXIT:
             want_mode = ModeClass.OFFBOARD
             vel = nav.exit_velocity(pos)
-            if distance(pos, nav.target) < cfg.waypoint_radius_m:
+            if nav.exit_arrived(pos, s.vel_m_s):
                 if self._exit_policy(s) is ExitPolicy.LAND:
                     self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
                     st = State.LAND

@@ -39,6 +39,8 @@ EXIT_CORNER_RADIUS_M = 1.0
 """The exit route turns to its next leg this far from a corner (``Navigator.exit_velocity``) [m]."""
 EXIT_CORNER_GAIN_1_S = 3.0
 """Approach gain towards an exit corner: full speed until ``speed / gain`` from it [1/s]."""
+EXIT_SETTLE_SPEED_M_S = 0.25
+"""The exit holds at its spot only once the vehicle is slower than this (``Navigator.exit_arrived``) [m/s]."""
 
 
 class Navigator:
@@ -235,6 +237,14 @@ class Navigator:
         self.exit_route = exit_waypoints(pos, self.target, self.geom, cfg.exit_clearance_m, cfg.exit_spacing_m,
                                          cfg.keepout_margin_m)
         self.exit_index = 0
+
+    def exit_arrived(self, pos: Vec, vel_m_s: Vec | None) -> bool:
+        """At the hold spot: within the waypoint radius and slower than ``EXIT_SETTLE_SPEED_M_S`` (the
+        exit comes down onto its spot; an ArduCopter that started its hold still descending at the
+        radius settled 0.92 m lower, beyond the hold test's 0.5 m)."""
+        if self.target is None or distance(pos, self.target) >= self.cfg.waypoint_radius_m:
+            return False
+        return vel_m_s is None or math.sqrt(sum(v * v for v in vel_m_s)) < EXIT_SETTLE_SPEED_M_S
 
     def exit_velocity(self, pos: Vec) -> Vec:
         """EXIT's velocity: along ``exit_route`` at the join speed, through its corners without slowing

@@ -14,7 +14,7 @@ from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry,
 from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
                                        entry_slot_open, hold_altitude_m, hold_sites, lattice_hold_points,
                                        min_pairwise_distance_m)
-from fisc_agent.flight.navigation import Navigator
+from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, Navigator
 from fisc_agent.map.lookup import CommandField
 
 
@@ -261,3 +261,19 @@ def test_a_lagging_vehicle_reaches_its_staging_point_when_due_and_waits_there_if
     at_s, inlet = _staging_times_s(maps, lag_s, gain)
     assert -1.0 < at_s < 0.3, at_s       # on time: early by under a second (it then waits), never late
     assert 0.0 <= inlet < 5.0, inlet     # across the inlet only once due, at the inlet's crawl
+
+
+def test_the_exit_holds_only_on_its_spot_and_once_slow(maps):
+    g, sfield = maps["tunnel"]
+    nav = Navigator(AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=4))
+    nav.set_map(sfield)
+    nav.plan_exit((g.x_outlet_m + 0.1, 0.0, 0.0), None)
+    spot, r = nav.target, nav.cfg.waypoint_radius_m
+    assert nav.exit_arrived(spot, (0.0, 0.0, 0.0)) and nav.exit_arrived(spot, None)
+    assert nav.exit_arrived(spot, (0.0, 0.0, -(EXIT_SETTLE_SPEED_M_S - 1e-6)))      # just slower
+    assert not nav.exit_arrived(spot, (0.0, 0.0, -EXIT_SETTLE_SPEED_M_S))           # equal: still settling
+    near = (spot[0], spot[1], spot[2] + r - 1e-6)
+    assert nav.exit_arrived(near, (0.0, 0.0, 0.0))                                  # just inside the radius
+    assert not nav.exit_arrived((spot[0], spot[1], spot[2] + r), (0.0, 0.0, 0.0))   # on it: not yet
+    # the route: climb, across above the spot, down onto it
+    assert [p[:2] for p in nav.exit_route[1:]] == [spot[:2], spot[:2]] and nav.exit_route[-1] == spot

@@ -13,7 +13,7 @@ import pytest
 from test_agent_mission import DT, SimVehicle, make, run, run_for  # noqa: F401 (sfield fixture below)
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.authority import MODE_ECHO_S, FleetAction, ModeWatch, fleet_action
+from fisc_agent.flight.authority import MODE_ECHO_S, SUPERSEDED_ECHO_S, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import MapGeometry, ScalarField
 from fisc_agent.flight.flightlog import FlightLog, rotate
 from fisc_agent.flight.health import LandedState, SystemState, VehicleHealth
@@ -77,6 +77,23 @@ def test_mode_watch_tells_own_changes_from_foreign_ones_at_the_echo_boundary():
     assert w3.observe(5.2, HOLD) is None                       # back to the wanted one: ours
     w3.forget()
     assert w3.observe(5.3, OFFBOARD) == OFFBOARD               # after forget() every change is foreign
+
+
+def test_a_superseded_wanted_mode_is_the_agents_own_only_briefly():
+    """The agent asked for HOLD for one tick, then OFFBOARD again: the autopilot's late answer to the
+    HOLD request is its own within SUPERSEDED_ECHO_S of the last HOLD want, a ground station's HOLD
+    after that is foreign (it was read as the agent's own for MODE_ECHO_S: the agent fought the ground)."""
+    for seen_after, foreign in ((SUPERSEDED_ECHO_S - 1e-6, False), (SUPERSEDED_ECHO_S, False),
+                                (SUPERSEDED_ECHO_S + 1e-6, True), (MODE_ECHO_S - 0.5, True)):
+        w = ModeWatch(last_seen=OFFBOARD)
+        w.want(10.0, HOLD)
+        w.want(10.05, OFFBOARD)
+        assert (w.observe(10.0 + seen_after, HOLD) == HOLD) is foreign, seen_after
+    w = ModeWatch(last_seen=OTHER)
+    w.want(10.0, HOLD)
+    w.want(10.05, None)                                        # wanting none supersedes nothing
+    assert w.observe(10.0 + MODE_ECHO_S, HOLD) is None
+    assert SUPERSEDED_ECHO_S < MODE_ECHO_S
 
 
 # ---- fleet_action: the rule table ------------------------------------------------------------

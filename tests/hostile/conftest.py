@@ -248,7 +248,8 @@ def flight(tmp_path_factory, ground_keys, request):
         relay = MavRelay(emu_port)
         agent = procs.start("agent", agent_argv(f"udpout:127.0.0.1:{relay.port}", "--swarm", SWARM,
                                                 "--zenoh-config", member_cfg, "--trusted-key",
-                                                ground_keys.pub_path, "--telemetry-rate", "10"))
+                                                ground_keys.pub_path, "--telemetry-rate", "10",
+                                                "--entry-stagger", "off"))   # a lone agent: no admission windows
         f = Flight(procs, agent, emulator, relay, hub, server, listener, ground_keys, member_cfg, 100,
                    LogCursor(agent.log_path))
         f.serve(100)
