@@ -138,7 +138,7 @@ def test_fleet_commands_are_judged_on_the_autopilots_clock_not_a_skewed_companio
         finally:
             procs.stop_all(order=lambda p: 0 if p.name == "agent" else 1)
         found = ap.own_log(run, 0) if ap is ARDUCOPTER else None  # PX4: judged on the agent's view, as before
-    measured = {"autopilot": ap.name, "skew_s": SKEW_S, "sitl_ready_s": round(t_ready - t0, 1),
+    measured = {"autopilot": ap.name, "skew_s": SKEW_S, "lock_wait_and_sitl_ready_s": round(t_ready - t0, 1),
                 "go_to_join_s": round(t_join - t_go, 1), "hold_to_hold_s": round(t_hold - t_join, 1),
                 "commands_refused": snap["commands_refused"], "test_s": round(time.monotonic() - t0, 1)}
     if ap is ARDUCOPTER:  # the autopilot's own view: armed by the go, GUIDED, then the hold's BRAKE
@@ -210,7 +210,7 @@ def test_target_system_flies_only_its_own_vehicle_on_a_shared_link(ap, shared_pa
             procs.stop_all()
             relay.close()
         log_1, log_2 = ap.own_log(run, 0), ap.own_log(run, 1)
-    print(json.dumps({"autopilot": ap.name, "sitl_ready_s": round(t_ready - t0, 1),
+    print(json.dumps({"autopilot": ap.name, "lock_wait_and_sitl_ready_s": round(t_ready - t0, 1),
                       "agent_start_to_flow_s": round(t_flow - t_ready, 1),
                       "ignored_lines": text.count("from system 1 ignored"), "test_s": round(time.monotonic() - t0, 1)}))
     assert ap.armed_in(log_2), "vehicle 2 (the target) never armed"
