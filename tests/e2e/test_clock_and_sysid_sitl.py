@@ -82,7 +82,7 @@ class Autopilot:
     """One real autopilot the tests run on."""
 
     name: str
-    """``fisc-agent --autopilot`` value and the test id."""
+    """Its ``fisc-agent --autopilot`` value."""
     sitl: Callable[..., object]
     """``sitl(shared_path, work, n, spacing_m)``: its SITL set, a context manager giving a ``SitlRun``."""
     own_log: Callable[[SitlRun, int], Path | None]
