@@ -14,7 +14,7 @@ from dataclasses import replace
 from typing import Callable
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import (MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
+from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
                                        exit_waypoints, goto_velocity, hold_point, join_waypoints, lap_return_waypoints,
                                        speed_for_arrival)
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
@@ -244,7 +244,7 @@ class Navigator:
         radius settled 0.92 m lower, beyond the hold test's 0.5 m)."""
         if self.target is None or distance(pos, self.target) >= self.cfg.waypoint_radius_m:
             return False
-        return vel_m_s is None or math.sqrt(sum(v * v for v in vel_m_s)) < EXIT_SETTLE_SPEED_M_S
+        return vel_m_s is None or distance(vel_m_s, ZERO) < EXIT_SETTLE_SPEED_M_S
 
     def exit_velocity(self, pos: Vec) -> Vec:
         """EXIT's velocity: along ``exit_route`` at the join speed, through its corners without slowing
@@ -253,10 +253,8 @@ class Navigator:
         last = len(self.exit_route) - 1
         while self.exit_index < last and distance(pos, self.exit_route[self.exit_index]) < EXIT_CORNER_RADIUS_M:
             self.exit_index += 1
-        target = self.exit_route[self.exit_index]
-        if self.exit_index == last:
-            return self.goto(pos, target, self.cfg.join_speed_m_s)
-        return self.unbiased(goto_velocity(pos, target, self.cfg.join_speed_m_s, gain_1_s=EXIT_CORNER_GAIN_1_S))
+        gain = 1.0 if self.exit_index == last else EXIT_CORNER_GAIN_1_S
+        return self.goto(pos, self.exit_route[self.exit_index], self.cfg.join_speed_m_s, gain)
 
     def plan_return(self, pos: Vec) -> None:
         """Geofence return: head for the CV nearest to ``pos``."""
@@ -270,9 +268,9 @@ class Navigator:
         near = self.sfield.return_command(pos)
         return self.goto(pos, self.target, self.cfg.return_speed_m_s) if near is None else self.unbiased(near)
 
-    def goto(self, pos: Vec, target: Vec, speed_m_s: float) -> Vec:
+    def goto(self, pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0) -> Vec:
         """``goto_velocity`` towards ``target``, corrected for the velocity-estimate bias (``unbiased``)."""
-        return self.unbiased(goto_velocity(pos, target, speed_m_s))
+        return self.unbiased(goto_velocity(pos, target, speed_m_s, gain_1_s))
 
     def unbiased(self, v: Vec) -> Vec:
         """``v`` minus the bias of the autopilot's velocity estimate learnt so far (``ParcelTracker.observe``,
