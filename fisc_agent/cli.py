@@ -20,6 +20,7 @@ from fisc_agent.flight.frames import GeodeticAnchor, parse_floats
 from fisc_agent.map.lookup import COMMAND_MODES
 from fisc_agent.map.codec import MapError, load_map
 from fisc_agent.common.names import prefix_arg, swarm_name_arg
+from fisc_agent.flight.safety_net import SafetyNetConfig
 from fisc_agent.flight.tracking import TrackingConfig
 
 log = logging.getLogger("fisc_agent")
@@ -115,6 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --lookahead auto: learn the vehicle's steady velocity gain again through the pass, "
                         "forgetting over this time, and set the feed-forward gain from it [s]; off: keep the gain "
                         "identified before the pass")
+    p.add_argument("--safety-net", choices=("on", "off"), default="on",
+                   help="separation safety net: with --swarm, hear the neighbours' telemetry and, only inside the "
+                        "map's d_min of one, stop closing on it and push apart (fisc_agent.flight.safety_net); "
+                        "off: the paper's flow law alone")
     p.add_argument("--entry-stagger", type=_entry_stagger, default="auto", metavar="S|auto|off",
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "
                         "length on the shared clock (GNSS time; agent i: window i mod slots) [s]; auto: the map's "
@@ -188,7 +193,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         exit_policy=a.exit_policy, laps=a.laps, exit_clearance_m=a.exit_clearance, exit_spacing_m=a.exit_spacing,
         entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
         entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
-        wall_margin_m=a.wall_margin,
+        wall_margin_m=a.wall_margin, safety_net=SafetyNetConfig() if a.safety_net == "on" else None,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system, go=a.go,
         target_system=a.target_system, min_battery_pct=a.min_battery, low_battery_action=a.low_battery_action,
         takeoff_timeout_s=a.takeoff_timeout, max_start_distance_m=a.max_start_distance,

@@ -9,6 +9,7 @@ from enum import StrEnum
 from fisc_agent.flight.failsafe import GeofencePolicy
 from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
 from fisc_agent.map.lookup import COMMAND_MODES
+from fisc_agent.flight.safety_net import SafetyNetConfig
 from fisc_agent.flight.tracking import TrackingConfig
 
 
@@ -67,6 +68,11 @@ class AgentConfig:
     tracking: TrackingConfig = TrackingConfig()
     """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.flight.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
+    safety_net: SafetyNetConfig | None = SafetyNetConfig()
+    """The separation safety net (``fisc_agent.flight.safety_net``): with a Zenoh link the agent hears
+    its neighbours' telemetry and, only inside the map's d_min of one (more for a stale report), stops
+    closing on it and pushes apart; outside d_min the paper's law is flown unchanged.  None
+    (``--safety-net off``): the paper's law alone, whatever the neighbours do."""
     lookahead_auto: bool = True
     """Identify the vehicle's velocity response in flight (take-off and join) and set the look-ahead and
     feed-forward gain from it (``--lookahead auto``); False: ``lookahead_s`` as given (or the map's)."""

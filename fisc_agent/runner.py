@@ -18,7 +18,6 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
 from typing import Callable
 
 from fisc_agent.mavlink.adapters import Adapter, Commander, ModeClass, adapter_for
@@ -27,80 +26,22 @@ from fisc_agent.flight.control import ZERO, ScalarField, Vec, check_map, clamp_v
 from fisc_agent.mavlink.link import PositionSample, VehicleLink
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import CommandMap, MapError, MapErrorKind
-from fisc_agent.flight.mission import (FLYING, Cause, HoldCause, Mission, MissionCommand, MissionOutput, Reason, State,
+from fisc_agent.flight.mission import (FLYING, Mission, MissionCommand, MissionOutput, State,
                                 VehicleStatus)
 from fisc_agent.flight.mission_types import FleetOrder
-from fisc_agent.flight.tick import TickRecord, failsafe_active, outside_map
-from fisc_agent.flight.readiness import HealthProblem, health_problems
+from fisc_agent.flight.tick import NET_STATES, AgentSnapshot, TickRecord, failsafe_active, outside_map
+from fisc_agent.flight.safety_net import NeighbourSource, NetAction, keep_apart
+from fisc_agent.flight.readiness import health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
 from fisc_agent.map.separation import map_separation
 from fisc_agent.map.wall import map_wall
-from fisc_agent.flight.health import VehicleHealth
 
 log = logging.getLogger(__name__)
 
 HEARTBEAT_PERIOD_S = 1.0
 LOG_PERIOD_S = 5.0
-
-
-@dataclass(frozen=True)
-class AgentSnapshot:
-    """Telemetry of one agent at one tick."""
-
-    time_s: float
-    """Monotonic time of the tick [s]."""
-    wall_time_s: float
-    """UNIX time of the tick [s]."""
-    agent_id: int
-    """The agent's id."""
-    state: str
-    """Mission state name."""
-    reason: str
-    """Why the mission is in that state."""
-    position_map_m: Vec | None
-    """Position in the map frame [m] (None before the first fix)."""
-    velocity_map_m_s: Vec | None
-    """Measured velocity in the map frame [m/s]."""
-    setpoint_map_m_s: Vec | None
-    """Clamped velocity setpoint sent this tick, map frame [m/s] (None: none sent)."""
-    cv_id: int
-    """CV the vehicle is in, -1 outside the map."""
-    map_sha256: str | None
-    """sha256 of the map in use."""
-    map_version: int | None
-    """map_version of the map in use."""
-    link_ok: bool
-    """Autopilot HEARTBEATs are arriving."""
-    heartbeat_age_s: float
-    """Age of the newest autopilot HEARTBEAT [s] (inf: never)."""
-    position_age_s: float
-    """Age of the newest position fix [s] (inf: never)."""
-    autopilot: str | None
-    """``px4`` / ``ardupilot`` once known."""
-    armed: bool
-    """Armed flag from the HEARTBEAT."""
-    mode: str
-    """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
-    laps: int
-    """Completed passes through the tunnel."""
-    failsafe: bool
-    """A failsafe holds the vehicle (``failsafe_active``: link lost, position stale or lost,
-    geofence, mode taken by the pilot or an autopilot failsafe); telemetry flag ``failsafe``."""
-    outside_map: bool
-    """Outside the map's CVs where the mission expects to be inside (``outside_map``); telemetry
-    flag ``outside_map``."""
-    parcel_map_m: Vec | None = None
-    """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
-    authority: str = "waiting"
-    """Who is in charge (``fisc_agent.flight.mission_types.Authority`` value)."""
-    battery_pct: float | None = None
-    """Remaining battery [%] as the autopilot reports it (None: not reported)."""
-    landed: str = "unknown"
-    """Landed state (``fisc_agent.flight.health.LandedState`` value)."""
-    health_problems: tuple[HealthProblem, ...] = ()
-    """What is wrong with the vehicle by its own report (kind and phrase); () healthy."""
 
 
 class Runner:
@@ -151,6 +92,9 @@ class Runner:
         self.faults = 0
         """Ticks that raised (caught: the vehicle holds, the loop goes on)."""
         self._last_tick_s: float | None = None
+        self.neighbours: NeighbourSource | None = None
+        """Where the safety net hears the other vehicles (``connect_runner`` sets the Zenoh
+        ``NeighbourTable``); None: no neighbours known, the net does nothing."""
         if cmap is not None:
             if not self.offer_map(cmap):
                 raise MapError(MapErrorKind.OTHER, "map was refused (see the log)")
@@ -246,7 +190,9 @@ class Runner:
             laps=k.laps, failsafe=failsafe_active(state, reason),
             outside_map=outside_map(state, reason, k.out.cv_id, k.position_map_m is not None and cmap is not None),
             parcel_map_m=k.parcel_map_m, authority=self.mission.authority.value, battery_pct=k.health.battery_pct,
-            landed=k.health.landed.value, health_problems=health_problems(k.health, self.cfg.min_battery_pct))
+            landed=k.health.landed.value, health_problems=health_problems(k.health, self.cfg.min_battery_pct),
+            nearest_neighbour_m=k.net.nearest_m if k.net is not None else math.inf,
+            net_ids=k.net.acting if k.net is not None else ())
 
     # ---- the tick ------------------------------------------------------------------------
     def _apply_pending(self) -> list[FleetOrder]:
@@ -383,6 +329,7 @@ class Runner:
                                None if sample is None else sample.autopilot_t_s, health,
                                integrity.ok, "" if integrity.ok else f"{integrity.reason.value}: {integrity.detail}")
         out = self.mission.step(status)
+        net = self._safety_net(out, pos, pos_age)
 
         sp: Vec | None = None
         if out.velocity_m_s is not None:
@@ -393,7 +340,8 @@ class Runner:
             else:
                 v_prev = self._last_sp
                 dt = min(now - self._last_sp_t, 2.0 * self.cfg.period_s)
-            sp = clamp_velocity(out.velocity_m_s, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
+            wanted = net.velocity_m_s if net is not None else out.velocity_m_s
+            sp = clamp_velocity(wanted, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
             link.send_velocity_ned(*tf.vel_map_to_ned_xyz(*sp))
             self._last_sp, self._last_sp_t = sp, now
             if vel is not None and pos_age <= self.cfg.stale_timeout_s and mode == out.want_mode:
@@ -414,11 +362,28 @@ class Runner:
             setpoint_map_m_s=sp, cmap=self.cmap, link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
             autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
             laps=self.mission.laps, parcel_map_m=self.mission.tracker.parcel_m if out.state == State.FLOW else None,
-            health=health)
+            health=health, net=net)
         self.ticks += 1
         if self.on_tick is not None:
             self.on_tick(self.snapshot())
         return out
+
+    def _safety_net(self, out: MissionOutput, pos: Vec | None, pos_age_s: float) -> NetAction | None:
+        """The safety net on this tick's command (``fisc_agent.flight.safety_net``): only while the
+        agent flies its own velocities in the air (``NET_STATES``) from a fresh position, with a map
+        (its d_min) and neighbours to hear; None otherwise."""
+        net_cfg, sfield = self.cfg.safety_net, self.mission.sfield
+        if (net_cfg is None or self.neighbours is None or sfield is None or out.velocity_m_s is None
+                or out.state not in NET_STATES or pos is None or pos_age_s > self.cfg.stale_timeout_s):
+            return None
+        net = keep_apart(pos, out.velocity_m_s, self.cfg.agent_id, self.neighbours.reports(self.cfg.agent_id),
+                         sfield.separation.d_min_m, net_cfg)
+        if net.active:
+            self.rlog.event("net:active", logging.INFO, "safety net: d_min %.2f m, acting on agent(s) %s "
+                            "(nearest %.2f m); command %s -> %s", sfield.separation.d_min_m,
+                            ",".join(map(str, net.acting)), net.nearest_m, _fmt(out.velocity_m_s),
+                            _fmt(net.velocity_m_s))
+        return net
 
     # ---- loop and shutdown ---------------------------------------------------------------
     def run(self, stop: threading.Event | None = None, until_done: bool = True,

@@ -17,11 +17,13 @@ import os
 from pathlib import Path
 from typing import IO
 
-from fisc_agent.runner import AgentSnapshot
+from fisc_agent.flight.tick import AgentSnapshot
 
 COLUMNS = ("time_s", "wall_time_s", "state", "reason", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
-           "sp_x_m_s", "sp_y_m_s", "sp_z_m_s", "cv", "parcel_x_m", "parcel_y_m", "parcel_z_m", "mode", "armed")
-"""Column names, in order (map frame: x along the tunnel axis, z up)."""
+           "sp_x_m_s", "sp_y_m_s", "sp_z_m_s", "cv", "parcel_x_m", "parcel_y_m", "parcel_z_m", "mode", "armed",
+           "nearest_neighbour_m", "net_ids")
+"""Column names, in order (map frame: x along the tunnel axis, z up).  ``nearest_neighbour_m``: the
+safety net's nearest neighbour (empty: none heard); ``net_ids``: the neighbours it acted on, ``;``-joined."""
 
 KEEP_ROTATED = 9
 """Older logs kept beside a new one (``<file>.1`` newest ... ``<file>.9`` oldest)."""
@@ -62,7 +64,9 @@ class FlightLog:
         """One row for one tick."""
         self._w.writerow([f"{s.time_s:.4f}", f"{s.wall_time_s:.4f}", s.state, s.reason, *_xyz(s.position_map_m),
                           *_xyz(s.velocity_map_m_s), *_xyz(s.setpoint_map_m_s), s.cv_id, *_xyz(s.parcel_map_m),
-                          s.mode, int(s.armed)])
+                          s.mode, int(s.armed),
+                          f"{s.nearest_neighbour_m:.3f}" if math.isfinite(s.nearest_neighbour_m) else "",
+                          ";".join(map(str, s.net_ids))])
         if s.time_s - self._last_flush_s >= self._flush_period_s:
             self._fh.flush()
             self._last_flush_s = s.time_s

@@ -31,7 +31,7 @@ import logging
 
 from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
-from fisc_agent.flight.control import ZERO, ScalarField, Vec, distance, goto_velocity
+from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.flight.mission_types import (FLYING, Authority, Cause, FleetOrder, HoldCause, MissionCommand,
                                              MissionOutput, Reason, State, Transition, VehicleStatus)

@@ -1,13 +1,16 @@
-"""One tick of the agent as the runner keeps it (``TickRecord``), and the telemetry flags of a
-mission state (pure): ``failsafe`` (a failsafe holds or returns the vehicle) and ``outside_map``
+"""One tick of the agent as the runner keeps it (``TickRecord``), the telemetry snapshot made of it
+(``AgentSnapshot``), and the telemetry flags of a mission state (pure): ``failsafe`` (a failsafe holds or returns the vehicle) and ``outside_map``
 (outside the CVs where the mission belongs inside)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from fisc_agent.flight.control import Vec
 from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.flight.readiness import HealthProblem
+from fisc_agent.flight.safety_net import NetAction
 from fisc_agent.flight.mission_types import Cause, HoldCause, MissionOutput, Reason, State
 from fisc_agent.map.codec import CommandMap
 from fisc_agent.mavlink.adapters import ModeClass
@@ -50,9 +53,77 @@ class TickRecord:
     """Streamline-tracking parcel in FLOW, map frame [m]."""
     health: VehicleHealth
     """The autopilot's health report."""
+    net: NetAction | None = None
+    """What the separation safety net did this tick (None: it did not run)."""
 
 
 
+@dataclass(frozen=True)
+class AgentSnapshot:
+    """Telemetry of one agent at one tick."""
+
+    time_s: float
+    """Monotonic time of the tick [s]."""
+    wall_time_s: float
+    """UNIX time of the tick [s]."""
+    agent_id: int
+    """The agent's id."""
+    state: str
+    """Mission state name."""
+    reason: str
+    """Why the mission is in that state."""
+    position_map_m: Vec | None
+    """Position in the map frame [m] (None before the first fix)."""
+    velocity_map_m_s: Vec | None
+    """Measured velocity in the map frame [m/s]."""
+    setpoint_map_m_s: Vec | None
+    """Clamped velocity setpoint sent this tick, map frame [m/s] (None: none sent)."""
+    cv_id: int
+    """CV the vehicle is in, -1 outside the map."""
+    map_sha256: str | None
+    """sha256 of the map in use."""
+    map_version: int | None
+    """map_version of the map in use."""
+    link_ok: bool
+    """Autopilot HEARTBEATs are arriving."""
+    heartbeat_age_s: float
+    """Age of the newest autopilot HEARTBEAT [s] (inf: never)."""
+    position_age_s: float
+    """Age of the newest position fix [s] (inf: never)."""
+    autopilot: str | None
+    """``px4`` / ``ardupilot`` once known."""
+    armed: bool
+    """Armed flag from the HEARTBEAT."""
+    mode: str
+    """Autopilot mode class (``offboard``, ``hold``, ``land``, ``other``, ``unknown``)."""
+    laps: int
+    """Completed passes through the tunnel."""
+    failsafe: bool
+    """A failsafe holds the vehicle (``failsafe_active``: link lost, position stale or lost,
+    geofence, mode taken by the pilot or an autopilot failsafe); telemetry flag ``failsafe``."""
+    outside_map: bool
+    """Outside the map's CVs where the mission expects to be inside (``outside_map``); telemetry
+    flag ``outside_map``."""
+    parcel_map_m: Vec | None = None
+    """The streamline-tracking parcel, map frame [m] (None outside FLOW or flying open loop)."""
+    authority: str = "waiting"
+    """Who is in charge (``fisc_agent.flight.mission_types.Authority`` value)."""
+    battery_pct: float | None = None
+    """Remaining battery [%] as the autopilot reports it (None: not reported)."""
+    landed: str = "unknown"
+    """Landed state (``fisc_agent.flight.health.LandedState`` value)."""
+    health_problems: tuple[HealthProblem, ...] = ()
+    """What is wrong with the vehicle by its own report (kind and phrase); () healthy."""
+    nearest_neighbour_m: float = math.inf
+    """Distance to the nearest neighbour heard (safety net's view) [m] (inf: none heard or net off)."""
+    net_ids: tuple[int, ...] = ()
+    """Neighbours the safety net acted on this tick (closing too fast, or inside d_min); () none."""
+
+
+
+
+NET_STATES = frozenset({State.JOIN, State.FLOW, State.RETURN, State.EXIT})
+"""States in which the agent flies its own velocities in the air, where the safety net acts."""
 
 FAILSAFE_HOLD_CAUSES = frozenset({HoldCause.LINK_LOST, HoldCause.POSITION_STALE, HoldCause.GEOFENCE,
                                   HoldCause.PILOT_OVERRIDE, HoldCause.POSITION_JUMP, HoldCause.AGENT_FAULT})

@@ -38,7 +38,8 @@ from fisc_agent.map.chunks import (KIND_ANNOUNCE, AssemblyDrop, AssemblyLimits, 
                                    MapAssembler)
 from fisc_agent.map.codec import CommandMap, MapError, MapErrorKind
 from fisc_agent.common.ratelimit import RateLimitedLog
-from fisc_agent.runner import AgentSnapshot
+from fisc_agent.flight.tick import AgentSnapshot
+from fisc_agent.zenoh.neighbours import NeighbourTable
 from fisc_agent.zenoh.keys import DEFAULT_PREFIX, Keys
 from fisc_agent.zenoh.maps import reject_code, verify_map_bytes
 from fisc_agent.zenoh.session import ZenohSessionError, open_session
@@ -113,7 +114,7 @@ class AgentZenohLink:
                  command_clock: Callable[[], float] | None = None, command_floors: dict[str, int] | None = None,
                  standing_go_s: float = STANDING_GO_S,
                  assembly_limits: AssemblyLimits | None = None, rx_queue_bytes: int = DEFAULT_RX_QUEUE_BYTES,
-                 rx_queue_messages: int = DEFAULT_RX_QUEUE_MESSAGES) -> None:
+                 rx_queue_messages: int = DEFAULT_RX_QUEUE_MESSAGES, neighbours: NeighbourTable | None = None) -> None:
         if not trusted_keys and not allow_unsigned:
             raise ValueError("no trusted key given: pass --trusted-key (or --allow-unsigned in a lab)")
         self.keys = Keys(prefix, swarm)
@@ -152,6 +153,9 @@ class AgentZenohLink:
         self._telemetry_thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.close_hooks: list[Callable[[], None]] = []
+        self.neighbours = neighbours
+        """Fed with the swarm's telemetry once connected (the safety net's ears; one table may be shared
+        by the links of one session); None: the link does not listen to other vehicles."""
         if self.allow_unsigned:
             log.warning("*** --allow-unsigned: this agent accepts UNSIGNED maps and commands. Lab use only. ***")
 
@@ -189,6 +193,10 @@ class AgentZenohLink:
         self._entities.append(s.declare_subscriber(self.keys.cmd_latest, self._on_state_sample))
         pub = s.declare_publisher(self.keys.telemetry(self.agent_id), congestion_control=zenoh.CongestionControl.DROP)
         self._entities.append(pub)
+        if self.neighbours is not None:
+            sub = self.neighbours.attach(s, self.keys.all_telemetry)
+            if sub is not None:
+                self._entities.append(sub)
         self._pub = pub
         self.query_map()
         self.query_commands()

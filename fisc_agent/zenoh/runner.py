@@ -17,6 +17,7 @@ from fisc_agent.zenoh.command_gate import STANDING_GO_S
 from fisc_agent.zenoh.fleet_commands import CommandName, FleetCommand
 from fisc_agent.zenoh.keys import DEFAULT_PREFIX
 from fisc_agent.zenoh.link import AgentZenohLink
+from fisc_agent.zenoh.neighbours import NeighbourTable
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,8 @@ def connect_runner(runner: Any, session_config: Any, swarm: str, trusted_keys: l
     """Start an ``AgentZenohLink`` for a ``fisc_agent.runner.Runner``: verified maps go to
     ``runner.offer_map`` (swapped at its next tick), fleet commands to ``runner.fleet_command`` as
     ``FleetOrder`` (``start-at``: a go at its time), and ``runner.snapshot()`` is published as
-    telemetry at ``telemetry_rate_hz``.
+    telemetry at ``telemetry_rate_hz``.  With ``runner.cfg.safety_net`` the link also hears the other
+    vehicles' telemetry into a ``NeighbourTable``, set as ``runner.neighbours``.
 
     ``clock``: the agent's UNIX time [s] (``runner.unix_time``: the autopilot's GNSS time when it
     reports one), on which command freshness and start-at times are judged.  ``command_floors``:
@@ -109,9 +111,12 @@ def connect_runner(runner: Any, session_config: Any, swarm: str, trusted_keys: l
     ones from ``link.commands.floors``.  ``standing_go_s``: how old a re-published go may be and
     still launch this agent.  Close the returned link when the runner stops."""
     dispatcher = CommandDispatcher(runner, clock)
+    neighbours = NeighbourTable() if runner.cfg.safety_net is not None else None
     link = AgentZenohLink(session_config, swarm, runner.cfg.agent_id, trusted_keys, allow_unsigned,
                           runner.offer_map, dispatcher, prefix=prefix, session=session, command_clock=clock,
-                          command_floors=dict(command_floors or {}), standing_go_s=standing_go_s)
+                          command_floors=dict(command_floors or {}), standing_go_s=standing_go_s,
+                          neighbours=neighbours)
+    runner.neighbours = neighbours
     link.close_hooks.append(dispatcher.cancel)
     link.start()
     link.start_telemetry(runner.snapshot, telemetry_rate_hz)

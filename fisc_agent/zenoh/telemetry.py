@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 from fisc_agent.zenoh import telemetry_codec as tc
-from fisc_agent.runner import AgentSnapshot
+from fisc_agent.flight.tick import AgentSnapshot
 
 POSITION_FRESH_S = 1.0
 """A position fix younger than this sets the ``position_fresh`` flag [s]."""

@@ -252,13 +252,18 @@ def _open_fleet_links(job: _AgentJob, runners: list) -> tuple[Any, list]:
         return None, []
     from fisc_agent.map.codec import read_public_key
     from fisc_agent.zenoh.link import AgentZenohLink
+    from fisc_agent.zenoh.neighbours import NeighbourTable
     from fisc_agent.zenoh.runner import CommandDispatcher
     from fisc_agent.zenoh.session import open_session
 
     keys = [read_public_key(job.trusted_key)]
     session = open_session(job.zenoh_config)
+    table = NeighbourTable()  # one subscription per worker, shared by its agents' safety nets
+    for r in runners:
+        r.neighbours = table if r.cfg.safety_net is not None else None
     links = [AgentZenohLink(None, job.swarm, int(aid), keys, False, r.offer_map, CommandDispatcher(r, r.unix_time),
-                            prefix=job.zenoh_prefix, session=session, command_clock=r.unix_time).start()
+                            prefix=job.zenoh_prefix, session=session, command_clock=r.unix_time,
+                            neighbours=r.neighbours).start()
              for aid, r in zip(job.agent_ids, runners)]
     return session, links
 

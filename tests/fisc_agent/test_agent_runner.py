@@ -11,7 +11,8 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.mavlink.link import PositionSample, PositionSource, SetpointSink
 from fisc_agent.map.codec import MapError, decode_map
 from fisc_agent.flight.mission import HoldCause, State
-from fisc_agent.runner import AgentSnapshot, Runner
+from fisc_agent.flight.tick import AgentSnapshot
+from fisc_agent.runner import Runner
 
 
 class Clock:
@@ -424,3 +425,40 @@ def test_a_failing_sleep_does_not_end_the_loop():
     r.sleep = bad_sleep
     assert r.run(max_duration_s=1.0) == r.mission.state and r.ticks >= 10
     assert r.rlog.counts()["loop:sleep"] >= 9
+
+
+def _fly_at_a_still_neighbour(**kw):
+    """Fly into FLOW, then put a still neighbour 2.5 m ahead on the agent's neighbour table for 4 s of
+    ticks; returns the closest the vehicle came, the ids the net acted on, and the runner."""
+    from fisc_agent.zenoh import telemetry_codec as tc
+    from fisc_agent.zenoh.neighbours import NeighbourTable
+
+    cfg, clock, link, r = make(**kw)
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW and r.snapshot().velocity_map_m_s[0] > 0.5)
+    table = NeighbourTable(clock)
+    r.neighbours = table if cfg.safety_net is not None else None
+    x, y, z = r.snapshot().position_map_m
+    other = (x + 2.5, y, z)
+    closest, nets = math.inf, set()
+    for _ in range(int(4.0 / cfg.period_s)):
+        table.take(tc.encode(tc.Telemetry(agent_id=9, seq=1, time_s=0.0, position_m=other, velocity_m_s=(0, 0, 0),
+                                          position_age_s=0.0, landed="in-air")))
+        r.step()
+        clock.sleep(cfg.period_s)
+        snap = r.snapshot()
+        closest = min(closest, math.dist(snap.position_map_m, other))
+        nets.update(snap.net_ids)
+    return closest, nets, r
+
+
+def test_the_safety_net_stops_the_agent_short_of_a_neighbour_inside_d_min():
+    closest, nets, r = _fly_at_a_still_neighbour()
+    assert nets == {9}
+    assert closest > 0.92 * 0.75  # d_min 0.92 m, less the lag of the 2 m/s^2 clamp
+    assert math.dist(r.snapshot().position_map_m, (0, 0, 0)) > 0  # still flying, not held
+    assert r.mission.state == State.FLOW
+
+
+def test_without_the_safety_net_the_agent_flies_through_the_neighbour():
+    closest, nets, _ = _fly_at_a_still_neighbour(safety_net=None)
+    assert nets == set() and closest < 0.1

@@ -43,7 +43,7 @@ AGENT = {
     "--go": "AgentConfig.go", "--target-system": "AgentConfig.target_system",
     "--min-battery": "AgentConfig.min_battery_pct", "--low-battery-action": "AgentConfig.low_battery_action",
     "--takeoff-timeout": "AgentConfig.takeoff_timeout_s", "--max-start-distance": "AgentConfig.max_start_distance_m",
-    "--state-file": "AgentConfig.state_file",
+    "--state-file": "AgentConfig.state_file", "--safety-net": "AgentConfig.safety_net",
 }
 AGENT_NO_FIELD = {
     "--flight-log": "an output file of the process (fisc_agent.cli.run's flight_log), not a flight setting",

@@ -118,7 +118,7 @@ def snap(**fields):
     now; ``fields`` (the snapshot's own field names) override."""
     import math
 
-    from fisc_agent.runner import AgentSnapshot
+    from fisc_agent.flight.tick import AgentSnapshot
 
     base = dict(time_s=time.monotonic(), wall_time_s=time.time(), agent_id=0, state="FLOW", reason="test",
                 position_map_m=None, velocity_map_m_s=None, setpoint_map_m_s=None, cv_id=-1, map_sha256=None,

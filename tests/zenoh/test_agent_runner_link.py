@@ -77,3 +77,35 @@ def test_runner_waits_for_the_zenoh_map_flies_it_and_obeys_hold(net, sessions, g
             th.join(timeout=10)
             runner.shutdown()
         emu.stop()
+
+
+def test_an_agent_hears_its_neighbours_telemetry_for_the_safety_net(net, sessions, ground_key):
+    """Two agents' links on real Zenoh sessions: agent 4's runner hears agent 5's position and
+    velocity (its own is left out); with ``--safety-net off`` the runner hears no one."""
+    from fisc_agent.zenoh.link import AgentZenohLink
+
+    from .conftest import snap
+
+    hub, member = net
+    sessions(hub)
+    links = []
+    try:
+        cfg = AgentConfig(mavlink_url="udpout:127.0.0.1:9", agent_id=4)
+        runner = Runner(cfg, MavlinkLink(cfg.mavlink_url))
+        deaf = Runner(AgentConfig(mavlink_url="udpout:127.0.0.1:9", agent_id=6, safety_net=None),
+                      MavlinkLink(cfg.mavlink_url))
+        links.append(connect_runner(runner, member, "alpha", [ground_key[1]], telemetry_rate_hz=10))
+        links.append(connect_runner(deaf, member, "alpha", [ground_key[1]], telemetry_rate_hz=10))
+        other = AgentZenohLink(member, "alpha", 5, [ground_key[1]], False, lambda m: True, lambda c: None).start()
+        links.append(other)
+        other.start_telemetry(lambda: snap(agent_id=5, position_map_m=(1.0, 0.5, -0.25), velocity_map_m_s=(1.5, 0, 0),
+                                           position_age_s=0.05), rate_hz=10)
+        assert wait_for(lambda: 5 in runner.neighbours.reports(4).ids, timeout_s=15)
+        rep = runner.neighbours.reports(4)
+        assert list(rep.ids) == [5]  # not itself (agent 4 publishes too, with no position yet: dropped)
+        assert rep.position_m[0] == pytest.approx((1.0, 0.5, -0.25)) and rep.velocity_m_s[0][0] == pytest.approx(1.5)
+        assert 0.05 <= rep.age_s[0] < 1.0
+        assert deaf.neighbours is None
+    finally:
+        for link in links:
+            link.close()

@@ -1,0 +1,219 @@
+"""The separation safety net (issue 37 item 3): keep at least d_min from the neighbours one hears
+(pure, numpy; arrays in, a velocity out).
+
+The flow law stays the paper's: no communication, each agent flies the map's velocity at its own
+position.  Design (the admission budget, the entry windows, the exit lattice) is meant to hold d_min;
+the net is what acts when design alone does not (two vehicles admitted 0.9 s apart by skewed clocks,
+a vehicle slower than the one behind it).  It pushes apart only inside a neighbour's keep-out radius,
+and outside it only limits how fast a vehicle closes in (below); everywhere else the command is
+untouched, so the fluid figures change only where vehicles were about to come too close.
+
+What the agent knows of its neighbours is what they already publish: their telemetry on Zenoh
+(position and velocity in the map frame, about 5 Hz).  Each report has an age ``a`` (time since it
+was received plus the position's own age when it was sent; no clock is compared across vehicles).
+Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep_apart_pairs``):
+
+- **Where it is.**  ``p_j + v_j min(a, fresh_s)``: extrapolated by its velocity while the report is
+  fresh, not beyond.
+- **Keep-out radius.**  ``r_j = d_min + growth_m_s max(0, a - fresh_s)``: a neighbour whose reports
+  go stale could be anywhere within what it may have flown since, so the spacing kept from it grows
+  (the issue's "degrading to larger spacing").  Reports older than ``forget_s`` are dropped: a vehicle
+  that has landed or lost its link for that long is not where it was.
+- **No closing in.**  With ``n`` the unit vector from the neighbour to this vehicle and ``d`` the
+  distance, the commanded speed towards the neighbour, ``c = -v . n``, is cut to
+  ``max(0, -v_j . n) + max(0, d - r_j) / horizon_s``: the neighbour's own speed away along the same
+  line (zero for a stale report), so a column that moves together keeps moving, plus what reaches the
+  keep-out radius no sooner than ``horizon_s``.  A vehicle that is not closing fast is left alone; one
+  closing fast starts braking ``horizon_s`` of closing before the radius.  (Acting only inside d_min
+  is too late: a vehicle closing at 1.5 m/s on a lag of 0.9 s, stock PX4's, is through the 0.42 m
+  of margin a 0.92 m d_min leaves between two 0.25 m radii before it has slowed.)
+- **Push apart**, only inside the radius: ``push_gain_1_s (r_j - d) n``.
+- The corrections of all neighbours are summed (each from the command as the mission gave it), then
+  the total push is capped at ``max_push_m_s``.  Two neighbours on the same side correct twice (more
+  braking, never less); two on opposite sides cancel (the vehicle between them holds).
+- Two reports at the same point get ``n`` along +x for the smaller id and -x for the larger, so the
+  pair always separates.
+
+The net never adds speed along the flow beyond the push, and the runner's speed and acceleration
+clamps still apply after it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from fisc_agent.flight.control import Vec
+
+COINCIDENT_M = 1e-6
+"""Two positions closer than this are taken as coincident (the direction is chosen by id)."""
+
+
+@dataclass(frozen=True)
+class SafetyNetConfig:
+    """The safety net's settings (``--safety-net``; d_min itself is the map's, ``Separation.d_min_m``)."""
+
+    fresh_s: float = 0.5
+    """A neighbour's report younger than this is current: extrapolated by its velocity, keep-out d_min [s]
+    (telemetry at 5 Hz plus the position's age is about 0.3 s old)."""
+    growth_m_s: float = 2.0
+    """Beyond ``fresh_s`` the keep-out radius grows by this much per second of age [m/s] (about the
+    fastest the map flies)."""
+    forget_s: float = 5.0
+    """Reports older than this are dropped [s]."""
+    horizon_s: float = 1.5
+    """The speed towards a neighbour is limited so that its keep-out radius is reached no sooner than
+    this [s]; about twice the vehicle's velocity lag (stock PX4 0.9 s, ArduCopter 0.5 s) so that it
+    brakes in time.  0: no limit outside the radius (the net acts only inside it)."""
+    push_gain_1_s: float = 1.0
+    """Push apart at this gain times the depth inside the keep-out radius [1/s]."""
+    max_push_m_s: float = 0.5
+    """Cap of the summed push [m/s]."""
+
+    def __post_init__(self) -> None:
+        for name in ("fresh_s", "growth_m_s", "forget_s", "horizon_s", "push_gain_1_s", "max_push_m_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"safety net: {name} must be a finite number >= 0, is {value!r}")
+        if self.forget_s < self.fresh_s:
+            raise ValueError(f"safety net: forget_s ({self.forget_s}) must be >= fresh_s ({self.fresh_s})")
+
+
+@dataclass(frozen=True)
+class NeighbourReports:
+    """The newest report of each neighbour, as seen now (other vehicles only)."""
+
+    ids: np.ndarray
+    """(k,) int agent ids."""
+    position_m: np.ndarray
+    """(k, 3) reported positions, map frame [m]."""
+    velocity_m_s: np.ndarray
+    """(k, 3) reported velocities, map frame [m/s]."""
+    age_s: np.ndarray
+    """(k,) age of each report now [s] (>= 0)."""
+
+    @classmethod
+    def empty(cls) -> "NeighbourReports":
+        """No neighbour heard."""
+        return cls(np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+class NeighbourSource(Protocol):
+    """Where an agent hears its neighbours (``fisc_agent.zenoh.neighbours.NeighbourTable``)."""
+
+    def reports(self, exclude_id: int) -> NeighbourReports:
+        """Every vehicle's newest report but ``exclude_id``'s, with its age now."""
+
+
+@dataclass(frozen=True)
+class NetAction:
+    """What the net did to one command."""
+
+    velocity_m_s: Vec
+    """The command after the net, map frame [m/s] (the input itself when ``acting`` is empty)."""
+    acting: tuple[int, ...]
+    """Ids of the neighbours that changed the command: closing too fast on them, or inside their
+    keep-out radius (empty: the net did nothing)."""
+    nearest_m: float
+    """Distance to the nearest neighbour where it is now taken to be [m] (inf: none heard)."""
+
+    @property
+    def active(self) -> bool:
+        """True when the net changed the command."""
+        return bool(self.acting)
+
+
+def predicted_and_radius(reports: NeighbourReports, d_min_m: float,
+                         cfg: SafetyNetConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each report: where the neighbour is taken to be now (k, 3), its keep-out radius (k,) [m],
+    and whether it is kept (k,) bool (younger than ``forget_s``)."""
+    age = np.asarray(reports.age_s, dtype=float)
+    kept = age <= cfg.forget_s
+    pos = reports.position_m + reports.velocity_m_s * np.minimum(age, cfg.fresh_s)[:, None]
+    radius = d_min_m + cfg.growth_m_s * np.maximum(0.0, age - cfg.fresh_s)
+    return pos, radius, kept
+
+
+def _corrections(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_nb_m_s: np.ndarray,
+                 radius_m: np.ndarray, fresh: np.ndarray, cfg: SafetyNetConfig
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pair: the closing cut and the push, each (m, 3) [m/s], and whether the pair acts (m,).
+    ``rel_m``: own position minus the neighbour's; ``tie_sign``: +1 / -1, the x direction of ``n``
+    for coincident positions."""
+    dist = np.linalg.norm(rel_m, axis=1)
+    n = np.zeros_like(rel_m)
+    apart = dist > COINCIDENT_M
+    n[apart] = rel_m[apart] / dist[apart, None]
+    n[~apart, 0] = tie_sign[~apart]
+    closing = -np.einsum("ij,ij->i", v_m_s, n)
+    allowed = np.where(fresh, np.maximum(0.0, -np.einsum("ij,ij->i", v_nb_m_s, n)), 0.0)
+    gap = dist - radius_m
+    if cfg.horizon_s > 0:
+        allowed = allowed + np.maximum(0.0, gap) / cfg.horizon_s
+    else:
+        allowed = np.where(gap >= 0, np.inf, allowed)
+    excess = np.maximum(0.0, closing - allowed)
+    inside = gap < 0
+    push = (cfg.push_gain_1_s * np.maximum(0.0, -gap))[:, None] * n
+    return excess[:, None] * n, push, inside | (excess > 0)
+
+
+def _cap(push_m_s: np.ndarray, max_m_s: float) -> np.ndarray:
+    """Scale each row of ``push_m_s`` down to at most ``max_m_s`` long."""
+    norm = np.linalg.norm(push_m_s, axis=-1, keepdims=True)
+    return push_m_s * np.minimum(1.0, max_m_s / np.maximum(norm, 1e-300))
+
+
+def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: NeighbourReports, d_min_m: float,
+               cfg: SafetyNetConfig = SafetyNetConfig()) -> NetAction:
+    """The net applied to one vehicle's command ``velocity_m_s`` at ``position_m`` (module docstring).
+    The single-vehicle form, and the oracle of ``keep_apart_pairs``."""
+    if len(reports) == 0:
+        return NetAction(velocity_m_s, (), math.inf)
+    pos_nb, radius, kept = predicted_and_radius(reports, d_min_m, cfg)
+    rel = np.asarray(position_m, dtype=float)[None, :] - pos_nb
+    nearest = float(np.linalg.norm(rel[kept], axis=1).min()) if kept.any() else math.inf
+    ids = np.asarray(reports.ids)[kept]
+    v = np.asarray(velocity_m_s, dtype=float)
+    cut, push, acts = _corrections(rel[kept], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
+                                   reports.velocity_m_s[kept], radius[kept], np.asarray(reports.age_s)[kept] <= cfg.fresh_s,
+                                   cfg)
+    if not acts.any():
+        return NetAction(velocity_m_s, (), nearest)
+    out = v + cut.sum(axis=0) + _cap(push.sum(axis=0), cfg.max_push_m_s)
+    return NetAction((float(out[0]), float(out[1]), float(out[2])), tuple(int(i) for i in ids[acts]), nearest)
+
+
+def pair_reach_m(d_min_m: float, max_speed_m_s: float, cfg: SafetyNetConfig = SafetyNetConfig()) -> float:
+    """Farthest apart two vehicles of speed <= ``max_speed_m_s`` can be with the net acting between
+    them [m] (closing at twice that speed)."""
+    return float(d_min_m + cfg.horizon_s * 2.0 * max_speed_m_s)
+
+
+def keep_apart_pairs(position_m: np.ndarray, velocity_m_s: np.ndarray, command_m_s: np.ndarray, ids: np.ndarray,
+                     pairs: np.ndarray, d_min_m: float, cfg: SafetyNetConfig = SafetyNetConfig()) -> np.ndarray:
+    """The net for a whole swarm whose members hear each other at once (reports of age 0: the
+    simulator's view): ``command_m_s`` (n, 3) after the net.  ``pairs`` (m, 2): index pairs (i, j),
+    each unordered pair once, to be checked: every pair that can act, i.e. within d_min plus
+    ``horizon_s`` times the fastest closing speed (``pair_reach_m``).  Agrees with ``keep_apart`` applied to each vehicle with fresh reports
+    of all the others."""
+    cmd = np.asarray(command_m_s, dtype=float)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    if pairs.shape[0] == 0:
+        return cmd.copy()
+    # both directions: (i hears j) and (j hears i)
+    me = np.concatenate([pairs[:, 0], pairs[:, 1]])
+    nb = np.concatenate([pairs[:, 1], pairs[:, 0]])
+    cut, push, _ = _corrections(position_m[me] - position_m[nb], np.where(ids[me] < ids[nb], 1.0, -1.0), cmd[me],
+                                velocity_m_s[nb], np.full(me.size, float(d_min_m)), np.ones(me.size, dtype=bool), cfg)
+    out = cmd.copy()
+    np.add.at(out, me, cut)
+    total_push = np.zeros_like(cmd)
+    np.add.at(total_push, me, push)
+    return out + _cap(total_push, cfg.max_push_m_s)

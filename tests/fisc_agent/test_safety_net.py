@@ -1,0 +1,216 @@
+"""The separation safety net (fisc_agent.flight.safety_net) at its boundaries, its vectorised form
+against the single-vehicle oracle, and the neighbour table from raw telemetry bytes on a simulated
+clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fisc_agent.flight.safety_net import (NeighbourReports, SafetyNetConfig, keep_apart, keep_apart_pairs,
+                                          predicted_and_radius)
+from fisc_agent.zenoh import telemetry_codec as tc
+from fisc_agent.zenoh.neighbours import NeighbourTable
+
+D = 0.92
+CFG = SafetyNetConfig()
+EPS = 1e-9
+
+
+def one(pos, vel=(0.0, 0.0, 0.0), age=0.0, agent_id=7) -> NeighbourReports:
+    return NeighbourReports(np.array([agent_id]), np.array([pos], dtype=float), np.array([vel], dtype=float),
+                            np.array([age], dtype=float))
+
+
+def test_no_neighbour_leaves_the_command_alone():
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.2, 0.0), 1, NeighbourReports.empty(), D)
+    assert act.velocity_m_s == (1.0, 0.2, 0.0) and not act.active and act.nearest_m == math.inf
+
+
+@pytest.mark.parametrize("gap, inside", [(D + EPS, False), (D, False), (D - 1e-6, True), (0.3, True)])
+def test_the_push_acts_only_strictly_inside_d_min(gap, inside):
+    act = keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((gap, 0.0, 0.0)), D)  # not closing
+    assert act.active is inside
+    assert act.nearest_m == pytest.approx(gap)
+    assert act.velocity_m_s[0] == pytest.approx(-min(D - gap, CFG.max_push_m_s) if inside else 0.0)
+
+
+@pytest.mark.parametrize("speed, acts", [(0.25 - 1e-6, False), (0.25, False), (0.25 + 1e-6, True), (1.0, True)])
+def test_outside_d_min_closing_is_limited_to_reach_it_no_sooner_than_the_horizon(speed, acts):
+    # d_min 1 m, 0.375 m outside it, horizon 1.5 s: up to 0.25 m/s towards a still neighbour
+    act = keep_apart((0.0, 0.0, 0.0), (speed, 0.4, 0.0), 1, one((1.375, 0.0, 0.0)), 1.0)
+    assert act.active is acts
+    assert act.velocity_m_s == pytest.approx((min(speed, 0.25), 0.4, 0.0), abs=1e-15)
+
+
+def test_with_no_horizon_the_net_acts_only_inside_d_min():
+    cfg = SafetyNetConfig(horizon_s=0.0)
+    assert not keep_apart((0.0, 0.0, 0.0), (5.0, 0.0, 0.0), 1, one((D + 1e-6, 0.0, 0.0)), D, cfg).active
+    inside = keep_apart((0.0, 0.0, 0.0), (5.0, 0.0, 0.0), 1, one((D - 0.1, 0.0, 0.0)), D, cfg)
+    assert inside.velocity_m_s == pytest.approx((-0.1, 0.0, 0.0))
+
+
+def test_closing_on_a_still_neighbour_is_cut_and_the_push_backs_off():
+    # neighbour 0.5 m ahead, still: the 1 m/s towards it is cut, push 1/s x 0.42 m backwards
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.3, 0.0), 1, one((0.5, 0.0, 0.0)), D)
+    assert act.acting == (7,)
+    assert act.velocity_m_s == pytest.approx((-(D - 0.5), 0.3, 0.0))
+
+
+def test_a_column_moving_together_keeps_its_speed():
+    # the neighbour ahead flies away at 0.6 m/s: closing up to 0.6 m/s is allowed, only the excess is cut
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.8, 0.0, 0.0), vel=(0.6, 0.0, 0.0)), D)
+    pred_gap = 0.8  # age 0: no extrapolation
+    assert act.velocity_m_s == pytest.approx((0.6 - (D - pred_gap), 0.0, 0.0))
+
+
+@pytest.mark.parametrize("vx", [-1.0, 0.0])
+def test_moving_away_or_across_is_not_cut_only_pushed(vx):
+    act = keep_apart((0.0, 0.0, 0.0), (vx, 0.5, 0.0), 1, one((0.5, 0.0, 0.0)), D)
+    assert act.velocity_m_s == pytest.approx((vx - (D - 0.5), 0.5, 0.0))
+
+
+def test_the_sign_of_the_direction_follows_which_side_the_neighbour_is_on():
+    ahead = keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((0.5, 0.0, 0.0)), D).velocity_m_s
+    behind = keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((-0.5, 0.0, 0.0)), D).velocity_m_s
+    above = keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((0.0, 0.0, 0.5)), D).velocity_m_s
+    assert ahead[0] < 0 < behind[0] and above[2] < 0 and ahead[0] == pytest.approx(-behind[0])
+
+
+def test_coincident_positions_separate_by_id():
+    lo = keep_apart((1.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((1.0, 0.0, 0.0), agent_id=2), D).velocity_m_s
+    hi = keep_apart((1.0, 0.0, 0.0), (0.0, 0.0, 0.0), 2, one((1.0, 0.0, 0.0), agent_id=1), D).velocity_m_s
+    assert lo == pytest.approx((CFG.max_push_m_s, 0.0, 0.0)) and hi == pytest.approx((-CFG.max_push_m_s, 0.0, 0.0))
+
+
+def test_the_summed_push_is_capped():
+    reports = NeighbourReports(np.array([2, 3]), np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.0]]), np.zeros((2, 3)),
+                               np.zeros(2))
+    v = np.array(keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, reports, D).velocity_m_s)
+    assert np.linalg.norm(v) == pytest.approx(CFG.max_push_m_s)
+    assert v[0] < 0 and v[1] < 0
+
+
+def test_between_two_neighbours_the_pushes_cancel_and_no_closing_survives():
+    reports = NeighbourReports(np.array([2, 3]), np.array([[0.5, 0.0, 0.0], [-0.5, 0.0, 0.0]]), np.zeros((2, 3)),
+                               np.zeros(2))
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, reports, D)
+    assert act.acting == (2, 3) and act.velocity_m_s == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_a_fresh_report_is_extrapolated_by_its_velocity_up_to_fresh_s():
+    # reported 1.4 m ahead coming back at 1 m/s: 0.4 s old -> now 1.0 m ahead (outside d_min 0.92),
+    # 0.6 s old -> extrapolated only fresh_s = 0.5 s -> 0.9 m, and the report is stale so its radius grows
+    fresh = one((1.4, 0.0, 0.0), vel=(-1.0, 0.0, 0.0), age=0.4)
+    assert keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, fresh, D).nearest_m == pytest.approx(1.0)
+    older = one((1.4, 0.0, 0.0), vel=(-1.0, 0.0, 0.0), age=0.6)
+    pos, radius, kept = predicted_and_radius(older, D, CFG)
+    assert pos[0] == pytest.approx((0.9, 0.0, 0.0)) and radius[0] == pytest.approx(D + CFG.growth_m_s * 0.1)
+
+
+@pytest.mark.parametrize("age, inside", [(CFG.fresh_s, False), (CFG.fresh_s + 0.2, False), (CFG.fresh_s + 0.3, True)])
+def test_a_stale_neighbour_is_kept_at_a_growing_distance(age, inside):
+    # a still neighbour 1.5 m ahead: d_min + 2 m/s x (age - 0.5 s) reaches 1.5 m at age 0.79 s
+    act = keep_apart((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 1, one((1.5, 0.0, 0.0), age=age), D)
+    assert act.active is inside
+
+
+def test_a_stale_neighbour_moving_away_allows_no_closing():
+    # 0.5 m ahead flying away at 0.6 m/s; fresh: closing at 0.6 m/s is allowed
+    fresh = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.5, 0.0, 0.0), vel=(0.6, 0.0, 0.0)), D)
+    assert fresh.velocity_m_s[0] == pytest.approx(0.6 - (D - 0.5))
+    # 0.01 s past fresh_s: taken 0.3 m farther (0.8 m), radius d_min + 0.02 m, and no closing at all
+    age = CFG.fresh_s + 0.01
+    stale = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.5, 0.0, 0.0), vel=(0.6, 0.0, 0.0), age=age), D)
+    assert stale.velocity_m_s[0] == pytest.approx(-(D + CFG.growth_m_s * 0.01 - 0.8))
+
+
+@pytest.mark.parametrize("age, kept", [(CFG.forget_s, True), (CFG.forget_s + 1e-6, False)])
+def test_reports_older_than_forget_s_are_dropped(age, kept):
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.3, 0.0, 0.0), age=age), D)
+    assert act.active is kept and (act.nearest_m < math.inf) is kept
+
+
+@pytest.mark.parametrize("field, value", [("fresh_s", -0.1), ("growth_m_s", math.nan), ("forget_s", math.inf),
+                                          ("max_push_m_s", -1.0)])
+def test_bad_settings_are_named(field, value):
+    with pytest.raises(ValueError, match=field):
+        SafetyNetConfig(**{field: value})
+
+
+def test_forget_before_fresh_is_refused():
+    with pytest.raises(ValueError, match="forget_s"):
+        SafetyNetConfig(fresh_s=2.0, forget_s=1.0)
+
+
+def test_the_swarm_form_agrees_with_the_single_vehicle_oracle():
+    rng = np.random.default_rng(3)
+    n = 60
+    pos = rng.uniform([0, -1.5, -1.5], [6, 1.5, 1.5], size=(n, 3))
+    pos[5] = pos[4]  # one coincident pair
+    vel = rng.normal(size=(n, 3))
+    cmd = rng.normal(size=(n, 3))
+    ids = rng.permutation(1000)[:n]
+    i, j = np.triu_indices(n, 1)
+    out = keep_apart_pairs(pos, vel, cmd, ids, np.stack([i, j], 1), D)
+    acted = 0
+    for a in range(n):
+        others = np.arange(n) != a
+        rep = NeighbourReports(ids[others], pos[others], vel[others], np.zeros(n - 1))
+        act = keep_apart(tuple(pos[a]), tuple(cmd[a]), int(ids[a]), rep, D)
+        acted += act.active
+        assert out[a] == pytest.approx(np.array(act.velocity_m_s), abs=1e-12)
+    assert 5 <= acted < n  # the check covered both kinds
+
+
+def test_the_swarm_form_with_no_pairs_returns_a_copy():
+    cmd = np.ones((3, 3))
+    out = keep_apart_pairs(np.zeros((3, 3)), np.zeros((3, 3)), cmd, np.arange(3), np.zeros((0, 2)), D)
+    assert np.array_equal(out, cmd) and out is not cmd
+
+
+# ---- the neighbour table, from raw telemetry bytes on a simulated clock ----------------------
+class Clock:
+    def __init__(self):
+        self.t = 50.0
+
+    def __call__(self):
+        return self.t
+
+
+def message(agent_id, pos=(1.0, 2.0, 3.0), vel=(0.5, 0.0, 0.0), pos_age_s=0.05, landed="in-air") -> bytes:
+    return tc.encode(tc.Telemetry(agent_id=agent_id, seq=1, time_s=1.7e9, position_m=pos, velocity_m_s=vel,
+                                  position_age_s=pos_age_s, landed=landed))
+
+
+def test_the_table_keeps_the_newest_report_per_id_with_its_age_now():
+    clock = Clock()
+    table = NeighbourTable(clock)
+    table.take(message(3, pos=(0.0, 0.0, 0.0)))
+    clock.t += 0.2
+    table.take(message(3, pos=(1.0, 0.0, 0.0), pos_age_s=0.1))
+    table.take(message(4))
+    clock.t += 0.3
+    rep = table.reports(exclude_id=4)
+    assert list(rep.ids) == [3] and rep.position_m[0] == pytest.approx((1.0, 0.0, 0.0))
+    assert rep.age_s[0] == pytest.approx(0.3 + 0.1, abs=1e-3)  # ms resolution of the wire
+    assert rep.velocity_m_s[0] == pytest.approx((0.5, 0.0, 0.0))
+    assert len(table.reports(exclude_id=99)) == 2 and table.messages == 3
+
+
+def test_a_vehicle_on_the_ground_or_without_a_position_leaves_the_table():
+    table = NeighbourTable(Clock())
+    table.take(message(3))
+    table.take(message(5))
+    table.take(message(3, landed="on-ground"))
+    table.take(message(5, pos=(math.nan, math.nan, math.nan)))
+    assert len(table) == 0 and len(table.reports(0)) == 0
+
+
+def test_undecodable_bytes_are_counted_not_raised():
+    table = NeighbourTable(Clock())
+    table.take(b"\x02short")
+    table.take(b"")
+    assert table.bad_messages == 2 and len(table) == 0
