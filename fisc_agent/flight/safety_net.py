@@ -177,10 +177,16 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     if len(reports) == 0:
         return NetAction(velocity_m_s, (), math.inf)
     pos_nb, radius, kept = predicted_and_radius(reports, d_min_m, cfg)
-    rel = np.asarray(position_m, dtype=float)[None, :] - pos_nb
-    nearest = float(np.linalg.norm(rel[kept], axis=1).min()) if kept.any() else math.inf
-    ids = np.asarray(reports.ids)[kept]
+    rel = np.asarray(position_m, dtype=float) - pos_nb
+    dist = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     v = np.asarray(velocity_m_s, dtype=float)
+    # cheap first cut: closing at most |v|, a pair acts only inside r + horizon |v|
+    near = kept & (dist < radius + cfg.horizon_s * math.sqrt(v @ v))
+    nearest = float(dist[kept].min()) if kept.any() else math.inf
+    if not near.any():
+        return NetAction(velocity_m_s, (), nearest)
+    kept = near
+    ids = np.asarray(reports.ids)[kept]
     cut, push, acts = _corrections(rel[kept], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
                                    reports.velocity_m_s[kept], radius[kept], np.asarray(reports.age_s)[kept] <= cfg.fresh_s,
                                    cfg)

@@ -29,13 +29,22 @@ log = logging.getLogger(__name__)
 
 
 class NeighbourTable:
-    """The newest report of each vehicle heard on the swarm's telemetry (thread-safe)."""
+    """The newest report of each vehicle heard on the swarm's telemetry (thread-safe).
+
+    Rows live in growing numpy arrays (one row per agent id ever heard, ``live`` marks the ones in the
+    air with a position), so ``reports`` costs a few vectorised operations however many agents share
+    the table (an emulator worker's agents share one)."""
 
     def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock
         """Monotonic clock of arrival times and ages [s]."""
         self._lock = threading.Lock()
-        self._rows: dict[int, tuple[float, tuple[float, float, float], tuple[float, float, float], float]] = {}
+        self._row_of: dict[int, int] = {}
+        self._ids = np.zeros(0, dtype=np.int64)
+        self._pos = np.zeros((0, 3))
+        self._vel = np.zeros((0, 3))
+        self._t0 = np.zeros(0)  # arrival time less the position's age when sent
+        self._live = np.zeros(0, dtype=bool)
         self._subscriber: Any = None
         self.messages = 0
         """Telemetry messages taken in."""
@@ -55,6 +64,20 @@ class NeighbourTable:
         """Zenoh callback: take in one telemetry message."""
         self.take(bytes(sample.payload.to_bytes()))
 
+    def _row(self, agent_id: int) -> int:
+        row = self._row_of.get(agent_id)
+        if row is None:
+            row = len(self._row_of)
+            if row == self._ids.shape[0]:  # grow by doubling
+                cap = max(8, 2 * row)
+                self._ids = np.resize(self._ids, cap)
+                self._pos, self._vel = np.resize(self._pos, (cap, 3)), np.resize(self._vel, (cap, 3))
+                self._t0 = np.resize(self._t0, cap)
+                self._live = np.concatenate([self._live, np.zeros(cap - row, dtype=bool)])
+            self._row_of[agent_id] = row
+            self._ids[row] = agent_id
+        return row
+
     def take(self, data: bytes) -> None:
         """Take in one encoded telemetry message (arrived now)."""
         now = self.clock()
@@ -67,26 +90,24 @@ class NeighbourTable:
             return
         with self._lock:
             self.messages += 1
+            row = self._row(t.agent_id)
             if t.landed == "on-ground" or not all(math.isfinite(c) for c in t.position_m):
-                self._rows.pop(t.agent_id, None)
+                self._live[row] = False
                 return
-            vel = tuple(c if math.isfinite(c) else 0.0 for c in t.velocity_m_s)
-            pos_age = t.position_age_s if math.isfinite(t.position_age_s) else 0.0
-            self._rows[t.agent_id] = (now, t.position_m, vel, pos_age)  # type: ignore[assignment]
+            self._pos[row] = t.position_m
+            self._vel[row] = [c if math.isfinite(c) else 0.0 for c in t.velocity_m_s]
+            self._t0[row] = now - (t.position_age_s if math.isfinite(t.position_age_s) else 0.0)
+            self._live[row] = True
 
     def reports(self, exclude_id: int) -> NeighbourReports:
         """Every other vehicle's newest report with its age now."""
         now = self.clock()
         with self._lock:
-            rows = [(aid, r) for aid, r in self._rows.items() if aid != exclude_id]
-        if not rows:
-            return NeighbourReports.empty()
-        ids = np.array([aid for aid, _ in rows], dtype=np.int64)
-        pos = np.array([r[1] for _, r in rows], dtype=float)
-        vel = np.array([r[2] for _, r in rows], dtype=float)
-        age = np.array([max(0.0, now - r[0]) + r[3] for _, r in rows], dtype=float)
-        return NeighbourReports(ids, pos, vel, age)
+            n = len(self._row_of)
+            keep = self._live[:n] & (self._ids[:n] != exclude_id)
+            return NeighbourReports(self._ids[:n][keep], self._pos[:n][keep], self._vel[:n][keep],
+                                    np.maximum(0.0, now - self._t0[:n][keep]))
 
     def __len__(self) -> int:
         with self._lock:
-            return len(self._rows)
+            return int(np.count_nonzero(self._live[:len(self._row_of)]))

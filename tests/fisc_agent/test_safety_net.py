@@ -214,3 +214,16 @@ def test_undecodable_bytes_are_counted_not_raised():
     table.take(b"\x02short")
     table.take(b"")
     assert table.bad_messages == 2 and len(table) == 0
+
+
+def test_the_table_grows_past_its_first_rows_and_keeps_every_report_in_place():
+    clock = Clock()
+    table = NeighbourTable(clock)
+    for i in range(20):
+        table.take(message(100 + i, pos=(float(i), 0.0, 0.0), pos_age_s=0.0))
+    table.take(message(105, landed="on-ground"))
+    rep = table.reports(exclude_id=100)
+    assert sorted(rep.ids) == [i for i in range(101, 120) if i != 105]
+    assert all(p[0] == i - 100 for i, p in zip(rep.ids, rep.position_m))
+    table.take(message(105, pos=(-1.0, 0.0, 0.0)))  # back in the air
+    assert 105 in table.reports(exclude_id=100).ids and len(table) == 20
