@@ -78,6 +78,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
                    "(omitted: the lab default: listen on tcp/127.0.0.1:7447 if free, else connect to it)")
+    z.add_argument("--safety-net", action="store_true",
+                   help="the agents fly the separation safety net, hearing each other's telemetry (needs --swarm; "
+                        "fisc-agent's default on a real fleet)")
     z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
@@ -98,7 +101,7 @@ def config_from_args(args: argparse.Namespace):
 
     return EmulateConfig(out_dir=args.output, map=args.map, agents=args.agents, duration_s=args.duration,
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
-                         geofence=args.geofence, tracking=not args.open_loop,
+                         geofence=args.geofence, tracking=not args.open_loop, safety_net=args.safety_net,
                          entry_radius_fraction=args.entry_radius_fraction,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,

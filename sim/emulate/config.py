@@ -50,6 +50,10 @@ class EmulateConfig:
     """Agents track their streamline (``fisc_agent.flight.tracking``), as ``fisc-agent`` does by default on a
     real vehicle; False: gain 0, the agents fly ``fisc_agent.map.lookup.flight_command`` at their position,
     the very command function of ``fisc-sim run`` (a like-for-like check of the command chain)."""
+    safety_net: bool = False
+    """The agents fly the separation safety net (``fisc_agent.flight.safety_net``), hearing each other over
+    Zenoh (needs ``swarm``), as ``fisc-agent --swarm`` does by default on a real vehicle.  False: the paper's
+    law alone, as ``fisc-sim run`` flies by default, so the two compare like for like."""
     entry_radius_fraction: float = 1.0
     """Fraction of the inlet radius the agents' entry points spread over (``AgentConfig.entry_radius_fraction``;
     a real deployment keeps 0.6 clear of the duct's wall).  1: evenly over every inlet CV, as ``fisc-sim
@@ -156,6 +160,8 @@ class EmulateConfig:
         need(self.emulator_workers >= 0 and self.agent_workers >= 0, "worker counts must be >= 0")
         need(self.worker_log_level in ("DEBUG", "INFO", "WARNING", "ERROR"), "worker_log_level must be a level name")
         need(self.telemetry_rate_hz > 0, f"telemetry_rate_hz must be > 0, is {self.telemetry_rate_hz!r}")
+        need(not self.safety_net or self.swarm is not None,
+             "the safety net hears the other agents over Zenoh: safety_net / --safety-net needs swarm / --swarm")
         need(self.swarm is None or self.trusted_key is not None,
              "a Zenoh swarm needs the ground's public key (trusted_key / --trusted-key) for maps and commands")
 

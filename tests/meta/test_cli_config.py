@@ -71,7 +71,7 @@ EMULATE = {
     "--mode": "EmulateConfig.mode", "--lookahead": "EmulateConfig.lookahead_s", "--preset": "EmulateConfig.preset",
     "--autopilot": "EmulateConfig.personality", "--plant": "EmulateConfig.plant",
     "--exit-policy": "EmulateConfig.exit_policy", "--geofence": "EmulateConfig.geofence", "--rate": "EmulateConfig.rate_hz",
-    "--open-loop": "EmulateConfig.tracking", "--entry-radius-fraction": "EmulateConfig.entry_radius_fraction",
+    "--open-loop": "EmulateConfig.tracking", "--safety-net": "EmulateConfig.safety_net", "--entry-radius-fraction": "EmulateConfig.entry_radius_fraction",
     "--reference-seeds": "EmulateConfig.reference_seeds",
     "--average-window": "EmulateConfig.average_window_s", "--telemetry": "EmulateConfig.telemetry",
     "--physics-rate": "EmulateConfig.physics_rate_hz", "--physics-dt": "EmulateConfig.physics_dt_s",

@@ -101,6 +101,16 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
     # open loop, gain 0: the mission flies fisc_agent.map.lookup.flight_command at the vehicle
     # (tests/sim/test_command_agreement.py, tests/fisc_agent/test_agent_mission.py)
     assert agent_config(_AgentJob(**job, tracking=False), 3, 14999).tracking.gain_1_s == 0.0
+    # the safety net only when asked for (fisc-sim run's law by default, fisc-agent's with --safety-net)
+    from fisc_agent.flight.safety_net import SafetyNetConfig
+
+    assert agent.safety_net is None
+    assert agent_config(_AgentJob(**job, tracking=True, safety_net=True), 3, 14999).safety_net == SafetyNetConfig()
+
+
+def test_the_emulated_safety_net_needs_a_swarm_to_hear_the_others():
+    with pytest.raises(ValueError, match="safety net"):
+        EmulateConfig(out_dir="x", safety_net=True)
 
 
 def test_comparison_takes_the_mean_and_spread_of_the_run_references():
