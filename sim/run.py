@@ -40,7 +40,7 @@ from sim import report
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant.fit import plant_preset
 from sim.safety_net import SwarmSafetyNet
-from sim.scenarios import Reservoir, scale_for_agents, seed_positions
+from sim.scenarios import Reservoir, StaggeredInlet, scale_for_agents, seed_positions
 from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 
 log = logging.getLogger(__name__)
@@ -109,6 +109,10 @@ class RunConfig:
     d_min) between the flow law's command and the plant, every agent hearing every other at once
     (``sim.safety_net``); metrics.json then reports ``safety_net_acting_fraction``.  The paper companion
     flies without it."""
+    staggered_admission: bool = False
+    """Case 2: admit one agent every ``admission_period_s`` of the map (the agents' own admission,
+    ``sim.scenarios.StaggeredInlet``) instead of the eq. source_rate batches; ``agents`` then does not set
+    the inflow.  The map must record its admission budget (``fisc-ground inspect``)."""
     seed: int = 0
     """Random seed (positions of seeded and injected agents)."""
     scale: float | None = None
@@ -160,6 +164,8 @@ class RunConfig:
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario {self.scenario!r}: choose one of {', '.join(SCENARIOS)}")
+        if self.staggered_admission and self.scenario != "reservoir":
+            raise ValueError("staggered_admission is an inflow of the reservoir scenario, not of seeding")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0, got {self.duration_s!r}")
         if self.average_window_s is not None and not self.average_window_s > 0:
@@ -337,8 +343,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
     if config.scenario == "seed":
         swarm.add_agents(seed_positions(cf, rng, config.x_axial_m, config.agents))
     else:
-        reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
-                              settings.persistence_s if settings.mode == "kinetic" else None)
+        reservoir = _inflow(config, cf, cmap, settings)
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
     blocks = BlockAccumulator(cf.n_cv, config.block_s)
     approach = ApproachTracker(d_min_m)
@@ -393,6 +398,19 @@ def simulate(config: RunConfig, cmap: CommandMap,
         collisions=None if collider is None else collider.stats.as_dict(),
         safety_net=None if net is None else net.counts.as_dict(),
         approach=approach.result() if measures else None)
+
+
+def _inflow(config: RunConfig, cf: CommandField, cmap: CommandMap,
+            settings: FlightSettings) -> Reservoir | StaggeredInlet:
+    """Case 2's inflow: the paper's reservoir, or one agent per the map's admission period."""
+    if not config.staggered_admission:
+        return Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
+                         settings.persistence_s if settings.mode == "kinetic" else None)
+    period = map_separation(cmap.body).admission_period_s
+    if period is None:
+        raise ValueError("--staggered-admission: the map records no separation.admission_period_s (refit it with "
+                         "fisc-ground fit)")
+    return StaggeredInlet(cf, period)
 
 
 def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:

@@ -1,7 +1,7 @@
 """``fisc-sim run --safety-net`` (sim.safety_net): the swarm-level filter against the agents' net
 (``fisc_agent.flight.safety_net.keep_apart_pairs``), its candidate-pair radius at the boundary, a
-head-on encounter in a straight tunnel with and without it, and the flag through config, metrics and
-report."""
+head-on encounter in a straight tunnel with and without it, the flag through config, metrics and
+report, and the staggered admission (``--staggered-admission``) the cost was measured with."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from fisc_agent.map.lookup import CommandField
 from sim.cli import build_parser, run_config_from_args
 from sim.run import RunConfig, simulate
 from sim.safety_net import SwarmSafetyNet, candidate_pairs, candidate_reach_m, pairs_kernel
-from sim.scenarios import synthetic_tunnel_map
+from sim.scenarios import StaggeredInlet, synthetic_tunnel_map
 from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
 
 D = 0.92
@@ -171,3 +171,38 @@ def test_the_flag_reaches_run_config_and_the_metrics_and_the_report(tmp_path):
     on.metrics = m_on
     text = report.write_report_md(on, tmp_path / "report.md").read_text()
     assert "Safety net on" in text and f"{100 * frac:.1f} %" in text
+
+
+@pytest.mark.parametrize("t_s, due", [(0.0, 1), (4.0 - 1e-6, 1), (4.0, 2), (8.5, 3)])
+def test_the_staggered_inlet_admits_one_agent_per_period_from_t_0(t_s, due):
+    inlet = StaggeredInlet(CommandField.from_map(synthetic_tunnel_map(nx=8)), 4.0)
+    assert inlet.due(t_s) == due and inlet.rate_per_s == 0.25
+
+
+def test_the_staggered_inlet_puts_each_agent_on_the_inlet_face_of_an_inlet_cv():
+    field = CommandField.from_map(synthetic_tunnel_map(nx=8))
+    inlet = StaggeredInlet(field, 4.0)
+    rng = np.random.default_rng(1)
+    pos = np.concatenate([inlet.entering(rng, 10, 0.0)[0] for _ in range(200)])
+    assert np.all(pos[:, 0] == field.origin_m[0])
+    assert set(field.cv_of(pos + [1e-9, 0, 0]).tolist()) == set(inlet.cvs.tolist())  # every inlet CV, no other
+    assert inlet.entering(rng, 10, 0.0)[1].tolist() == [10]
+
+
+@pytest.mark.parametrize("period", [0.0, -1.0, float("nan"), float("inf")])
+def test_a_bad_admission_period_is_refused_naming_it(period):
+    with pytest.raises(ValueError, match="period_s"):
+        StaggeredInlet(CommandField.from_map(synthetic_tunnel_map(nx=8)), period)
+
+
+def test_staggered_admission_reaches_the_run_and_needs_the_maps_budget():
+    assert run_config_from_args(build_parser().parse_args(["run", "--staggered-admission"])).staggered_admission
+    cfg = RunConfig(duration_s=9.0, average_window_s=2.0, figures=False, staggered_admission=True)
+    cmap = synthetic_tunnel_map(nx=8)  # records no admission budget
+    with pytest.raises(ValueError, match="admission_period_s"):
+        simulate(cfg, cmap)
+    body = {**cmap.body, "separation": {"max_in_tunnel": 3, "admission_period_s": 4.0}}
+    res = simulate(cfg, replace(cmap, body=body))
+    assert res.counters.injected == 3  # t = 0, 4, 8 s
+    with pytest.raises(ValueError, match="reservoir"):
+        RunConfig(scenario="seed", staggered_admission=True)
