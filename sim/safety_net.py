@@ -16,8 +16,9 @@ rounding), recomputed every step from the commands of that step.  This is exact,
 approximation: a pair acts on agent i only inside d_min or when i's commanded speed towards the
 neighbour, at most ``|cmd_i|``, exceeds ``(d - d_min) / horizon_s``.  It is about half of
 ``pair_reach_m`` (which bounds the closing speed by twice the map's speed limit, for any velocity):
-3.9 m instead of 6.9 m on the default map (d_min 0.92 m, 2 m/s), ~1.5 x 10^5 pairs instead of
-~2.5 x 10^5 among ~850 agents in the tunnel.
+3.9 m instead of 6.9 m on the default map (d_min 0.92 m, 2 m/s): ~1.5 x 10^5 pairs instead of
+~2.5 x 10^5 among 850 agents spread over the tunnel (the main job's density without the net; with it the
+net empties the tunnel and 7,200 pairs per step remain on average, docs/deployment.md).
 
 The pairs are evaluated by ``sim.jit_safety_net`` (numba, the same arithmetic as ``keep_apart_pairs``,
 tested equal) when numba is installed, else by ``keep_apart_pairs`` itself.
