@@ -54,6 +54,12 @@ def _add_run(sub) -> None:
     p.add_argument("--mode", choices=COMMAND_MODES, default=None,
                    help="command mode (default: the map's recommended one; see --preset)")
     p.add_argument("--collisions", action="store_true", help="enable the collision layer")
+    p.add_argument("--safety-net", action="store_true",
+                   help="fly the agents' separation safety net (fisc_agent.flight.safety_net, the map's d_min) "
+                        "between the command and the plant; metrics.json reports safety_net_acting_fraction")
+    p.add_argument("--staggered-admission", action="store_true",
+                   help="reservoir: admit one agent per the map's admission period (fisc-ground inspect), as "
+                        "fisc-agent --entry-stagger auto does, instead of the paper's source-rate batches")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--scale", type=float, default=None, help="override the map's speed scale S (paper: 0.1)")
     p.add_argument("--max-speed", type=float, default=None,
@@ -103,7 +109,9 @@ def run_config_from_args(args: argparse.Namespace):
         extra["max_speed_m_s"] = args.max_speed
     return RunConfig(map=args.map, scenario=args.scenario, duration_s=args.duration,
                      average_window_s=args.average_window, mode=args.mode, collisions=args.collisions,
-                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial, figures=not args.no_figures,
+                     safety_net=args.safety_net, staggered_admission=args.staggered_admission,
+                     seed=args.seed, scale=args.scale, x_axial_m=args.x_axial,
+                     figures=not args.no_figures,
                      lookahead_s=args.lookahead, preset=args.preset, plant=args.plant, out_dir=args.output,
                      mcap=args.mcap, **extra)
 

@@ -43,6 +43,10 @@ def compute_metrics(result: RunResult) -> dict:
         scale=result.scale, inflow_rate_per_s=result.inflow_rate_per_s, collisions=result.collisions,
         config=cfg.as_dict(),
     )
+    net = getattr(result, "safety_net", None)
+    if net is not None:
+        out["safety_net"] = net
+        out["safety_net_acting_fraction"] = net["acting_fraction"]
     approach = getattr(result, "approach", None)
     if approach is not None:
         out.update(approach.as_dict())
@@ -103,6 +107,15 @@ def separation_line(m: dict) -> str:
     return (f"{head}; {m['near_misses']} near-misses (pairs closer than d_min = {m['d_min_m']:.2f} m, the map's "
             f"designed spacing, counted once per encounter) over {m.get('separation_steps')} evaluations"
             + (f", one every {every:g} s of the agents in the tunnel." if every else "."))
+
+
+def safety_net_line(m: dict) -> str:
+    """The safety net's work of metrics.json ``m`` (``--safety-net``) as one sentence."""
+    net = m["safety_net"]
+    frac, pairs = net.get("acting_fraction"), net.get("mean_candidate_pairs")
+    return (f"Safety net on (`--safety-net`, sim.safety_net): it changed the command in {net['acting_agent_steps']} of "
+            f"{net['agent_steps']} agent-steps ({'n/a' if frac is None else f'{100 * frac:.1f} %'}), checking "
+            f"{'n/a' if pairs is None else f'{pairs:.0f}'} candidate pairs per step on average.")
 
 
 def statistics_lines(m: dict) -> list[str]:
@@ -182,6 +195,8 @@ def write_report_md(result: RunResult, path: Path) -> Path:
         lines.append(f"Collisions: {result.collisions}.")
     if m.get("d_min_m") is not None and m.get("near_misses") is not None:
         lines += ["", "## Separation", "", separation_line(m)]
+    if m.get("safety_net"):
+        lines += ["", safety_net_line(m)]
     lines += ["", "## Speed", "",
               f"{m['steps']} steps, {m['agent_steps']} agent-steps in {m['wall_time_s']:.2f} s wall "
               f"({_fmt(m['agent_steps_per_s'])} agent-steps/s).", ""]

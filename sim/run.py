@@ -39,7 +39,8 @@ from fisc_agent.map.separation import map_separation
 from sim import report
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant.fit import plant_preset
-from sim.scenarios import Reservoir, scale_for_agents, seed_positions
+from sim.safety_net import SwarmSafetyNet
+from sim.scenarios import Reservoir, StaggeredInlet, scale_for_agents, seed_positions
 from sim.swarm import Swarm, SwarmConfig, SwarmCounters
 
 log = logging.getLogger(__name__)
@@ -103,6 +104,15 @@ class RunConfig:
     """Enable the paper's collision layer (sim.collisions)."""
     collision_radius_m: float = 0.1
     """Agent radius r of the collision layer [m] (collision when closer than 2 r)."""
+    safety_net: bool = False
+    """Fly the agents' separation safety net (``fisc_agent.flight.safety_net``, default settings, the map's
+    d_min) between the flow law's command and the plant, every agent hearing every other at once
+    (``sim.safety_net``); metrics.json then reports ``safety_net_acting_fraction``.  The paper companion
+    flies without it."""
+    staggered_admission: bool = False
+    """Case 2: admit one agent every ``admission_period_s`` of the map (the agents' own admission,
+    ``sim.scenarios.StaggeredInlet``) instead of the eq. source_rate batches; ``agents`` then does not set
+    the inflow.  The map must record its admission budget (``fisc-ground inspect``)."""
     seed: int = 0
     """Random seed (positions of seeded and injected agents)."""
     scale: float | None = None
@@ -154,6 +164,8 @@ class RunConfig:
     def __post_init__(self) -> None:
         if self.scenario not in SCENARIOS:
             raise ValueError(f"scenario {self.scenario!r}: choose one of {', '.join(SCENARIOS)}")
+        if self.staggered_admission and self.scenario != "reservoir":
+            raise ValueError("staggered_admission is an inflow of the reservoir scenario, not of seeding")
         if self.duration_s is not None and not self.duration_s > 0:
             raise ValueError(f"duration_s must be > 0, got {self.duration_s!r}")
         if self.average_window_s is not None and not self.average_window_s > 0:
@@ -240,6 +252,8 @@ class RunResult:
     """Case 2: nominal source rate of eq. source_rate summed over the inlet [agents/s]."""
     collisions: dict | None
     """Collision statistics (counts by type) when the collision layer was on."""
+    safety_net: dict | None = None
+    """What the safety net did (``sim.safety_net.SafetyNetCounts.as_dict``) when it was on."""
     metrics: dict = field(default_factory=dict)
     """metrics.json content (filled by ``sim.report.compute_metrics``)."""
     paths: dict[str, Path] = field(default_factory=dict)
@@ -313,6 +327,8 @@ def simulate(config: RunConfig, cmap: CommandMap,
         collider = CollisionModel(CollisionParams(radius_m=config.collision_radius_m,
                                                   v_max_m_s=float(cmap.body.get("max_speed_m_s", 5.0)) * 1.5),
                                   cf.cell_size_m)
+    d_min_m = map_separation(cmap.body).d_min_m
+    net = SwarmSafetyNet(d_min_m) if config.safety_net else None
     settings = config.flight_settings(cmap)
     if settings.mode in FACE_MODES and cf.face_u_m_s is None:
         raise ValueError(f"mode {settings.mode!r} needs a schema-2 map with the staggered face field; "
@@ -321,17 +337,16 @@ def simulate(config: RunConfig, cmap: CommandMap,
                                                  escape_grace_s=config.escape_grace_s,
                                                  lookahead_s=settings.lookahead_s,
                                                  persistence_s=settings.persistence_s),
-                  collider=collider)
+                  collider=collider, command_filter=net)
     rng = np.random.default_rng(config.seed)
     reservoir = None
     if config.scenario == "seed":
         swarm.add_agents(seed_positions(cf, rng, config.x_axial_m, config.agents))
     else:
-        reservoir = Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
-                              settings.persistence_s if settings.mode == "kinetic" else None)
+        reservoir = _inflow(config, cf, cmap, settings)
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
     blocks = BlockAccumulator(cf.n_cv, config.block_s)
-    approach = ApproachTracker(map_separation(cmap.body).d_min_m)
+    approach = ApproachTracker(d_min_m)
     mass = float(cmap.body.get("agent_mass_kg", 1.0))
     n_steps = max(1, int(round(config.duration / config.dt_s)))
     window = min(config.window, n_steps * config.dt_s)
@@ -381,13 +396,27 @@ def simulate(config: RunConfig, cmap: CommandMap,
         window_s=(first_sample * config.dt_s, n_steps * config.dt_s),
         inflow_rate_per_s=None if reservoir is None else reservoir.rate_per_s,
         collisions=None if collider is None else collider.stats.as_dict(),
+        safety_net=None if net is None else net.counts.as_dict(),
         approach=approach.result() if measures else None)
+
+
+def _inflow(config: RunConfig, cf: CommandField, cmap: CommandMap,
+            settings: FlightSettings) -> Reservoir | StaggeredInlet:
+    """Case 2's inflow: the paper's reservoir, or one agent per the map's admission period."""
+    if not config.staggered_admission:
+        return Reservoir(cf, config.source_interval_s, scale_for_agents(cf, config.agents),
+                         settings.persistence_s if settings.mode == "kinetic" else None)
+    period = map_separation(cmap.body).admission_period_s
+    if period is None:
+        raise ValueError("--staggered-admission: the map records no separation.admission_period_s (refit it with "
+                         "fisc-ground fit)")
+    return StaggeredInlet(cf, period)
 
 
 def paper_companion(config: RunConfig, cmap: CommandMap) -> RunResult:
     """The ``--preset paper`` run beside a run of ``config`` on ``cmap`` (its map, if a map file was
     given; else the paper's schema-1 fit of the same reference), with its metrics."""
-    pcfg = replace(config, preset="paper", mode=None, lookahead_s=None)
+    pcfg = replace(config, preset="paper", mode=None, lookahead_s=None, safety_net=False)
     pmap = cmap if config.map is not None and Path(config.map).suffix == ".fiscmap" else \
         load_command_map(config.map, config.max_speed_m_s, "paper")
     paper = simulate(pcfg, pmap, measures=False)

@@ -211,6 +211,45 @@ class Reservoir:
         return k
 
 
+class StaggeredInlet:
+    """Case 2 with the agents' own admission (``fisc-sim run --staggered-admission``): one agent every
+    ``period_s`` (the map's ``admission_period_s``, the windows ``fisc-agent --entry-stagger auto`` flies),
+    the first at t = 0, each at a uniformly random point of the inlet slice's upstream face (a random
+    inlet CV, uniform on its face), instead of the eq. source_rate batches of ``Reservoir`` (which at a
+    small population fill every inlet CV's accumulator at nearly the same time and inject slabs).
+    Every agent enters (no kinetic flux weighting: real agents are not thinned)."""
+
+    def __init__(self, field: CommandField, period_s: float) -> None:
+        if not (np.isfinite(period_s) and period_s > 0):
+            raise ValueError(f"staggered admission: period_s must be finite and > 0, got {period_s!r}")
+        self.field = field
+        self.period_s = float(period_s)
+        self.cvs = inlet_cvs(field)
+        self._next_t = 0.0
+
+    @property
+    def rate_per_s(self) -> float:
+        """Admissions per second [agents/s]."""
+        return 1.0 / self.period_s
+
+    def due(self, t_s: float) -> int:
+        """Number of admissions due by time ``t_s`` (advances the internal clock)."""
+        k = 0
+        while self._next_t <= t_s + 1e-9:
+            self._next_t += self.period_s
+            k += 1
+        return k
+
+    def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """One agent: its position (1, 3) on the inlet face and its id ``first_id`` (``t_s`` unused: the
+        same call as ``Reservoir.entering``)."""
+        l = self.field.cell_size_m
+        lo = self.field.centers_m[self.cvs[rng.integers(self.cvs.size)]] - 0.5 * l
+        pos = lo + rng.random(3) * l
+        pos[0] = lo[0]
+        return pos.reshape(1, 3), np.array([first_id], dtype=np.int64)
+
+
 def synthetic_tunnel_map(nx: int = 12, radius_cells: float = 2.0, cell_size_m: float = 0.5,
                          speed_m_s: float = 1.0, n_star: int = 3, spread_m_s: float = 0.2,
                          scale: float = 1.0):

@@ -148,10 +148,12 @@ class Swarm:
 
     ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the
     realised velocities in place after the plant step (``sim.collisions.CollisionModel``).
+    ``command_filter``: optional ``apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)`` that adjusts the step's
+    NED commands in place before the plant step (``sim.safety_net.SwarmSafetyNet``).
     """
 
     def __init__(self, field: CommandField, plant: PlantParams | None = None,
-                 config: SwarmConfig | None = None, collider=None) -> None:
+                 config: SwarmConfig | None = None, collider=None, command_filter=None) -> None:
         self.field = field
         self.config = SwarmConfig() if config is None else config
         self.plant = PlantParams() if plant is None else plant
@@ -159,6 +161,7 @@ class Swarm:
             raise ValueError("Swarm needs fleet-wide (homogeneous) PlantParams")
         self._co: PlantCoefficients = self.plant.coefficients()
         self.collider = collider
+        self.command_filter = command_filter
         self.lookup = CVLookup(field, self.config.return_radius_cells)
         n_cv = field.n_cv
         # command tables with one extra zero row, so cv = -1 indexes a harmless row
@@ -394,6 +397,8 @@ class Swarm:
             elif self.counters.returned:
                 out_s[...] = 0.0
         vel, thr = self.vel_ned_m_s, self.thrust_ned_m_s2
+        if self.command_filter is not None:
+            self.command_filter.apply(self.pos_m, vel, cmd, self.ids)
         step_plant(vel, thr, cmd, self.config.dt_s, self._co, out=(vel, thr), backend=self.config.plant_backend)
         if self.collider is not None:
             self.collider.apply(self.pos_m, vel)

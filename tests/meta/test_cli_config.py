@@ -59,7 +59,9 @@ RUN = {
     "--map": "RunConfig.map", "--scenario": "RunConfig.scenario", "--agents": "RunConfig.agents",
     "--duration": "RunConfig.duration_s", "--average-window": "RunConfig.average_window_s",
     "--plant": "RunConfig.plant", "--preset": "RunConfig.preset", "--mode": "RunConfig.mode",
-    "--collisions": "RunConfig.collisions", "--seed": "RunConfig.seed", "--scale": "RunConfig.scale",
+    "--collisions": "RunConfig.collisions",
+    "--safety-net": "RunConfig.safety_net",
+    "--staggered-admission": "RunConfig.staggered_admission", "--seed": "RunConfig.seed", "--scale": "RunConfig.scale",
     "--max-speed": "RunConfig.max_speed_m_s", "--lookahead": "RunConfig.lookahead_s",
     "--x-axial": "RunConfig.x_axial_m", "--no-figures": "RunConfig.figures", "-o": "RunConfig.out_dir",
 }

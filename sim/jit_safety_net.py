@@ -1,0 +1,60 @@
+"""The numba twin of ``fisc_agent.flight.safety_net.keep_apart_pairs`` (the same operations per pair, in
+one pass instead of a dozen numpy passes over the ~10^5 candidate pairs of a dense swarm).
+
+Imports numba: reach it only through ``sim.safety_net.pairs_kernel``, which returns None when numba
+is not installed (the ``fisc[jit]`` extra); tests/sim/test_safety_net_sim.py checks it equal to
+``keep_apart_pairs``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, push_gain_1_s, max_push_m_s, coincident_m,
+                     out):
+    """``out`` (n, 3) = ``cmd`` after the net for index pairs ``pairs`` (m, 2), every report fresh
+    (``fisc_agent.flight.safety_net.keep_apart_pairs``; all arrays float64 but ``ids``, ``pairs`` int64)."""
+    n = cmd.shape[0]
+    push = np.zeros((n, 3))
+    for i in range(n):
+        for k in range(3):
+            out[i, k] = cmd[i, k]
+    nv = np.zeros(3)
+    for p in range(pairs.shape[0]):
+        for side in range(2):
+            me = pairs[p, side]
+            nb = pairs[p, 1 - side]
+            d2 = 0.0
+            for k in range(3):
+                nv[k] = pos[me, k] - pos[nb, k]
+                d2 += nv[k] * nv[k]
+            dist = math.sqrt(d2)
+            if dist > coincident_m:
+                for k in range(3):
+                    nv[k] /= dist
+            else:
+                nv[0] = 1.0 if ids[me] < ids[nb] else -1.0
+                nv[1] = 0.0
+                nv[2] = 0.0
+            closing = -(cmd[me, 0] * nv[0] + cmd[me, 1] * nv[1] + cmd[me, 2] * nv[2])
+            allowed = max(0.0, -(vel[nb, 0] * nv[0] + vel[nb, 1] * nv[1] + vel[nb, 2] * nv[2]))
+            gap = dist - d_min_m
+            if horizon_s > 0:
+                allowed += max(0.0, gap) / horizon_s
+            elif gap >= 0:
+                allowed = math.inf
+            excess = max(0.0, closing - allowed)
+            depth = push_gain_1_s * max(0.0, -gap)
+            for k in range(3):
+                out[me, k] += excess * nv[k]
+                push[me, k] += depth * nv[k]
+    for i in range(n):
+        norm = math.sqrt(push[i, 0] ** 2 + push[i, 1] ** 2 + push[i, 2] ** 2)
+        f = min(1.0, max_push_m_s / max(norm, 1e-300))
+        for k in range(3):
+            out[i, k] += push[i, k] * f
