@@ -30,7 +30,7 @@ from fisc_agent.flight.mission import (FLYING, Mission, MissionCommand, MissionO
                                 VehicleStatus)
 from fisc_agent.flight.mission_types import FleetOrder
 from fisc_agent.flight.tick import NET_STATES, AgentSnapshot, TickRecord, failsafe_active, outside_map
-from fisc_agent.flight.safety_net import NeighbourSource, NetAction, keep_apart
+from fisc_agent.flight.safety_net import DuctAxis, NeighbourSource, NetAction, keep_apart
 from fisc_agent.flight.readiness import health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
 from fisc_agent.flight.position_gate import GateVerdict, PositionGate, PositionGateConfig
@@ -371,13 +371,16 @@ class Runner:
     def _safety_net(self, out: MissionOutput, pos: Vec | None, pos_age_s: float) -> NetAction | None:
         """The safety net on this tick's command (``fisc_agent.flight.safety_net``): only while the
         agent flies its own velocities in the air (``NET_STATES``) from a fresh position, with a map
-        (its d_min) and neighbours to hear; None otherwise."""
+        (its d_min and its duct) and neighbours to hear; None otherwise.  Its horizon adapts to the
+        vehicle's lag as the agent knows it (the look-ahead in use)."""
         net_cfg, sfield = self.cfg.safety_net, self.mission.sfield
         if (net_cfg is None or self.neighbours is None or sfield is None or out.velocity_m_s is None
                 or out.state not in NET_STATES or pos is None or pos_age_s > self.cfg.stale_timeout_s):
             return None
+        geom = self.mission.geom
+        duct = DuctAxis(geom.x_inlet_m, geom.x_outlet_m, geom.inlet_center_yz_m) if geom is not None else None
         net = keep_apart(pos, out.velocity_m_s, self.cfg.agent_id, self.neighbours.reports(self.cfg.agent_id),
-                         sfield.separation.d_min_m, net_cfg)
+                         sfield.separation.d_min_m, net_cfg, self.mission.nav.lookahead_s(), duct)
         if net.active:
             self.rlog.event("net:active", logging.INFO, "safety net: d_min %.2f m, acting on agent(s) %s "
                             "(nearest %.2f m); command %s -> %s", sfield.separation.d_min_m,

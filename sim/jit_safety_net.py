@@ -16,14 +16,16 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, push_gain_1_s, max_push_m_s, coincident_m,
-                     out):
+                     duct, out):
     """``out`` (n, 3) = ``cmd`` after the net for index pairs ``pairs`` (m, 2), every report fresh
-    (``fisc_agent.flight.safety_net.keep_apart_pairs``; all arrays float64 but ``ids``, ``pairs`` int64)."""
+    (``fisc_agent.flight.safety_net.keep_apart_pairs``; all arrays float64 but ``ids``, ``pairs`` int64).
+    ``horizon_s``: the effective horizon; ``duct``: (x_lo, x_hi, y_axis, z_axis) of the wall rule
+    (an empty x range: none)."""
     n = cmd.shape[0]
     push = np.zeros((n, 3))
     for i in range(n):
         for k in range(3):
-            out[i, k] = cmd[i, k]
+            out[i, k] = 0.0  # the summed cuts first, then the command
     nv = np.zeros(3)
     for p in range(pairs.shape[0]):
         for side in range(2):
@@ -58,3 +60,13 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, push_gain_1_
         f = min(1.0, max_push_m_s / max(norm, 1e-300))
         for k in range(3):
             out[i, k] += push[i, k] * f
+        # the wall rule: over the duct, no component away from its axis
+        ry = pos[i, 1] - duct[2]
+        rz = pos[i, 2] - duct[3]
+        r = math.sqrt(ry * ry + rz * rz)
+        if duct[0] <= pos[i, 0] <= duct[1] and r > coincident_m:
+            outward = max(0.0, (out[i, 1] * ry + out[i, 2] * rz) / r)
+            out[i, 1] -= outward * ry / r
+            out[i, 2] -= outward * rz / r
+        for k in range(3):
+            out[i, k] += cmd[i, k]

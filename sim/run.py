@@ -35,6 +35,7 @@ from fisc_ground.fields.intervals import honest_statistics, stats_inputs
 from fisc_ground.fields.separation_stats import ApproachTracker, ClosestApproach
 from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields, cv_moments
 from fisc_ground.fields.time_blocks import DEFAULT_BLOCK_S, BlockAccumulator
+from fisc_agent.flight.safety_net import DuctAxis
 from fisc_agent.map.separation import map_separation
 from sim import report
 from sim.collisions import CollisionModel, CollisionParams
@@ -328,12 +329,16 @@ def simulate(config: RunConfig, cmap: CommandMap,
                                                   v_max_m_s=float(cmap.body.get("max_speed_m_s", 5.0)) * 1.5),
                                   cf.cell_size_m)
     d_min_m = map_separation(cmap.body).d_min_m
-    net = SwarmSafetyNet(d_min_m) if config.safety_net else None
+    plant = plant_preset(config.plant)
+    x_lo = float(cf.origin_m[0])
+    net = (SwarmSafetyNet(d_min_m, lag_s=float(np.max(plant.tau_v_s)),
+                          duct=DuctAxis(x_lo, x_lo + cf.grid_cv.shape[0] * float(cf.cell_size_m)))
+           if config.safety_net else None)
     settings = config.flight_settings(cmap)
     if settings.mode in FACE_MODES and cf.face_u_m_s is None:
         raise ValueError(f"mode {settings.mode!r} needs a schema-2 map with the staggered face field; "
                          f"this map is schema {cmap.schema_version} (refit it with fisc-ground fit)")
-    swarm = Swarm(cf, plant_preset(config.plant), SwarmConfig(dt_s=config.dt_s, mode=settings.mode,
+    swarm = Swarm(cf, plant, SwarmConfig(dt_s=config.dt_s, mode=settings.mode,
                                                  escape_grace_s=config.escape_grace_s,
                                                  lookahead_s=settings.lookahead_s,
                                                  persistence_s=settings.persistence_s),

@@ -11,14 +11,16 @@ the map frame and velocities and commands in NED, so both are turned to the map 
 (``MAP_TO_NED`` is its own inverse) and the result back.
 
 Candidate pairs.  The pairs handed to ``keep_apart_pairs`` are those of
-``cKDTree(pos).query_pairs(r)`` with ``r = d_min + horizon_s * max_i |cmd_i|`` (times 1 + 1e-9 for
-rounding), recomputed every step from the commands of that step.  This is exact, not an
-approximation: a pair acts on agent i only inside d_min or when i's commanded speed towards the
-neighbour, at most ``|cmd_i|``, exceeds ``(d - d_min) / horizon_s``.  It is about half of
-``pair_reach_m`` (which bounds the closing speed by twice the map's speed limit, for any velocity):
-3.9 m instead of 6.9 m on the default map (d_min 0.92 m, 2 m/s): ~1.5 x 10^5 pairs instead of
-~2.5 x 10^5 among 850 agents spread over the tunnel (the main job's density without the net; with it the
-net empties the tunnel and 7,200 pairs per step remain on average, docs/deployment.md).
+``cKDTree(pos).query_pairs(r)`` with ``r = d_min + T * max_i |cmd_i|`` (times 1 + 1e-9 for
+rounding; ``T`` the horizon, ``effective_horizon_s`` for the plant's lag ``tau_v_s``), recomputed every
+step from the commands of that step.  This is exact, not an approximation: a pair acts on agent i
+only inside d_min or when i's commanded speed towards the neighbour, at most ``|cmd_i|``, exceeds
+``(d - d_min) / T``.  With the 1.5 s horizon that was 3.9 m on the default map (d_min 0.92 m, 2 m/s):
+~1.5 x 10^5 pairs among 850 agents spread over the tunnel (the main job's density without the net; with
+it the net empties the tunnel, docs/deployment.md).
+
+The duct (``DuctAxis``) is the CVs' length along x about the map's x axis: the net's correction never
+points away from it there (the wall rule of ``fisc_agent.flight.safety_net``).
 
 The pairs are evaluated by ``sim.jit_safety_net`` (numba, the same arithmetic as ``keep_apart_pairs``,
 tested equal) when numba is installed, else by ``keep_apart_pairs`` itself.
@@ -33,7 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.flight.safety_net import COINCIDENT_M, SafetyNetConfig, keep_apart_pairs
+from fisc_agent.flight.safety_net import (COINCIDENT_M, DuctAxis, SafetyNetConfig, effective_horizon_s,
+                                          keep_apart_pairs)
 
 #: Map frame <-> NED of the default deployment (``sim.swarm.MAP_TO_NED``; its own inverse).
 _MAP_TO_NED = np.array([1.0, 1.0, -1.0])
@@ -53,12 +56,12 @@ def pairs_kernel():
     return jit_safety_net.keep_apart_pairs
 
 
-def candidate_reach_m(d_min_m: float, command_m_s: np.ndarray, cfg: SafetyNetConfig) -> float:
+def candidate_reach_m(d_min_m: float, command_m_s: np.ndarray, horizon_s: float) -> float:
     """The radius within which a pair can act this step [m]: ``d_min + horizon_s max_i |cmd_i|``
     (module docstring), d_min with no agents."""
     cmd = np.asarray(command_m_s, dtype=float).reshape(-1, 3)
     top = float(np.sqrt(np.max(np.einsum("ij,ij->i", cmd, cmd)))) if cmd.shape[0] else 0.0
-    return float(d_min_m + cfg.horizon_s * top)
+    return float(d_min_m + horizon_s * top)
 
 
 def candidate_pairs(pos_m: np.ndarray, reach_m: float) -> np.ndarray:
@@ -100,15 +103,24 @@ class SwarmSafetyNet:
     """The net for a whole simulated swarm (module docstring); ``apply`` is ``Swarm``'s ``command_filter``.
 
     ``d_min_m``: the map's designed spacing (``fisc_agent.map.separation.map_separation(body).d_min_m``);
-    ``backend``: ``auto`` (numba when importable), ``numba`` or ``numpy`` (``keep_apart_pairs``)."""
+    ``lag_s``: the vehicles' velocity lag (the plant's ``tau_v_s``), which sets the horizon; ``duct``:
+    where the wall rule applies (None: nowhere); ``backend``: ``auto`` (numba when importable),
+    ``numba`` or ``numpy`` (``keep_apart_pairs``)."""
 
-    def __init__(self, d_min_m: float, config: SafetyNetConfig = SafetyNetConfig(), backend: str = "auto") -> None:
+    def __init__(self, d_min_m: float, config: SafetyNetConfig = SafetyNetConfig(), backend: str = "auto",
+                 lag_s: float = 0.0, duct: DuctAxis | None = None) -> None:
         if not (np.isfinite(d_min_m) and d_min_m > 0):
             raise ValueError(f"safety net: d_min_m must be finite and > 0, is {d_min_m!r}")
         if backend not in ("auto", "numba", "numpy"):
             raise ValueError(f"safety net: backend {backend!r}: choose auto, numba or numpy")
         self.d_min_m = float(d_min_m)
         self.config = config
+        self.lag_s = float(lag_s)
+        """The vehicles' velocity lag [s]."""
+        self.horizon_s = effective_horizon_s(config, self.lag_s)
+        """The net's horizon for that lag [s]."""
+        self.duct = duct
+        """Where the wall rule applies (None: nowhere)."""
         self._kernel = None if backend == "numpy" else pairs_kernel()
         if self._kernel is None and backend == "numba":
             raise RuntimeError("safety net backend 'numba' requested but numba is not installed (pip install fisc[jit])")
@@ -123,15 +135,19 @@ class SwarmSafetyNet:
                 ids: np.ndarray) -> tuple[np.ndarray, int]:
         """``filtered_map`` and the number of candidate pairs evaluated."""
         cfg = self.config
-        reach = candidate_reach_m(self.d_min_m, cmd_m_s, cfg) * (1.0 + _REACH_MARGIN)
+        reach = candidate_reach_m(self.d_min_m, cmd_m_s, self.horizon_s) * (1.0 + _REACH_MARGIN)
         pairs = candidate_pairs(pos_m, reach)
         if self._kernel is None:
-            return keep_apart_pairs(pos_m, vel_m_s, cmd_m_s, ids, pairs, self.d_min_m, cfg), pairs.shape[0]
+            return (keep_apart_pairs(pos_m, vel_m_s, cmd_m_s, ids, pairs, self.d_min_m, cfg, self.lag_s, self.duct),
+                    pairs.shape[0])
         out = np.empty_like(cmd_m_s, dtype=float)
+        d = self.duct
+        duct = (np.array([d.x_lo_m, d.x_hi_m, d.center_yz_m[0], d.center_yz_m[1]]) if d is not None
+                else np.array([np.inf, -np.inf, 0.0, 0.0]))  # an empty x range: the rule applies nowhere
         self._kernel(np.ascontiguousarray(pos_m, dtype=float), np.ascontiguousarray(vel_m_s, dtype=float),
                      np.ascontiguousarray(cmd_m_s, dtype=float), np.ascontiguousarray(ids, dtype=np.int64), pairs,
-                     self.d_min_m, float(cfg.horizon_s), float(cfg.push_gain_1_s), float(cfg.max_push_m_s),
-                     COINCIDENT_M, out)
+                     self.d_min_m, self.horizon_s, float(cfg.push_gain_1_s), float(cfg.max_push_m_s),
+                     COINCIDENT_M, duct, out)
         return out, pairs.shape[0]
 
     def apply(self, pos_m: np.ndarray, vel_ned_m_s: np.ndarray, cmd_ned_m_s: np.ndarray, ids: np.ndarray) -> None:

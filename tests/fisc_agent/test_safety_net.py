@@ -9,13 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.flight.safety_net import (NeighbourReports, SafetyNetConfig, keep_apart, keep_apart_pairs,
+from fisc_agent.flight.safety_net import (DuctAxis, NeighbourReports, SafetyNetConfig, effective_horizon_s, keep_apart,
+                                          keep_apart_pairs,
                                           predicted_and_radius)
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.zenoh.neighbours import NeighbourTable
 
 D = 0.92
 CFG = SafetyNetConfig()
+DUCT = DuctAxis(0.0, 10.0)
 EPS = 1e-9
 
 
@@ -145,7 +147,8 @@ def test_forget_before_fresh_is_refused():
         SafetyNetConfig(fresh_s=2.0, forget_s=1.0)
 
 
-def test_the_swarm_form_agrees_with_the_single_vehicle_oracle():
+@pytest.mark.parametrize("lag, duct", [(0.0, None), (0.6, DuctAxis(1.0, 5.0, (0.1, -0.2)))])
+def test_the_swarm_form_agrees_with_the_single_vehicle_oracle(lag, duct):
     rng = np.random.default_rng(3)
     n = 60
     pos = rng.uniform([0, -1.5, -1.5], [6, 1.5, 1.5], size=(n, 3))
@@ -154,12 +157,12 @@ def test_the_swarm_form_agrees_with_the_single_vehicle_oracle():
     cmd = rng.normal(size=(n, 3))
     ids = rng.permutation(1000)[:n]
     i, j = np.triu_indices(n, 1)
-    out = keep_apart_pairs(pos, vel, cmd, ids, np.stack([i, j], 1), D)
+    out = keep_apart_pairs(pos, vel, cmd, ids, np.stack([i, j], 1), D, CFG, lag, duct)
     acted = 0
     for a in range(n):
         others = np.arange(n) != a
         rep = NeighbourReports(ids[others], pos[others], vel[others], np.zeros(n - 1))
-        act = keep_apart(tuple(pos[a]), tuple(cmd[a]), int(ids[a]), rep, D)
+        act = keep_apart(tuple(pos[a]), tuple(cmd[a]), int(ids[a]), rep, D, CFG, lag, duct)
         acted += act.active
         assert out[a] == pytest.approx(np.array(act.velocity_m_s), abs=1e-12)
     assert 5 <= acted < n  # the check covered both kinds
@@ -227,3 +230,49 @@ def test_the_table_grows_past_its_first_rows_and_keeps_every_report_in_place():
     assert all(p[0] == i - 100 for i, p in zip(rep.ids, rep.position_m))
     table.take(message(105, pos=(-1.0, 0.0, 0.0)))  # back in the air
     assert 105 in table.reports(exclude_id=100).ids and len(table) == 20
+
+
+# ---- the wall rule and the lag-adapted horizon -----------------------------------------------------
+
+
+def test_over_the_duct_the_net_never_pushes_away_from_its_axis():
+    # the neighbour sits nearer the axis (z 0.5) than this vehicle (z 1.0): the push would be outward (+z)
+    act = keep_apart((5.0, 0.0, 1.0), (1.0, 0.0, 0.0), 1, one((5.0, 0.0, 0.5)), D, duct=DUCT)
+    assert act.active and act.velocity_m_s == pytest.approx((1.0, 0.0, 0.0))
+    free = keep_apart((5.0, 0.0, 1.0), (1.0, 0.0, 0.0), 1, one((5.0, 0.0, 0.5)), D)  # no duct: pushed out
+    assert free.velocity_m_s[2] == pytest.approx(D - 0.5)
+
+
+def test_the_wall_rule_keeps_the_inward_and_axial_parts_of_the_correction():
+    # neighbour ahead and outside (x + 0.3, z + 0.3): the push is backwards and inwards, both kept
+    act = keep_apart((5.0, 0.0, 1.0), (0.0, 0.0, 0.0), 1, one((5.3, 0.0, 1.3)), D, duct=DUCT)
+    d = math.hypot(0.3, 0.3)
+    push = (D - d) / d * 0.3
+    assert act.velocity_m_s == pytest.approx((-push, 0.0, -push))
+
+
+@pytest.mark.parametrize("x, ruled", [(-1e-6, False), (0.0, True), (10.0, True), (10.0 + 1e-6, False)])
+def test_the_wall_rule_holds_over_the_ducts_length_only(x, ruled):
+    act = keep_apart((x, 1.0, 0.0), (0.0, 0.0, 0.0), 1, one((x, 0.5, 0.0)), D, duct=DUCT)
+    assert act.velocity_m_s[1] == pytest.approx(0.0 if ruled else D - 0.5)
+
+
+def test_the_wall_rule_follows_the_ducts_own_axis():
+    duct = DuctAxis(0.0, 10.0, (2.0, 0.0))  # axis at y = 2: y = 1 lies inside of it, pushing -y is outward
+    act = keep_apart((5.0, 1.0, 0.0), (0.0, 0.0, 0.0), 1, one((5.0, 1.5, 0.0)), D, duct=duct)
+    assert act.velocity_m_s == pytest.approx((0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("lag, horizon", [(0.0, 1.5), (1.5 / 4.0, 1.5), (0.5, 2.0), (0.89, 3.56), (math.nan, 1.5),
+                                          (-1.0, 1.5)])
+def test_the_horizon_is_the_longer_of_horizon_s_and_four_lags(lag, horizon):
+    assert effective_horizon_s(CFG, lag) == pytest.approx(horizon)
+
+
+def test_a_lagging_vehicle_starts_braking_farther_out():
+    # 1 m/s at a still neighbour 2.5 m away (1.58 m outside d_min): a 1.5 s horizon allows 1.05 m/s,
+    # a 0.89 s lag's 3.56 s horizon only 0.44 m/s
+    far = one((2.5, 0.0, 0.0))
+    assert not keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, far, D).active
+    slow = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, far, D, lag_s=0.89)
+    assert slow.velocity_m_s[0] == pytest.approx((2.5 - D) / (4 * 0.89))

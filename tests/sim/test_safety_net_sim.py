@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fisc_agent.flight.safety_net import SafetyNetConfig, keep_apart_pairs
+from fisc_agent.flight.safety_net import DuctAxis, SafetyNetConfig, keep_apart_pairs
 from fisc_agent.map.lookup import CommandField
 from sim.cli import build_parser, run_config_from_args
 from sim.run import RunConfig, simulate
@@ -55,6 +55,17 @@ def test_the_swarm_filter_in_ned_is_keep_apart_pairs_over_every_pair_in_the_map_
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("seed", [3, 4])
+def test_with_a_lag_and_a_duct_both_backends_are_keep_apart_pairs(backend, seed):
+    pos, vel_map, cmd_map, ids = crowd(40, seed)
+    duct = DuctAxis(-1.0, 1.5, (0.2, -0.1))
+    expect = keep_apart_pairs(pos, vel_map, cmd_map, ids, all_pairs(40), D, CFG, 0.7, duct)
+    assert np.any(expect != keep_apart_pairs(pos, vel_map, cmd_map, ids, all_pairs(40), D, CFG))  # both matter
+    got = SwarmSafetyNet(D, backend=backend, lag_s=0.7, duct=duct).filtered_map(pos, vel_map, cmd_map, ids)
+    np.testing.assert_allclose(got, expect, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_coincident_agents_are_separated_by_id_as_the_agents_net_does(backend):
     pos = np.zeros((2, 3))
     cmd = np.zeros((2, 3))
@@ -76,16 +87,19 @@ def test_fewer_than_two_agents_leave_the_commands_alone_and_are_counted(n):
 
 def test_the_candidate_radius_is_d_min_plus_the_horizon_times_the_fastest_command():
     cmd = np.array([[1.0, 0.0, 0.0], [0.0, -2.0, 0.0], [0.3, 0.4, 0.0]])
-    assert candidate_reach_m(D, cmd, CFG) == pytest.approx(D + CFG.horizon_s * 2.0)
-    assert candidate_reach_m(D, np.zeros((0, 3)), CFG) == D
-    assert candidate_reach_m(D, cmd, SafetyNetConfig(horizon_s=0.0)) == D
+    assert candidate_reach_m(D, cmd, CFG.horizon_s) == pytest.approx(D + CFG.horizon_s * 2.0)
+    assert candidate_reach_m(D, np.zeros((0, 3)), CFG.horizon_s) == D
+    assert candidate_reach_m(D, cmd, 0.0) == D
+    # the horizon a swarm of lagging vehicles flies: lag_factor x the lag when that is longer
+    assert SwarmSafetyNet(D, lag_s=0.89).horizon_s == pytest.approx(4.0 * 0.89)
+    assert SwarmSafetyNet(D, lag_s=0.1).horizon_s == CFG.horizon_s
 
 
 @pytest.mark.parametrize("offset, listed, acts", [(-1e-6, True, True), (0.0, None, False), (1e-6, False, False)])
 def test_at_the_candidate_radius_a_pair_closing_at_the_top_speed_starts_to_act(offset, listed, acts):
     # agent 0 flies 2 m/s straight at a still agent 1: it acts exactly inside d_min + 1.5 s x 2 m/s
     cmd = np.array([[2.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    reach = candidate_reach_m(D, cmd, CFG)
+    reach = candidate_reach_m(D, cmd, CFG.horizon_s)
     pos = np.array([[0.0, 0.0, 0.0], [reach + offset, 0.0, 0.0]])
     if listed is not None:
         assert (candidate_pairs(pos, reach).shape[0] == 1) is listed
@@ -120,12 +134,12 @@ class HeadOn:
             self.net.apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)
 
 
-def head_on(net: SwarmSafetyNet | None, steps: int = 300) -> tuple[float, float, bool]:
+def head_on(net: SwarmSafetyNet | None, steps: int = 300, plant=None) -> tuple[float, float, bool]:
     """Two agents 6 m apart on a straight tunnel's axis closing head-on at ~2.3 m/s (the map's 1-1.5 m/s
     each way; they meet after ~2.6 s), ``steps`` of 0.05 s with the paper's plant: (closest distance,
     final distance, passed each other)."""
     field = CommandField.from_map(synthetic_tunnel_map(nx=24, radius_cells=2.0, speed_m_s=1.0))
-    sw = Swarm(field, config=SwarmConfig(mode="mean"), command_filter=HeadOn(net))
+    sw = Swarm(field, plant, config=SwarmConfig(mode="mean"), command_filter=HeadOn(net))
     sw.add_agents(np.array([[2.0, 0.1, 0.1], [8.0, 0.1, 0.1]]), vel_map_m_s=np.array([[1.0, 0, 0], [-1.0, 0, 0]]))
     closest = np.inf
     for _ in range(steps):
@@ -152,6 +166,17 @@ def test_head_on_with_the_default_1_5_s_horizon_the_paper_plant_overshoots_into_
     # measured 0.68 m: braking at gap / 1.5 s on the plant's ~0.6 s lag is underdamped (docs/deployment.md)
     closest, final, passed = head_on(SwarmSafetyNet(D))
     assert not passed and 0.6 < closest < D - 0.1 and abs(final - D) < 0.01
+
+
+def test_head_on_on_stock_px4s_lag_the_horizon_from_the_lag_stops_them_near_d_min():
+    # px4-sih (stock PX4's fitted lag 0.89 s): a fixed 1.5 s horizon let them come within 0.50 m;
+    # the lag's 4 x 0.89 s = 3.56 s brakes them near d_min
+    from sim.plant.fit import plant_preset
+
+    plant = plant_preset("px4-sih")
+    fixed, _, _ = head_on(SwarmSafetyNet(D), steps=300, plant=plant)
+    adapted, final, passed = head_on(SwarmSafetyNet(D, lag_s=plant.tau_v_s), steps=300, plant=plant)
+    assert fixed < 0.6 and not passed and adapted > D - 0.1 and abs(final - D) < 0.05
 
 
 def test_the_flag_reaches_run_config_and_the_metrics_and_the_report(tmp_path):
