@@ -100,7 +100,8 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
             end = time.monotonic() + LOOP_S
             while time.monotonic() < end:
                 time.sleep(5.0)
-                assert not any(s in ("DONE", "FAILSAFE") for s in states()), (states(), procs.report())
+                # looping laps, nothing holds but a failsafe (a lost link, a stale fix): fail at once
+                assert not any(s in ("HOLD", "DONE", "FAILSAFE") for s in states()), (states(), procs.report())
             assert poll(lambda: not monitor.alive, 60.0, 0.5), procs.report()
         finally:
             procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
