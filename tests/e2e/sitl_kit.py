@@ -522,6 +522,18 @@ def ok(out) -> str:
     return out.stdout
 
 
+def latest_states(logs: list[Path]) -> list[str]:
+    """The newest mission state in each agent's flight log ("" for a log not written yet)."""
+    out = []
+    for p in logs:
+        try:
+            rows = read_flight_log(p)
+        except (OSError, KeyError):
+            rows = []
+        out.append(rows[-1]["state"] if rows else "")
+    return out
+
+
 @dataclass(frozen=True)
 class SignedMapOnZenoh:
     """A ground key, the embedded default map fitted and signed with it, and Zenoh configs on loopback."""

@@ -35,7 +35,7 @@ from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
+from .sitl_kit import (MAP_ANCHOR, latest_states, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
                        truth_on_wall_clock, truth_pass, ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
@@ -104,14 +104,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
         return {a["id"]: a for a in json.loads(out)["agents"] if a["last_seen_s"] < 2.5}
 
     def states() -> list[str]:
-        out = []
-        for p in logs:
-            try:
-                rows = read_flight_log(p)
-            except (OSError, KeyError):
-                rows = []
-            out.append(rows[-1]["state"] if rows else "")
-        return out
+        return latest_states(logs)
 
     with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=3.0) as run:
         procs = Processes(d / "logs")

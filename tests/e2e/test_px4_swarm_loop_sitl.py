@@ -29,12 +29,12 @@ import time
 import numpy as np
 import pytest
 
-from fisc_agent.flight.flightlog import read_flight_log
 from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, free_tcp_port, poll, run_cli
-from .sitl_kit import MAP_ANCHOR, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh, truth_on_wall_clock
+from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, latest_states, ok, px4_ulog, signed_map_on_zenoh,
+                       truth_on_wall_clock)
 from .test_px4_fleet_sitl import min_separation_m, safety_net_view
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.long, pytest.mark.timeout(1800)]
@@ -74,14 +74,7 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
     mcap = d / "flight.mcap"
 
     def states() -> list[str]:
-        out = []
-        for p in logs:
-            try:
-                rows = read_flight_log(p)
-            except (OSError, KeyError):
-                rows = []
-            out.append(rows[-1]["state"] if rows else "")
-        return out
+        return latest_states(logs)
 
     with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=3.0) as run:
         procs = Processes(d / "logs")
