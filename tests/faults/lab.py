@@ -14,6 +14,7 @@ seeded random moments, every kill logged.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
@@ -128,11 +129,21 @@ class FaultLab:
         self.sha = info["sha256"]
 
     def start(self, name: str, argv: list) -> Proc:
-        """A child on this lab's port."""
-        previous = os.environ.get(PORT_ENV)
-        os.environ[PORT_ENV] = str(self.port)  # Processes passes os.environ to the child
-        try:
+        """A long-running child on this lab's port."""
+        with self._on_lab_port():
             return self.procs.start(name, argv)
+
+    def run(self, argv: list, timeout_s: float = 60.0):
+        """A short command on this lab's port, to completion (``run_cli``)."""
+        with self._on_lab_port():
+            return run_cli(argv, timeout_s=timeout_s)
+
+    @contextlib.contextmanager
+    def _on_lab_port(self):
+        previous = os.environ.get(PORT_ENV)
+        os.environ[PORT_ENV] = str(self.port)  # the children inherit os.environ
+        try:
+            yield
         finally:
             if previous is None:
                 del os.environ[PORT_ENV]
