@@ -24,6 +24,14 @@ EXCURSION_MAX_S = 15.0
 duct [s]: without any fault, on this loaded 2-core machine, emulated vehicles spend up to ~11 s
 outside the CVs in the geofence's RETURN (the strict rule "never outside" fails with no fault)."""
 
+LOAD_CAUSES = ("position stale", "pilot override")
+"""Hold causes a starved emulator produces (its position stream pauses; catching up its clock it
+trips PX4's offboard-loss failsafe, which the agent obeys hands-off) and no killed Zenoh process can:
+the emulated vehicles talk MAVLink to their own emulators, which no fault here touches."""
+STARVED_EMULATOR_S = 0.5
+"""An emulator loop gap at least this long [s] (``emulation.json`` real_time) starves the
+positions past the agents' stale timeout: only then are such holds put down to the machine."""
+
 
 @dataclass
 class AgentSeries:
@@ -152,3 +160,24 @@ def _alarms(path: Path) -> list[tuple[float, list[str]]]:
         except (McapError, EOFError, ValueError):
             pass  # a killed monitor's log ends early: what precedes is the evidence
     return out
+
+
+def emulated_holds(emu_dir: Path) -> str:
+    """Judge the HOLDs of ``fisc-sim emulate``'s agents (``emulation.json`` transitions): "" when
+    none; the reason of an inconclusive case (to report as xfail) when every hold has a cause only
+    a starved emulator makes and the emulate reports its emulator loop stalled that long; an
+    assertion error otherwise (a hold a fault could have caused, or one without a stall)."""
+    emulation = json.loads((Path(emu_dir) / "emulation.json").read_text())
+    holds = {}
+    for agent in emulation["agents"]:
+        got = [(round(t, 1), why) for t, _, to, why in agent["transitions"] if to == "HOLD"]
+        if got:
+            holds[agent["agent_id"]] = got
+    if not holds:
+        return ""
+    assert all(why.startswith(LOAD_CAUSES) for h in holds.values() for _, why in h), \
+        f"emulated agents held for a cause a fault can reach: {holds}"
+    gap = max(loop["gap_max_s"] for loop in emulation["real_time"]["emulator_loops"])
+    assert gap >= STARVED_EMULATOR_S, f"emulated agents held though the emulator kept real time: {holds}"
+    return (f"inconclusive: the machine starved the emulator (loop gap {gap:.2f} s); the emulated agents' "
+            f"holds are its doing, not a fault's: {holds}")

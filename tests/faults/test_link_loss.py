@@ -13,10 +13,11 @@ What must happen:
 
 - while the router is down the ground hears nobody (the link is really cut) and raises
   ``every agent stale`` within stale-after (3 s) + 2 s;
-- the fleet does not notice: no agent holds in a failsafe, changes its map or leaves the duct
-  (``evidence.EXCURSION_MAX_S``), each
-  keeps counting its telemetry (its sequence after the outage is past the one before by at
-  least 3 Hz x the outage), and ``fisc-sim emulate`` ends normally;
+- the fleet does not notice: no agent holds (``evidence.emulated_holds``: a hold only a starved
+  emulator causes, during a reported stall, makes the case xfail "inconclusive"), changes its
+  map or leaves the duct (``evidence.EXCURSION_MAX_S``); each keeps counting its telemetry (its
+  sequence after the outage is past the one before by at least 3 Hz x the outage), and
+  ``fisc-sim emulate`` ends normally;
 - within 5 s of the restarted router accepting connections the ground hears every agent again
   and the alarm clears.
 """
@@ -32,7 +33,7 @@ import pytest
 
 from fisc_agent.zenoh.telemetry_codec import sha_hex
 
-from .evidence import EXCURSION_MAX_S, read_evidence
+from .evidence import EXCURSION_MAX_S, emulated_holds, read_evidence
 from .lab import FaultLab, ground, listening
 from ..e2e.conftest import cli, free_tcp_port, poll, run_cli
 
@@ -122,7 +123,6 @@ def test_the_fleet_never_noticed_the_outage(outage):
     for i in range(N_AGENTS):
         s = ev.agents[i]
         assert set(x for x in sha_hex(s.records) if x) == {lab.sha}, f"agent {i} flew another map"
-        assert not s.failsafe_holds_s().size, f"agent {i} held in a failsafe at {s.failsafe_holds_s()[:5]}"
         before, after = s.records["seq"][s.recv_s < kill.t_s], s.records["seq"][s.recv_s > back]
         assert before.size and after.size, f"agent {i} not heard on both sides of the outage"
         assert int(np.int64(after[0]) - np.int64(before[-1])) >= 3 * (back - kill.t_s), \
@@ -131,3 +131,6 @@ def test_the_fleet_never_noticed_the_outage(outage):
     assert not breaches, f"left the duct (start, duration, geofence acting): {breaches}"
     assert outage["ran_to_the_end"], "fisc-sim emulate ended before the outage was judged"
     assert outage["emulate"].popen.returncode == 0, outage["emulate"].log_tail()
+    holds = emulated_holds(lab.dir / "emu")  # the fleet never holds (or the machine starved it: xfail)
+    if holds:
+        pytest.xfail(holds)
