@@ -1,0 +1,266 @@
+"""Fault injection, one emulated flight: kill -9 each kind of FISC process in turn, at a seeded
+random moment, and check what must happen (issue 38, item 3).
+
+Real processes on one free lab port (the Zenoh lab default, no config file):
+
+    first      fisc-ground status --wait 600   started first: it holds the lab port
+    recorder   fisc-ground monitor --record    the ground's witness, never killed
+    publisher  fisc-ground publish MAP
+    monitor    fisc-ground monitor --record    killed, then restarted
+    vehicles   fisc-sim autopilot + fisc-agent --go, ids 100 and 101 (stand-alone, PX4 personality)
+    emulate    fisc-sim emulate --agents N --swarm   (N from FISC_FAULT_AGENTS, default 10; ids 0..N-1)
+
+Once both stand-alone vehicles fly and a ``status`` hears every agent, one fault every ``SLOT_S``
+seconds, each at a random delay (seed ``FISC_FAULT_SEED``, default 38; every kill is printed and
+written to kills.jsonl):
+
+==========  =====================================================================================
+fault        what must happen (checked on the recorder's MCAP log unless said otherwise)
+==========  =====================================================================================
+status       a running ``status`` killed: nobody notices; every agent heard without a gap > 3 s
+             (the monitors' --stale-after; the same limit for every "heard throughout" below)
+publisher    every agent keeps its map (same sha256) and its flight; no gap > 3 s; nothing alarms
+monitor      the recorder hears everyone throughout; the killed monitor's log is readable up to
+             the kill; a monitor started right after hears every agent within 5 s
+agent 100    its vehicle's autopilot fails safe (PX4 offboard loss: "Failsafe: offboard setpoints
+             lost"); the ground alarms ``stale`` naming 100 within stale-after + 4 s; the others
+             are heard throughout
+emulator     (autopilot 101) agent 101 loses MAVLink, holds (failsafe, no ``mavlink_ok``) within
+             5 s, keeps its map and keeps reporting (no gap > 3 s); the others are heard throughout
+first        the holder of the lab port killed: every agent is still heard for 15 s, no gap > 3 s,
+             and a ``status --wait 5`` started 8 s later lists every flying agent; whatever
+             happens, a silence the ground suffers is alarmed
+whole        no agent ever flies a map other than the signed one; the stand-alone agents hold in
+flight       no failsafe before their own kill; an emulated agent never holds (a hold for a cause
+             only a starved emulator makes, position stale or PX4 offboard loss, while the emulate
+             reports an emulator loop stall >= 0.5 s, makes the case xfail "inconclusive" with the
+             holds listed; any other hold fails); no vehicle leaves the duct (every spell outside
+             the CVs is the geofence's RETURN or HOLD and ends within 15 s); emulate ends normally
+==========  =====================================================================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from dataclasses import dataclass
+
+import pytest
+
+from .evidence import EXCURSION_MAX_S, Evidence, emulated_holds, read_evidence
+from .lab import FaultLab, Kill, ground, listening
+from ..e2e.conftest import Proc, cli, poll
+
+pytestmark = pytest.mark.slow
+
+SWARM = "faults"
+N_AGENTS = int(os.environ.get("FISC_FAULT_AGENTS", "10"))
+"""Emulated vehicles (ids 0..N-1).  10, not the issue's 20: on the shared 2-core machine 20
+emulated vehicles, two stand-alone ones and the ground tools starve the emulator's loop (gaps
+near 1 s: every agent's position goes stale, PX4's offboard-loss failsafe takes the vehicles,
+and the fleet holds hands-off whatever the fault); ``FISC_FAULT_AGENTS=20`` flies the 20."""
+SLOT_S = 6.0
+"""Time between two faults [s]."""
+HUB_OBSERVE_S = 15.0
+"""Observation window after the last fault (the lab port's holder) [s]: the issue saw the lab
+fall apart ~10 s after its hub left."""
+NEWCOMER_AFTER_S = 8.0
+"""A ``status --wait 5`` started this long after the holder's kill must list every flying agent
+(the issue's "lists every flying agent within 5 s of asking"; its members' reconnection back-off
+has grown by then) [s]."""
+STALE_AFTER_S = 3.0
+"""The monitors' ``--stale-after``: a survivor silent longer than this is a link lost (the
+ground itself would call it stale) [s]."""
+DURATION_S = 85
+"""``fisc-sim emulate --duration``: outlives the last observation window on this 2-core machine."""
+FLYING = {"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"}
+KILLED_AGENT, KILLED_EMULATOR = 100, 101
+
+
+@dataclass
+class Flight:
+    """The finished flight: the lab, the recorder's evidence and the processes to judge."""
+
+    lab: FaultLab
+    ev: Evidence
+    restarted: Proc
+    emulate: Proc
+    emulate_ran_to_the_end: bool
+    newcomer: subprocess.CompletedProcess
+    """``fisc-ground status --json`` started after the lab port's holder was killed."""
+
+    def survivors(self, t_s: float) -> list[int]:
+        """Agents that must be heard at ``t_s``: the emulated fleet, 101, and 100 until its kill."""
+        ids = list(range(N_AGENTS)) + [KILLED_EMULATOR]
+        return ids + ([KILLED_AGENT] if t_s < self.lab.kills.of("agent").t_s else [])
+
+    def proc(self, name: str) -> Proc:
+        return next(p for p in self.lab.procs.procs if p.name == name)
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory) -> Flight:
+    lab = FaultLab(tmp_path_factory.mktemp("faults"), SWARM)
+    try:
+        return _fly(lab)
+    finally:
+        lab.stop_all()
+
+
+def _fly(lab: FaultLab) -> Flight:
+    d, kills = lab.dir, lab.kills
+    lab.prepare()
+    first = lab.start("first", ground("status", "--swarm", SWARM, "--wait", "600", "--json"))
+    # it has opened its session first (today it listens on the lab port; a mesh may log it only)
+    assert poll(lambda: listening(lab.port) or "lab default" in first.log_tail(), 30), lab.procs.report()
+    recorder = lab.monitor("recorder", d / "recorder.mcap")
+    publisher = lab.start("publisher", ground("publish", lab.map, "--swarm", SWARM))
+    monitor = lab.monitor("monitor", d / "monitor.mcap")
+    _, agent_100 = lab.start_vehicle(KILLED_AGENT, 0.0)
+    autopilot_101, agent_101 = lab.start_vehicle(KILLED_EMULATOR, 1.5)
+    emulate = lab.start("emulate", cli("fisc-sim") + [
+        "emulate", "--map", lab.map, "--agents", N_AGENTS, "--duration", DURATION_S, "--swarm", SWARM,
+        "--trusted-key", lab.pub, "--mode", "staggered", "--no-compare", "--no-figures", "-q", "-o", d / "emu"])
+    lab.wait_in_air(agent_100, 90)
+    lab.wait_in_air(agent_101, 30)
+    everyone = set(range(N_AGENTS)) | {KILLED_AGENT, KILLED_EMULATOR}
+    assert poll(lambda: everyone <= _heard(lab), 90, period_s=0.0), lab.procs.report()
+
+    status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
+    kills.kill_at("status", status, 1.5, 3.0)
+    time.sleep(SLOT_S)
+    kills.kill_at("publisher", publisher, 0.0, 2.0)
+    time.sleep(SLOT_S)
+    kills.kill_at("monitor", monitor, 0.0, 2.0)
+    restarted = lab.monitor("monitor-restarted", d / "restarted.mcap", "--duration", "10")
+    time.sleep(SLOT_S)
+    kills.kill_at("agent", agent_100, 0.0, 2.0)
+    time.sleep(SLOT_S)
+    kills.kill_at("emulator", autopilot_101, 0.0, 2.0)
+    time.sleep(SLOT_S)
+    hub_kill = kills.kill_at("first", first, 0.0, 2.0)
+    time.sleep(NEWCOMER_AFTER_S)  # a newcomer asks who flies (it finds the lab port free)
+    newcomer = lab.run(ground("status", "--swarm", SWARM, "--wait", "5", "--json"))
+    (d / "newcomer.json").write_text(newcomer.stdout)
+    (d / "newcomer.err").write_text(newcomer.stderr)
+    time.sleep(max(0.0, hub_kill.t_s + HUB_OBSERVE_S - time.time()))
+
+    ran_to_the_end = emulate.alive
+    assert poll(lambda: not emulate.alive, DURATION_S + 60, period_s=0.5), lab.procs.report()
+    assert poll(lambda: not restarted.alive, 30), lab.procs.report()
+    assert lab.interrupt(recorder) == 0, recorder.log_tail()  # Ctrl-C: the monitor closes its MCAP log
+    return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer)
+
+
+def _heard(lab: FaultLab) -> set[int]:
+    """Agent ids a ``status --wait 1`` hears now."""
+    out = lab.run(ground("status", "--swarm", SWARM, "--wait", "1", "--json"))
+    return {a["id"] for a in json.loads(out.stdout)["agents"]} if out.returncode == 0 else set()
+
+
+def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0, limit_s: float = STALE_AFTER_S,
+                      ignore=()) -> None:
+    ids = [i for i in flight.survivors(kill.t_s + after_s) if i not in ignore]
+    gaps = flight.ev.gaps(ids, kill.t_s - 1.0, kill.t_s + after_s, limit_s)
+    assert not gaps, f"after the {kill.case} kill ({kill}), silent > {limit_s} s: {gaps}"
+
+
+def _keeps_map_and_flight(flight: Flight, agent_id: int, t0_s: float, t1_s: float) -> None:
+    series = flight.ev.agents[agent_id].between(t0_s, t1_s)
+    assert series.recv_s.size, f"agent {agent_id} not heard in [{t0_s}, {t1_s}]"
+    from fisc_agent.zenoh.telemetry_codec import sha_hex
+
+    assert set(sha_hex(series.records)) == {flight.lab.sha}, f"agent {agent_id} lost or changed its map"
+    assert set(series.states()) <= FLYING, f"agent {agent_id} stopped flying: {sorted(set(series.states()))}"
+    assert not series.failsafe_holds_s().size, f"agent {agent_id} failed safe"
+    assert series.records["seq"][-1] > series.records["seq"][0], f"agent {agent_id} stopped progressing"
+
+
+def test_a_running_status_killed_disturbs_nobody(flight):
+    _heard_throughout(flight, flight.lab.kills.of("status"))
+
+
+def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
+    kill = flight.lab.kills.of("publisher")
+    _heard_throughout(flight, kill)
+    for agent_id in (KILLED_AGENT, KILLED_EMULATOR):
+        _keeps_map_and_flight(flight, agent_id, kill.t_s, kill.t_s + SLOT_S - 1.0)
+    assert not any(line.startswith(("stale", "every agent stale"))
+                   for line in flight.ev.alarm_lines(kill.t_s, kill.t_s + SLOT_S)), flight.ev.alarms
+
+
+def test_a_monitor_killed_and_restarted_picks_the_fleet_up_again(flight):
+    kill = flight.lab.kills.of("monitor")
+    _heard_throughout(flight, kill)
+    killed = read_evidence(flight.lab.dir / "monitor.mcap")  # readable up to the kill
+    assert killed.agents and max(s.recv_s[-1] for s in killed.agents.values()) <= kill.t_s + 0.5
+    assert flight.restarted.popen.returncode == 0, flight.restarted.log_tail()
+    again = read_evidence(flight.lab.dir / "restarted.mcap")
+    start = min(again.first_heard_s(i) for i in again.agents)
+    late = {i: round(again.first_heard_s(i) - start, 2) for i in flight.survivors(start + 5.0)
+            if again.first_heard_s(i) > start + 5.0}
+    assert not late, f"the restarted monitor took > 5 s (or never) to hear: {late}"
+
+
+def test_an_agent_killed_its_vehicle_fails_safe_and_the_ground_alarms(flight):
+    kill = flight.lab.kills.of("agent")
+    _heard_throughout(flight, kill)
+    autopilot = flight.proc(f"autopilot-{KILLED_AGENT}")
+    assert "Failsafe: offboard setpoints lost" in autopilot.log_path.read_text(), autopilot.log_tail()
+    lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + 3.0 + 4.0)
+    assert any(line.startswith("stale") and str(KILLED_AGENT) in line for line in lines), flight.ev.alarms
+
+
+def test_an_emulator_killed_its_agent_holds_keeps_its_map_and_keeps_reporting(flight):
+    kill = flight.lab.kills.of("emulator")
+    _heard_throughout(flight, kill)  # 101 included: it keeps publishing
+    agent = flight.proc(f"agent-{KILLED_EMULATOR}")
+    assert agent.popen.returncode in (None, 0, -15), agent.log_tail()  # alive until the teardown's SIGTERM
+    after = flight.ev.agents[KILLED_EMULATOR].between(kill.t_s + 5.0, kill.t_s + SLOT_S)
+    assert after.recv_s.size, "agent 101 silent after its emulator died"
+    assert set(after.states()) == {"HOLD"} and after.flagged("failsafe").all(), after.states()
+    assert not after.flagged("mavlink_ok").any()
+    from fisc_agent.zenoh.telemetry_codec import sha_hex
+
+    assert set(sha_hex(after.records)) == {flight.lab.sha}
+
+
+def test_the_lab_port_holder_killed_loses_no_link(flight):
+    kill = flight.lab.kills.of("first")
+    _heard_throughout(flight, kill, after_s=HUB_OBSERVE_S)
+    assert flight.newcomer.returncode == 0, flight.newcomer.stderr[-2000:]
+    listed = {a["id"] for a in json.loads(flight.newcomer.stdout)["agents"] if a["last_seen_s"] < 2.5}
+    missing = sorted(set(flight.survivors(kill.t_s)) - listed)
+    assert not missing, f"a status started {NEWCOMER_AFTER_S} s after the holder's kill misses {missing}"
+
+
+def test_the_lab_port_holder_killed_any_silence_is_alarmed(flight):
+    kill = flight.lab.kills.of("first")
+    ids = flight.survivors(kill.t_s)
+    gaps = flight.ev.gaps(ids, kill.t_s, kill.t_s + HUB_OBSERVE_S, STALE_AFTER_S)
+    if gaps:  # the ground lost some agents: it must say so
+        lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + HUB_OBSERVE_S)
+        assert any(line.startswith(("stale", "every agent stale")) for line in lines), (gaps, flight.ev.alarms)
+
+
+def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(flight):
+    from fisc_agent.zenoh.telemetry_codec import sha_hex
+
+    ev = flight.ev
+    assert set(range(N_AGENTS)) | {KILLED_AGENT, KILLED_EMULATOR} <= set(ev.agents), sorted(ev.agents)
+    for agent_id, series in ev.agents.items():
+        shas = [s for s in sha_hex(series.records) if s]
+        assert set(shas) <= {flight.lab.sha}, f"agent {agent_id} flew another map"
+    for agent_id in (KILLED_AGENT, KILLED_EMULATOR):  # the stand-alone ones, before their own kill
+        held = ev.agents[agent_id].failsafe_holds_s()
+        held = held[held < flight.lab.kills.of("agent" if agent_id == KILLED_AGENT else "emulator").t_s]
+        assert not held.size, f"agent {agent_id} held in a failsafe at {held[:5]} ({flight.lab.kills.kills})"
+    holds = emulated_holds(flight.lab.dir / "emu")
+    breaches = ev.duct_breaches(ev.agents, EXCURSION_MAX_S)
+    assert not breaches, f"left the duct (start, duration, geofence acting): {breaches}"
+    assert flight.emulate_ran_to_the_end, "fisc-sim emulate ended before the last fault was judged"
+    assert flight.emulate.popen.returncode == 0, flight.emulate.log_tail()
+    if holds:
+        pytest.xfail(holds)
