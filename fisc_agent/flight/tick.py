@@ -11,7 +11,7 @@ from fisc_agent.flight.control import Vec
 from fisc_agent.flight.health import VehicleHealth
 from fisc_agent.flight.readiness import HealthProblem
 from fisc_agent.flight.safety_net import NetAction
-from fisc_agent.flight.mission_types import Cause, HoldCause, MissionOutput, Reason, State
+from fisc_agent.flight.mission_types import HoldCause, MissionOutput, Reason, State
 from fisc_agent.map.codec import CommandMap
 from fisc_agent.mavlink.adapters import ModeClass
 
@@ -132,10 +132,12 @@ FAILSAFE_HOLD_CAUSES = frozenset({HoldCause.LINK_LOST, HoldCause.POSITION_STALE,
 
 def failsafe_active(state: State, reason: Reason) -> bool:
     """True while a failsafe holds or returns the vehicle: a HOLD for a lost link, a stale or
-    lost position, the geofence or a mode taken from the agent, or the geofence's RETURN."""
+    lost position, the geofence or a mode taken from the agent, or a RETURN (flying back into the
+    map from outside it, whatever began it: the geofence, or a hold that ended outside the map and
+    resumed with "position fix back" or a fleet resume)."""
     if state == State.HOLD:
         return reason.cause in FAILSAFE_HOLD_CAUSES
-    return state == State.RETURN and reason.cause == Cause.GEOFENCE_RETURN
+    return state == State.RETURN
 
 
 def outside_map(state: State, reason: Reason, cv_id: int, position_known: bool) -> bool:

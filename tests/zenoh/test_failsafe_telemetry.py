@@ -29,6 +29,7 @@ from fisc_agent.mavlink.adapters import ModeClass  # noqa: E402
 from fisc_agent.mavlink.link import PositionSample  # noqa: E402
 from fisc_agent.map.codec import decode_map, encode_map  # noqa: E402
 from fisc_agent.flight.mission import State  # noqa: E402
+from fisc_agent.flight.mission_types import Cause, Reason  # noqa: E402
 from fisc_agent.zenoh.keys import Keys  # noqa: E402
 from fisc_agent.zenoh.link import AgentZenohLink  # noqa: E402
 from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, open_lab_session  # noqa: E402
@@ -218,3 +219,12 @@ def test_agent_process_held_by_its_geofence_raises_the_monitor_failsafe_alarm(tm
                     p.wait()
         pipe.close()
         session.close()
+
+
+@pytest.mark.parametrize("cause", [Cause.GEOFENCE_RETURN, Cause.POSITION_BACK, Cause.FLEET_RESUME])
+def test_every_return_into_the_map_is_a_failsafe_whatever_began_it(cause):
+    # a geofence RETURN interrupted by a stale-position hold resumes with "position fix back": still returning
+    from fisc_agent.flight.tick import failsafe_active
+
+    assert failsafe_active(State.RETURN, Reason(cause))
+    assert not failsafe_active(State.FLOW, Reason(cause)) and not failsafe_active(State.JOIN, Reason(cause))
