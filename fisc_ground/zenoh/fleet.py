@@ -193,6 +193,7 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
 def run_cmd(args: Any) -> int:
     """``fisc-ground cmd go|takeover|hold|resume|land|start-at [UTC_TIME] --swarm NAME [--agents IDS] [--key KEYFILE]``."""
     from fisc_ground.maps.write import read_signing_key
+    from fisc_agent.zenoh.session import LabRole
     from fisc_ground.zenoh.config import open_ground_session
 
     start_at = None
@@ -209,7 +210,7 @@ def run_cmd(args: Any) -> int:
     if key is None:
         log.warning("sending an UNSIGNED command: agents refuse it unless started with --allow-unsigned")
     keys = Keys(args.prefix, args.swarm)
-    session = open_ground_session(args.zenoh_config)
+    session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         _wait_connected(session, args.wait)
         listener = TelemetryListener(session, keys)
@@ -227,10 +228,11 @@ def run_cmd(args: Any) -> int:
 
 def run_status(args: Any) -> int:
     """``fisc-ground status --swarm NAME [--zenoh-config FILE] [--json] [--wait S]``."""
+    from fisc_agent.zenoh.session import LabRole
     from fisc_ground.zenoh.config import open_ground_session
 
     keys = Keys(args.prefix, args.swarm)
-    session = open_ground_session(args.zenoh_config)
+    session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         listener = TelemetryListener(session, keys)
         time.sleep(args.wait)
