@@ -197,6 +197,9 @@ def add_parsers(subparsers: Any) -> None:
                    help="an agent not heard for S seconds is stale (default 3)")
     p.add_argument("--low-battery", type=float, default=LOW_BATTERY_PCT, metavar="PCT",
                    help=f"alarm below PCT %% battery (default {LOW_BATTERY_PCT:g})")
+    p.add_argument("--expect", type=_positive_int, metavar="N",
+                   help="exit 1 (and say how many answered, and which heard ids went silent) when fewer than N "
+                        "agents answer (heard and not stale at the end of the window)")
     p.set_defaults(func=run_status)
 
     p = subparsers.add_parser(

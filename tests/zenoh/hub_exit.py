@@ -70,7 +70,7 @@ class Outcome:
         """``status`` listed every agent, and the monitor never had one silent for 3 s (its stale
         time).  The status's wall time (``status_s``, the issue's 5 s) is reported apart: on a
         loaded machine most of it is Python's start-up, not Zenoh."""
-        return self.listed == self.expected and self.worst_gap_s < 3.0
+        return self.listed == self.expected and self.worst_gap_s < 3.0  # NaN (no recording): failed
 
 
 def _env(port: int) -> dict[str, str]:
@@ -139,10 +139,14 @@ def run_trial(trial: Trial, work: Path) -> Outcome:
         time.sleep(1.0)
         t_end = time.time()
         procs["monitor"].send_signal(signal.SIGINT)  # closes the recording cleanly
-        procs["monitor"].wait(timeout=60)
-        gap = _worst_gap(rec, expected, t_kill, t_end)
         missing = sorted(expected - set(ids))
-        detail = "" if not missing else f"status missed {missing[:10]}: {err[-300:]}"
+        detail = "" if not missing else f"status missed {len(missing)} ids {missing[:5]}... "
+        try:
+            procs["monitor"].wait(timeout=30)
+            gap = _worst_gap(rec, expected, t_kill, t_end)
+        except subprocess.TimeoutExpired:
+            gap = float("nan")
+            detail += "the monitor did not exit within 30 s of SIGINT (its recording is unreadable)"
         return Outcome(len(set(ids) & expected), n, took, gap, detail)
     finally:
         for p in procs.values():
