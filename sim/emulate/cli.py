@@ -77,7 +77,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
     z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
-                   "(omitted: the lab default: listen on tcp/127.0.0.1:7447 if free, else connect to it)")
+                   "(omitted: the lab default: meet at tcp/127.0.0.1:7447, then link directly)")
     z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, metavar="HZ", help="telemetry rate per agent")
     z.add_argument("--trusted-key", metavar="PUB", help="ground public key the agents trust for maps and fleet "
