@@ -85,15 +85,13 @@ class LabDoor:
         """Open the door if the port is free (False: someone else holds it, or took it first)."""
         import zenoh
 
-        from fisc_agent.zenoh.session import config_from_json
-
         with self._lock:
             if self._door is not None or self._stop.is_set():
                 return self._door is not None
             if not port_free(self.host, self.port):
                 return False
             try:
-                self._door = zenoh.open(config_from_json(door_config_json(self.endpoint)))
+                self._door = zenoh.open(zenoh.Config.from_json5(json.dumps(door_config_json(self.endpoint))))
             except zenoh.ZError as exc:  # another process bound it between the test and the open
                 log.debug("lab door on %s not opened: %s", self.endpoint, exc)
                 return False
