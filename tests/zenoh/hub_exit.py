@@ -73,6 +73,12 @@ class Outcome:
         return self.listed == self.expected and self.worst_gap_s < 3.0  # NaN (no recording): failed
 
 
+def _default_sigint() -> None:
+    """In the child: SIGINT back to its default, so Python turns it into KeyboardInterrupt (a
+    harness started in the background by a shell would pass SIGINT on ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env(port: int) -> dict[str, str]:
     return {**os.environ, PORT_ENV: str(port), "PYTHONPATH": f"{_ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 
@@ -120,7 +126,8 @@ def run_trial(trial: Trial, work: Path) -> Outcome:
     try:
         for name in trial.order:
             with open(work / f"{name}.err", "w") as err:
-                procs[name] = subprocess.Popen(argv[name], env=env, stdout=subprocess.DEVNULL, stderr=err)
+                procs[name] = subprocess.Popen(argv[name], env=env, stdout=subprocess.DEVNULL, stderr=err,
+                                               preexec_fn=_default_sigint)
             time.sleep(trial.gap_s)
         deadline = time.monotonic() + 90
         while True:  # everyone up: status lists all z2 agents while z1 holds the port
