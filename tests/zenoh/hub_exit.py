@@ -86,8 +86,11 @@ def _env(port: int) -> dict[str, str]:
 def _status(env: dict, swarm: str, wait_s: float) -> tuple[list[int], float, str]:
     """Run ``fisc-ground status --json``; (agent ids listed, wall time [s], stderr)."""
     t0 = time.monotonic()
-    p = subprocess.run([sys.executable, "-m", "fisc_ground.cli", "status", "--swarm", swarm, "--json", "--wait",
-                        f"{wait_s:g}"], env=env, capture_output=True, text=True, timeout=60)
+    try:
+        p = subprocess.run([sys.executable, "-m", "fisc_ground.cli", "status", "--swarm", swarm, "--json", "--wait",
+                            f"{wait_s:g}"], env=env, capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return [], time.monotonic() - t0, "status did not finish within 60 s"
     took = time.monotonic() - t0
     try:
         ids = [a["id"] for a in json.loads(p.stdout)["agents"]]
