@@ -138,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trusted-key", help="Ed25519 public key (.pub): maps and fleet commands must be signed by it")
     z = p.add_argument_group("Zenoh (map over the network, fleet commands, telemetry; see docs/zenoh.md)")
     z.add_argument("--swarm", type=swarm_name_arg, help="swarm name: receive the map on <prefix>/SWARM/map (wait on the ground until then)")
-    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: peer on loopback, listen on tcp/127.0.0.1:7447 if free, else connect to it)")
+    z.add_argument("--zenoh-config", help="standard Zenoh JSON5 config (omitted: the lab default, peer mode on loopback: connect to tcp/127.0.0.1:7447, hold it while free; docs/zenoh.md)")
     z.add_argument("--zenoh-prefix", type=prefix_arg, default="fisc", help="key expression prefix")
     z.add_argument("--telemetry-rate", type=float, default=5.0, help="telemetry rate [Hz]")
     z.add_argument("--allow-unsigned", action="store_true", help="LAB ONLY: accept unsigned maps and commands")

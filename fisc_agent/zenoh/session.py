@@ -1,18 +1,22 @@
 """Zenoh sessions: standard JSON5 config files, or the zero-config lab default.
 
-**Lab default (no config file).**  Every FISC process (agent, ``fisc-ground publish``,
-``monitor``, ``status``, ``cmd``, ``router`` aside, ``fisc-sim emulate``'s workers) opens its
-session with ``open_lab_session``: peer mode, multicast scouting off, and
+**Lab default (no config file): a mesh without a hub.**  Every FISC process opens its session
+with ``open_lab_session``: peer mode, multicast scouting off, loopback only.  Its session
+listens on its own ephemeral loopback port and connects to the lab endpoint
+``tcp/127.0.0.1:7447`` (Zenoh retries that connect for ever, every 0.25-1 s); gossip scouting
+then tells every pair of processes where the other listens, and they connect directly.  Each
+process is one of two ``LabRole``s:
 
-- it *listens* on the lab endpoint ``tcp/127.0.0.1:7447`` if that port is free (it is the hub);
-- otherwise it listens on an ephemeral loopback port and *connects* to the lab endpoint.
+- a *resident* (agent, ``fisc-ground publish``, ``monitor``, ``fisc-sim emulate``'s workers)
+  also runs a ``LabDoor``: whenever the lab port is free it opens a small door session listening
+  there, which introduces newcomers;
+- a *visitor* (``status``, ``cmd``: they exit after a few seconds) never holds the lab port.
 
-The bind itself is the test (no probe-then-bind race): Zenoh refuses a second listener on the
-port, and the process becomes a member.  Gossip scouting stays on, so members that meet at the
-hub also connect directly; a member keeps retrying its connect endpoint, so when the hub exits
-and another FISC process takes the port, the members find it again.  Any two FISC processes
-therefore meet in any start order.  The port comes from ``LabDiscovery`` (environment
-variable ``FISC_ZENOH_PORT``; tests use a free ephemeral port and the same logic).
+The door only introduces: data flows on the direct links.  When the process holding the door
+leaves, no link between the others is lost; within ``DOOR_PERIOD_S`` another resident opens a
+new door and every process's connect reaches it within a second (a visitor started meanwhile
+too).  The port comes from ``LabDiscovery`` (``FISC_ZENOH_PORT``; tests use a free port and
+the same logic).
 
 **Field.**  Pass a standard Zenoh JSON5 file (router/client mode, TLS, access control;
 ``docs/zenoh.md``); ``fisc-ground router`` runs a Zenoh router without ``zenohd``.
@@ -33,7 +37,7 @@ from typing import Any, Mapping
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7447
-"""Zenoh's registered port: the lab hub's TCP port unless ``FISC_ZENOH_PORT`` says otherwise."""
+"""Zenoh's registered port: the lab port unless ``FISC_ZENOH_PORT`` says otherwise."""
 PORT_ENV = "FISC_ZENOH_PORT"
 """Environment variable naming the lab port (inherited by child processes such as emulate's workers)."""
 
@@ -47,9 +51,9 @@ class LabDiscovery:
     """Where the FISC processes of one machine meet when no Zenoh config file is given."""
 
     port: int = DEFAULT_PORT
-    """TCP port of the lab hub (the first FISC process to start listens on it)."""
+    """TCP port where FISC processes meet (one resident at a time listens on it)."""
     host: str = "127.0.0.1"
-    """Address of the hub endpoint (loopback: nothing leaves the machine)."""
+    """Address of the lab endpoint (loopback: nothing leaves the machine)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.port, int) or not 1 <= self.port <= 65535:
@@ -73,17 +77,21 @@ class LabDiscovery:
 
     @property
     def endpoint(self) -> str:
-        """The hub's Zenoh locator, e.g. ``tcp/127.0.0.1:7447``."""
+        """The lab port's Zenoh locator, e.g. ``tcp/127.0.0.1:7447``."""
         return f"tcp/{self.host}:{self.port}"
 
 
 class LabRole(str, Enum):
-    """What a process does in the lab default."""
+    """What a process is in the lab default (``open_lab_session``)."""
 
-    HUB = "hub"
-    """Listens on the lab endpoint (the port was free)."""
-    MEMBER = "member"
-    """Listens on an ephemeral port and connects to the lab endpoint (the port was taken)."""
+    RESIDENT = "resident"
+    """Runs for the whole flight: holds the lab port (a ``LabDoor``) whenever it is free."""
+    VISITOR = "visitor"
+    """A short-lived command: connects to the lab port, never holds it."""
+
+
+LAB_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}
+"""Zenoh's retry of the connect to the lab port: 0.25 s, doubling up to 1 s, for ever."""
 
 
 def peer_config_json(listen: list[str], connect: list[str]) -> dict:
@@ -96,12 +104,43 @@ def peer_config_json(listen: list[str], connect: list[str]) -> dict:
     }
 
 
-def lab_config_json(role: LabRole, lab: LabDiscovery) -> dict:
-    """THE lab-default config of every FISC process, as JSON: the hub listens on the lab
-    endpoint; a member listens on an ephemeral port of the same host and connects to it."""
-    if role == LabRole.HUB:
-        return peer_config_json([lab.endpoint], [])
-    return peer_config_json([f"tcp/{lab.host}:0"], [lab.endpoint])
+def lab_config_json(lab: LabDiscovery) -> dict:
+    """THE lab-default config of every FISC process's session, as JSON: its own ephemeral
+    loopback port, a connect to the lab endpoint retried for ever (never fatal), gossip
+    scouting connecting peers directly, multicast off."""
+    return {
+        "mode": "peer",
+        "listen": {"endpoints": [f"tcp/{lab.host}:0"]},
+        "connect": {"endpoints": [lab.endpoint], "timeout_ms": -1, "exit_on_failure": False,
+                    "retry": dict(LAB_RETRY)},
+        "scouting": {"multicast": {"enabled": False},
+                     "gossip": {"enabled": True, "multihop": False, "autoconnect": {"peer": ["router", "peer"]}}},
+    }
+
+
+class LabSession:
+    """A lab-default session: every attribute is the ``zenoh.Session``'s; ``close`` also closes
+    the resident's ``LabDoor``."""
+
+    def __init__(self, session: Any, role: LabRole, door: Any = None) -> None:
+        self._session, self.role, self.door = session, role, door
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._session, name)
+
+    def close(self) -> None:
+        """Close the session, then the door (if this process holds the lab port)."""
+        try:
+            self._session.close()
+        finally:
+            if self.door is not None:
+                self.door.close()
+
+    def __enter__(self) -> "LabSession":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
 
 
 def config_from_json(cfg: Mapping[str, Any]) -> Any:
@@ -127,35 +166,32 @@ def load_config(path: str | Path) -> Any:
         raise ValueError(f"{path}: invalid Zenoh config ({exc})") from exc
 
 
-def open_lab_session(lab: LabDiscovery | None = None) -> tuple[Any, LabRole]:
-    """Open a session with the lab default: listen on the lab port if free, else connect to it.
-
-    Returns the session and the role taken.  ``ZenohSessionError`` if neither works."""
+def open_lab_session(lab: LabDiscovery | None = None, role: LabRole = LabRole.RESIDENT) -> LabSession:
+    """Open a session with the lab default (``lab_config_json``) in ``role`` (a resident also
+    starts its ``LabDoor``).  ``ZenohSessionError`` if Zenoh refuses."""
     import zenoh
 
+    from fisc_agent.zenoh.lab_door import LabDoor
+
+    role = LabRole(role)
     lab = LabDiscovery.from_env() if lab is None else lab
     try:
-        session = zenoh.open(config_from_json(lab_config_json(LabRole.HUB, lab)))
-    except zenoh.ZError as hub_exc:
-        log.debug("lab port %d taken (%s): joining as a member", lab.port, hub_exc)
-        try:
-            session = zenoh.open(config_from_json(lab_config_json(LabRole.MEMBER, lab)))
-        except zenoh.ZError as exc:
-            raise ZenohSessionError(f"cannot open a lab Zenoh session: listening on {lab.endpoint} failed "
-                                    f"({hub_exc}) and so did connecting to it ({exc})") from exc
-        log.info("Zenoh lab default: %s is taken, connected to it", lab.endpoint)
-        return session, LabRole.MEMBER
-    log.info("Zenoh lab default: listening on %s (first FISC process here)", lab.endpoint)
-    return session, LabRole.HUB
+        session = zenoh.open(config_from_json(lab_config_json(lab)))
+    except zenoh.ZError as exc:
+        raise ZenohSessionError(f"cannot open a lab Zenoh session ({role.value} of {lab.endpoint}): {exc}") from exc
+    door = LabDoor(lab.host, lab.port).start() if role == LabRole.RESIDENT else None
+    log.info("Zenoh lab default: %s of %s (%s)", role.value, lab.endpoint,
+             "holds it whenever it is free" if door is not None else "connects to it, never holds it")
+    return LabSession(session, role, door)
 
 
-def open_session(config: Any = None, lab: LabDiscovery | None = None) -> Any:
+def open_session(config: Any = None, lab: LabDiscovery | None = None, role: LabRole = LabRole.RESIDENT) -> Any:
     """Open a Zenoh session from a ``zenoh.Config``, a config file path, or None (the lab
-    default of ``open_lab_session``)."""
+    default of ``open_lab_session`` in ``role``; a config file ignores ``role``)."""
     import zenoh
 
     if config is None:
-        return open_lab_session(lab)[0]
+        return open_lab_session(lab, role)
     where = str(config) if isinstance(config, (str, Path)) else "the given Zenoh config"
     if isinstance(config, (str, Path)):
         config = load_config(config)

@@ -24,8 +24,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--swarm", required=True, type=swarm_name_arg, metavar="NAME",
                    help="swarm name (key expressions <prefix>/NAME/...): 1-64 of A-Z a-z 0-9 _ - .")
     p.add_argument("--zenoh-config", type=Path, metavar="FILE",
-                   help="standard Zenoh JSON5 config (default: the lab default, peer mode on loopback: listen "
-                        "on tcp/127.0.0.1:7447 if free, else connect to it; port from FISC_ZENOH_PORT)")
+                   help="standard Zenoh JSON5 config (default: the lab default, peer mode on loopback: meet "
+                        "at tcp/127.0.0.1:7447, then link directly; port from FISC_ZENOH_PORT)")
     p.add_argument("--prefix", type=prefix_arg, default=DEFAULT_PREFIX,
                    help=f"key expression prefix: chunks of A-Z a-z 0-9 _ - . joined by / (default {DEFAULT_PREFIX})")
 
@@ -139,7 +139,7 @@ def add_parsers(subparsers: Any) -> None:
                     "hold/resume/land of the swarm and of each addressed agent (as sent with `fisc-ground "
                     "cmd`) and re-publishes them on <prefix>/<swarm>/cmd/latest, so that an agent that starts "
                     "or reconnects later learns them. Without --zenoh-config the lab default "
-                    "applies (listen on tcp/127.0.0.1:7447 if free, else connect to it).")
+                    "applies (meet at tcp/127.0.0.1:7447, then link directly; docs/zenoh.md).")
     p.add_argument("map", metavar="MAP", type=Path, help="the .fiscmap to serve (sign it: agents refuse unsigned maps)")
     _common(p)
     p.add_argument("--chunk-size", type=int, default=DEFAULT_CHUNK_BYTES, metavar="BYTES",
@@ -197,6 +197,9 @@ def add_parsers(subparsers: Any) -> None:
                    help="an agent not heard for S seconds is stale (default 3)")
     p.add_argument("--low-battery", type=float, default=LOW_BATTERY_PCT, metavar="PCT",
                    help=f"alarm below PCT %% battery (default {LOW_BATTERY_PCT:g})")
+    p.add_argument("--expect", type=_positive_int, metavar="N",
+                   help="exit 1 (and say how many answered, and which heard ids went silent) when fewer than N "
+                        "agents answer (heard and not stale at the end of the window)")
     p.set_defaults(func=run_status)
 
     p = subparsers.add_parser(

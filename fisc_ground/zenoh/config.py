@@ -1,9 +1,9 @@
 """Zenoh session opening for the ground tools (standard Zenoh JSON5 config files).
 
 Without a config file the lab default applies (``fisc_agent.zenoh.session.open_lab_session``,
-the one function every FISC process uses): peer mode on loopback, multicast off; the first
-FISC process listens on ``tcp/127.0.0.1:7447`` (``FISC_ZENOH_PORT``), the others connect
-there and find each other by gossip, whatever the start order.  For the field write a config
+the one function every FISC process uses): peer mode on loopback, multicast off; every process
+connects to ``tcp/127.0.0.1:7447`` (``FISC_ZENOH_PORT``), which one long-lived process at a time
+listens on, and gossip links every pair directly, whatever the start order and whoever leaves.  For the field write a config
 file: router or client mode, TLS/mTLS endpoints and access control (docs/zenoh.md);
 ``fisc-ground router`` is a router without ``zenohd``.
 """
@@ -14,13 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from fisc_agent.zenoh.keys import Keys
-from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, open_session
+from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, LabRole, open_session
 
 
-def open_ground_session(path: str | Path | None = None) -> Any:
+def open_ground_session(path: str | Path | None = None, role: LabRole = LabRole.RESIDENT) -> Any:
     """Open a Zenoh session for a ground tool from the config file ``path``, or the lab default
-    (None); ``ZenohSessionError`` or ``ValueError`` names the problem."""
-    return open_session(None if path is None else Path(path))
+    (None) in ``role`` (``LabRole.VISITOR`` for the short-lived ``status`` and ``cmd``);
+    ``ZenohSessionError`` or ``ValueError`` names the problem."""
+    return open_session(None if path is None else Path(path), role=role)
 
 
 SILENCE_HINT_AFTER_S = 5.0
@@ -28,9 +29,12 @@ SILENCE_HINT_AFTER_S = 5.0
 
 
 def zenoh_neighbours(session: Any) -> int:
-    """Zenoh peers and routers this session is connected to."""
+    """Zenoh peers and routers this session is connected to (lab doors are not counted: they
+    only introduce processes to each other)."""
+    from fisc_agent.zenoh.lab_door import is_door
+
     info = session.info
-    return len(list(info.peers_zid())) + len(list(info.routers_zid()))
+    return sum(not is_door(z) for z in info.peers_zid()) + len(list(info.routers_zid()))
 
 
 def silence_hint(agents_heard: int, silent_s: float, keys: Keys, config_path: str | Path | None,

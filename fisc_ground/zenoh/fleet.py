@@ -129,11 +129,25 @@ def status_alarms(latest: dict[int, tuple[tc.Telemetry, float]], now_unix_s: flo
     return fleet_alarms(ids, records, live, stale_after_s, low_battery_pct)
 
 
+def expect_shortfall(report: dict, expected: int) -> str | None:
+    """``status --expect N``: None when at least ``expected`` agents answered (heard and not
+    stale at the end of the window), else the line that says how many did and which heard ids
+    went silent (the ids never heard are not known to ``status``)."""
+    answered = [a["id"] for a in report["agents"] if not a["stale"]]
+    if len(answered) >= expected:
+        return None
+    silent = [a["id"] for a in report["agents"] if a["stale"]]
+    return (f"only {len(answered)} of {expected} expected agents answered"
+            + (f"; heard but silent since: {', '.join(str(i) for i in silent)}" if silent else "")
+            + (f"; {expected - len(report['agents'])} never heard" if len(report["agents"]) < expected else ""))
+
+
 def _wait_connected(session: Any, timeout_s: float) -> bool:
+    from fisc_ground.zenoh.config import zenoh_neighbours
+
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        info = session.info
-        if info.peers_zid() or info.routers_zid():
+        if zenoh_neighbours(session):  # a lab door only introduces: wait for a process
             return True
         time.sleep(0.05)
     return False
@@ -193,6 +207,7 @@ def send_command(session: Any, keys: Keys, cmd: FleetCommand, signing_key: bytes
 def run_cmd(args: Any) -> int:
     """``fisc-ground cmd go|takeover|hold|resume|land|start-at [UTC_TIME] --swarm NAME [--agents IDS] [--key KEYFILE]``."""
     from fisc_ground.maps.write import read_signing_key
+    from fisc_agent.zenoh.session import LabRole
     from fisc_ground.zenoh.config import open_ground_session
 
     start_at = None
@@ -209,7 +224,7 @@ def run_cmd(args: Any) -> int:
     if key is None:
         log.warning("sending an UNSIGNED command: agents refuse it unless started with --allow-unsigned")
     keys = Keys(args.prefix, args.swarm)
-    session = open_ground_session(args.zenoh_config)
+    session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         _wait_connected(session, args.wait)
         listener = TelemetryListener(session, keys)
@@ -226,11 +241,13 @@ def run_cmd(args: Any) -> int:
 
 
 def run_status(args: Any) -> int:
-    """``fisc-ground status --swarm NAME [--zenoh-config FILE] [--json] [--wait S]``."""
+    """``fisc-ground status --swarm NAME [--zenoh-config FILE] [--json] [--wait S] [--expect N]``
+    (exit 1 when fewer than N agents answered)."""
+    from fisc_agent.zenoh.session import LabRole
     from fisc_ground.zenoh.config import open_ground_session
 
     keys = Keys(args.prefix, args.swarm)
-    session = open_ground_session(args.zenoh_config)
+    session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         listener = TelemetryListener(session, keys)
         time.sleep(args.wait)
@@ -239,11 +256,16 @@ def run_status(args: Any) -> int:
     finally:
         session.close()
     report = status_report(latest, time.time(), args.stale_after, args.low_battery)
+    expect = getattr(args, "expect", None)
+    shortfall = None if expect is None else expect_shortfall(report, expect)
+    if shortfall is not None:
+        log.error("status --expect %d: %s", expect, shortfall)
+    code = 0 if shortfall is None else 1
     if args.json:  # strict JSON: a non-finite position or velocity is null, never NaN/Infinity
         from fisc_ground.fields.field_report import json_safe
 
         print(json.dumps(json_safe(report), allow_nan=False))
-        return 0
+        return code
     from rich.console import Console
     from rich.table import Table
 
@@ -265,4 +287,6 @@ def run_status(args: Any) -> int:
     console.print(table)
     console.print("alarms: " + ("; ".join(report["alarms"]) if report["alarms"] else "none"),
                   style="bold red" if report["alarms"] else "green")
-    return 0
+    if shortfall is not None:
+        console.print(f"expected {expect}: {shortfall}", style="bold red")
+    return code

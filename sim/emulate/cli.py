@@ -77,7 +77,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     z = p.add_argument_group("Zenoh (watch the emulated fleet with fisc-ground monitor / status)")
     z.add_argument("--swarm", type=swarm_name_arg, metavar="NAME", help="publish each agent's telemetry on <prefix>/NAME/agents/<id>/telemetry")
     z.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config of the agents' sessions "
-                   "(omitted: the lab default: listen on tcp/127.0.0.1:7447 if free, else connect to it)")
+                   "(omitted: the lab default: meet at tcp/127.0.0.1:7447, then link directly)")
     z.add_argument("--safety-net", action="store_true",
                    help="the agents fly the separation safety net, hearing each other's telemetry (needs --swarm; "
                         "fisc-agent's default on a real fleet)")

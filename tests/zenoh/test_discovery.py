@@ -2,9 +2,10 @@
 something finds each other in either start order, with no Zenoh config file.
 
 Each case gets its own free lab port through ``FISC_ZENOH_PORT`` (never 7447): the processes
-run exactly the listen-or-connect logic of the default, on that port.  The first process
-started is the hub (it listens on the port; the test waits until it does), the second finds
-the port taken and connects.
+run exactly the logic of the default, on that port.  A resident (agent, publish, monitor)
+listens on the lab port whenever it is free; a visitor (status, cmd) only connects to it.  The
+test starts the second process once the first is up (a resident listening on the port, a
+visitor's session open).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from fisc_agent.zenoh.lab_door import door_config_json, is_door
 from fisc_agent.zenoh.session import PORT_ENV, LabDiscovery, LabRole, lab_config_json, open_lab_session
 from fisc_agent.map.codec import encode_map
 from fisc_ground.maps.write import generate_keypair, read_signing_key
@@ -29,6 +31,8 @@ pytestmark = pytest.mark.slow
 
 SWARM = "lab"
 AGENT_ID = 7
+VISITORS = ("status", "cmd")
+"""The short-lived commands: they never hold the lab port."""
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +104,11 @@ def test_two_processes_meet_in_either_order_without_config(first, second, files,
     lab = Lab(files, tmp_path)
     try:
         lab.start(first)
-        assert wait_for(lambda: listening(lab.port), timeout_s=20), f"{first} never listened: {lab.log(first)}"
+        if first in VISITORS:
+            assert wait_for(lambda: "visitor of" in lab.log(first), timeout_s=20), lab.log(first)
+            assert not listening(lab.port), f"{first} holds the lab port"
+        else:
+            assert wait_for(lambda: listening(lab.port), timeout_s=20), f"{first} never listened: {lab.log(first)}"
         lab.start(second)
         pair = {first, second}
         if pair == {"publish", "agent"}:
@@ -121,28 +129,64 @@ def test_two_processes_meet_in_either_order_without_config(first, second, files,
             reply = json.loads(lab.finish("cmd").strip().splitlines()[-1])
             assert reply["acked"] == [AGENT_ID], reply
             assert wait_for(lambda: "fleet command hold" in lab.log("agent"), timeout_s=10), lab.log("agent")
-        # the roles: the first listened on the lab port, the second found it taken and connected
-        assert f"listening on tcp/127.0.0.1:{lab.port}" in lab.log(first), lab.log(first)
-        assert wait_for(lambda: f"tcp/127.0.0.1:{lab.port} is taken, connected to it" in lab.log(second)), \
-            lab.log(second)
+        # the roles: status and cmd visit, the others reside
+        for name in (first, second):
+            role = "visitor" if name in VISITORS else "resident"
+            assert f"{role} of tcp/127.0.0.1:{lab.port}" in lab.log(name), lab.log(name)
     finally:
         lab.close()
 
 
-def test_lab_role_and_config_come_from_one_function(tmp_path):
-    """In-process: the first session on a free port is the hub, the second a member that
-    connects; both configs are ``lab_config_json``'s."""
+def test_lab_config_connects_to_the_lab_port_and_retries_for_ever():
+    lab = LabDiscovery(port=45001)
+    cfg = lab_config_json(lab)
+    assert cfg["listen"]["endpoints"] == ["tcp/127.0.0.1:0"]  # the session never holds the lab port itself
+    assert cfg["connect"]["endpoints"] == [lab.endpoint]
+    assert cfg["connect"]["exit_on_failure"] is False and cfg["connect"]["timeout_ms"] == -1
+    assert cfg["scouting"]["multicast"]["enabled"] is False and cfg["scouting"]["gossip"]["enabled"] is True
+    door = door_config_json(lab.endpoint)
+    assert door["listen"]["endpoints"] == [lab.endpoint] and door["connect"]["endpoints"] == []
+    assert is_door(door["id"]) and not is_door(door_config_json(lab.endpoint)["id"][1:])
+    assert door["id"] != door_config_json(lab.endpoint)["id"]
+    with pytest.raises(ValueError):
+        open_lab_session(lab, "hub")
+
+
+def _processes(s) -> set[str]:
+    """Zenoh ids of the (non-door) peers ``s`` is linked to."""
+    return {str(z) for z in s.info.peers_zid() if not is_door(z)}
+
+
+def test_mesh_survives_the_port_holder_leaving():
+    """In-process: two residents and a visitor link pairwise; the first resident (it holds the
+    lab port) closes: the other two stay linked, the other resident takes the port over within
+    2 s, and a visitor opened after that meets both survivors.  A visitor alone never holds it."""
     lab = LabDiscovery(port=free_port())
-    assert lab_config_json(LabRole.HUB, lab)["listen"]["endpoints"] == [lab.endpoint]
-    assert lab_config_json(LabRole.MEMBER, lab)["connect"]["endpoints"] == [lab.endpoint]
-    hub, role1 = open_lab_session(lab)
-    member, role2 = open_lab_session(lab)
+    lone = open_lab_session(lab, LabRole.VISITOR)
+    time.sleep(1.0)
+    assert not listening(lab.port) and lone.door is None
+    first = open_lab_session(lab)
+    assert first.door.holds and listening(lab.port)
+    second = open_lab_session(lab)
+    assert not second.door.holds
+    sessions = [lone, second]
+    zid = lambda s: str(s.info.zid())  # noqa: E731
     try:
-        assert (role1, role2) == (LabRole.HUB, LabRole.MEMBER)
-        assert wait_for(lambda: hub.info.zid() in list(member.info.peers_zid()), timeout_s=10)
+        everyone = (first, second, lone)
+        assert wait_for(lambda: all(_processes(s) == {zid(o) for o in everyone if o is not s} for s in everyone),
+                        timeout_s=10)
+        first.close()
+        t0 = time.monotonic()
+        assert wait_for(lambda: second.door.holds, timeout_s=5)
+        assert time.monotonic() - t0 < 2.0
+        assert _processes(second) == {zid(lone)} and _processes(lone) == {zid(second)}
+        late = open_lab_session(lab, LabRole.VISITOR)
+        sessions.append(late)
+        assert wait_for(lambda: _processes(late) == {zid(second), zid(lone)}, timeout_s=3)
     finally:
-        member.close()
-        hub.close()
+        for s in sessions:
+            s.close()
+    assert wait_for(lambda: not listening(lab.port), timeout_s=5)  # the last resident closed its door
 
 
 def test_lab_port_from_the_environment_is_checked():

@@ -177,7 +177,7 @@ def test_agent_process_held_by_its_geofence_raises_the_monitor_failsafe_alarm(tm
     cmap = decode_map(blob, None)
     port, udp = free_port(), free_port()
     env = {**os.environ, PORT_ENV: str(port), "PYTHONUNBUFFERED": "1"}
-    session, _ = open_lab_session(LabDiscovery(port=port))
+    session = open_lab_session(LabDiscovery(port=port))
     agg = TelemetryAggregator(cmap)
     pipe = TelemetryPipe(Keys("fisc", "fs"), agg).attach(session)
     procs = []

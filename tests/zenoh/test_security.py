@@ -64,14 +64,15 @@ def tls_net(pki, tmp_path):
 
 
 def test_documented_lab_configs_are_the_ones_the_code_builds():
-    from fisc_agent.zenoh.session import LabDiscovery, LabRole, lab_config_json
+    from fisc_agent.zenoh.lab_door import door_config_json
+    from fisc_agent.zenoh.session import LabDiscovery, lab_config_json
 
-    for block, role in (("lab-hub", LabRole.HUB), ("lab-member", LabRole.MEMBER)):
+    lab = LabDiscovery()
+    for block, built in (("lab-session", lab_config_json(lab)), ("lab-door", door_config_json(lab.endpoint))):
         cfg = zenoh.Config.from_json5(doc_config(block))
-        built = lab_config_json(role, LabDiscovery())
-        assert cfg.get_json("mode") == '"peer"' and cfg.get_json("scouting/multicast/enabled") == "false"
-        for key in ("listen", "connect"):
-            assert json.loads(cfg.get_json(f"{key}/endpoints")) == built[key]["endpoints"], (block, key)
+        built = zenoh.Config.from_json5(json.dumps(built))
+        for key in ("mode", "listen", "connect", "scouting"):
+            assert json.loads(cfg.get_json(key)) == json.loads(built.get_json(key)), (block, key)
 
 
 def test_mtls_and_access_control_as_documented(tls_net, sessions, make_map, ground_key, pki):
