@@ -281,6 +281,80 @@ def test_a_consistent_new_track_is_taken_after_reanchor_after_s():
     assert verdicts[:30] == [GateVerdict.IMPLAUSIBLE_JUMP] * 30 and GateVerdict.REANCHORED in verdicts[30:]
 
 
+
+# Boundaries of the gate (issue 38: each rule at equal, one step inside, one step outside, per axis, sign).
+ZERO = (0.0, 0.0, 0.0)
+
+
+def test_a_fix_exactly_at_the_reach_is_accepted_one_step_beyond_is_not():
+    reach = 15.0 * 1.0 + 1.0  # max_speed_m_s * dt + jump_tolerance_m, dt = 1 s
+    for axis in range(3):  # every axis counts in the distance
+        for sign in (1.0, -1.0):
+            at = [0.0, 0.0, 0.0]
+            at[axis] = sign * reach
+            beyond = list(at)
+            beyond[axis] = sign * math.nextafter(reach, math.inf)
+            g = PositionGate()
+            assert g.check(0.0, ZERO, ZERO) == GateVerdict.ACCEPTED
+            assert g.check(1.0, tuple(beyond), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP, (axis, sign)
+            assert g.check(1.0, tuple(at), ZERO) == GateVerdict.ACCEPTED, (axis, sign)
+
+
+def test_the_reach_is_measured_from_the_reference_not_from_the_origin():
+    g = PositionGate()
+    assert g.check(0.0, (100.0, -100.0, 50.0), ZERO) == GateVerdict.ACCEPTED
+    assert g.check(0.1, (100.5, -100.5, 50.5), ZERO) == GateVerdict.ACCEPTED  # 0.87 m from the reference
+    assert g.check(0.2, (0.0, 0.0, 0.0), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP
+
+
+def test_a_component_exactly_at_max_abs_m_is_in_range_one_step_beyond_is_not():
+    limit = PositionGateConfig().max_abs_m
+    for vec_is_pos in (True, False):
+        for value in (limit, -limit):
+            comp = (value, 0.0, 0.0)
+            fix = (comp, ZERO) if vec_is_pos else (ZERO, comp)
+            assert PositionGate().check(0.0, *fix) == GateVerdict.ACCEPTED
+            comp = (math.copysign(math.nextafter(limit, math.inf), value), 0.0, 0.0)
+            fix = (comp, ZERO) if vec_is_pos else (ZERO, comp)
+            assert PositionGate().check(0.0, *fix) == GateVerdict.OUT_OF_RANGE
+
+
+def test_a_track_is_taken_at_exactly_reanchor_after_s_and_not_one_step_before():
+    g = PositionGate(PositionGateConfig(reanchor_after_s=3.0))
+    g.check(0.0, ZERO, ZERO)
+    far = (500.0, 0.0, 0.0)
+    assert g.check(1.0, far, ZERO) == GateVerdict.IMPLAUSIBLE_JUMP  # the track starts at 1 s
+    assert g.check(math.nextafter(4.0, 0.0), far, ZERO) == GateVerdict.IMPLAUSIBLE_JUMP
+    assert g.check(4.0, far, ZERO) == GateVerdict.REANCHORED
+    assert g.ref == (4.0, far)
+    # after the re-anchor, the gate judges from the new reference: a jump away from it is refused
+    assert g.check(4.1, ZERO, ZERO) == GateVerdict.IMPLAUSIBLE_JUMP
+    assert g.ref == (4.0, far)
+    assert g.check(4.2, (501.0, 0.0, 0.0), ZERO) == GateVerdict.ACCEPTED
+
+
+def test_a_track_is_broken_by_a_fix_unreachable_from_the_previous_one():
+    g = PositionGate(PositionGateConfig(reanchor_after_s=3.0))
+    g.check(100.0, ZERO, ZERO)  # late clock: a sum of times instead of a difference would join the tracks
+    assert g.check(100.1, (1000.0, 0.0, 0.0), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP
+    assert g.check(100.2, (1000.0, 200.0, 0.0), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP  # a new track at 100.2 s
+    assert g.check(103.15, (1000.0, 200.0, 0.0), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP  # 2.95 s of the new track
+    assert g.check(103.2, (1000.0, 200.0, 0.0), ZERO) == GateVerdict.REANCHORED
+
+
+def test_for_speed_clamp_is_three_times_the_clamp_and_at_least_15_m_s():
+    assert PositionGateConfig.for_speed_clamp(1.0).max_speed_m_s == 15.0
+    assert PositionGateConfig.for_speed_clamp(5.0).max_speed_m_s == 15.0  # the two rules meet
+    assert PositionGateConfig.for_speed_clamp(6.0).max_speed_m_s == 18.0
+
+
+@pytest.mark.parametrize("name", ["max_speed_m_s", "jump_tolerance_m", "reanchor_after_s", "max_abs_m"])
+@pytest.mark.parametrize("value", [0.0, -1.0, math.inf, math.nan])
+def test_a_gate_limit_must_be_finite_and_positive(name, value):
+    with pytest.raises(ValueError, match=name):
+        PositionGateConfig(**{name: value})
+    PositionGateConfig(**{name: 1e-9})  # just above zero is fine
+
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.tuples(st.floats(allow_nan=True, allow_infinity=True),
                           st.floats(allow_nan=True, allow_infinity=True), st.floats(0, 1)), max_size=60))
