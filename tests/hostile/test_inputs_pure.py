@@ -286,8 +286,9 @@ def test_a_consistent_new_track_is_taken_after_reanchor_after_s():
 ZERO = (0.0, 0.0, 0.0)
 
 
-def test_a_fix_exactly_at_the_reach_is_accepted_one_step_beyond_is_not():
-    reach = 15.0 * 1.0 + 1.0  # max_speed_m_s * dt + jump_tolerance_m, dt = 1 s
+@pytest.mark.parametrize("dt_s, reach", [(1.0, 16.0), (0.5, 8.5), (0.0, 1.0), (-1.0, 1.0)])
+def test_a_fix_exactly_at_the_reach_is_accepted_one_step_beyond_is_not(dt_s, reach):
+    """reach = max_speed_m_s * max(0, dt) + jump_tolerance_m; a fix from before the reference gets the tolerance."""
     for axis in range(3):  # every axis counts in the distance
         for sign in (1.0, -1.0):
             at = [0.0, 0.0, 0.0]
@@ -295,9 +296,9 @@ def test_a_fix_exactly_at_the_reach_is_accepted_one_step_beyond_is_not():
             beyond = list(at)
             beyond[axis] = sign * math.nextafter(reach, math.inf)
             g = PositionGate()
-            assert g.check(0.0, ZERO, ZERO) == GateVerdict.ACCEPTED
-            assert g.check(1.0, tuple(beyond), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP, (axis, sign)
-            assert g.check(1.0, tuple(at), ZERO) == GateVerdict.ACCEPTED, (axis, sign)
+            assert g.check(10.0, ZERO, ZERO) == GateVerdict.ACCEPTED
+            assert g.check(10.0 + dt_s, tuple(beyond), ZERO) == GateVerdict.IMPLAUSIBLE_JUMP, (axis, sign)
+            assert g.check(10.0 + dt_s, tuple(at), ZERO) == GateVerdict.ACCEPTED, (axis, sign)
 
 
 def test_the_reach_is_measured_from_the_reference_not_from_the_origin():
