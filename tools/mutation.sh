@@ -5,7 +5,7 @@
 #   tools/mutation.sh position_gate   # one or more modules by key
 #   tools/mutation.sh --list          # the table
 #
-# Each module is mutated by mutmut (pip install 'fisc[test]') and judged by ITS OWN focused unit tests only
+# Each module is mutated by mutmut (pip install 'fisc[mutation]', part of the test extra) and judged by ITS OWN focused unit tests only
 # (never the whole suite, never SITL), one module at a time, one worker (--max-children 1).  The checkout is
 # copied to a scratch directory per module ($FISC_MUTATION_DIR, default ${TMPDIR:-/tmp}/fisc-mutation), so the
 # working tree is never touched; each run starts afresh (a changed test re-judges every mutant).
@@ -48,7 +48,7 @@ for key in "$@"; do
   [ -n "$(row_of "$key")" ] || { echo "tools/mutation.sh: unknown module '$key' (see --list)" >&2; exit 2; }
 done
 "$PY" -c "import mutmut" 2>/dev/null || {
-  echo "tools/mutation.sh: mutmut is not installed for $PY (pip install -e '.[test]')" >&2; exit 2; }
+  echo "tools/mutation.sh: mutmut is not installed for $PY (pip install -e '.[mutation]', part of '.[test]')" >&2; exit 2; }
 
 equivalent_of() {  # the mutant names listed as equivalent (first word of each non-comment line)
   [ -f "$EQUIV" ] && sed -e 's/#.*//' "$EQUIV" | awk 'NF {print $1}' || true
