@@ -15,7 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fisc_agent.map.chunks import (CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND_CHUNK,
-                                   AssemblyLimits, DropReason, MapAssembler, announce_message, split_map)
+                                   AssemblyLimits, DropReason, MapAssembler, announce_message, parse_chunk,
+                                   split_map)
 from fisc_agent.map.codec import MapError
 from fisc_agent.mavlink.framing import (MAX_BAD_FRAMES_PER_DATAGRAM, AutopilotTracker, HeartbeatVerdict,
                                       parse_datagram)
@@ -101,6 +102,24 @@ def test_old_and_replayed_maps_are_reported_once_and_the_map_in_use_is_ignored()
     assert [(d.reason, d.head.map_version) for d in drops] == [(DropReason.OLD_VERSION, 7),
                                                                (DropReason.OLD_VERSION, 5)]
 
+
+
+def test_a_map_of_the_installed_version_with_another_hash_is_refused_and_told_apart_from_the_installed_one():
+    """Issue 38: the version rule at equality.  Same version, other content: refused as not newer (reported
+    once, like an older map); the installed map itself sent again: ignored without a report; one version up:
+    assembled."""
+    asm = MapAssembler()
+    installed, rival, newer = os.urandom(300), os.urandom(300), os.urandom(300)
+    assert asm.feed(split_map(installed, 10)[0])[1] is not None
+    asm.accept(10, hashlib.sha256(installed).digest())
+    rival_head = asm.feed(split_map(rival, 10)[0])[0]
+    assert not asm.wanted(rival_head)
+    assert asm.feed(split_map(rival, 10)[0])[1] is None
+    assert asm.feed(split_map(installed, 10)[0])[1] is None
+    assert [(d.reason, d.head.sha256) for d in asm.drain_drops()] == [(DropReason.OLD_VERSION, rival_head.sha256)]
+    assert asm.wanted(parse_chunk(split_map(newer, 11)[0])[0])
+    assert asm.feed(split_map(newer, 11)[0])[1] == newer
+    assert asm.drain_drops() == []
 
 def test_the_hash_caches_are_bounded():
     """Finding 6: every bogus map's hash was kept forever."""
@@ -252,6 +271,212 @@ def test_fuzz_no_heartbeat_moves_the_lock_off_an_armed_autopilot(beats):
             t.on_heartbeat(system, comp, addr, mav_type, autopilot, armed, now)
         assert (t.target.system, t.target.component, t.target.address) == (1, 1, "ap")
 
+
+
+# Boundaries of the chunk codec and the assembler (issue 38).
+OVER = 256  # CHUNK_OVERHEAD_BYTES charged per chunk held
+
+
+def _chunk_error(msg) -> str:
+    with pytest.raises(MapError) as err:
+        parse_chunk(msg)
+    return str(err.value)
+
+
+def test_parse_chunk_refusals_at_their_limits():
+    sha = bytes(32)
+    assert _chunk_error(bytes(CHUNK_HEADER.size - 1)) == "chunks: message of 71 bytes is shorter than the chunk header"
+    assert parse_chunk(announce_message(sha, 1, 10, 1))[0].kind == 2  # exactly a header: fine
+    assert _chunk_error(b"XMCH" + header(1, 10)[4:]) == "chunks: bad magic (not a FISC map chunk)"
+    for version in (0, 2):
+        raw = CHUNK_HEADER.pack(CHUNK_MAGIC, version, KIND_CHUNK, 0, 1, sha, 10, 0, 1, 0)
+        assert _chunk_error(raw) == f"chunks: chunk format {version} is not supported"
+    for kind in (0, 3):
+        assert _chunk_error(header(1, 10, kind=kind)) == f"chunks: unknown message kind {kind}"
+    fits = [(dict(index=1, count=2, offset=5), 5), (dict(index=0, count=1, offset=0), 0)]  # last byte; an empty map
+    for kw, n in fits:
+        parse_chunk(header(1, 10 if n else 0, **kw) + bytes(n))
+    misfits = [(dict(index=2, count=2, offset=0), 5, "chunk 2/2 at offset 0 does not fit a 10-byte map"),
+               (dict(index=1, count=2, offset=6), 5, "chunk 1/2 at offset 6 does not fit a 10-byte map"),
+               (dict(index=1, count=2, offset=5), 0, "chunk 1/2 at offset 5 does not fit a 10-byte map")]
+    for kw, n, why in misfits:
+        assert _chunk_error(header(1, 10, **kw) + bytes(n)) == "chunks: " + why
+    assert parse_chunk(header(1, 10, kind=2, index=9, count=1, offset=99))[0].index == 9  # announcements: no fit
+
+
+def test_split_map_and_announce_carry_every_header_field():
+    blob = bytes(range(10))
+    sha = hashlib.sha256(blob).digest()
+    for chunk_bytes, count in ((1, 10), (4, 3), (5, 2), (10, 1), (11, 1)):
+        parts = [parse_chunk(m) for m in split_map(blob, 7, chunk_bytes)]
+        assert [(h.kind, h.map_version, h.sha256, h.total_bytes, h.index, h.count, h.offset) for h, _ in parts] == \
+            [(KIND_CHUNK, 7, sha, 10, i, count, i * chunk_bytes) for i in range(count)]
+        assert b"".join(bytes(d) for _, d in parts) == blob
+    assert len(split_map(b"", 3)) == 1
+    with pytest.raises(ValueError, match="^chunk_bytes must be > 0$"):
+        split_map(blob, 7, 0)
+    head = parse_chunk(announce_message(sha, 7, 10, 3))[0]
+    assert (head.kind, head.map_version, head.sha256, head.total_bytes, head.index, head.count, head.offset) == \
+        (2, 7, sha, 10, 0, 3, 0)
+
+
+@pytest.mark.parametrize("name", ["max_map_bytes", "budget_bytes", "max_pending", "max_announced", "max_remembered"])
+def test_assembly_count_limits_are_at_least_one(name):
+    assert getattr(AssemblyLimits(**{name: 1}), name) == 1
+    with pytest.raises(ValueError, match=f"^AssemblyLimits.{name} must be >= 1, got 0$"):
+        AssemblyLimits(**{name: 0})
+
+
+@pytest.mark.parametrize("name", ["stall_timeout_s", "announce_ttl_s"])
+def test_assembly_time_limits_are_positive(name):
+    assert getattr(AssemblyLimits(**{name: 0.5}), name) == 0.5
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match=f"^AssemblyLimits.{name} must be > 0, got {bad}$"):
+            AssemblyLimits(**{name: bad})
+
+
+def test_the_assembler_options_set_the_limits_and_a_fresh_one_takes_version_1():
+    asm = MapAssembler(max_bytes=5000, max_pending=2)
+    assert (asm.max_bytes, asm.limits.max_pending, asm.limits.budget_bytes) == (5000, 2, AssemblyLimits().budget_bytes)
+    assert MapAssembler(max_bytes=1 << 31).limits.budget_bytes == 1 << 31  # the budget holds at least one map
+    assert MapAssembler(max_pending=3).limits.max_map_bytes == AssemblyLimits().max_map_bytes
+    fresh = MapAssembler()
+    assert fresh.floor_version == 0 and fresh.buffered_bytes == 0
+    assert fresh.feed(split_map(b"v1", 1)[0])[1] == b"v1"
+
+
+def test_bytes_held_are_charged_and_given_back_exactly():
+    asm = MapAssembler()
+    blob = os.urandom(30)
+    c = split_map(blob, 3, 10)
+    asm.feed(c[0], now_s=0.0)
+    assert asm.buffered_bytes == 10 + OVER
+    asm.feed(c[0], now_s=0.0)  # a duplicate costs nothing
+    assert asm.buffered_bytes == 10 + OVER
+    asm.feed(c[2], now_s=0.0)  # ahead of the gap
+    assert asm.buffered_bytes == 2 * (10 + OVER) and asm.pending[hashlib.sha256(blob).digest()].received == 20
+    assert bytes(asm.feed(c[1], now_s=0.0)[1]) == blob
+    assert asm.buffered_bytes == 0 and not asm.pending
+    other = os.urandom(30)
+    asm.feed(split_map(other, 4, 10)[1], now_s=1.0)
+    asm.expire(1.0 + 10.0)  # exactly stall_timeout_s: kept
+    assert asm.pending and asm.drain_drops() == []
+    asm.expire(math.nextafter(11.0, 12.0))  # one step later: dropped, its bytes given back
+    drops = asm.drain_drops()
+    assert [(d.reason, d.head.index, d.received_bytes) for d in drops] == [(DropReason.TIMEOUT, 1, 10)]
+    assert asm.buffered_bytes == 0 and not asm.pending
+
+
+def test_announcements_and_progress_at_their_windows():
+    asm = MapAssembler()
+    sha = os.urandom(32)
+    asm.feed(announce_message(sha, 5, 100, 2), now_s=10.0)
+    assert asm.announced(sha, 15.0) and not asm.announced(sha, math.nextafter(15.0, 16.0))
+    assert not asm.announced(os.urandom(32), 10.0)
+    blob = os.urandom(20)
+    key = hashlib.sha256(blob).digest()
+    assert not asm.progressing(key, 10.0, 1.0)  # nothing received
+    asm.feed(split_map(blob, 5, 10)[0], now_s=10.0)
+    assert asm.progressing(key, 10.5, 1.0) and not asm.progressing(key, 11.0, 1.0)  # within_s: strict
+
+
+def test_announcements_remembered_are_bounded_oldest_first():
+    asm = MapAssembler(limits=AssemblyLimits(max_announced=2))
+    a, b, c = (os.urandom(32) for _ in range(3))
+    for k, sha in enumerate((a, b)):
+        asm.feed(announce_message(sha, 5, 100, 2), now_s=float(k))
+    assert asm.announced(a, 1.0) and asm.announced(b, 1.0)  # exactly max_announced: both kept
+    asm.feed(announce_message(c, 5, 100, 2), now_s=2.0)
+    assert not asm.announced(a, 2.0) and asm.announced(b, 2.0) and asm.announced(c, 2.0)
+
+
+def test_wanted_is_newer_than_installed_and_neither_done_nor_refused():
+    asm = MapAssembler()
+    done_blob = os.urandom(10)
+    asm.feed(split_map(done_blob, 8)[0])
+    asm.accept(5, os.urandom(32))
+    head = lambda v, sha=None: parse_chunk(announce_message(sha or os.urandom(32), v, 10, 1))[0]  # noqa: E731
+    assert asm.wanted(head(6)) and not asm.wanted(head(5)) and not asm.wanted(head(4))
+    assert not asm.wanted(head(8, hashlib.sha256(done_blob).digest()))  # completed already
+    big = os.urandom(32)  # refused by its size
+    with pytest.raises(MapError):
+        asm.feed(header(9, 1 << 40, sha=big))
+    assert not asm.wanted(head(9, big))
+
+
+def test_verify_accepts_the_right_bytes_and_forgets_a_wrong_map():
+    asm = MapAssembler()
+    blob = os.urandom(50)
+    head, got = asm.feed(split_map(blob, 3)[0])
+    asm.verify(head, got)
+    assert head.sha256 in asm.done
+    with pytest.raises(MapError) as err:
+        asm.verify(head, bytearray(os.urandom(50)))
+    assert str(err.value) == "chunks: reassembled map does not match its sha256 (corrupted or forged chunks)"
+    assert head.sha256 not in asm.done
+
+
+def test_size_limits_at_equality_and_a_too_large_map_is_refused_once():
+    asm = MapAssembler(limits=AssemblyLimits(max_map_bytes=100, budget_bytes=1000))
+    asm.feed(header(1, 100, count=2) + bytes(50))  # exactly the limit: taken
+    with pytest.raises(MapError) as err:
+        asm.feed(header(1, 101, count=2, sha=b"L" * 32) + bytes(50))
+    assert str(err.value) == "chunks: map of 101 bytes exceeds the 100-byte limit"
+    assert asm.feed(header(1, 101, count=2, sha=b"L" * 32) + bytes(50))[1] is None  # then ignored
+    tight = MapAssembler(limits=AssemblyLimits(max_map_bytes=1000, budget_bytes=100))
+    tight.feed(header(1, 100, count=4) + bytes(1))  # the budget, exactly: taken
+    with pytest.raises(MapError, match="^chunks: map of 101 bytes exceeds the 100-byte limit$"):
+        tight.feed(header(1, 101, count=4) + bytes(1))
+
+
+def test_a_newcomer_of_equal_priority_takes_the_slot_a_lower_one_gets_no_slot():
+    asm = MapAssembler(limits=AssemblyLimits(max_pending=1))
+    first = header(1, 100, count=2, sha=b"A" * 32) + bytes(50)
+    second = header(1, 100, count=2, sha=b"B" * 32) + bytes(50)
+    asm.feed(first, now_s=1.0)
+    asm.feed(second, now_s=1.0)  # same time, neither announced: equal priority, the newcomer wins
+    assert list(asm.pending) == [b"B" * 32]
+    assert [(d.reason, d.head.sha256, d.received_bytes) for d in asm.drain_drops()] == [(DropReason.EVICTED, b"A" * 32, 50)]
+    asm.feed(announce_message(b"B" * 32, 1, 100, 2), now_s=2.0)
+    asm.feed(first, now_s=3.0)  # the announced map keeps its slot
+    assert list(asm.pending) == [b"B" * 32]
+    drops = asm.drain_drops()
+    assert [(d.reason, d.head.sha256, d.received_bytes) for d in drops] == [(DropReason.NO_SLOT, b"A" * 32, 0)]
+    assert asm.buffered_bytes == 50 + OVER
+
+
+def test_the_budget_at_equality_and_a_map_that_survives_the_eviction_still_completes():
+    budget = 10 + OVER
+    asm = MapAssembler(limits=AssemblyLimits(budget_bytes=budget, max_map_bytes=budget))
+    asm.feed(header(1, 20, count=2, sha=b"A" * 32) + bytes(10), now_s=0.0)  # exactly the budget: kept
+    assert list(asm.pending) == [b"A" * 32] and asm.drain_drops() == []
+    roomy = MapAssembler(limits=AssemblyLimits(budget_bytes=3 * (10 + OVER) - 1, max_map_bytes=100))
+    roomy.feed(header(1, 20, count=2, sha=b"A" * 32) + bytes(10), now_s=0.0)
+    blob = os.urandom(20)
+    b = split_map(blob, 2, 10)
+    roomy.feed(b[0], now_s=1.0)
+    assert bytes(roomy.feed(b[1], now_s=2.0)[1]) == blob  # over budget: the older map A goes, B completes
+    assert [(d.reason, d.head.sha256) for d in roomy.drain_drops()] == [(DropReason.BUDGET, b"A" * 32)]
+    assert roomy.buffered_bytes == 0
+
+
+def test_chunks_that_complete_the_count_but_not_the_size_are_refused():
+    blob = os.urandom(30)
+    sha = hashlib.sha256(blob).digest()
+    asm = MapAssembler()
+    asm.feed(header(1, 30, index=0, count=2, offset=0, sha=sha) + blob[:10])
+    with pytest.raises(MapError) as err:
+        asm.feed(header(1, 30, index=1, count=2, offset=10, sha=sha) + blob[10:20])  # no gap, 10 bytes short
+    assert str(err.value) == "chunks: chunk sizes do not add up to the map size (corrupted or forged chunks)"
+    assert sha not in asm.done
+
+
+def test_two_chunks_claiming_one_offset_are_refused():
+    asm = MapAssembler()
+    asm.feed(header(1, 30, index=1, count=3, offset=10, sha=b"C" * 32) + bytes(10))
+    with pytest.raises(MapError) as err:
+        asm.feed(header(1, 30, index=2, count=3, offset=10, sha=b"C" * 32) + bytes(10))
+    assert str(err.value) == "chunks: two chunks claim offset 10 (corrupted or forged chunks)"
 
 # ------------------------------------------------------------------------------------- positions
 def test_non_finite_fixes_are_rejected_and_leave_the_reference():
