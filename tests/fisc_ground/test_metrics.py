@@ -225,6 +225,9 @@ def test_no_cv_compared_names_the_reason_per_quantity():
                                 "density: reference has no density")
     assert m.as_dict()["degenerate"] == list(m.degenerate)
     assert all(np.isnan(getattr(m, f"{k}_{q}")) for k in ("nrmse", "pearson") for q in ("velocity", "pressure"))
+    rho = np.ones_like(u)
+    m = _metrics(c, (u, p, rho), (u, p, rho), samples=np.full(c.shape[0], 2), min_samples=3)
+    assert m.degenerate[2] == "density: no CV has enough samples"  # a reference with density, no samples
     m = _metrics(c, (u, p, None), (u, p, u), samples=np.full(c.shape[0], 3), min_samples=3)
     assert "density: reference has no density" in m.degenerate and m.n_cv_compared == c.shape[0]
 
