@@ -658,3 +658,76 @@ def test_fuzz_the_udp_input_path_never_raises_and_the_next_fix_gets_through(udp_
     assert fix is not None and fix.pos_ned_m[0] == pytest.approx(x, abs=1e-4)
     assert fix.autopilot_t_s == pytest.approx(1.234)                  # the autopilot's own clock (time_boot_ms)
     assert link.target_system == 1 and link.target_component == 1
+
+
+def test_installing_a_map_drops_the_maps_in_progress_it_makes_old_and_gives_their_bytes_back():
+    asm = MapAssembler()
+    asm.feed(header(5, 100, count=2, sha=b"E" * 32) + bytes(50))  # no clock given: time 0
+    asm.feed(header(6, 100, count=2, sha=b"F" * 32) + bytes(50))
+    assert asm.pending[b"E" * 32].last_chunk_s == 0.0
+    asm.accept(5, b"G" * 32)  # the equal version goes, the newer one stays
+    assert list(asm.pending) == [b"F" * 32] and asm.buffered_bytes == 50 + OVER
+    asm.feed(split_map(os.urandom(10), 4)[0])
+    assert [(d.reason, d.received_bytes) for d in asm.drain_drops()] == [(DropReason.OLD_VERSION, 0)]
+    raw = split_map(b"abc", 9)[0]
+    assert CHUNK_HEADER.unpack_from(raw)[3] == 0 and CHUNK_HEADER.unpack_from(announce_message(b"s" * 32, 9, 3, 1))[3] == 0
+
+
+def test_an_announced_newcomer_takes_the_slot_of_an_older_announced_map():
+    asm = MapAssembler(limits=AssemblyLimits(max_pending=1))
+    for k, sha in enumerate((b"A" * 32, b"B" * 32)):
+        asm.feed(announce_message(sha, 1, 100, 2), now_s=float(k))
+    asm.feed(header(1, 100, count=2, sha=b"A" * 32) + bytes(50), now_s=1.0)
+    asm.feed(header(1, 100, count=2, sha=b"B" * 32) + bytes(50), now_s=2.0)
+    assert list(asm.pending) == [b"B" * 32]
+    assert [d.reason for d in asm.drain_drops()] == [DropReason.EVICTED]
+
+
+def test_the_budget_victim_is_chosen_with_announced_maps_in_progress():
+    asm = MapAssembler(limits=AssemblyLimits(budget_bytes=3 * (10 + OVER) - 1, max_map_bytes=100))
+    blob = os.urandom(20)
+    b = split_map(blob, 2, 10)
+    asm.feed(announce_message(hashlib.sha256(blob).digest(), 2, 20, 2), now_s=0.0)
+    asm.feed(header(1, 20, count=2, sha=b"A" * 32) + bytes(10), now_s=0.0)
+    asm.feed(b[0], now_s=1.0)
+    assert bytes(asm.feed(b[1], now_s=2.0)[1]) == blob  # the unannounced map goes
+    assert [(d.reason, d.head.sha256) for d in asm.drain_drops()] == [(DropReason.BUDGET, b"A" * 32)]
+
+
+def test_a_forged_map_is_refused_and_the_genuine_one_still_gets_through():
+    blob = os.urandom(40)
+    sha = hashlib.sha256(blob).digest()
+    asm = MapAssembler()
+    with pytest.raises(MapError) as err:
+        asm.feed(header(3, 40, sha=sha) + os.urandom(40))
+    assert str(err.value) == "chunks: reassembled map does not match its sha256 (corrupted or forged chunks)"
+    assert bytes(asm.feed(split_map(blob, 3)[0])[1]) == blob  # not remembered as done
+    with pytest.raises(MapError) as err:
+        asm.verify(parse_chunk(header(3, 40, sha=b"N" * 32))[0], bytearray(40))  # never completed: no KeyError
+    assert "does not match its sha256" in str(err.value)
+
+
+def test_chunk_errors_name_the_problem_exactly():
+    asm = MapAssembler()
+    asm.feed(header(1, 30, index=0, count=3, offset=0, sha=b"D" * 32) + bytes(10))
+    with pytest.raises(MapError) as err:
+        asm.feed(header(1, 31, index=1, count=3, offset=10, sha=b"D" * 32) + bytes(10))
+    assert str(err.value) == "chunks: chunk disagrees with earlier chunks of the same map"
+    with pytest.raises(MapError) as err:
+        asm.feed(header(1, 30, index=1, count=3, offset=5, sha=b"D" * 32) + bytes(10))
+    assert str(err.value) == ("chunks: chunk 1 at offset 5 overlaps bytes already received (corrupted or forged "
+                              "chunks)")
+
+
+def test_remembered_refusals_forget_the_oldest_first():
+    asm = MapAssembler(limits=AssemblyLimits(max_remembered=2))
+    asm.accept(100, None)
+    old = [split_map(os.urandom(10), v)[0] for v in (1, 2, 3)]
+    for msg in old:
+        asm.feed(msg)
+    assert len(asm.drain_drops()) == 3
+    asm.feed(old[2])
+    asm.feed(old[1])  # the two most recent are remembered: not reported again
+    assert asm.drain_drops() == []
+    asm.feed(old[0])  # the oldest was forgotten: reported again
+    assert [d.head.map_version for d in asm.drain_drops()] == [1]
