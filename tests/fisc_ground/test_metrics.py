@@ -274,10 +274,20 @@ def test_centreline_means_use_only_the_compared_near_axis_cvs():
     t_u = np.array([1.0, 3.0, 50.0, 2.0, 6.0, 50.0, 9.0, 9.0, 50.0])
     s_u = t_u * 2.0
     t_u[1] = np.nan  # not compared: the first slice's target mean is its other CV
+    s_u[4] = np.nan  # nor is a CV without a swarm value: the second slice's means are its other CV
     samples = np.array([5, 5, 5, 5, 5, 5, 0, 0, 5])
     p = np.linspace(1.0, 2.0, 9)
-    prof = centreline_profiles(c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    prof = _quiet(centreline_profiles, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
     assert prof.x_m.tolist() == [0.0, 1.0, 2.0] and prof.target["velocity"].shape == (3,)
-    np.testing.assert_allclose(prof.target["velocity"], [1.0 / 4.0, 1.0, np.nan])  # means 1 and 4, by max 4
-    np.testing.assert_allclose(prof.swarm["velocity"], [2.0 / 8.0, 1.0, np.nan])  # the same CVs: 2 and 8
+    np.testing.assert_allclose(prof.target["velocity"], [1.0 / 2.0, 1.0, np.nan])  # means 1 and 2, by max 2
+    np.testing.assert_allclose(prof.swarm["velocity"], [2.0 / 4.0, 1.0, np.nan])  # the same CVs: 2 and 4
+    t_u[4] = 6.0
+    s_u[4] = 12.0
+    prof = _quiet(centreline_profiles, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    np.testing.assert_allclose(prof.target["velocity"], [1.0 / 4.0, 1.0, np.nan])  # a mean of two: 4
+    m = _quiet(fidelity_metrics, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    assert m.n_cv_compared == 6  # 7 CVs with enough samples, less the one without a target velocity
+    assert np.isnan(m.centreline_max_dev_density)
+    with pytest.raises(ValueError, match=r"^samples must be \(9,\), got \(8,\)$"):
+        fidelity_metrics(c, t_u, p, None, s_u, p, p, samples[:8])
     assert "centreline density: no slice has a compared near-axis CV" in prof.degenerate
