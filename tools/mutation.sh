@@ -32,7 +32,7 @@ fleet_commands | fisc_agent/zenoh/fleet_commands.py | tests/zenoh/test_fleet_com
 frames         | fisc_agent/flight/frames.py        | tests/fisc_agent/test_agent_frames.py tests/sim/autopilot/test_autopilot_geodesy.py
 failsafe       | fisc_agent/flight/failsafe.py      | tests/fisc_agent/test_agent_failsafe.py
 authority      | fisc_agent/flight/authority.py     | tests/fisc_agent/test_authority.py
-chunks         | fisc_agent/map/chunks.py           | tests/hostile/test_inputs_pure.py tests/zenoh/test_map_distribution.py
+chunks         | fisc_agent/map/chunks.py           | tests/hostile/test_inputs_pure.py tests/zenoh/test_codecs.py
 metrics        | fisc_ground/fields/metrics.py      | tests/fisc_ground/test_metrics.py
 swarm_fields   | fisc_ground/fields/swarm_fields.py | tests/fisc_ground/test_swarm_fields.py
 "
