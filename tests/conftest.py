@@ -4,6 +4,10 @@
 ``$FISC_SHARED_DIR``).  On a developer machine without it the test is skipped with the reason;
 when the environment variable ``CI`` is set (``.ci/run`` runs with ``CI=true``) a missing file
 FAILS the test, so CI can never pass by skipping the reference checks.
+
+The same holds for optional packages and tools (``tests/optional.py``): under ``CI`` every skip whose
+reason says one is missing (``optional.missing_optional``: ``require_module``, ``needs`` and even a bare
+``pytest.importorskip``) is reported as a failure, at collection or at run time.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ from pathlib import Path
 from typing import Callable
 
 import pytest
+
+from .optional import ci, missing_optional
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -46,3 +52,28 @@ def _own_agent_state_dir(tmp_path_factory, monkeypatch):
     """Every test gets its own ``$XDG_STATE_HOME``: an agent's state file (``fisc-agent --state-file
     auto``: hands-off, fleet hold, command floors) must not carry from one test's flight to the next."""
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("xdg_state")))
+
+
+def _fail_missing_optional_under_ci(report) -> None:
+    """Turn a skip for a missing optional package into a failure when ``CI`` is set."""
+    if not (report.skipped and ci()) or hasattr(report, "wasxfail"):
+        return
+    longrepr = report.longrepr
+    reason = longrepr[2] if isinstance(longrepr, tuple) and len(longrepr) == 3 else str(longrepr)
+    if missing_optional(reason):
+        report.outcome = "failed"
+        report.longrepr = f"{reason.removeprefix('Skipped: ')}; CI is set, so a missing optional package is an error, not a skip"
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A test skipped for a missing optional package fails under ``CI``."""
+    outcome = yield
+    _fail_missing_optional_under_ci(outcome.get_result())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_make_collect_report(collector):
+    """A module skipped at import for a missing optional package fails under ``CI``."""
+    outcome = yield
+    _fail_missing_optional_under_ci(outcome.get_result())

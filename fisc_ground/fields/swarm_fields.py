@@ -145,7 +145,7 @@ def drift_directions(drift_dir: np.ndarray | None, n_cv: int) -> np.ndarray:
     if d.shape != (n_cv, 3):
         raise ValueError(f"drift_dir must be (3,) or ({n_cv}, 3), got shape {d.shape}")
     norm = np.linalg.norm(d, axis=1)
-    if np.any(~(norm > 1e-12)):
+    if np.any(~(np.isfinite(norm) & (norm > 1e-12))):  # an infinite component made NaN directions
         raise ValueError("drift_dir contains a zero or non-finite direction")
     return d / norm[:, None]
 

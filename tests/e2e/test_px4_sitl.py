@@ -25,6 +25,7 @@ from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
 from .sitl_kit import Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
+from ..optional import require_module
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -100,7 +101,7 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     deviations (``realised_spread_ratio`` is printed: ~0.46 of the fitted spread, the tracking error;
     an explicit ``--mode kinetic`` flies them, see the next test)."""
     if backend == "mavsdk":
-        pytest.importorskip("mavsdk", reason="the optional MAVSDK backend (pip install 'fisc[mavsdk]')")
+        require_module("mavsdk", extra="mavsdk")  # the optional MAVSDK backend
     log = tmp_path / "agent1.csv"
     agent, ulog_path = _one_pass(shared_path, tmp_path, tunnel, log, ["--backend", backend], held_s=8.0)
     ulog = ulog_summary(ulog_path)

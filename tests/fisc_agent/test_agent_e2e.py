@@ -23,6 +23,7 @@ from fisc_agent.runner import Runner
 from fisc_ground.fields.flight_score import realised_spread_ratio
 from fisc_ground.maps.build import build_default_map
 from sim.autopilot import server
+from ..optional import require_module
 
 pytestmark = pytest.mark.slow
 
@@ -265,7 +266,7 @@ def test_geodetic_anchor_positions_from_global_position_int(udp_port, tunnel_map
 
 
 def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
-    pytest.importorskip("mavsdk")  # an optional backend (the `mavsdk` extra)
+    require_module("mavsdk", extra="mavsdk")  # an optional backend
     from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
 
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
@@ -300,7 +301,7 @@ def test_link_intents_move_the_emulated_px4(backend):
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
     url = f"udpout:127.0.0.1:{emu.local_address[1]}"
     if backend == "mavsdk":
-        pytest.importorskip("mavsdk")
+        require_module("mavsdk", extra="mavsdk")
         from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
 
         link = MavsdkLink(url)

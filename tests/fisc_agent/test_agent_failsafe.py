@@ -19,12 +19,16 @@ def test_position_health_stages():
 
 def test_link_health():
     assert link_ok(1.0, 3.0)
+    assert link_ok(3.0, 3.0)  # equal: still fine
+    assert not link_ok(math.nextafter(3.0, 4.0), 3.0)  # one step outside
     assert not link_ok(3.5, 3.0)
     assert not link_ok(math.inf, 3.0)
 
 
 def test_geofence_inside_exit_and_policies():
     assert geofence(7, 1.0, 15.0, "hold") == GeofenceVerdict.INSIDE
+    assert geofence(0, 1.0, 15.0, "hold") == GeofenceVerdict.INSIDE  # CV 0 is a CV
+    assert geofence(0, 20.0, 15.0, "hold") == GeofenceVerdict.INSIDE  # inside a CV wins over the outlet plane
     assert geofence(-1, 15.0, 15.0, "hold") == GeofenceVerdict.EXIT     # through the outlet plane
     assert geofence(-1, 16.0, 15.0, "return") == GeofenceVerdict.EXIT
     assert geofence(-1, 5.0, 15.0, "hold") == GeofenceVerdict.HOLD      # out through a side

@@ -79,3 +79,57 @@ def test_parse_helpers_name_the_option():
         GeodeticAnchor.parse("1,2,x,4")
     with pytest.raises(ValueError):
         GeodeticAnchor(95.0, 0.0, 0.0, 0.0)
+
+
+# ------------------------------------------------------------------ boundaries (issue 38)
+# Published WGS-84 radii of curvature (e.g. NGA TR8350.2; Wikipedia "Earth radius"), not this module's formula:
+# meridional M and prime-vertical N at the equator and at 45 deg.
+PUBLISHED_RADII_M = {0.0: (6_335_439.3, 6_378_137.0), 45.0: (6_367_381.8, 6_388_838.3)}
+
+
+@pytest.mark.parametrize("lat", sorted(PUBLISHED_RADII_M))
+@pytest.mark.parametrize("alt_m", [0.0, 1000.0])
+def test_north_and_east_use_the_meridian_and_the_prime_vertical_radii(lat, alt_m):
+    """Catches the two radii swapped, the ellipsoid terms miscomputed and the altitude left out."""
+    m, n = PUBLISHED_RADII_M[lat]
+    a = GeodeticAnchor(lat, 10.0, alt_m, 0.0)
+    step = 1e-3  # deg
+    north, east, down = a.geodetic_to_ned(lat + step, 10.0, alt_m)
+    assert north == pytest.approx(math.radians(step) * (m + alt_m), abs=2e-6) and east == 0.0 and down == 0.0
+    north, east, down = a.geodetic_to_ned(lat, 10.0 + step, alt_m)
+    assert east == pytest.approx(math.radians(step) * (n + alt_m) * math.cos(math.radians(lat)), abs=2e-6)
+    assert north == 0.0
+    assert a.geodetic_to_ned(lat - step, 10.0 - step, alt_m + 5.0)[2] == -5.0  # above is negative down
+
+
+def test_longitude_differences_wrap_across_the_antimeridian():
+    a = GeodeticAnchor(0.0, 179.9995, 0.0, 0.0)
+    east = a.geodetic_to_ned(0.0, -179.9995, 0.0)[1]
+    assert east == pytest.approx(math.radians(0.001) * 6_378_137.0, abs=1e-6)  # 111.3 m east, not around the world
+    assert a.geodetic_to_ned(0.0, 179.9985, 0.0)[1] == pytest.approx(-east, abs=1e-6)
+
+
+@pytest.mark.parametrize("lat, lon, ok", [
+    (89.0, 0.0, True), (-89.0, 0.0, True), (math.nextafter(89.0, 90.0), 0.0, False), (-89.5, 0.0, False),
+    (0.0, 180.0, True), (0.0, -180.0, True), (0.0, math.nextafter(180.0, 181.0), False), (0.0, -180.5, False),
+])
+def test_anchor_latitude_and_longitude_limits(lat, lon, ok):
+    if ok:
+        assert GeodeticAnchor(lat, lon, 0.0, 0.0).lat_deg == lat
+    else:
+        with pytest.raises(ValueError, match=r"geodetic anchor: invalid \(lat, lon, alt, heading\)"):
+            GeodeticAnchor(lat, lon, 0.0, 0.0)
+
+
+def test_errors_name_what_was_wrong():
+    with pytest.raises(ValueError, match="^geodetic anchor LAT,LON,ALT,HEADING: '1,2,x,4' is not 4 numbers$"):
+        GeodeticAnchor.parse("1,2,x,4")
+    with pytest.raises(ValueError, match="^--origin: '1,nan,2' has a non-finite value$"):
+        parse_floats("1,nan,2", 3, "--origin")
+    with pytest.raises(ValueError, match=r"^deployment transform: invalid origin \(0.0, nan, 0.0\) or yaw 0.0$"):
+        DeploymentTransform(origin_ned_m=(0.0, float("nan"), 0.0))
+
+
+def test_the_origin_is_kept_as_a_tuple_of_floats():
+    tf = DeploymentTransform(origin_ned_m=[1, 2, 3])
+    assert tf.origin_ned_m == (1.0, 2.0, 3.0) and type(tf.origin_ned_m) is tuple

@@ -134,6 +134,32 @@ def test_fleet_action_table(cmd, addressed, authority, armed, holding, action):
     assert (verdict.note == "") == (action != FleetAction.IGNORE)  # every refusal says why
 
 
+
+NOT_OURS_NOTE = "the vehicle is not ours (armed by someone else); only an addressed takeover hands it over"
+HANDS_OFF_NOTE = ("hands off (the mode was changed outside the agent): only a resume or takeover addressed to "
+                  "this agent gives it back")
+
+
+@pytest.mark.parametrize("cmd, addressed, authority, armed, holding, note", [
+    ("go", False, Authority.RELEASED, False, False, "the flight is over (a go is good for one flight of one process)"),
+    ("takeover", False, Authority.NOT_OURS, True, False, "takeover must be addressed to this agent (--agents ID)"),
+    ("takeover", True, Authority.COMMAND, True, False, "already in command"),
+    ("hold", False, Authority.NOT_OURS, True, False, NOT_OURS_NOTE),
+    ("resume", True, Authority.HANDS_OFF, False, True, "hands-off vehicle is disarmed: nothing to resume"),
+    ("go", True, Authority.HANDS_OFF, True, True, HANDS_OFF_NOTE),
+    ("go", False, Authority.COMMAND, True, False, "already flying"),
+    ("resume", False, Authority.COMMAND, True, False, "not holding"),
+])
+def test_every_ignored_order_says_exactly_why(cmd, addressed, authority, armed, holding, note):
+    verdict = fleet_action(_order(cmd, addressed), authority, armed, holding)
+    assert (verdict.action, verdict.note) == (FleetAction.IGNORE, note)
+
+
+def test_land_in_command_needs_the_vehicle_armed():
+    """In command but already disarmed (landed): the flight ends, no land is sent."""
+    assert fleet_action(_order("land"), Authority.COMMAND, False, False).action == FleetAction.END
+    assert fleet_action(_order("land"), Authority.COMMAND, True, True).action == FleetAction.LAND
+
 # ---- readiness -------------------------------------------------------------------------------
 
 def test_battery_rule_boundaries():

@@ -153,3 +153,141 @@ def test_shape_errors_name_the_field():
     u, p, rho = _cfd_like(c)
     with pytest.raises(ValueError, match="pressure"):
         fidelity_metrics(c, u, p[:-1], rho, u, p, rho, np.ones(c.shape[0]))
+
+
+# ------------------------------------------------------------------ boundaries (issue 38)
+import warnings  # noqa: E402
+
+from fisc_ground.fields.metrics import normalise, normalise_by_max, nrmse  # noqa: E402
+
+# found by search: the raw correlation of a perfectly (anti)correlated pair rounds beyond +-1
+ROUNDS_ABOVE_ONE = [-0.20917557487171307, -0.15922500991447772, 0.5408455846858077, 0.2146591225063409,
+                    0.3553727090399214, -0.6538286094183394, -0.12961363369276946]
+ROUNDS_BELOW_MINUS_ONE = [-0.6615280218152191, 0.9350499881140221, 0.049054613825311656, 2.002392583645255]
+
+
+def _quiet(fn, *args, **kw):
+    """Call with every warning an error: a degenerate input is answered, not computed through NaN."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return fn(*args, **kw)
+
+
+def test_max_normalisation_at_its_limits():
+    assert _quiet(normalise_by_max, []) is None
+    np.testing.assert_array_equal(_quiet(normalise_by_max, [2.0]), [1.0])  # a single value
+    np.testing.assert_array_equal(_quiet(normalise_by_max, [1, 4]), [0.25, 1.0])  # integers
+    assert _quiet(normalise_by_max, [0.0, 0.0]) is None and _quiet(normalise_by_max, [-1.0, -2.0]) is None
+    assert _quiet(normalise_by_max, [np.nan, np.nan]) is None
+    np.testing.assert_array_equal(_quiet(normalise_by_max, [np.nan, 2.0]), [np.nan, 1.0])
+
+
+def test_min_max_normalisation_at_its_limits():
+    assert _quiet(normalise_min_max, []) is None and _quiet(normalise_min_max, [3.0]) is None
+    assert _quiet(normalise_min_max, [0.0, 0.0]) is None  # zero range, zero magnitude
+    assert _quiet(normalise_min_max, [np.nan, np.nan]) is None
+    assert _quiet(normalise_min_max, [1e6, 1e6 + 1e-7]) is None  # range 1e-13 of the magnitude: constant
+    np.testing.assert_allclose(_quiet(normalise_min_max, [1e6, 1e6 + 1e-5]), [0.0, 1.0])  # 1e-11: a trend
+    np.testing.assert_array_equal(_quiet(normalise_min_max, [-1, 1]), [0.0, 1.0])  # a sign change, integers
+    with pytest.raises(ValueError, match=r"^unknown normalisation 'mean' \(use 'max' or 'minmax'\)$"):
+        normalise([1.0], "mean")
+
+
+def test_nrmse_and_pearson_at_their_limits():
+    assert np.isnan(_quiet(nrmse, [], []))
+    assert _quiet(nrmse, [1], [0]) == 1.0 and _quiet(nrmse, [0.0, 0.0], [3.0, -4.0]) == pytest.approx(12.5 ** 0.5)
+    assert np.isnan(_quiet(pearson, [1.0], [2.0]))  # one value
+    assert _quiet(pearson, [1, 2], [5, 3]) == -1.0  # two values: defined
+    assert np.isnan(_quiet(pearson, [1.0, 1.0, 1.0], [1.0, 2.0, 3.0]))  # a constant input
+    a = np.array(ROUNDS_ABOVE_ONE)
+    assert _quiet(pearson, a, 3.7 * a + 1.1) == 1.0
+    b = np.array(ROUNDS_BELOW_MINUS_ONE)
+    assert _quiet(pearson, b, -3.7 * b + 1.1) == -1.0
+
+
+def test_a_cv_with_exactly_min_samples_is_compared_and_the_dict_carries_every_field():
+    c = _grid(nx=4)
+    t = _cfd_like(c)
+    samples = np.full(c.shape[0], 5)
+    m = _metrics(c, t, t, samples=samples, min_samples=5)
+    assert m.n_cv_compared == c.shape[0] and m.n_centreline_slices == 4
+    assert _metrics(c, t, t, samples=samples, min_samples=6).n_cv_compared == 0
+    d = m.as_dict()
+    assert (d["n_centreline_slices"], d["min_samples"], d["degenerate"]) == (4, 5, [])
+    assert type(d["n_centreline_slices"]) is int and type(d["min_samples"]) is int
+
+
+def test_no_cv_compared_names_the_reason_per_quantity():
+    c = _grid(nx=3)
+    u, p, _ = _cfd_like(c)
+    m = _metrics(c, (u, p, None), (u, p, u), samples=np.full(c.shape[0], 2), min_samples=3)
+    assert m.degenerate[:3] == ("velocity: no CV has enough samples", "pressure: no CV has enough samples",
+                                "density: reference has no density")
+    assert m.as_dict()["degenerate"] == list(m.degenerate)
+    assert all(np.isnan(getattr(m, f"{k}_{q}")) for k in ("nrmse", "pearson") for q in ("velocity", "pressure"))
+    rho = np.ones_like(u)
+    m = _metrics(c, (u, p, rho), (u, p, rho), samples=np.full(c.shape[0], 2), min_samples=3)
+    assert m.degenerate[2] == "density: no CV has enough samples"  # a reference with density, no samples
+    m = _metrics(c, (u, p, None), (u, p, u), samples=np.full(c.shape[0], 3), min_samples=3)
+    assert "density: reference has no density" in m.degenerate and m.n_cv_compared == c.shape[0]
+
+
+def test_a_degenerate_target_or_swarm_is_named():
+    c = _grid(nx=4)
+    u, p, rho = _cfd_like(c)
+    swarm_flat = _metrics(c, (u, p, rho), (u, np.full_like(p, 2.0), rho))
+    assert "pressure: swarm field cannot be min-max normalised (constant field)" in swarm_flat.degenerate
+    assert "centreline pressure: swarm profile cannot be min-max normalised (constant field)" in swarm_flat.degenerate
+    target_flat = _metrics(c, (-u, p, rho), (u, p, rho))
+    assert "velocity: target field cannot be normalised by its max (max <= 0)" in target_flat.degenerate
+    assert "centreline velocity: target profile cannot be normalised by its max (max <= 0)" in target_flat.degenerate
+    assert np.isnan(target_flat.nrmse_velocity) and np.isnan(target_flat.centreline_max_dev_velocity)
+    assert not np.isnan(target_flat.pearson_velocity)
+
+
+def test_centreline_selection_at_its_limits():
+    for bad in (np.zeros((5, 2)), np.zeros(3)):
+        with pytest.raises(ValueError, match=r"^centers_m must be \(n_cv, 3\), got shape"):
+            centreline_selection(bad)
+    sx, sof, on = centreline_selection(np.zeros((0, 3)))
+    assert (sx.shape, sof.shape, on.shape) == ((0,), (0,), (0,))
+    assert (sx.dtype, sof.dtype, on.dtype) == (np.float64, np.int64, np.bool_)
+    # x extent 0.5 < 1 m: the merge tolerance is rel_tol x 1 m = 1e-6 m; a gap of exactly that merges
+    c = np.array([[0.0, 0, 0], [1e-6, 0, 0], [2.5e-6, 0, 0], [0.5, 0, 0]])
+    sx, sof, _ = centreline_selection(c)
+    assert sof.tolist() == [0, 0, 1, 2] and sx.tolist() == [0.0, 2.5e-6, 0.5]
+    # x extent 100 m: the tolerance scales to 1e-4 m
+    c = np.array([[0.0, 0, 0], [0.5e-4, 0, 0], [2e-4, 0, 0], [100.0, 0, 0]])
+    assert centreline_selection(c)[1].tolist() == [0, 0, 1, 2]
+    # radii: within rel_tol x max(r_max, 1 m) of the slice's smallest radius is on the axis
+    c = np.array([[0.0, 1.0, 0], [0.0, 1.0 + 5e-5, 0], [0.0, 100.0, 0]])  # r_max 100: tolerance 1e-4
+    assert centreline_selection(c)[2].tolist() == [True, True, False]
+    c = np.array([[0.0, 0.1, 0], [0.0, 0.1 + 1.5e-6, 0], [0.0, 0.5, 0]])  # r_max 0.5 < 1: tolerance 1e-6
+    assert centreline_selection(c)[2].tolist() == [True, False, False]
+    c = np.array([[0.0, 0.1, 0], [0.0, 0.2, 0]])
+    assert centreline_selection(c, rel_tol=0.0)[2].tolist() == [True, False]  # the nearest itself, always
+
+
+def test_centreline_means_use_only_the_compared_near_axis_cvs():
+    # three slices of two near-axis CVs (r = 0.5, y = +-0.5) and one far CV; the last slice has no sample
+    c = np.array([[x, y, 0.0] for x in (0.0, 1.0, 2.0) for y in (-0.5, 0.5, 3.0)])
+    t_u = np.array([1.0, 3.0, 50.0, 2.0, 6.0, 50.0, 9.0, 9.0, 50.0])
+    s_u = t_u * 2.0
+    t_u[1] = np.nan  # not compared: the first slice's target mean is its other CV
+    s_u[4] = np.nan  # nor is a CV without a swarm value: the second slice's means are its other CV
+    samples = np.array([5, 5, 5, 5, 5, 5, 0, 0, 5])
+    p = np.linspace(1.0, 2.0, 9)
+    prof = _quiet(centreline_profiles, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    assert prof.x_m.tolist() == [0.0, 1.0, 2.0] and prof.target["velocity"].shape == (3,)
+    np.testing.assert_allclose(prof.target["velocity"], [1.0 / 2.0, 1.0, np.nan])  # means 1 and 2, by max 2
+    np.testing.assert_allclose(prof.swarm["velocity"], [2.0 / 4.0, 1.0, np.nan])  # the same CVs: 2 and 4
+    t_u[4] = 6.0
+    s_u[4] = 12.0
+    prof = _quiet(centreline_profiles, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    np.testing.assert_allclose(prof.target["velocity"], [1.0 / 4.0, 1.0, np.nan])  # a mean of two: 4
+    m = _quiet(fidelity_metrics, c, t_u, p, None, s_u, p, p, samples, min_samples=5)
+    assert m.n_cv_compared == 6  # 7 CVs with enough samples, less the one without a target velocity
+    assert np.isnan(m.centreline_max_dev_density)
+    with pytest.raises(ValueError, match=r"^samples must be \(9,\), got \(8,\)$"):
+        fidelity_metrics(c, t_u, p, None, s_u, p, p, samples[:8])
+    assert "centreline density: no slice has a compared near-axis CV" in prof.degenerate

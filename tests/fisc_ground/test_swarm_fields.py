@@ -226,3 +226,64 @@ def test_per_cv_volume_must_match_n_cv_and_be_positive():
         FieldAccumulator(2, np.array([DV, DV, DV]))
     with pytest.raises(ValueError, match=r"cell_volume_m3\[1\]"):
         instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=np.array([DV, 0.0]))
+
+
+# ------------------------------------------------------------------ boundaries (issue 38)
+import re  # noqa: E402
+
+from fisc_ground.fields.swarm_fields import drift_directions, fields_from_moments  # noqa: E402
+
+
+def _refused(message, fn, *args, **kw):
+    with pytest.raises(ValueError, match="^" + re.escape(message) + "$"):
+        fn(*args, **kw)
+
+
+def test_agent_ids_and_masses_at_their_limits():
+    v1 = np.zeros((1, 3))
+    assert cv_moments(np.array([1]), v1, 1.0, n_cv=2).count.tolist() == [0.0, 1.0]  # the last CV
+    _refused("cv_ids contains 2, but n_cv is 2", cv_moments, np.array([2]), v1, 1.0, n_cv=2)  # one past it
+    assert cv_moments(np.array([-1]), v1, 1.0, n_cv=2).count.tolist() == [0.0, 0.0]  # outside the map
+    _refused("cv_ids contains -2; only -1 (outside the map) may be negative", cv_moments, np.array([-2]), v1, 1.0, n_cv=2)
+    _refused("cv_ids must be a 1-D array, got shape (1, 1)", cv_moments, np.array([[0]]), v1, 1.0, n_cv=2)
+    _refused("cv_ids must be integers, got dtype float64", cv_moments, np.array([0.0]), v1, 1.0, n_cv=2)
+    _refused("masses must be a scalar or an (1,) array, got shape (2,)", cv_moments, np.array([0]), v1,
+             np.ones(2), n_cv=2)
+    for bad in (0.0, -1.0, np.nan):
+        _refused("masses must be finite and > 0", cv_moments, np.array([0]), v1, bad, n_cv=2)
+    _refused("velocities of agents inside the map must be finite", cv_moments, np.array([0]),
+             np.array([[np.nan, 0.0, 0.0]]), 1.0, n_cv=2)
+    assert cv_moments(np.array([-1]), np.array([[np.nan, 0.0, 0.0]]), 1.0, n_cv=2).count.sum() == 0  # outside: ignored
+
+
+def test_drift_directions_at_their_limits():
+    np.testing.assert_array_equal(drift_directions(None, 2), [[1.0, 0.0, 0.0]] * 2)
+    np.testing.assert_array_equal(drift_directions([0.0, 0.0, 2e-12], 1), [[0.0, 0.0, 1.0]])  # tiny but > 1e-12
+    _refused("drift_dir contains a zero or non-finite direction", drift_directions, [1e-12, 0.0, 0.0], 1)
+    _refused("drift_dir contains a zero or non-finite direction", drift_directions, [np.inf, 0.0, 0.0], 1)
+    _refused("drift_dir must be (3,) or (2, 3), got shape (2,)", drift_directions, [1.0, 0.0], 2)
+
+
+def test_accumulator_arguments_and_errors():
+    assert FieldAccumulator(0, 1.0).n_cv == 0  # an empty map is allowed
+    _refused("n_cv must be >= 0, got -1", FieldAccumulator, -1, 1.0)
+    params = SwarmGasParams(k_b_s=2.5)
+    acc = FieldAccumulator(2, 1.0, drift_dir=[0.0, 3.0, 0.0], params=params)
+    assert acc.params is params and FieldAccumulator(2, 1.0).params == SwarmGasParams()
+    np.testing.assert_array_equal(acc.drift_dir, [[0.0, 1.0, 0.0]] * 2)
+    back = FieldAccumulator.from_state(acc.state(), params)
+    assert back.params is params
+    np.testing.assert_array_equal(back.drift_dir, acc.drift_dir)
+    _refused("moments of 3 CVs added to an accumulator of 2", acc.add_moments,
+             cv_moments(np.array([0]), np.zeros((1, 3)), 1.0, n_cv=3))
+    _refused("merge: accumulators differ in n_cv or cell volume", acc.merge, FieldAccumulator(2, 2.0))
+
+
+def test_the_random_temperature_uses_the_boltzmann_like_constant_and_samples_are_integers():
+    mom = cv_moments(np.array([0, 0]), np.array([[1.0, 0, 0], [3.0, 0, 0]]), 1.0, n_cv=1)
+    t1 = fields_from_moments(mom, 1.0, params=SwarmGasParams(k_b_s=1.0))
+    t2 = fields_from_moments(mom, 1.0, params=SwarmGasParams(k_b_s=2.0))
+    assert t2.t_rand_m2_s2[0] == pytest.approx(2.0 * t1.t_rand_m2_s2[0]) and t1.t_rand_m2_s2[0] > 0
+    assert t1.samples.dtype == np.int64 and t1.samples.tolist() == [2]
+    given = fields_from_moments(mom, 1.0, samples=np.array([7.0]))
+    assert given.samples.dtype == np.int64 and given.samples.tolist() == [7]

@@ -31,8 +31,9 @@ import pytest
 
 from ..e2e.conftest import (Processes, cli, free_tcp_port, free_udp_port, poll, processes,  # noqa: F401
                             write_zenoh_config)
+from ..optional import require_module
 
-zenoh = pytest.importorskip("zenoh")
+zenoh = require_module("zenoh")
 
 SWARM = "hostile"
 AGENT_ID = 1

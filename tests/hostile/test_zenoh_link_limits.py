@@ -11,8 +11,9 @@ from fisc_agent.map.chunks import CHUNK_HEADER, CHUNK_MAGIC, CHUNK_VERSION, KIND
 from fisc_agent.zenoh.link import AgentZenohLink
 
 from ..zenoh.conftest import wait_for
+from ..optional import require_module
 
-zenoh = pytest.importorskip("zenoh")
+zenoh = require_module("zenoh")
 
 
 @pytest.fixture()

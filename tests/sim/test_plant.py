@@ -28,8 +28,9 @@ from sim.plant.model import (
 )
 from sim.plant.kernel import BLOCK
 from sim.plant.oracle import step_single_agent
+from ..optional import needs
 
-BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
+BACKENDS = ["numpy", pytest.param("numba", marks=needs(numba_available(), "numba", extra="jit"))]
 G = 9.81
 TAN55 = math.tan(math.radians(55.0))
 
@@ -169,7 +170,7 @@ def test_heterogeneous_fleet_equals_each_agents_own_oracle(backend):
         np.testing.assert_allclose(a[i], r[1], atol=1e-11)
 
 
-@pytest.mark.skipif(not numba_available(), reason="numba missing")
+@needs(numba_available(), "numba", extra="jit")
 def test_numba_and_numpy_kernels_agree():
     p = hetero_params(300)
     _, vel, thr, cmd, wind = random_state(300, seed=11, params=PlantParams())
@@ -179,7 +180,7 @@ def test_numba_and_numpy_kernels_agree():
     np.testing.assert_allclose(out_np[1], out_nb[1], atol=1e-12)
 
 
-@pytest.mark.skipif(not numba_available(), reason="numba missing")
+@needs(numba_available(), "numba", extra="jit")
 @pytest.mark.parametrize("n", [1, BLOCK - 1, BLOCK, 1000])
 def test_compiled_kernel_reproduces_the_numpy_reference_bit_for_bit(n):
     """One kernel, the numpy path its reference: fleet-wide and per-agent rows, with and without

@@ -11,8 +11,8 @@ from nacl.signing import SigningKey
 from fisc_agent.zenoh.command_gate import CommandGate, Source
 from fisc_agent.zenoh.command_rx import CommandReceiver
 from fisc_agent.zenoh.state_bundle import decode_bundle, encode_bundle
-from fisc_agent.zenoh.fleet_commands import (CommandCheck, CommandError, FleetCommand, decode_command, encode_command,
-                                             key_id_of)
+from fisc_agent.zenoh.fleet_commands import (ALL_AGENTS, MAX_TARGETS, SIG_LEN, CommandCheck, CommandError, FleetCommand,
+                                             check_targets, decode_command, encode_command, key_id_of)
 from fisc_ground.zenoh.command_relay import LatestCommands
 
 KEY, OTHER = SigningKey.generate(), SigningKey.generate()
@@ -173,3 +173,145 @@ def test_cmd_agents_option_parses_lists_and_ranges_and_refuses_the_rest(capsys):
     with pytest.raises(SystemExit) as exit_:
         ground_parser().parse_args(["cmd", "takeover", "--swarm", "alpha", "--agents", "1,x"])
     assert exit_.value.code == 2 and "'x' is not an agent id" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ boundaries (issue 38: a suite that catches wrong answers)
+def v2_bytes(code=1, flags=1, swarm=b"alpha", targets=(), seq=1, issued_ms=1_000_000, start_ms=0, sig=None,
+             n_targets=None) -> bytes:
+    head = struct.pack("<4sBBBBHHQQQ", b"FCMD", 2, code, flags, len(swarm),
+                       len(targets) if n_targets is None else n_targets, 0, seq, issued_ms, start_ms)
+    head += swarm + struct.pack(f"<{len(targets)}I", *targets)
+    return head + (KEY.sign(head).signature if sig is None else sig)
+
+
+UNSIGNED = {"flags": 0, "sig": bytes(64)}
+
+
+@pytest.mark.parametrize("raw, kw, message", [
+    (b"FCMD\x02", {}, "truncated: command has 5 bytes"),
+    (b"FCMD\x02\x01", {}, "truncated: command has 6 bytes, at least 100 needed"),  # 6 bytes pass the first check
+    (b"XCMD\x02\x01" + bytes(100), {}, "magic: not a FISC fleet command"),
+    (b"FCMD\x03\x01" + bytes(100), {}, "version: command format 3 is not supported (expected 1 or 2)"),
+    (b"FCMD\x00\x01" + bytes(100), {}, "version: command format 0 is not supported (expected 1 or 2)"),
+    (v2_bytes(swarm=b"", **UNSIGNED)[:99], {}, "truncated: command has 99 bytes, at least 100 needed"),
+    (v2_bytes(code=0), {}, "command: unknown command code 0"),
+    (v2_bytes(code=7), {}, "command: unknown command code 7"),
+    (v2_bytes() + b"x", {}, "size: command should have 105 bytes, has 106"),
+    (v2_bytes()[:-1], {}, "size: command should have 105 bytes, has 104"),
+    (v2_bytes(**UNSIGNED), {}, "signature: command is unsigned (use --allow-unsigned only in a lab)"),
+    (v2_bytes(), {"trusted": None}, "signature: signed command but no trusted key configured"),
+    (v2_bytes(), {"trusted": []}, "signature: signed command but no trusted key configured"),
+    (v2_bytes(), {"trusted": [OTHER_PUB]}, "signature: command is not signed by a trusted key"),
+    (v2_bytes(flags=1, sig=bytes(64)), {}, "signature: command is not signed by a trusted key"),
+    (v2_bytes(swarm=b"\xff\xfe", **UNSIGNED), {"allow": True}, "swarm: name is not UTF-8"),
+    (v2_bytes(code=4), {}, "start-at: start-at needs a start time, and only start-at carries one"),
+    (v2_bytes(code=5, start_ms=5), {}, "start-at: start-at needs a start time, and only start-at carries one"),
+])
+def test_every_refused_command_names_its_check_and_why(raw, kw, message):
+    with pytest.raises(CommandError) as err:
+        decode_command(raw, kw.get("trusted", [PUB]), **({"allow_unsigned": True} if kw.get("allow") else {}))
+    assert str(err.value) == message
+    assert err.value.check is CommandCheck(message.split(":")[0])
+
+
+def test_unsigned_commands_only_with_allow_unsigned_and_then_without_a_key_id():
+    raw = encode_command(cmd("go"))
+    assert raw[6] == 0 and raw[-SIG_LEN:] == bytes(SIG_LEN) and len(raw) == 36 + 5 + SIG_LEN
+    with pytest.raises(CommandError, match="unsigned"):
+        decode_command(raw, [PUB])  # refused by default
+    for keys in ([PUB], None):
+        back = decode_command(raw, keys, allow_unsigned=True)
+        assert (back.signed, back.key_id, back.name) == (False, "", "go")
+    # signed, nothing to check it against, but the lab allows unsigned: taken as unsigned
+    back = decode_command(encode_command(cmd("go"), KEY.encode()), None, allow_unsigned=True)
+    assert (back.signed, back.key_id) == (False, "")
+    # the shortest command: no swarm name, no agents, exactly the header and the signature
+    assert decode_command(v2_bytes(swarm=b"", **UNSIGNED), None, allow_unsigned=True).swarm == ""
+
+
+def test_start_at_round_trips_to_the_millisecond_and_only_start_at_carries_a_time():
+    back = decode_command(encode_command(cmd("start-at", start_at_unix_s=2000.5), KEY.encode()), [PUB])
+    assert back.start_at_unix_s == 2000.5 and back.issued_unix_s == 1000.0
+    back = decode_command(encode_command(cmd("go", issued=1000.001), KEY.encode()), [PUB])
+    assert back.start_at_unix_s is None and back.issued_unix_s == 1000.001
+
+
+@pytest.mark.parametrize("swarm, ok", [("", False), ("a", True), ("a" * 255, True), ("a" * 256, False)])
+def test_the_swarm_name_is_1_to_255_bytes(swarm, ok):
+    c = FleetCommand(name="hold", swarm=swarm, seq=1, issued_unix_s=1000.0)
+    if ok:
+        assert decode_command(encode_command(c, KEY.encode()), [PUB]).swarm == swarm
+    else:
+        with pytest.raises(CommandError) as err:
+            encode_command(c, KEY.encode())
+        assert str(err.value) == "swarm: name must be 1..255 bytes" and err.value.check is CommandCheck.SWARM
+
+
+@pytest.mark.parametrize("targets, message", [
+    ((), None), ((0,), None), ((ALL_AGENTS - 1,), None), (tuple(range(MAX_TARGETS)), None),
+    (tuple(range(MAX_TARGETS + 1)), f"address: {MAX_TARGETS + 1} agents named, at most {MAX_TARGETS}"),
+    ((ALL_AGENTS,), f"address: agent ids must be within 0..{ALL_AGENTS - 1}"),
+    ((-1,), f"address: agent ids must be within 0..{ALL_AGENTS - 1}"),
+    ((-1, 5), f"address: agent ids must be within 0..{ALL_AGENTS - 1}"),
+    ((3, 3), "address: agent ids must be ascending and distinct (3 then 3)"),
+])
+def test_agent_lists_at_their_limits(targets, message):
+    if message is None:
+        check_targets(targets)
+    else:
+        with pytest.raises(CommandError) as err:
+            check_targets(targets)
+        assert str(err.value) == message and err.value.check is CommandCheck.ADDRESS
+
+
+def test_targets_are_stored_as_a_tuple_of_ints():
+    c = FleetCommand(name="go", swarm="alpha", seq=1, issued_unix_s=1.0, targets=[1, 3])
+    assert c.targets == (1, 3) and type(c.targets) is tuple
+
+
+@pytest.mark.parametrize("now, check, message", [
+    # inside the 30 s age window but 20.001 s in the future: refused as from the future (issue 38)
+    (979.999, CommandCheck.FUTURE, "future: command issued 20.0 s in the future (window 20 s; clock skew?)"),
+    (970.0, CommandCheck.FUTURE, "future: command issued 30.0 s in the future (window 20 s; clock skew?)"),
+    (1030.001, CommandCheck.STALE, "stale: command issued 30.0 s ago (window 30 s)"),
+    (1045.0, CommandCheck.STALE, "stale: command issued 45.0 s ago (window 30 s)"),
+])
+def test_a_refused_live_command_names_the_window_it_missed(now, check, message):
+    gate = CommandGate("alpha", 1)
+    with pytest.raises(CommandError) as err:
+        gate.check(cmd(issued=1000.0), now)
+    assert err.value.check is check and str(err.value) == message and gate.floors == {}
+
+
+def test_gate_refusals_name_the_swarm_the_agents_the_sequence_and_the_key():
+    gate = CommandGate("alpha", 2, floors={"aa": 100})
+    cases = [
+        (FleetCommand(name="hold", swarm="beta", seq=200, issued_unix_s=1000.0),
+         "swarm: command is for swarm 'beta', this agent flies in 'alpha'"),
+        (cmd(seq=200, targets=(1, 3)), "target: command is for agents [1, 3]"),
+        (cmd(seq=100, key_id="aa"), "replay: sequence 100 is not above the last accepted 100 of key aa"),
+    ]
+    for c, message in cases:
+        with pytest.raises(CommandError) as err:
+            gate.check(c, 1000.0)
+        assert str(err.value) == message and err.value.check is CommandCheck(message.split(":")[0])
+    assert gate.check(cmd(seq=200, targets=(2, 3)), 1000.0).seq == 200
+    with pytest.raises(CommandError) as err:
+        gate.check(cmd(seq=200), 1000.0)
+    assert str(err.value) == "replay: sequence 200 is not above the last accepted 200 of key (unsigned)"
+
+
+def test_a_fresh_gate_has_floor_zero_so_sequence_one_is_taken():
+    gate = CommandGate("alpha", 1)
+    assert gate.floor("zz") == 0
+    with pytest.raises(CommandError, match="replay: sequence 0 is not above the last accepted 0"):
+        gate.check(cmd(seq=0), 1000.0)
+    assert gate.check(cmd(seq=1), 1000.0).seq == 1 and gate.floor("") == 1
+
+
+def test_a_stale_republished_go_names_its_age_and_the_standing_window():
+    gate = CommandGate("alpha", 1)
+    with pytest.raises(CommandError) as err:
+        gate.check(cmd("go", issued=1000.0), 1120.5, Source.STATE)
+    assert err.value.check is CommandCheck.STALE
+    assert str(err.value) == "stale: re-published go for 120.5 s ago (standing window 120 s)"

@@ -24,8 +24,9 @@ from fisc_agent.zenoh.link import AgentZenohLink
 from fisc_ground.monitor import foxglove_scene as fs
 
 from .conftest import free_port, snap, wait_for
+from ..optional import require_module
 
-websockets = pytest.importorskip("websockets")
+websockets = require_module("websockets", extra="test")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 

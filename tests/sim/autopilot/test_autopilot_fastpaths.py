@@ -21,8 +21,9 @@ from sim.autopilot.framing import Encoder, new_parser
 from sim.autopilot.server import AutopilotEmulator
 from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
 from sim.plant.model import PlantParams, VelocityPlant, numba_available
+from ...optional import needs
 
-BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not numba_available(), reason="numba missing"))]
+BACKENDS = ["numpy", pytest.param("numba", marks=needs(numba_available(), "numba", extra="jit"))]
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

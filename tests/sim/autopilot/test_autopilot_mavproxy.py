@@ -14,13 +14,14 @@ from autopilot_testkit import Client
 
 from ...ports import free_udp_port
 from sim.autopilot.server import AutopilotEmulator
+from ...optional import needs
 
 ML = mavutil.mavlink
 MAVPROXY = shutil.which("mavproxy.py") or str(Path(sys.executable).with_name("mavproxy.py"))
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not Path(MAVPROXY).exists(), reason="mavproxy.py not installed")
+@needs(Path(MAVPROXY).exists(), "MAVProxy (mavproxy.py)", extra="test")
 def test_mavproxy_router_client_arms_and_flies(tmp_path):
     a, b = free_udp_port(), free_udp_port()
     proc = subprocess.Popen(

@@ -11,8 +11,9 @@ import pytest
 from ...ports import free_udp_port
 from sim.autopilot.personalities import FlightMode
 from sim.autopilot.server import AutopilotEmulator
+from ...optional import require_module
 
-mavsdk_asyncio = pytest.importorskip("mavsdk.asyncio")
+mavsdk_asyncio = require_module("mavsdk.asyncio", extra="mavsdk")
 
 
 async def _fly(port: int, em: AutopilotEmulator) -> dict:
