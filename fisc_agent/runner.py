@@ -139,14 +139,15 @@ class Runner:
         return current.sha256 if current is not None else None
 
     def _newer_than_current(self, cmap: CommandMap) -> bool:
-        """False for the map in use (same sha256) and for older ones (logged)."""
+        """False for the map in use (same sha256) and for any other map not above its version (logged):
+        another map of the same version is refused as the Zenoh link and docs/zenoh.md refuse it."""
         current = self._current_map()
         if current is None:
             return True
         if cmap.sha256 == current.sha256:
             return False
-        if cmap.map_version < current.map_version:
-            log.warning("map %s refused: version %d is older than %d in use", cmap.sha256[:12], cmap.map_version,
+        if cmap.map_version <= current.map_version:
+            log.warning("map %s refused: version %d is not above %d in use", cmap.sha256[:12], cmap.map_version,
                         current.map_version)
             return False
         return True

@@ -176,7 +176,10 @@ def test_offer_map_swaps_atomically_at_the_next_tick_and_refuses_older():
     assert r.cmap is newer and r.snapshot().map_version == 5
     assert r.offer_map(newer)                  # same map again: no-op
     assert not r.offer_map(decode_map(tunnel_map_bytes(map_version=2)))   # older
-    assert r.cmap is newer
+    assert not r.offer_map(decode_map(tunnel_map_bytes(length_m=5.0, map_version=5)))  # same version, other map
+    assert r.offer_map(decode_map(tunnel_map_bytes(length_m=4.0, map_version=6)))       # one version up
+    r.step()
+    assert r.cmap.map_version == 6
     tick_until(r, clock, lambda: r.mission.state == State.EXIT)
     assert r.snapshot().position_map_m[0] >= 4.0
 
