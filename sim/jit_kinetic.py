@@ -1,0 +1,124 @@
+"""The numba kernel of the ``kinetic`` command mode: look-ahead, staggered field, persistent deviation
+and staircase-wall reflection for every agent in one pass (``sim.kernels.kinetic_commands_kernel``).
+
+The reference is the numpy path the onboard agent flies, ``fisc_agent.map.lookup.flight_command``
+(``CommandField.locate``, ``staggered_at`` and ``fisc_agent.map.kinetic.deviation_in_cells``): the
+kernel spells the same operations per agent in the same order, so both give the same bits
+(tests/sim/test_kinetic_kernel.py).  Imports numba: reach it only through ``sim.kernels``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from sim.jit_kernels import slot_mix32
+
+_TWO_PI = 2.0 * np.pi
+"""``2.0 * np.pi`` as ``_unit_from_hash`` folds it."""
+_INV_2_32 = 1.0 / 4294967296.0
+"""The hash's scale onto [0, 1)."""
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _cell(p, origin, cell, hi, stride):
+    """One axis of ``CommandField.locate``: (clipped cell index times ``stride``, position within the cell)."""
+    f = (p - origin) / cell
+    c = np.floor(f)
+    frac = f - c
+    if not c >= -1.0:  # np.fmax(c, -1): NaN reads the lowest border cell
+        c = -1.0
+    if c > hi:
+        c = hi
+    return c * stride, frac
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _deviate(dk, code, sgn, up_frac, v, zone0, brake_s, cell):
+    """One axis of ``deviation_in_cells`` after the interval's direction ``dk``: (component, new sign)."""
+    if code == 0:  # no wall, no step-out on this axis (most cells): the sign holds
+        return dk * sgn, sgn
+    if sgn < 0.0 and ((code >> (3 if dk >= 0.0 else 2)) & 1) == 1:
+        sgn = 1.0
+    dk = dk * sgn
+    up = dk >= 0.0
+    if ((code >> (1 if up else 0)) & 1) == 0:
+        return dk, sgn
+    zone = zone0
+    if brake_s > 0.0:  # a vehicle heading for a face at v_n turns within v_n * brake_s
+        vn = v if up else -v
+        if vn < 0.0:
+            vn = 0.0
+        zk = vn * brake_s / cell
+        if zk > zone0 or zk != zk:  # np.maximum: NaN propagates
+            zone = zk
+    if (up_frac >= 1.0 - zone) if up else (up_frac < zone):
+        return -dk, -sgn
+    return dk, sgn
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _component(lcv, t, lo, hi, spread, dk, to_ned):
+    """One NED component of the command: staggered field at position ``t`` in the cell plus the deviation."""
+    if lcv < 0:
+        return 0.0
+    if t < 0.0:  # clipped into [0, 1], NaN kept (as np.minimum(np.maximum(...)))
+        t = 0.0
+    elif t > 1.0:
+        t = 1.0
+    c = (1.0 - t) * lo + t * hi
+    c += spread * dk
+    if c != c:
+        c = 0.0
+    return c * to_ned
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
+                     origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
+                     zone0, brake_s, map_to_ned, cmd_out):
+    """NED kinetic commands of every agent and its new deviation state (``sim.kernels``)."""
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    h0, h1, h2 = hi[0], hi[1], hi[2]
+    s0, s1, s2 = strides[0], strides[1], strides[2]
+    m0, m1, m2 = map_to_ned[0], map_to_ned[1], map_to_ned[2]
+    for i in range(pos.shape[0]):
+        x0, x1, x2 = pos[i, 0], pos[i, 1], pos[i, 2]
+        v0, v1, v2 = vel_ned[i, 0] * m0, vel_ned[i, 1] * m1, vel_ned[i, 2] * m2
+        r0, f0 = _cell(x0, o0, cell, h0, s0)
+        r1, f1 = _cell(x1, o1, cell, h1, s1)
+        r2, f2 = _cell(x2, o2, cell, h2, s2)
+        row = np.int64(offset + r0 + r1 + r2)
+        own = cv[i] if cv_given else padded_cv[row]
+        lrow, lcv, g0, g1, g2 = row, own, f0, f1, f2
+        if lead_s > 0.0:
+            a0, e0 = _cell(x0 + lead_s * v0, o0, cell, h0, s0)
+            a1, e1 = _cell(x1 + lead_s * v1, o1, cell, h1, s1)
+            a2, e2 = _cell(x2 + lead_s * v2, o2, cell, h2, s2)
+            arow = np.int64(offset + a0 + a1 + a2)
+            acv = padded_cv[arow]
+            if acv >= 0:  # else no CV ahead: the agent's own point
+                lrow, lcv, g0, g1, g2 = arow, acv, e0, e1, e2
+        # deviation_in_cells: a fresh direction when the agent's interval changes
+        e = np.int64(math.floor(t_over_p + phase[i]))
+        if e != epoch[i]:
+            u1 = slot_mix32(np.uint64(ids[i]), np.uint64(e)) * _INV_2_32
+            u2 = slot_mix32(np.uint64(ids[i] ^ 0x5BD1E995), np.uint64(e)) * _INV_2_32
+            z = 2.0 * u1 - 1.0
+            phi = _TWO_PI * u2
+            r = math.sqrt(max(0.0, 1.0 - z * z))
+            direction[i, 0] = r * math.cos(phi)
+            direction[i, 1] = r * math.sin(phi)
+            direction[i, 2] = z
+            sign[i, 0] = sign[i, 1] = sign[i, 2] = 1.0
+            epoch[i] = e
+        d0, sign[i, 0] = _deviate(direction[i, 0], codes[row, 0], sign[i, 0], f0, v0, zone0, brake_s, cell)
+        d1, sign[i, 1] = _deviate(direction[i, 1], codes[row, 1], sign[i, 1], f1, v1, zone0, brake_s, cell)
+        d2, sign[i, 2] = _deviate(direction[i, 2], codes[row, 2], sign[i, 2], f2, v2, zone0, brake_s, cell)
+        # the staggered field at the look-up point plus the deviation at its CV's spread
+        j = lcv if lcv > 0 else 0
+        cmd_out[i, 0] = _component(lcv, g0, lower[lrow, 0], upper[lrow, 0], spread_xyz[j, 0], d0, m0)
+        cmd_out[i, 1] = _component(lcv, g1, lower[lrow, 1], upper[lrow, 1], spread_xyz[j, 1], d1, m1)
+        cmd_out[i, 2] = _component(lcv, g2, lower[lrow, 2], upper[lrow, 2], spread_xyz[j, 2], d2, m2)
