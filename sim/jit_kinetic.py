@@ -122,3 +122,16 @@ def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, s
         cmd_out[i, 0] = _component(lcv, g0, lower[lrow, 0], upper[lrow, 0], spread_xyz[j, 0], d0, m0)
         cmd_out[i, 1] = _component(lcv, g1, lower[lrow, 1], upper[lrow, 1], spread_xyz[j, 1], d1, m1)
         cmd_out[i, 2] = _component(lcv, g2, lower[lrow, 2], upper[lrow, 2], spread_xyz[j, 2], d2, m2)
+
+
+@numba.njit(cache=True, nogil=True)
+def deviation_x(ids, t_over_p, out):
+    """``out[i]``: the x component of ``fisc_agent.map.kinetic.deviation_direction`` of agent ``ids[i]``
+    at ``t_s / persistence_s = t_over_p`` (phase, interval and hash as there)."""
+    for i in range(ids.shape[0]):
+        phase = slot_mix32(np.uint64(ids[i]), np.uint64(0x2545F491)) * _INV_2_32
+        e = np.int64(math.floor(t_over_p + phase))
+        u1 = slot_mix32(np.uint64(ids[i]), np.uint64(e)) * _INV_2_32
+        u2 = slot_mix32(np.uint64(ids[i] ^ 0x5BD1E995), np.uint64(e)) * _INV_2_32
+        z = 2.0 * u1 - 1.0
+        out[i] = math.sqrt(max(0.0, 1.0 - z * z)) * math.cos(_TWO_PI * u2)

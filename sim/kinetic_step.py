@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.map.kinetic import BRAKE_S, WALL_ZONE, deviation_phase
+from fisc_agent.map.kinetic import BRAKE_S, WALL_ZONE, deviation_direction, deviation_phase
 from fisc_agent.map.lookup import CommandField
-from sim.kernels import kinetic_commands_kernel
+from sim.kernels import jit_kernels, kinetic_commands_kernel
 
 _MAP_TO_NED = np.array([1.0, 1.0, -1.0])
 """``sim.swarm.MAP_TO_NED`` (not imported: ``sim.swarm`` imports this module)."""
@@ -46,12 +46,27 @@ class KineticStep:
         self._kernel(pos_m, vel_ned_m_s, ids, cv, True, float(t_s) / self.persistence_s, self.lookahead_s,
                      epoch, sign, direction, phase, *self._tables, cmd_ned)
 
-    def start_velocity(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float) -> np.ndarray:
+    def start_velocity(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float,
+                       phase: np.ndarray | None = None) -> np.ndarray:
         """(k, 3) map-frame start velocities of new agents: ``flight_command`` at rest, without
-        look-ahead, from a fresh deviation state (then dropped), rows outside the CVs 0."""
+        look-ahead, from a fresh deviation state (then dropped), rows outside the CVs 0.  ``phase``:
+        ``deviation_phase(ids)`` if already computed."""
         k = pos_m.shape[0]
         cmd = np.empty((k, 3))
         self._kernel(pos_m, np.zeros((k, 3)), ids, np.empty(0, dtype=np.int64), False,
                      float(t_s) / self.persistence_s, 0.0, np.full(k, -1, dtype=np.int64), np.ones((k, 3)),
-                     np.zeros((k, 3)), deviation_phase(ids), *self._tables, cmd)
+                     np.zeros((k, 3)), deviation_phase(ids) if phase is None else phase, *self._tables, cmd)
         return cmd * _MAP_TO_NED
+
+
+def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
+    """(k,) the x component of ``fisc_agent.map.kinetic.deviation_direction`` of agents ``ids`` at
+    ``t_s``: one numba pass when numba is installed (the same bits), else the numpy function."""
+    ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+    if jit_kernels() is None:
+        return deviation_direction(ids, t_s, persistence_s)[0][:, 0]
+    from sim import jit_kinetic
+
+    out = np.empty(ids.size)
+    jit_kinetic.deviation_x(ids, float(t_s) / persistence_s, out)
+    return out

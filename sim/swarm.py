@@ -290,8 +290,9 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
+        phase = deviation_phase(ids)
         if vel_map_m_s is None and self._kinetic is not None:
-            vel = self._kinetic.start_velocity(pos, ids, self.t_s)
+            vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
         elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
             # start at the command of flight_command without look-ahead (kinetic: with its deviation)
             st = self.config.flight_settings
@@ -312,7 +313,7 @@ class Swarm:
         self._out[s] = 0.0
         self._epoch[s] = -1
         self._sign[s] = 1.0
-        self._phase[s] = deviation_phase(ids)
+        self._phase[s] = phase
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k

@@ -130,3 +130,15 @@ def test_swarm_numba_kinetic_run_equals_the_numpy_run(which, request):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     for buf in ("_epoch", "_sign", "_dir"):
         np.testing.assert_array_equal(getattr(a, buf)[:a.n], getattr(b, buf)[:b.n])
+
+
+@pytest.mark.parametrize("t_s", [0.0, 1.999, 2.0, 123.45])
+def test_deviation_x_equals_deviation_direction(t_s):
+    """The reservoir's admission draws (``sim.kinetic_step.deviation_x``, numba) equal the x component of
+    ``deviation_direction`` bit for bit, at and around interval boundaries, ids up to 2**40."""
+    from fisc_agent.map.kinetic import deviation_direction
+    from sim.kinetic_step import deviation_x
+
+    ids = np.concatenate([np.arange(5000), np.array([2**31 - 1, 2**32, 2**40 + 17])]).astype(np.int64)
+    np.testing.assert_array_equal(deviation_x(ids, t_s, 2.0), deviation_direction(ids, t_s, 2.0)[0][:, 0])
+    assert deviation_x(np.zeros(0, dtype=np.int64), t_s, 2.0).shape == (0,)
