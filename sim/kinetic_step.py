@@ -65,8 +65,8 @@ def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray
     ids = np.asarray(ids, dtype=np.int64).reshape(-1)
     if jit_kernels() is None:
         return deviation_direction(ids, t_s, persistence_s)[0][:, 0]
-    from sim import jit_kinetic
+    from sim import kinetic_jit
 
     out = np.empty(ids.size)
-    jit_kinetic.deviation_x(ids, float(t_s) / persistence_s, out)
+    kinetic_jit.deviation_x(ids, float(t_s) / persistence_s, out)
     return out

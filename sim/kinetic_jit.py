@@ -23,19 +23,6 @@ _INV_2_32 = 1.0 / 4294967296.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _cell(p, origin, cell, hi, stride):
-    """One axis of ``CommandField.locate``: (clipped cell index times ``stride``, position within the cell)."""
-    f = (p - origin) / cell
-    c = np.floor(f)
-    frac = f - c
-    if not c >= -1.0:  # np.fmax(c, -1): NaN reads the lowest border cell
-        c = -1.0
-    if c > hi:
-        c = hi
-    return c * stride, frac
-
-
-@numba.njit(cache=True, nogil=True, inline="always")
 def _deviate(dk, code, sgn, up_frac, v, zone0, brake_s, cell):
     """One axis of ``deviation_in_cells`` after the interval's direction ``dk``: (component, new sign)."""
     if code == 0:  # no wall, no step-out on this axis (most cells): the sign holds
@@ -76,31 +63,56 @@ def _component(lcv, t, lo, hi, spread, dk, to_ned):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, frac, rows, vel_map):
+    """``CommandField.locate`` of every agent's point (``frac[0:3]``, ``rows[0]``) and look-ahead point
+    (``frac[3:6]``, ``rows[1]``, exact integers in floating point) and its map-frame velocity
+    ``vel_map`` (3, n): one pass per axis over structure-of-arrays buffers, which the compiler
+    vectorises (the division and floor dominate)."""
+    for k in range(3):
+        o, h, s, mk = origin[k], hi[k], strides[k], map_to_ned[k]
+        for i in range(pos.shape[0]):
+            x = pos[i, k]
+            v = vel_ned[i, k] * mk
+            vel_map[k, i] = v
+            f = (x - o) / cell
+            c = np.floor(f)
+            frac[k, i] = f - c
+            c = c if c >= -1.0 else -1.0  # np.fmax(c, -1): NaN reads the lowest border cell
+            c = c if c <= h else h
+            g = (x + lead_s * v - o) / cell
+            d = np.floor(g)
+            frac[3 + k, i] = g - d
+            d = d if d >= -1.0 else -1.0
+            d = d if d <= h else h
+            if k == 0:
+                rows[0, i] = offset + c * s
+                rows[1, i] = offset + d * s
+            else:
+                rows[0, i] += c * s
+                rows[1, i] += d * s
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
                      origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
                      zone0, brake_s, map_to_ned, cmd_out):
     """NED kinetic commands of every agent and its new deviation state (``sim.kernels``)."""
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    h0, h1, h2 = hi[0], hi[1], hi[2]
-    s0, s1, s2 = strides[0], strides[1], strides[2]
+    n = pos.shape[0]
+    fr = np.empty((6, n))
+    rw = np.empty((2, n))
+    vv = np.empty((3, n))
+    _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, fr, rw, vv)
     m0, m1, m2 = map_to_ned[0], map_to_ned[1], map_to_ned[2]
-    for i in range(pos.shape[0]):
-        x0, x1, x2 = pos[i, 0], pos[i, 1], pos[i, 2]
-        v0, v1, v2 = vel_ned[i, 0] * m0, vel_ned[i, 1] * m1, vel_ned[i, 2] * m2
-        r0, f0 = _cell(x0, o0, cell, h0, s0)
-        r1, f1 = _cell(x1, o1, cell, h1, s1)
-        r2, f2 = _cell(x2, o2, cell, h2, s2)
-        row = np.int64(offset + r0 + r1 + r2)
+    for i in range(n):
+        f0, f1, f2 = fr[0, i], fr[1, i], fr[2, i]
+        row = np.int64(rw[0, i])
         own = cv[i] if cv_given else padded_cv[row]
         lrow, lcv, g0, g1, g2 = row, own, f0, f1, f2
         if lead_s > 0.0:
-            a0, e0 = _cell(x0 + lead_s * v0, o0, cell, h0, s0)
-            a1, e1 = _cell(x1 + lead_s * v1, o1, cell, h1, s1)
-            a2, e2 = _cell(x2 + lead_s * v2, o2, cell, h2, s2)
-            arow = np.int64(offset + a0 + a1 + a2)
+            arow = np.int64(rw[1, i])
             acv = padded_cv[arow]
             if acv >= 0:  # else no CV ahead: the agent's own point
-                lrow, lcv, g0, g1, g2 = arow, acv, e0, e1, e2
+                lrow, lcv, g0, g1, g2 = arow, acv, fr[3, i], fr[4, i], fr[5, i]
         # deviation_in_cells: a fresh direction when the agent's interval changes
         e = np.int64(math.floor(t_over_p + phase[i]))
         if e != epoch[i]:
@@ -114,9 +126,9 @@ def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, s
             direction[i, 2] = z
             sign[i, 0] = sign[i, 1] = sign[i, 2] = 1.0
             epoch[i] = e
-        d0, sign[i, 0] = _deviate(direction[i, 0], codes[row, 0], sign[i, 0], f0, v0, zone0, brake_s, cell)
-        d1, sign[i, 1] = _deviate(direction[i, 1], codes[row, 1], sign[i, 1], f1, v1, zone0, brake_s, cell)
-        d2, sign[i, 2] = _deviate(direction[i, 2], codes[row, 2], sign[i, 2], f2, v2, zone0, brake_s, cell)
+        d0, sign[i, 0] = _deviate(direction[i, 0], codes[row, 0], sign[i, 0], f0, vv[0, i], zone0, brake_s, cell)
+        d1, sign[i, 1] = _deviate(direction[i, 1], codes[row, 1], sign[i, 1], f1, vv[1, i], zone0, brake_s, cell)
+        d2, sign[i, 2] = _deviate(direction[i, 2], codes[row, 2], sign[i, 2], f2, vv[2, i], zone0, brake_s, cell)
         # the staggered field at the look-up point plus the deviation at its CV's spread
         j = lcv if lcv > 0 else 0
         cmd_out[i, 0] = _component(lcv, g0, lower[lrow, 0], upper[lrow, 0], spread_xyz[j, 0], d0, m0)
