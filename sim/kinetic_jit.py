@@ -23,27 +23,23 @@ _INV_2_32 = 1.0 / 4294967296.0
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _deviate(dk, code, sgn, up_frac, v, zone0, brake_s, cell):
-    """One axis of ``deviation_in_cells`` after the interval's direction ``dk``: (component, new sign)."""
-    if code == 0:  # no wall, no step-out on this axis (most cells): the sign holds
-        return dk * sgn, sgn
-    if sgn < 0.0 and ((code >> (3 if dk >= 0.0 else 2)) & 1) == 1:
-        sgn = 1.0
+def _deviate(dk, code, sgn, frac, v, zone0, brake_s, cell):
+    """One axis of ``deviation_in_cells`` for the interval's drawn component ``dk``, the cell's wall
+    ``code`` and the agent's position ``frac`` in it: (component, new sign).  Selects rather than
+    branches where the outcome is a coin toss (the sign of ``dk``): mispredictions dominated."""
+    stepped = (code >> (np.int64(dk >= 0.0) + 2)) & 1  # the face it was reflected from steps outward
+    sgn = 1.0 if (sgn < 0.0) & (stepped == 1) else sgn
     dk = dk * sgn
     up = dk >= 0.0
-    if ((code >> (1 if up else 0)) & 1) == 0:
+    if ((code >> np.int64(up)) & 1) == 0:  # no wall ahead on this axis
         return dk, sgn
-    zone = zone0
-    if brake_s > 0.0:  # a vehicle heading for a face at v_n turns within v_n * brake_s
-        vn = v if up else -v
-        if vn < 0.0:
-            vn = 0.0
-        zk = vn * brake_s / cell
-        if zk > zone0 or zk != zk:  # np.maximum: NaN propagates
-            zone = zk
-    if (up_frac >= 1.0 - zone) if up else (up_frac < zone):
-        return -dk, -sgn
-    return dk, sgn
+    vn = v if up else -v  # a vehicle heading for a face at v_n turns within v_n * brake_s
+    vn = 0.0 if vn < 0.0 else vn
+    zk = vn * brake_s / cell
+    zone = zk if (zk > zone0) | (zk != zk) else zone0  # np.maximum: NaN propagates
+    zone = zone if brake_s > 0.0 else zone0
+    toward = (frac >= 1.0 - zone) if up else (frac < zone)
+    return (-dk if toward else dk), (-sgn if toward else sgn)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
