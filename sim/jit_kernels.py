@@ -32,15 +32,22 @@ def padded_cell(pos, i, origin, inv_l, hi, strides):
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def slot_of(agent_id, j, n_star_j):
-    """``fisc_agent.map.hashing.slot_index`` for one agent: the numba twin of ``fisc_agent.map.hashing.slot_mix``."""
-    a = np.uint64(agent_id) & M32
-    b = np.uint64(j) & M32
+def slot_mix32(a, b):
+    """``fisc_agent.map.hashing.slot_hash`` of two uint64 values (reduced to 32 bits here): the numba twin
+    of ``fisc_agent.map.hashing.slot_mix`` (uint64 constants: numba types integer literals as float64)."""
+    a = a & M32
+    b = b & M32
     h = ((a * np.uint64(0x9E3779B1)) ^ (b * np.uint64(0x85EBCA77) + np.uint64(0x27D4EB2F))) & M32
     h ^= h >> np.uint64(15)
     h = (h * np.uint64(0x2C1B3C6D)) & M32
     h ^= h >> np.uint64(12)
-    return np.int64(h % n_star_j)
+    return h
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def slot_of(agent_id, j, n_star_j):
+    """``fisc_agent.map.hashing.slot_index`` for one agent (``slot_mix32``)."""
+    return np.int64(slot_mix32(np.uint64(agent_id), np.uint64(j)) % n_star_j)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

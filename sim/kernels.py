@@ -10,6 +10,8 @@ masked numpy passes, which dominate the step once the plant kernel is fast:
   inward pull, ``Swarm._return_commands``) and their time outside; the others' time outside
   reset to 0.
 * :func:`move_kernel` - the position update ``x += (MAP_TO_NED * dt) * v_NED`` (step 4).
+* :func:`kinetic_commands_kernel` - the ``kinetic`` mode's commands (look-ahead, staggered field,
+  deviation, wall reflection) in one pass (``sim.kinetic_jit``, glued in by ``sim.kinetic_step``).
 
 Each factory returns the compiled kernel, or None when numba is not importable.
 """
@@ -76,3 +78,25 @@ def move_kernel():
     """Kernel ``(pos, vel, fdt)``: ``pos[i, k] += vel[i, k] * fdt[k]`` in place (one pass)."""
     jk = jit_kernels()
     return None if jk is None else jk.move
+
+
+def kinetic_commands_kernel():
+    """Kernel ``(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase, origin,
+    cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned,
+    cmd_out)``: the ``kinetic`` mode of ``fisc_agent.map.lookup.flight_command`` for every agent in one pass
+    (``sim.kinetic_jit``).
+
+    Per agent: its cell on ``CommandField``'s padded grid (``locate``), the look-ahead point
+    ``x + lead_s u`` (u = ``vel_ned * map_to_ned``; its own point when that has no CV), the staggered
+    field there, and the deviation of ``fisc_agent.map.kinetic.deviation_in_cells`` at interval
+    ``floor(t_over_p + phase)`` with its wall reflections; the state (``epoch``, ``sign``,
+    ``direction``) is updated in place.  ``cv``: the agents' own CVs when ``cv_given``, else looked up
+    on the padded grid.  ``cmd_out`` gets the NED command (0 where the look-up point has no CV).
+    """
+    try:
+        from sim import kinetic_jit as module
+    except ModuleNotFoundError as exc:
+        if exc.name != "numba":
+            raise
+        return None
+    return module.kinetic_commands

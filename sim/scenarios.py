@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fisc_agent.map.kinetic import deviation_direction
 from fisc_agent.map.lookup import CommandField
+from sim.kinetic_step import deviation_x
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -197,8 +197,8 @@ class Reservoir:
             return pos, ids
         cv = self.field.cv_of(pos) if cv_ids is None else np.asarray(cv_ids, dtype=np.int64)
         j = np.maximum(cv, 0)
-        d, _ = deviation_direction(ids, t_s, self.kinetic_persistence_s)
-        p = kinetic_admission(self._entry_u_m_s[j], self._spread_m_s[j], d[:, 0])
+        d_x = deviation_x(ids, t_s, self.kinetic_persistence_s)  # numba when installed, same bits
+        p = kinetic_admission(self._entry_u_m_s[j], self._spread_m_s[j], d_x)
         keep = rng.random(pos.shape[0]) < np.where(cv >= 0, p, 1.0)
         return pos[keep], ids[keep]
 

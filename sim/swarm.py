@@ -51,6 +51,7 @@ from fisc_agent.map.lookup import (
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
 from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
+from sim.kinetic_step import KineticStep
 from sim.plant.model import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
@@ -59,7 +60,6 @@ MAP_TO_NED = np.array([1.0, 1.0, -1.0])
 #: when agents leave: position, velocity, thrust, id, time outside, and the kinetic state
 #: (``fisc_agent.map.kinetic.DeviationState``).
 _AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
-
 
 
 @dataclass(frozen=True)
@@ -185,6 +185,8 @@ class Swarm:
             self._kernel = fused_lookup_kernel()
             if self._kernel is None and self.config.lookup_backend == "numba":
                 raise RuntimeError("lookup_backend='numba' requested but numba is not installed (pip install fisc[jit])")
+        self._kinetic = KineticStep.make(field, self.config.persistence_s, self.config.lookahead_s) \
+            if self._kernel is not None and self.config.mode == "kinetic" else None  # numba: one pass, same bits
         self._alloc(1024)
         self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
         self._cmd_ready = False  # the fused kernel filled the commands of the current assignment
@@ -288,7 +290,10 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
+        phase = deviation_phase(ids)
+        if vel_map_m_s is None and self._kinetic is not None:
+            vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
+        elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
             # start at the command of flight_command without look-ahead (kinetic: with its deviation)
             st = self.config.flight_settings
             cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
@@ -308,7 +313,7 @@ class Swarm:
         self._out[s] = 0.0
         self._epoch[s] = -1
         self._sign[s] = 1.0
-        self._phase[s] = deviation_phase(ids)
+        self._phase[s] = phase
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
@@ -441,15 +446,15 @@ class Swarm:
 
     def _flight_commands(self, cv: np.ndarray, cmd_ned: np.ndarray, t_s: float) -> None:
         """Commands of every agent from ``fisc_agent.map.lookup.flight_command`` (the onboard agent's
-        function, vectorised), rows outside the CVs 0 (the return policy fills them)."""
+        function, vectorised), rows outside the CVs 0 (the return policy fills them; numba: ``KineticStep``)."""
         n = self.n
-        state = DeviationState(self._epoch[:n], self._sign[:n], self._dir[:n], self._phase[:n])
+        rows = self._epoch[:n], self._sign[:n], self._dir[:n], self._phase[:n]
+        if self._kinetic is not None:
+            return self._kinetic.commands(self.pos_m, self.vel_ned_m_s, self.ids, cv, t_s, *rows, cmd_ned)
         cmd, _, new = flight_command(self.field, self.pos_m, self.velocity_map(), self.ids, t_s,
-                                     self.config.flight_settings, state, cv_ids=cv)
+                                     self.config.flight_settings, DeviationState(*rows), cv_ids=cv)
         if new is not None:
-            self._epoch[:n] = new.epoch
-            self._sign[:n] = new.sign
-            self._dir[:n] = new.direction
+            self._epoch[:n], self._sign[:n], self._dir[:n] = new.epoch, new.sign, new.direction
         cmd[np.isnan(cmd)] = 0.0
         np.multiply(cmd, MAP_TO_NED, out=cmd_ned)
 
