@@ -15,6 +15,10 @@ The flight: ``FISC_SITL_SWARM`` vehicles (default 8), stock parameters, the agen
 - ``fisc-sim emulate --plant px4-sih`` with the same fleet, exit policy, safety net and duration gives
   each profile figure within ``PREDICTION_TOLERANCE`` of the real one.
 
+Measured 2026-12-05 (one run): closest approach 0.61 m, largest excursion 0.30 m, 3-4 laps each, but
+the profile's density r 0.41 and pressure r -0.49 (the emulator: 0.45 and 0.54), so the profile and
+prediction checks fail: issue 37 stays open on them (docs/status.md).
+
 It takes about 12 minutes on two cores (the flight, then the emulation), so it is marked ``long``:
 the default run (`.ci/run`) leaves it out (``-m "not long"`` in pyproject's addopts); run it with
 ``pytest -m long tests/e2e/test_px4_swarm_loop_sitl.py -s``.  Its JSON report is printed.
