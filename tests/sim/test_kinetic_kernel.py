@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("numba")
+from ..optional import require_module
+
+require_module("numba", extra="jit")
 
 from fisc_agent.map.codec import load_map  # noqa: E402
 from fisc_agent.map.kinetic import DeviationState, deviation_phase  # noqa: E402
