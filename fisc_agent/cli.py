@@ -117,8 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "forgetting over this time, and set the feed-forward gain from it [s]; off: keep the gain "
                         "identified before the pass")
     p.add_argument("--safety-net", choices=("on", "off"), default="on",
-                   help="separation safety net: with --swarm, hear the neighbours' telemetry and, only inside the "
-                        "map's d_min of one, stop closing on it and push apart (fisc_agent.flight.safety_net); "
+                   help="separation safety net: with --swarm, hear the neighbours' telemetry; closing too fast on "
+                        "one, slow down, and inside the map's d_min of one, push apart (fisc_agent.flight.safety_net); "
                         "off: the paper's flow law alone")
     p.add_argument("--entry-stagger", type=_entry_stagger, default="auto", metavar="S|auto|off",
                    help="cross the inlet only in this agent's window of a cycle of --entry-slots windows of this "

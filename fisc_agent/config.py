@@ -70,9 +70,9 @@ class AgentConfig:
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
     safety_net: SafetyNetConfig | None = SafetyNetConfig()
     """The separation safety net (``fisc_agent.flight.safety_net``): with a Zenoh link the agent hears
-    its neighbours' telemetry and, only inside the map's d_min of one (more for a stale report), stops
-    closing on it and pushes apart; outside d_min the paper's law is flown unchanged.  None
-    (``--safety-net off``): the paper's law alone, whatever the neighbours do."""
+    its neighbours' telemetry; closing on one faster than reaches the map's d_min (more for a stale
+    report) within the net's horizon, it slows, and inside d_min it pushes apart; elsewhere the paper's
+    law is flown unchanged.  None (``--safety-net off``): the paper's law alone."""
     lookahead_auto: bool = True
     """Identify the vehicle's velocity response in flight (take-off and join) and set the look-ahead and
     feed-forward gain from it (``--lookahead auto``); False: ``lookahead_s`` as given (or the map's)."""

@@ -127,6 +127,16 @@ def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float
     return float(n_agents) / total
 
 
+def periods_due(next_t_s: float, t_s: float, period_s: float) -> tuple[int, float]:
+    """How many events of a clock ticking every ``period_s``, next due at ``next_t_s``, are due by
+    ``t_s`` (1e-9 s early counts), and when the one after them is due."""
+    k = 0
+    while next_t_s <= t_s + 1e-9:
+        next_t_s += period_s
+        k += 1
+    return k, next_t_s
+
+
 class Reservoir:
     """Case 2: batches of agents through the inlet at eq. source_rate (see module docstring)."""
 
@@ -204,10 +214,7 @@ class Reservoir:
 
     def due(self, t_s: float) -> int:
         """Number of batches due by time ``t_s`` (advances the internal clock)."""
-        k = 0
-        while self._next_t <= t_s + 1e-9:
-            self._next_t += self.interval_s
-            k += 1
+        k, self._next_t = periods_due(self._next_t, t_s, self.interval_s)
         return k
 
 
@@ -234,10 +241,7 @@ class StaggeredInlet:
 
     def due(self, t_s: float) -> int:
         """Number of admissions due by time ``t_s`` (advances the internal clock)."""
-        k = 0
-        while self._next_t <= t_s + 1e-9:
-            self._next_t += self.period_s
-            k += 1
+        k, self._next_t = periods_due(self._next_t, t_s, self.period_s)
         return k
 
     def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:

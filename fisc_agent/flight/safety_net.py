@@ -246,20 +246,13 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     return NetAction((float(out[0]), float(out[1]), float(out[2])), tuple(int(i) for i in ids[acts]), nearest)
 
 
-def pair_reach_m(d_min_m: float, max_speed_m_s: float, cfg: SafetyNetConfig = SafetyNetConfig(),
-                 lag_s: float = 0.0) -> float:
-    """Farthest apart two vehicles of commanded speed <= ``max_speed_m_s`` can be with the net acting
-    between them [m] (a vehicle closes at most at its own commanded speed)."""
-    return float(d_min_m + effective_horizon_s(cfg, lag_s) * max_speed_m_s)
-
-
 def keep_apart_pairs(position_m: np.ndarray, velocity_m_s: np.ndarray, command_m_s: np.ndarray, ids: np.ndarray,
                      pairs: np.ndarray, d_min_m: float, cfg: SafetyNetConfig = SafetyNetConfig(), lag_s: float = 0.0,
                      duct: DuctAxis | None = None) -> np.ndarray:
     """The net for a whole swarm whose members hear each other at once (reports of age 0: the
     simulator's view): ``command_m_s`` (n, 3) after the net.  ``pairs`` (m, 2): index pairs (i, j),
     each unordered pair once, to be checked: every pair that can act, i.e. within d_min plus the
-    horizon times the fastest commanded speed (``pair_reach_m``).  ``lag_s``: the vehicles' velocity
+    horizon times the fastest commanded speed (a vehicle closes at most at its own commanded speed).  ``lag_s``: the vehicles' velocity
     lag; ``duct``: the wall rule.  Agrees with ``keep_apart`` applied to each vehicle with fresh
     reports of all the others."""
     cmd = np.asarray(command_m_s, dtype=float)

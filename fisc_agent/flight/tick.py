@@ -1,6 +1,6 @@
 """One tick of the agent as the runner keeps it (``TickRecord``), the telemetry snapshot made of it
-(``AgentSnapshot``), and the telemetry flags of a mission state (pure): ``failsafe`` (a failsafe holds or returns the vehicle) and ``outside_map``
-(outside the CVs where the mission belongs inside)."""
+(``AgentSnapshot``), and the telemetry flags of a mission state (pure): ``failsafe`` (a failsafe
+holds or returns the vehicle) and ``outside_map`` (outside the CVs where the mission belongs inside)."""
 
 from __future__ import annotations
 
@@ -55,7 +55,6 @@ class TickRecord:
     """The autopilot's health report."""
     net: NetAction | None = None
     """What the separation safety net did this tick (None: it did not run)."""
-
 
 
 @dataclass(frozen=True)
@@ -118,8 +117,6 @@ class AgentSnapshot:
     """Distance to the nearest neighbour heard (safety net's view) [m] (inf: none heard or net off)."""
     net_ids: tuple[int, ...] = ()
     """Neighbours the safety net acted on this tick (closing too fast, or inside d_min); () none."""
-
-
 
 
 NET_STATES = frozenset({State.JOIN, State.FLOW, State.RETURN, State.EXIT})
