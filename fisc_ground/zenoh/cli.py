@@ -192,7 +192,8 @@ def add_parsers(subparsers: Any) -> None:
     p.add_argument("--json", action="store_true",
                    help='print {"agents": [{"id", "state", "authority", "battery_pct", "landed", "health", '
                         '"map_sha256", "last_seen_s", ...}], "alarms": [...]}')
-    p.add_argument("--wait", type=float, default=2.0, metavar="S", help="listening window (default 2 s)")
+    p.add_argument("--wait", type=float, default=2.0, metavar="S",
+                   help="listening window (default 2 s); with --expect N it ends as soon as N agents are heard")
     p.add_argument("--stale-after", type=float, default=3.0, metavar="S",
                    help="an agent not heard for S seconds is stale (default 3)")
     p.add_argument("--low-battery", type=float, default=LOW_BATTERY_PCT, metavar="PCT",

@@ -240,6 +240,23 @@ def run_cmd(args: Any) -> int:
     return 0 if res.matched else 1  # no agent subscribed: a runtime failure (fisc_agent.common.cli_common)
 
 
+def listen(listener: TelemetryListener, window_s: float, expect: int | None = None, stale_after_s: float = 3.0,
+           poll_s: float = 0.02) -> dict[int, tuple[tc.Telemetry, float]]:
+    """Listen for ``window_s`` seconds, or only until ``expect`` agents answer (heard within
+    the last ``stale_after_s``); the snapshot."""
+    end = time.monotonic() + window_s
+    while True:
+        latest = listener.snapshot()
+        left_s = end - time.monotonic()
+        if left_s <= 0.0:
+            return latest
+        if expect is not None:
+            now_s = time.time()
+            if sum(now_s - seen <= stale_after_s for _, seen in latest.values()) >= expect:
+                return latest
+        time.sleep(min(poll_s, left_s))
+
+
 def run_status(args: Any) -> int:
     """``fisc-ground status --swarm NAME [--zenoh-config FILE] [--json] [--wait S] [--expect N]``
     (exit 1 when fewer than N agents answered)."""
@@ -250,8 +267,7 @@ def run_status(args: Any) -> int:
     session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         listener = TelemetryListener(session, keys)
-        time.sleep(args.wait)
-        latest = listener.snapshot()
+        latest = listen(listener, args.wait, getattr(args, "expect", None), args.stale_after)
         listener.close()
     finally:
         session.close()

@@ -7,8 +7,9 @@ One trial, on its own free lab port (``FISC_ZENOH_PORT``, never 7447), no config
 2. ``fisc-ground monitor --swarm z2 --record`` and ``fisc-sim emulate --swarm z2`` join, in the
    trial's order and gaps;
 3. once ``fisc-ground status --swarm z2`` lists every z2 agent, z1 is killed (SIGTERM or SIGKILL);
-4. after a pause, ``fisc-ground status --swarm z2 --json`` is asked again: it must list every
-   z2 agent, and the time it took (process start to exit) is recorded;
+4. after a pause, ``fisc-ground status --swarm z2 --json --expect N`` is asked again (as an
+   operator who knows the fleet's size asks; it answers once N are heard, within its 2 s window):
+   it must list every z2 agent, and the time it took (process start to exit) is recorded;
 5. the monitor's recording is read back: the longest silence of any z2 agent after the monitor
    first heard it, between z1's kill and the end (the monitor shows them fresh throughout when it
    stays below the stale time, 3 s).
@@ -46,7 +47,8 @@ class Trial:
     pause_s: float = 2.0
     """From z1's end to the ``status`` that must list everyone [s]."""
     status_wait_s: float = 2.0
-    """``status --wait`` of that final query [s] (2: status's default)."""
+    """``status --wait`` of that final query [s] (2: status's default; with ``--expect`` the
+    longest it listens)."""
 
 
 @dataclass(frozen=True)
@@ -83,12 +85,14 @@ def _env(port: int) -> dict[str, str]:
     return {**os.environ, PORT_ENV: str(port), "PYTHONPATH": f"{_ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 
 
-def _status(env: dict, swarm: str, wait_s: float) -> tuple[list[int], float, str]:
-    """Run ``fisc-ground status --json``; (agent ids listed, wall time [s], stderr)."""
+def _status(env: dict, swarm: str, wait_s: float, expect: int | None = None) -> tuple[list[int], float, str]:
+    """Run ``fisc-ground status --json`` (``--expect``: it answers once that many are heard);
+    (agent ids listed, wall time [s], stderr)."""
     t0 = time.monotonic()
+    more = [] if expect is None else ["--expect", str(expect)]
     try:
         p = subprocess.run([sys.executable, "-m", "fisc_ground.cli", "status", "--swarm", swarm, "--json", "--wait",
-                            f"{wait_s:g}"], env=env, capture_output=True, text=True, timeout=60)
+                            f"{wait_s:g}", *more], env=env, capture_output=True, text=True, timeout=60)
     except subprocess.TimeoutExpired:
         return [], time.monotonic() - t0, "status did not finish within 60 s"
     took = time.monotonic() - t0
@@ -145,7 +149,7 @@ def run_trial(trial: Trial, work: Path) -> Outcome:
         procs["z1"].send_signal(trial.kill_signal)
         procs["z1"].wait(timeout=60)
         time.sleep(trial.pause_s)
-        ids, took, err = _status(env, "z2", trial.status_wait_s)
+        ids, took, err = _status(env, "z2", trial.status_wait_s, expect=n)
         time.sleep(1.0)
         t_end = time.time()
         procs["monitor"].send_signal(signal.SIGINT)  # closes the recording cleanly
