@@ -1,4 +1,5 @@
-"""``fisc-sim bench``: speed of the swarm core (agent-steps/s, peak memory), the wall time of the
+"""``fisc-sim bench``: speed of the swarm core (agent-steps/s, peak memory, the bytes it moves
+against the machine's memory bandwidth: ``sim.memory_traffic``), the wall time of the
 paper's run (flown with the paper's preset and with the default), and the same agent-steps/s figure
 for RotorPy's batched multirotor simulator.
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from fisc_agent.map.lookup import CommandField
 from sim.plant.model import PlantParams
+from sim.memory_traffic import bandwidth_lines, copy_bandwidth_gb_s, last_level_cache_bytes
 from sim.scenarios import seed_positions
 from sim.swarm import Swarm, SwarmConfig
 
@@ -104,14 +106,17 @@ def run_bench(sizes: list[int], steps: int = 20, rotorpy: bool = True, paper_run
     cf = CommandField.from_map(cmap)
     name = cmap.body.get("provenance", {}).get("reference", {}).get("name")
     yield f"map: {name} ({cmap.n_cv} CVs), mode mean, dt 0.05 s"
-    ours = {}
+    ours, state_bytes = {}, {}
     for n in sizes:
         k = max(2, min(steps, int(2e6 // max(n, 1)) or 2))
         r = bench_core(cf, n, k)
         ours[n] = r["agent_steps_per_s"]
+        state_bytes[n] = int(r["state_mib"] * 2**20)
         yield (f"swarm core {n:>8d} agents: {r['agent_steps_per_s']:.3g} agent-steps/s "
                f"({r['step_ms']:.2f} ms/step over {k} steps; best step {r['best_agent_steps_per_s']:.3g}), "
                f"peak step memory {r['peak_step_mib']:.1f} MiB, state {r['state_mib']:.1f} MiB")
+    if sizes:
+        yield from bandwidth_lines(ours, state_bytes, copy_bandwidth_gb_s(), last_level_cache_bytes())
     if paper_run:
         for preset, run_map in (("paper", load_command_map(map_spec, preset="paper")), ("default", cmap)):
             r = bench_paper_run(run_map, preset)
