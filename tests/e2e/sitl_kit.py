@@ -179,14 +179,23 @@ class _SitlSet:
             self._lock.release()
 
 
+PX4_SIH_AIRFRAMES = {"quadx": (10040, "sihsim_quadx"), "hex": (10044, "sihsim_hex")}
+"""PX4's SIH multicopters in the shared build (``etc/init.d-posix/airframes``): name -> (SYS_AUTOSTART,
+PX4_SIM_MODEL).  start.sh flies the quadcopter; the hexacopter is another airframe with its own stock
+parameters (mass, inertia, rotor geometry), for the agent's adaptation (issue 37)."""
+
+
 class Px4Sitl(_SitlSet):
     """``with Px4Sitl(shared/sitl/px4, tmp, n) as run:`` N PX4 SIH vehicles, ready to arm."""
 
     def __init__(self, shared_px4: Path, work: Path, n: int = 1, spacing_m: float | None = None,
-                 params: dict[str, float] | None = None, ready_timeout_s: float = 60.0) -> None:
+                 params: dict[str, float] | None = None, ready_timeout_s: float = 60.0,
+                 airframe: str = "quadx") -> None:
+        if airframe not in PX4_SIH_AIRFRAMES:
+            raise ValueError(f"airframe {airframe!r}: one of {sorted(PX4_SIH_AIRFRAMES)}")
         self.install = px4_install(shared_px4, work / "px4-install")
         self.run_dir = work / "px4-run"
-        self.n, self.spacing_m, self.params = n, spacing_m, dict(params or {})
+        self.n, self.spacing_m, self.params, self.airframe = n, spacing_m, dict(params or {}), airframe
         self.ready_timeout_s = ready_timeout_s
         self._lock = MachineLock()
 
@@ -194,8 +203,12 @@ class Px4Sitl(_SitlSet):
         env = dict(os.environ, PX4_SITL_RUN=str(self.run_dir))
         if self.spacing_m is not None:
             env["SITL_SPACING_M"] = str(self.spacing_m)
-        if self.params:
-            env["SITL_EXTRA_PARAMS"] = " ".join(f"PX4_PARAM_{k}={v}" for k, v in self.params.items())
+        extra = [f"PX4_PARAM_{k}={v}" for k, v in self.params.items()]
+        if self.airframe != "quadx":  # start.sh passes these on after its own (10040, sihsim_quadx): they win
+            autostart, model = PX4_SIH_AIRFRAMES[self.airframe]
+            extra = [f"PX4_SYS_AUTOSTART={autostart}", f"PX4_SIM_MODEL={model}", *extra]
+        if extra:
+            env["SITL_EXTRA_PARAMS"] = " ".join(extra)
         return env
 
     def console(self, i: int) -> str:
