@@ -19,6 +19,14 @@ fault        what must happen (checked on the recorder's MCAP log unless said ot
 ==========  =====================================================================================
 status       a running ``status`` killed: nobody notices; every agent heard without a gap > 3 s
              (the monitors' --stale-after; the same limit for every "heard throughout" below)
+cmd          a running ``cmd hold --agents 0-2,999`` (signed; 999 is nobody, so it is still waiting
+             for acknowledgements, or still starting, when killed): the hold reached every target
+             or none (0-2 fly in one emulate worker, one Zenoh session: a sample arrives whole or
+             not at all), all acting on one command, no agent refusing a command (no half command
+             decoded); no other agent acknowledges or holds; a delivered hold is flown (HOLD within
+             3 s, not a failsafe) and a completed ``cmd resume --agents 0-2`` afterwards, acknowledged
+             by the three, has them flying again within 5 s; an undelivered one leaves them flying
+             throughout; everyone heard throughout
 publisher    every agent keeps its map (same sha256) and its flight; no gap > 3 s; nothing alarms
 monitor      the recorder hears everyone throughout; the killed monitor's log is readable up to
              the kill; a monitor started right after hears every agent within 5 s
@@ -73,10 +81,18 @@ has grown by then) [s]."""
 STALE_AFTER_S = 3.0
 """The monitors' ``--stale-after``: a survivor silent longer than this is a link lost (the
 ground itself would call it stale) [s]."""
-DURATION_S = 85
+DURATION_S = 100
 """``fisc-sim emulate --duration``: outlives the last observation window on this 2-core machine."""
 FLYING = {"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"}
 KILLED_AGENT, KILLED_EMULATOR = 100, 101
+CMD_TARGETS = (0, 1, 2)
+"""The killed ``cmd hold``'s agents: the first emulate worker's (``numpy.array_split`` of the ids)."""
+NOBODY = 999
+"""An id no agent has: the killed ``cmd`` waits its whole ``--ack-wait`` for it."""
+HOLD_WITHIN_S = 3.0
+"""A delivered hold is flown (telemetry HOLD) within this long of its acknowledgement [s]."""
+RESUMED_WITHIN_S = 5.0
+"""After a completed ``cmd resume`` every held target flies again within this long [s]."""
 
 
 @dataclass
@@ -90,6 +106,12 @@ class Flight:
     emulate_ran_to_the_end: bool
     newcomer: subprocess.CompletedProcess
     """``fisc-ground status --json`` started after the lab port's holder was killed."""
+    cmd_started_s: float
+    """Wall-clock start of the killed ``cmd hold`` [UNIX s]."""
+    resume: subprocess.CompletedProcess
+    """The completed ``cmd resume --agents 0-2`` that follows it."""
+    resume_sent_s: tuple[float, float]
+    """Wall-clock start and end of that resume [UNIX s]."""
 
     def survivors(self, t_s: float) -> list[int]:
         """Agents that must be heard at ``t_s``: the emulated fleet, 101, and 100 until its kill."""
@@ -131,6 +153,17 @@ def _fly(lab: FaultLab) -> Flight:
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
     time.sleep(SLOT_S)
+    cmd_started_s = time.time()
+    cmd = lab.start("cmd", ground("cmd", "hold", "--swarm", SWARM, "--key", lab.key, "--ack-wait", "30",
+                                  "--agents", f"{CMD_TARGETS[0]}-{CMD_TARGETS[-1]},{NOBODY}"))
+    kills.kill_at("cmd", cmd, 0.5, 4.0)  # while it starts, waits for subscribers, or waits for 999's ack
+    time.sleep(HOLD_WITHIN_S)  # a delivered hold is flown by now
+    resume_sent_s = time.time()
+    resume = lab.run(ground("cmd", "resume", "--swarm", SWARM, "--key", lab.key, "--ack-wait", "8",
+                            "--agents", f"{CMD_TARGETS[0]}-{CMD_TARGETS[-1]}"))
+    resume_sent = (resume_sent_s, time.time())
+    print(f"fault: resume after the killed cmd ({resume_sent[1] - resume_sent_s:.2f} s): {resume.stdout.strip()}")
+    time.sleep(RESUMED_WITHIN_S)
     kills.kill_at("publisher", publisher, 0.0, 2.0)
     time.sleep(SLOT_S)
     kills.kill_at("monitor", monitor, 0.0, 2.0)
@@ -151,7 +184,8 @@ def _fly(lab: FaultLab) -> Flight:
     assert poll(lambda: not emulate.alive, DURATION_S + 60, period_s=0.5), lab.procs.report()
     assert poll(lambda: not restarted.alive, 30), lab.procs.report()
     assert lab.interrupt(recorder) == 0, recorder.log_tail()  # Ctrl-C: the monitor closes its MCAP log
-    return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer)
+    return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer,
+                  cmd_started_s, resume, resume_sent)
 
 
 def _heard(lab: FaultLab) -> set[int]:
@@ -167,6 +201,15 @@ def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0,
     assert not gaps, f"after the {kill.case} kill ({kill}), silent > {limit_s} s: {gaps}"
 
 
+def _cmd_acted(flight: Flight) -> bool:
+    """The killed ``cmd``'s hold reached its targets (one acknowledged it before the resume)."""
+    from fisc_agent.zenoh.telemetry_codec import ACK_COMMANDS
+
+    hold = ACK_COMMANDS.index("hold")
+    return any((flight.ev.agents[i].between(flight.cmd_started_s, flight.resume_sent_s[0]).records["ack_command"]
+                == hold).any() for i in CMD_TARGETS if i in flight.ev.agents)
+
+
 def _keeps_map_and_flight(flight: Flight, agent_id: int, t0_s: float, t1_s: float) -> None:
     series = flight.ev.agents[agent_id].between(t0_s, t1_s)
     assert series.recv_s.size, f"agent {agent_id} not heard in [{t0_s}, {t1_s}]"
@@ -180,6 +223,44 @@ def _keeps_map_and_flight(flight: Flight, agent_id: int, t0_s: float, t1_s: floa
 
 def test_a_running_status_killed_disturbs_nobody(flight):
     _heard_throughout(flight, flight.lab.kills.of("status"))
+
+
+def test_a_running_cmd_killed_its_hold_reached_every_target_or_none_and_a_resume_restores_them(flight):
+    from fisc_agent.zenoh.telemetry_codec import ACK_COMMANDS
+
+    ev, kill = flight.ev, flight.lab.kills.of("cmd")
+    t_resume, t_resumed = flight.resume_sent_s
+    _heard_throughout(flight, kill, after_s=t_resumed + RESUMED_WITHIN_S - kill.t_s)
+    hold, resume = ACK_COMMANDS.index("hold"), ACK_COMMANDS.index("resume")
+    acks, refused = {}, {}
+    for i in flight.survivors(kill.t_s):
+        before = ev.agents[i].between(0.0, flight.cmd_started_s).records
+        during = ev.agents[i].between(flight.cmd_started_s, t_resume).records
+        acks[i] = sorted(set(during["ack_seq"][during["ack_command"] == hold].tolist()))
+        refused[i] = int(during["cmds_refused"].max(initial=0)) - int(before["cmds_refused"].max(initial=0))
+    acted = {i for i, seqs in acks.items() if seqs}
+    print(f"cmd killed {kill.t_s - flight.cmd_started_s:.2f} s after its start: hold acknowledged by {sorted(acted)}")
+    assert acted in (set(), set(CMD_TARGETS)), f"the killed cmd's hold reached only some: {acks}"
+    assert len({s for seqs in acks.values() for s in seqs}) <= 1, f"more than one hold acknowledged: {acks}"
+    assert not any(refused.values()), f"agents refused a command (a half command?): {refused}"
+    for i in CMD_TARGETS:
+        s = ev.agents[i].between(flight.cmd_started_s, t_resume)
+        if acted:  # the hold was flown: HOLD, not a failsafe, soon after its acknowledgement
+            t_ack = s.recv_s[s.records["ack_command"] == hold][0]
+            held = [t for t, st in zip(s.recv_s, s.states()) if st == "HOLD" and t <= t_ack + HOLD_WITHIN_S]
+            assert held, f"agent {i} acknowledged the hold but did not hold: {s.states()}"
+            assert not s.failsafe_holds_s().size, f"agent {i} held in a failsafe"
+        else:  # nothing arrived: it flew on
+            assert set(s.states()) <= FLYING, f"agent {i} stopped flying: {sorted(set(s.states()))}"
+    assert flight.resume.returncode == 0, flight.resume.stderr[-2000:]
+    sent = json.loads(flight.resume.stdout.strip().splitlines()[-1])
+    assert sorted(sent["acked"]) == list(CMD_TARGETS), sent
+    for i in CMD_TARGETS:
+        t_check = t_resumed + RESUMED_WITHIN_S
+        after = ev.agents[i].between(t_check, t_check + 1.0)
+        assert after.recv_s.size and set(after.states()) <= FLYING, \
+            f"agent {i} not flying {RESUMED_WITHIN_S} s after the resume: {after.states()}"
+        assert (ev.agents[i].records["ack_seq"] == sent["seq"]).any(), f"agent {i}: no resume acknowledged"
 
 
 def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
@@ -257,7 +338,7 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
         held = ev.agents[agent_id].failsafe_holds_s()
         held = held[held < flight.lab.kills.of("agent" if agent_id == KILLED_AGENT else "emulator").t_s]
         assert not held.size, f"agent {agent_id} held in a failsafe at {held[:5]} ({flight.lab.kills.kills})"
-    holds = emulated_holds(flight.lab.dir / "emu")
+    holds = emulated_holds(flight.lab.dir / "emu", commanded=CMD_TARGETS if _cmd_acted(flight) else ())
     breaches = ev.duct_breaches(ev.agents, EXCURSION_MAX_S)
     assert not breaches, f"left the duct (start, duration, geofence acting): {breaches}"
     assert flight.emulate_ran_to_the_end, "fisc-sim emulate ended before the last fault was judged"
