@@ -148,7 +148,7 @@ def _fly(lab: FaultLab) -> Flight:
     lab.wait_in_air(agent_100, 90)
     lab.wait_in_air(agent_101, 30)
     everyone = set(range(N_AGENTS)) | {KILLED_AGENT, KILLED_EMULATOR}
-    assert poll(lambda: everyone <= _heard(lab), 90, period_s=0.0), lab.procs.report()
+    assert poll(lambda: everyone <= lab.heard(), 90, period_s=0.0), lab.procs.report()
 
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
@@ -186,12 +186,6 @@ def _fly(lab: FaultLab) -> Flight:
     assert lab.interrupt(recorder) == 0, recorder.log_tail()  # Ctrl-C: the monitor closes its MCAP log
     return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer,
                   cmd_started_s, resume, resume_sent)
-
-
-def _heard(lab: FaultLab) -> set[int]:
-    """Agent ids a ``status --wait 1`` hears now."""
-    out = lab.run(ground("status", "--swarm", SWARM, "--wait", "1", "--json"))
-    return {a["id"] for a in json.loads(out.stdout)["agents"]} if out.returncode == 0 else set()
 
 
 def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0, limit_s: float = STALE_AFTER_S,
