@@ -16,8 +16,8 @@ flight (``test_kills.py``) has them, the vehicles being real PX4:
     agents     fisc-agent --go --geodetic-anchor, ids 0-2 on udp 14540-14542, one pass then the
                exit hold (``--exit-policy loop --laps 1``, the fleet test's flight)
 
-Once every agent is in the air and a ``status`` hears the three, one fault every ``SLOT_S``
-seconds, each at a random delay (seed ``FISC_FAULT_SEED``, default 38; every kill is printed
+Once every agent is in the air, a ``status`` hears the three and one has entered the duct (FLOW),
+one fault every ``SLOT_S`` seconds, each at a random delay (seed ``FISC_FAULT_SEED``, default 38; every kill is printed
 and written to kills.jsonl):
 
 ==========  =====================================================================================
@@ -124,7 +124,8 @@ def flight(tmp_path_factory, shared_path) -> Px4Flight:
     lab.prepare()
     logs = [lab.dir / f"agent{i}.csv" for i in range(N)]
     t0 = time.monotonic()
-    with Px4Sitl(shared_path("sitl", "px4"), lab.dir, N, spacing_m=3.0, params=FAILSAFE_PARAMS) as run:
+    with Px4Sitl(shared_path("sitl", "px4"), lab.dir, N, spacing_m=3.0, params=FAILSAFE_PARAMS,
+                ready_timeout_s=120.0) as run:  # 51 s measured on a loaded machine
         print(f"fault lab {SWARM}: {N} PX4 ready {time.monotonic() - t0:.1f} s after start")
         try:
             victim, restarted, newcomer = _fly(lab, logs)
@@ -162,7 +163,9 @@ def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.Complet
     for agent in agents:
         lab.wait_in_air(agent, 120)
     assert poll(lambda: set(range(N)) <= lab.heard(), 60, period_s=0.0), lab.procs.report()
-    print(f"fault lab {SWARM}: in the air {[_latest(p) for p in logs]}")
+    # the faults begin when a vehicle enters the duct: they then find vehicles in the duct, joining and leaving
+    assert poll(lambda: any(_latest(p)[0] == "FLOW" for p in logs), 60, period_s=0.2), lab.procs.report()
+    print(f"fault lab {SWARM}: first in the duct {[_latest(p) for p in logs]}")
 
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
