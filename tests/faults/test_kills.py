@@ -195,6 +195,12 @@ def _heard_throughout(flight: Flight, kill: Kill, after_s: float = SLOT_S - 1.0,
     assert not gaps, f"after the {kill.case} kill ({kill}), silent > {limit_s} s: {gaps}"
 
 
+def _first_flying_s(series, t_s: float) -> float:
+    """Receive time of the agent's first message in a flying state from ``t_s`` on (inf: none)."""
+    after = series.between(t_s, float("inf"))
+    return next((t for t, st in zip(after.recv_s, after.states()) if st in FLYING), float("inf"))
+
+
 def _cmd_acted(flight: Flight) -> bool:
     """The killed ``cmd``'s hold reached its targets (one acknowledged it before the resume)."""
     from fisc_agent.zenoh.telemetry_codec import ACK_COMMANDS
@@ -225,7 +231,7 @@ def test_a_running_cmd_killed_its_hold_reached_every_target_or_none_and_a_resume
     ev, kill = flight.ev, flight.lab.kills.of("cmd")
     t_resume, t_resumed = flight.resume_sent_s
     _heard_throughout(flight, kill, after_s=t_resumed + RESUMED_WITHIN_S - kill.t_s)
-    hold, resume = ACK_COMMANDS.index("hold"), ACK_COMMANDS.index("resume")
+    hold = ACK_COMMANDS.index("hold")
     acks, refused = {}, {}
     for i in flight.survivors(kill.t_s):
         before = ev.agents[i].between(0.0, flight.cmd_started_s).records
@@ -249,6 +255,10 @@ def test_a_running_cmd_killed_its_hold_reached_every_target_or_none_and_a_resume
     assert flight.resume.returncode == 0, flight.resume.stderr[-2000:]
     sent = json.loads(flight.resume.stdout.strip().splitlines()[-1])
     assert sorted(sent["acked"]) == list(CMD_TARGETS), sent
+    flying_again = {i: _first_flying_s(ev.agents[i], t_resume) - t_resumed for i in CMD_TARGETS}
+    print(f"cmd resume: ended {t_resumed - t_resume:.2f} s after its start; " + (
+          f"the targets fly again {', '.join(f'{i}: {v:.2f}' for i, v in flying_again.items())} s after its end"
+          if acted else "nothing to resume"))
     for i in CMD_TARGETS:
         t_check = t_resumed + RESUMED_WITHIN_S
         after = ev.agents[i].between(t_check, t_check + 1.0)
@@ -274,6 +284,8 @@ def test_a_monitor_killed_and_restarted_picks_the_fleet_up_again(flight):
     assert flight.restarted.popen.returncode == 0, flight.restarted.log_tail()
     again = read_evidence(flight.lab.dir / "restarted.mcap")
     start = min(again.first_heard_s(i) for i in again.agents)
+    last = max(again.first_heard_s(i) for i in flight.survivors(start + 5.0))
+    print(f"restarted monitor: first message {start - kill.t_s:.2f} s after the kill, all {last - start:.2f} s later")
     late = {i: round(again.first_heard_s(i) - start, 2) for i in flight.survivors(start + 5.0)
             if again.first_heard_s(i) > start + 5.0}
     assert not late, f"the restarted monitor took > 5 s (or never) to hear: {late}"
@@ -285,6 +297,9 @@ def test_an_agent_killed_its_vehicle_fails_safe_and_the_ground_alarms(flight):
     autopilot = flight.proc(f"autopilot-{KILLED_AGENT}")
     assert "Failsafe: offboard setpoints lost" in autopilot.log_path.read_text(), autopilot.log_tail()
     lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + 3.0 + 4.0)
+    stale = [t for t, got in flight.ev.alarms if kill.t_s <= t <= kill.t_s + 7.0
+             and any(line.startswith("stale") and str(KILLED_AGENT) in line for line in got)]
+    print(f"agent {KILLED_AGENT} killed: stale alarm {stale[0] - kill.t_s if stale else None} s after")
     assert any(line.startswith("stale") and str(KILLED_AGENT) in line for line in lines), flight.ev.alarms
 
 
