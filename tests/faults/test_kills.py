@@ -8,7 +8,7 @@ Real processes on one free lab port (the Zenoh lab default, no config file):
     publisher  fisc-ground publish MAP
     monitor    fisc-ground monitor --record    killed, then restarted
     vehicles   fisc-sim autopilot + fisc-agent --go, ids 100 and 101 (stand-alone, PX4 personality)
-    emulate    fisc-sim emulate --agents N --swarm   (N from FISC_FAULT_AGENTS, default 10; ids 0..N-1)
+    emulate    fisc-sim emulate --agents N --swarm   (N from FISC_FAULT_AGENTS, default 20; ids 0..N-1)
 
 Once both stand-alone vehicles fly and a ``status`` hears every agent, one fault every ``SLOT_S``
 seconds, each at a random delay (seed ``FISC_FAULT_SEED``, default 38; every kill is printed and
@@ -64,11 +64,13 @@ from ..e2e.conftest import Proc, cli, poll
 pytestmark = pytest.mark.slow
 
 SWARM = "faults"
-N_AGENTS = int(os.environ.get("FISC_FAULT_AGENTS", "10"))
-"""Emulated vehicles (ids 0..N-1).  10, not the issue's 20: on the shared 2-core machine 20
-emulated vehicles, two stand-alone ones and the ground tools starve the emulator's loop (gaps
-near 1 s: every agent's position goes stale, PX4's offboard-loss failsafe takes the vehicles,
-and the fleet holds hands-off whatever the fault); ``FISC_FAULT_AGENTS=20`` flies the 20."""
+N_AGENTS = int(os.environ.get("FISC_FAULT_AGENTS", "20"))
+"""Emulated vehicles (ids 0..N-1), the issue's 20.  Measured 2026-12-05 on the shared 2-core machine
+(load 2-2.7 from other work): two 20-vehicle flights passed (seeds 38 and 42, 111-112 s each), the
+emulate's loops keeping real time (largest emulator loop gap 0.03-0.06 s, agent loop 0.07-0.08 s;
+0.34 of a core for the 20).  An earlier attempt, on the machine shared by five workers, starved the
+emulator (gaps near 1 s, every position stale, the fleet holding hands-off): such a flight reports
+the holds as xfail "inconclusive" (``evidence.emulated_holds``); ``FISC_FAULT_AGENTS=10`` flies fewer."""
 SLOT_S = 6.0
 """Time between two faults [s]."""
 HUB_OBSERVE_S = 15.0
@@ -255,9 +257,9 @@ def test_a_running_cmd_killed_its_hold_reached_every_target_or_none_and_a_resume
     assert flight.resume.returncode == 0, flight.resume.stderr[-2000:]
     sent = json.loads(flight.resume.stdout.strip().splitlines()[-1])
     assert sorted(sent["acked"]) == list(CMD_TARGETS), sent
-    flying_again = {i: _first_flying_s(ev.agents[i], t_resume) - t_resumed for i in CMD_TARGETS}
+    flying_again = {i: _first_flying_s(ev.agents[i], t_resume) - t_resume for i in CMD_TARGETS}
     print(f"cmd resume: ended {t_resumed - t_resume:.2f} s after its start; " + (
-          f"the targets fly again {', '.join(f'{i}: {v:.2f}' for i, v in flying_again.items())} s after its end"
+          f"the targets fly again {', '.join(f'{i}: {v:.2f}' for i, v in flying_again.items())} s after its start"
           if acted else "nothing to resume"))
     for i in CMD_TARGETS:
         t_check = t_resumed + RESUMED_WITHIN_S
