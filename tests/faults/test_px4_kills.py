@@ -39,9 +39,16 @@ whole        no agent ever flies a map other than the signed one; from the first
 flight       holds in a failsafe (before: the agents hold ~2 s for PX4's estimator reset during
              take-off, "position jump"), and no surviving PX4 logs a failsafe; no vehicle leaves the duct by SIH's ground
              truth (ULog on the agents' wall clock, ``sitl_kit.truth_on_wall_clock``): in its pass
-             a survivor stays within 0.3 m of the wall (the PX4 tests' bound), the killed one
-             within PX4's own stopping distance (0.45 m, ``test_px4_sitl.FAILSAFE_EXCURSION_M``)
+             a vehicle flown by its agent goes at most 0.3 m beyond the wall (the PX4 tests' bound),
+             the killed one, in the 5 s of PX4's failsafe stop, at most PX4's own stopping distance
+             (0.45 m, ``test_px4_sitl.FAILSAFE_EXCURSION_M``)
 ==========  =====================================================================================
+
+Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
+fixed setpoint there, but with stock position gains in SIH its own estimate wanders about 0.7 m
+around it and the truth, with the estimator's error, up to 1.7 m from where it stopped within 20 s
+(four flights, 2026-12-05); one of them ended 0.42 m beyond the wall.  No FISC process flies that
+vehicle any more: a lab sizes the airspace around the duct for PX4's own hold (docs/deployment.md).
 
 The three vehicles' processes are stopped after the last window (the agents by SIGTERM: they
 hold); a pass need not be complete.  Measured wall time: see docs/zenoh.md, "What each fault does".
@@ -85,6 +92,9 @@ HUB_OBSERVE_S = 15.0
 """Observation window after the lab port's holder is killed [s]."""
 NEWCOMER_AFTER_S = 8.0
 """A ``status --wait 5`` started this long after the holder's kill must list every survivor [s]."""
+FAILSAFE_STOP_S = 5.0
+"""PX4's failsafe has stopped the killed agent's vehicle this long after the kill (measured: it
+comes to rest 2-3 s after; COM_OF_LOSS_T 0.5 s, then Hold's braking) [s]."""
 FAILSAFE_WITHIN_S = 2.0
 """PX4 sets ``failsafe`` within this long of its agent's kill (COM_OF_LOSS_T 0.5 s, the clock fit
 and the 5 Hz vehicle_status log) [s]."""
@@ -293,14 +303,24 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     from fisc_agent.map.codec import load_map
 
     scale = load_map(flight.lab.map, flight.lab.pub).scale
-    excursion = {}
+    excursion, drift = {}, math.nan
     for i in range(N):
         truth = flight.truth(i)
         assert truth.fit_rms_m < 0.1, (i, truth.fit_rms_m)  # the clocks matched: the truth is on the wall clock
-        excursion[i] = score_track(*truth_pass(truth), ref, scale, wall=wall).max_excursion_m
-    print(f"ground truth: largest distance beyond the wall in the pass [m] (nan: never entered): {excursion}; "
-          f"agent {flight.victim} killed at {kill.t_s:.1f}")
-    for i, exc in excursion.items():
-        bound = FAILSAFE_EXCURSION_M if i == flight.victim else MAX_EXCURSION_M
-        assert math.isnan(exc) or exc < bound, f"vehicle {i} left the duct by {exc:.2f} m (bound {bound} m)"
-    assert not all(math.isnan(e) for e in excursion.values()), "no vehicle entered the duct: nothing judged"
+        t, pos, vel, states = truth_pass(truth)
+
+        def beyond_wall_m(t0_s: float, t1_s: float) -> float:
+            sel = (t >= t0_s) & (t <= t1_s)
+            return score_track(t[sel], pos[sel], vel[sel], states[sel], ref, scale, wall=wall).max_excursion_m
+
+        if i == flight.victim:  # FISC's flight, then PX4's failsafe stop, then PX4's hold (reported only)
+            excursion[i] = (beyond_wall_m(-math.inf, kill.t_s), beyond_wall_m(kill.t_s, kill.t_s + FAILSAFE_STOP_S))
+            drift = beyond_wall_m(kill.t_s + FAILSAFE_STOP_S, math.inf)
+        else:
+            excursion[i] = (beyond_wall_m(-math.inf, math.inf), math.nan)
+    print(f"ground truth, largest distance beyond the wall in the pass [m] (nan: not in the duct): {excursion} "
+          f"(vehicle {flight.victim}: before its agent's kill, in PX4's stop); then in PX4's hold: {drift}")
+    for i, (flown, stop) in excursion.items():
+        assert math.isnan(flown) or flown < MAX_EXCURSION_M, f"vehicle {i} left the duct by {flown:.2f} m"
+        assert math.isnan(stop) or stop < FAILSAFE_EXCURSION_M, f"vehicle {i} stopped {stop:.2f} m beyond the wall"
+    assert not all(math.isnan(e[0]) for e in excursion.values()), "no vehicle entered the duct: nothing judged"
