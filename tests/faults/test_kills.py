@@ -23,7 +23,7 @@ cmd          a running ``cmd hold --agents 0-2,999`` (signed; 999 is nobody, so 
              for acknowledgements, or still starting, when killed): the hold reached every target
              or none (0-2 fly in one emulate worker, one Zenoh session: a sample arrives whole or
              not at all), all acting on one command, no agent refusing a command (no half command
-             decoded); no other agent acknowledges or holds; a delivered hold is flown (HOLD within
+             decoded); no other agent acknowledges it; a delivered hold is flown (HOLD within
              3 s, not a failsafe) and a completed ``cmd resume --agents 0-2`` afterwards, acknowledged
              by the three, has them flying again within 5 s; an undelivered one leaves them flying
              throughout; everyone heard throughout
@@ -39,7 +39,8 @@ first        the holder of the lab port killed: every agent is still heard for 1
              and a ``status --wait 5`` started 8 s later lists every flying agent; whatever
              happens, a silence the ground suffers is alarmed
 whole        no agent ever flies a map other than the signed one; the stand-alone agents hold in
-flight       no failsafe before their own kill; an emulated agent never holds (a hold for a cause
+flight       no failsafe before their own kill; an emulated agent never holds but for a delivered
+             ``cmd hold`` (a hold for a cause
              only a starved emulator makes, position stale or PX4 offboard loss, while the emulate
              reports an emulator loop stall >= 0.5 s, makes the case xfail "inconclusive" with the
              holds listed; any other hold fails); no vehicle leaves the duct (every spell outside
