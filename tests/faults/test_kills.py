@@ -40,10 +40,9 @@ first        the holder of the lab port killed: every agent is still heard for 1
              happens, a silence the ground suffers is alarmed
 whole        no agent ever flies a map other than the signed one; the stand-alone agents hold in
 flight       no failsafe before their own kill; an emulated agent never holds but for a delivered
-             ``cmd hold`` (a hold for a cause
-             only a starved emulator makes, position stale or PX4 offboard loss, while the emulate
-             reports an emulator loop stall >= 0.5 s, makes the case xfail "inconclusive" with the
-             holds listed; any other hold fails); no vehicle leaves the duct (every spell outside
+             ``cmd hold`` (a hold for a cause only a starved emulator makes, position stale or PX4
+             offboard loss, while the emulate reports an emulator loop stall >= 0.5 s, makes the
+             case xfail "inconclusive" with the holds listed; any other hold fails); no vehicle leaves the duct (every spell outside
              the CVs is the geofence's RETURN or HOLD and ends within 15 s); emulate ends normally
 ==========  =====================================================================================
 """
