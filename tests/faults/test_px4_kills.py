@@ -36,12 +36,13 @@ agent        the least advanced vehicle's agent (so that no other flies through 
 first        the holder of the lab port killed: every surviving agent still heard for 15 s, no gap
              > 3 s, and a ``status --wait 5`` started 8 s later lists them; any silence is alarmed
 whole        no agent ever flies a map other than the signed one; from the first fault on no agent
-flight       holds in a failsafe (before: the agents hold ~2 s for PX4's estimator reset during
-             take-off, "position jump"), and no surviving PX4 logs a failsafe; no vehicle leaves the duct by SIH's ground
-             truth (ULog on the agents' wall clock, ``sitl_kit.truth_on_wall_clock``): in its pass
-             a vehicle flown by its agent goes at most 0.3 m beyond the wall (the PX4 tests' bound),
-             the killed one, in the 5 s of PX4's failsafe stop, at most PX4's own stopping distance
-             (0.45 m, ``test_px4_sitl.FAILSAFE_EXCURSION_M``)
+flight       holds in a failsafe (before it the agents hold ~2 s for PX4's estimator reset during
+             take-off, "position jump"), and no surviving PX4 logs a failsafe; no vehicle leaves
+             the duct by SIH's ground truth (ULog on the agents' wall clock,
+             ``sitl_kit.truth_on_wall_clock``): in its pass a vehicle flown by its agent goes at
+             most 0.3 m beyond the wall (the PX4 tests' bound), the killed one, in the 5 s of PX4's
+             failsafe stop, at most PX4's own stopping distance (0.45 m,
+             ``test_px4_sitl.FAILSAFE_EXCURSION_M``)
 ==========  =====================================================================================
 
 Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
