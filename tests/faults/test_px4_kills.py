@@ -48,7 +48,8 @@ flight       holds in a failsafe (before it the agents hold ~2 s for PX4's estim
 Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
 fixed setpoint there, but with stock position gains in SIH its own estimate wanders about 0.7 m
 around it and the truth, with the estimator's error, up to 1.7 m from where it stopped within 20 s
-(four flights, 2026-12-05); one of them ended 0.42 m beyond the wall.  No FISC process flies that
+(four flights, 2026-12-05); in four flights of six it went beyond the wall in that hold, by
+0.09-0.42 m.  No FISC process flies that
 vehicle any more: a lab sizes the airspace around the duct for PX4's own hold (docs/deployment.md).
 
 The three vehicles' processes are stopped after the last window (the agents by SIGTERM: they
