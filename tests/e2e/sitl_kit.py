@@ -394,15 +394,17 @@ class WallTruth:
     """RMS distance between PX4's estimate and the agent's log once the clocks are matched [m]."""
 
 
-def truth_on_wall_clock(path: Path, track: "Track", anchor: str) -> WallTruth:
+def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s: float | None = None) -> WallTruth:
     """SIH's true position (``vehicle_global_position_groundtruth``) of a vehicle flown with
     ``--geodetic-anchor anchor``, in the map frame and on the agent's wall clock.
 
     A ULog is stamped with PX4's (lockstep, simulated) clock, the agent's log with the UNIX clock.
     PX4's own position estimate (``vehicle_global_position``) is what the agent logged, so the
     affine clock map t_wall = a + b t_px4 that best lays one on the other (least squares over a
-    grid of b in [0.95, 1.05] and a around the logs' common end) carries the truth onto the wall
-    clock.  Measured: b 1.015-1.025, RMS residual 0.02 m; a pure offset leaves 0.13-0.27 m.
+    grid of b in [0.95, 1.05] and a within 4 s of the logs' ends meeting) carries the truth onto
+    the wall clock.  The ULog ends at ``ulog_end_wall_s`` [UNIX s] (default: when the agent's log
+    does; give it when PX4 flew on without its agent, which was killed).  Measured: b 1.015-1.025,
+    RMS residual 0.02 m; a pure offset leaves 0.13-0.27 m.
     """
     from pyulog import ULog
 
@@ -421,7 +423,7 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str) -> WallTruth:
     t_gt, p_gt = in_map("vehicle_global_position_groundtruth")
     best = (np.inf, 1.0, 0.0)
     for rate in np.arange(0.95, 1.05 + 1e-9, 0.0025):
-        end = track.wall_s[-1] - rate * t_est[-1]
+        end = (track.wall_s[-1] if ulog_end_wall_s is None else ulog_end_wall_s) - rate * t_est[-1]
         for offset in np.arange(end - 4.0, end + 4.0, 0.05):
             tw = rate * t_est + offset
             sel = np.flatnonzero((tw >= track.wall_s[0]) & (tw <= track.wall_s[-1]))[::10]

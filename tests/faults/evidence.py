@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fisc_agent.flight.mission_types import HoldCause
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_ground.monitor import foxglove_scene as fs
 from fisc_ground.monitor.recording import iter_messages, read_recording
@@ -28,6 +29,8 @@ LOAD_CAUSES = ("position stale", "pilot override")
 """Hold causes a starved emulator produces (its position stream pauses; catching up its clock it
 trips PX4's offboard-loss failsafe, which the agent obeys hands-off) and no killed Zenoh process can:
 the emulated vehicles talk MAVLink to their own emulators, which no fault here touches."""
+FLEET_HOLD_CAUSE = HoldCause.FLEET.value
+"""Reason text of a hold a ``fisc-ground cmd hold`` caused."""
 STARVED_EMULATOR_S = 0.5
 """An emulator loop gap at least this long [s] (``emulation.json`` real_time) starves the
 positions past the agents' stale timeout: only then are such holds put down to the machine."""
@@ -162,15 +165,17 @@ def _alarms(path: Path) -> list[tuple[float, list[str]]]:
     return out
 
 
-def emulated_holds(emu_dir: Path) -> str:
+def emulated_holds(emu_dir: Path, commanded=()) -> str:
     """Judge the HOLDs of ``fisc-sim emulate``'s agents (``emulation.json`` transitions): "" when
     none; the reason of an inconclusive case (to report as xfail) when every hold has a cause only
     a starved emulator makes and the emulate reports its emulator loop stalled that long; an
-    assertion error otherwise (a hold a fault could have caused, or one without a stall)."""
+    assertion error otherwise (a hold a fault could have caused, or one without a stall).  The
+    ids in ``commanded`` were sent a fleet hold: their holds for that cause are the command's."""
     emulation = json.loads((Path(emu_dir) / "emulation.json").read_text())
     holds = {}
     for agent in emulation["agents"]:
-        got = [(round(t, 1), why) for t, _, to, why in agent["transitions"] if to == "HOLD"]
+        got = [(round(t, 1), why) for t, _, to, why in agent["transitions"] if to == "HOLD"
+               and not (agent["agent_id"] in commanded and why.startswith(FLEET_HOLD_CAUSE))]
         if got:
             holds[agent["agent_id"]] = got
     if not holds:

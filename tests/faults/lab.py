@@ -180,6 +180,11 @@ class FaultLab:
         assert poll(lambda: not agent.alive or "mission TAKEOFF -> JOIN" in agent.log_tail(400),
                     timeout_s, period_s=0.5) and agent.alive, f"{agent.name} never took off\n{self.procs.report()}"
 
+    def heard(self) -> set[int]:
+        """Agent ids a ``status --wait 1`` on the lab port hears now."""
+        out = self.run(ground("status", "--swarm", self.swarm, "--wait", "1", "--json"))
+        return {a["id"] for a in json.loads(out.stdout)["agents"]} if out.returncode == 0 else set()
+
     def stop_all(self) -> None:
         """SIGTERM then SIGKILL every child still running (agents first)."""
         self.procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
