@@ -179,6 +179,13 @@ class _SitlSet:
             self._lock.release()
 
 
+MAX_EXCURSION_M = 0.3
+"""Bound on a vehicle flown by its agent beyond the duct's wall [m] (issue 37: < 0.3 m outside)."""
+FAILSAFE_EXCURSION_M = 0.45
+"""After the agent is killed, PX4 alone: it flies the last setpoint for COM_OF_LOSS_T (0.5 s), then its
+Hold brakes.  That is PX4's own stopping distance, not the agent's flight: 0.16 m inside to 0.03 m
+outside (2 runs, 2026-12-01), 0.342 m (tuned gains, 2026-12-04), 0.344 m (stock gains, 2026-12-05) beyond
+the wall.  A lab sizes its airspace for it (docs/deployment.md, COM_OF_LOSS_T)."""
 PX4_SIH_AIRFRAMES = {"quadx": (10040, "sihsim_quadx"), "hex": (10044, "sihsim_hex")}
 """PX4's SIH multicopters in the shared build (``etc/init.d-posix/airframes``): name -> (SYS_AUTOSTART,
 PX4_SIM_MODEL).  start.sh flies the quadcopter; the hexacopter is another airframe with its own stock

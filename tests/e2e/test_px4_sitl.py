@@ -24,18 +24,12 @@ from fisc_agent.map.codec import load_map
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
+from .sitl_kit import FAILSAFE_EXCURSION_M, MAX_EXCURSION_M, Px4Sitl, Track, px4_ulog, truth_track, ulog_summary
 from ..optional import require_module
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
 NAV_AUTO_LOITER, NAV_OFFBOARD = 4, 14
-MAX_EXCURSION_M = 0.3
-FAILSAFE_EXCURSION_M = 0.45
-"""After the agent is killed, PX4 alone: it flies the last setpoint for COM_OF_LOSS_T (0.5 s), then its
-Hold brakes.  That is PX4's own stopping distance, not the agent's flight: 0.16 m inside to 0.03 m
-outside (2 runs, 2026-12-01), 0.342 m (tuned gains, 2026-12-04), 0.344 m (stock gains, 2026-12-05) beyond
-the wall.  A lab sizes its airspace for it (docs/deployment.md, COM_OF_LOSS_T)."""
 HEX_TRUTH_EXCURSION_M = 0.45
 """Bound on the hexacopter's excursion by SIH's ground truth.  The agent steers on PX4's estimate (held
 to ``MAX_EXCURSION_M``); the estimator's error adds to it: +0.304 m by the truth in one of three flights

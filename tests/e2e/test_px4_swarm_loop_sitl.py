@@ -37,8 +37,8 @@ from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, free_tcp_port, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, ground, latest_states, ok, px4_ulog, signed_map_on_zenoh,
-                       truth_on_wall_clock)
+from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, ground, latest_states, ok, px4_ulog,
+                       signed_map_on_zenoh, truth_on_wall_clock)
 from .test_px4_fleet_sitl import min_separation_m, safety_net_view
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.long, pytest.mark.timeout(1800)]
@@ -47,7 +47,6 @@ N = int(os.environ.get("FISC_SITL_SWARM", "8"))
 LOOP_S = float(os.environ.get("FISC_SITL_LOOP_S", "300"))
 SWARM = "loop"
 MIN_SEPARATION_M = 0.5
-MAX_EXCURSION_M = 0.3
 MIN_PROFILE_R_DENSITY = 0.9
 MIN_PROFILE_R_PRESSURE = 0.7
 PREDICTION_TOLERANCE = 0.1

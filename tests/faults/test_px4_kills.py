@@ -42,7 +42,7 @@ flight       holds in a failsafe (before it the agents hold ~2 s for PX4's estim
              ``sitl_kit.truth_on_wall_clock``): in its pass a vehicle flown by its agent goes at
              most 0.3 m beyond the wall (the PX4 tests' bound), the killed one, in the 5 s of PX4's
              failsafe stop, at most PX4's own stopping distance (0.45 m,
-             ``test_px4_sitl.FAILSAFE_EXCURSION_M``)
+             ``sitl_kit.FAILSAFE_EXCURSION_M``)
 ==========  =====================================================================================
 
 Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
@@ -76,9 +76,8 @@ from fisc_ground.reference.builtin import load_builtin
 from .evidence import Evidence, read_evidence
 from .lab import FaultLab, Kill, ground, listening
 from ..e2e.conftest import Proc, cli, poll
-from ..e2e.sitl_kit import (MAP_ANCHOR, Px4Sitl, Track, px4_ulog, truth_on_wall_clock, truth_pass, ulog_summary,
-                            ulog_topic)
-from ..e2e.test_px4_sitl import FAILSAFE_EXCURSION_M, MAX_EXCURSION_M
+from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, px4_ulog,
+                            truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
