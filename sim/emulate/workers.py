@@ -115,6 +115,25 @@ def _freeze_heap() -> None:
     gc.freeze()
 
 
+class ParentWatch:
+    """Tells a worker that the ``fisc-sim emulate`` process that started it is gone (killed -9: a
+    daemon worker outlives it, and would fly its vehicles to the end of the run).  A process whose
+    parent dies is re-parented, so its parent pid changes."""
+
+    def __init__(self, parent_pid: int | None = None) -> None:
+        self.parent_pid = os.getppid() if parent_pid is None else parent_pid
+        """The parent's pid when the worker started."""
+
+    def gone(self) -> bool:
+        """True once the parent has exited."""
+        return os.getppid() != self.parent_pid
+
+
+def _id_span(ids) -> str:
+    """``0-19`` for the agent ids a worker hosts."""
+    return f"{int(min(ids))}-{int(max(ids))}" if len(ids) else "(none)"
+
+
 def _sleep_until(deadline: float) -> None:
     dt = deadline - time.monotonic()
     if dt > 0:
@@ -133,7 +152,9 @@ def _next_tick(t0: float, tick: int, period: float) -> tuple[int, float]:
 
 
 def _emulator_worker(conn, job: _EmulatorJob) -> None:
-    """Host ``len(job.agent_ids)`` autopilot emulators in one thread (spawned process)."""
+    """Host ``len(job.agent_ids)`` autopilot emulators in one thread (spawned process); stops
+    when the run ends or its parent is gone."""
+    parent = ParentWatch()
     try:
         logging.basicConfig(level=job.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         from sim.autopilot.personalities import FlightMode
@@ -195,7 +216,7 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         while True:
             deadline = t0 + tick * period
             start = time.monotonic()
-            if start >= t_end:
+            if start >= t_end or parent.gone():
                 break
             # a vehicle is served from just before its agent is switched on: until then it sits
             # landed and disarmed with nobody listening, and its first poll catches the physics up
@@ -234,6 +255,9 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         stats = {"rx": int(sum(e.stats["rx"] for e in emus)), "tx": int(sum(e.stats["tx"] for e in emus))}
         for e in emus:
             e.close()
+        if parent.gone():
+            log.warning("emulators %s: the emulate process is gone, stopped", _id_span(job.agent_ids))
+            return
         conn.send(("result", {
             "agent_ids": ids, "pos_ned_m": pos, "vel_ned_m_s": vel, "sample_t_s": sample_t,
             "setpoint_rate_hz": np.asarray(sp_rate), "setpoint_rate_t_s": np.asarray(sp_t), "timing": timing,
@@ -290,7 +314,9 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
 
 
 def _agent_worker(conn, job: _AgentJob) -> None:
-    """Host ``len(job.agent_ids)`` fisc-agent runners in one thread (spawned process)."""
+    """Host ``len(job.agent_ids)`` fisc-agent runners in one thread (spawned process); stops when
+    the run ends or its parent is gone."""
+    parent = ParentWatch()
     try:
         logging.basicConfig(level=job.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
         from fisc_agent.mavlink.adapters import CommandLong
@@ -331,7 +357,7 @@ def _agent_worker(conn, job: _AgentJob) -> None:
         while True:
             deadline = t0 + tick * period
             start = time.monotonic()
-            if start >= t_end:
+            if start >= t_end or parent.gone():
                 break
             newly = (~active) & (starts <= start)
             if newly.any():
@@ -366,6 +392,9 @@ def _agent_worker(conn, job: _AgentJob) -> None:
             zl.close()
         if session is not None:
             session.close()
+        if parent.gone():
+            log.warning("agents %s: the emulate process is gone, stopped", _id_span(job.agent_ids))
+            return
         conn.send(("result", {"agents": agents, "timing": timing}))
     except Exception:  # noqa: BLE001 - reported to the parent, which raises
         conn.send(("error", traceback.format_exc()))
