@@ -42,6 +42,7 @@ from fisc_agent.flight.integrity import IntegrityVerdict  # noqa: E402
 from fisc_agent.mavlink.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
 from fisc_agent.map.lookup import CommandField  # noqa: E402
 from fisc_agent.flight.mission import State  # noqa: E402
+from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand  # noqa: E402
 from fisc_agent.runner import Runner  # noqa: E402
 
 
@@ -82,9 +83,13 @@ class BenchLink:
         return 0
 
     def latest_position(self):
+        """Back and forth along 14 m of the tunnel (a continuous track: a wrap-around would be a jump the
+        agent's position gate refuses, and the agent would hold instead of flying)."""
         now = self.clock()
-        x = 0.3 + (self.speed * (now - self.t0)) % 14.0
-        return PositionSample(now, (x, 0.2, -10.3), (self.speed, 0.0, 0.0))
+        s = (self.speed * (now - self.t0)) % 28.0
+        out = s < 14.0
+        x = 0.3 + (s if out else 28.0 - s)
+        return PositionSample(now, (x, 0.2, -10.3), (self.speed if out else -self.speed, 0.0, 0.0))
 
     def send_velocity_ned(self, vn, ve, vd):
         msg = self.mav.set_position_target_local_ned_encode(
@@ -154,6 +159,18 @@ def bench_hot_path(cmap, n=50000):
     return results
 
 
+def given_the_vehicle(r: Runner, tick) -> None:
+    """Hand the flying vehicle to the agent as the ground does (an addressed takeover: the agent flies
+    only a vehicle it was given), ticking with ``tick`` until it flows under its command."""
+    for _ in range(3):
+        tick()
+    r.mission.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))
+    for _ in range(3):
+        tick()
+    if r.mission.authority != Authority.COMMAND or r.mission.state != State.FLOW:
+        raise RuntimeError(f"the agent did not take the vehicle over: {r.mission.state}, {r.mission.authority}")
+
+
 def bench_runner_step(cmap, n=20000):
     class Clock:
         t = 1000.0
@@ -165,7 +182,12 @@ def bench_runner_step(cmap, n=20000):
     cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=7, mode="slot")
     link = BenchLink(clock)
     r = Runner(cfg, link, cmap, clock=clock)
-    r.mission.state = State.FLOW  # measure the steady FLOW tick
+
+    def tick():
+        clock.t += 0.05
+        r.step()
+
+    given_the_vehicle(r, tick)  # measure the steady FLOW tick
     t = time.perf_counter()
     for _ in range(n):
         clock.t += 0.05
@@ -177,7 +199,8 @@ def bench_jitter(cmap, rate_hz, seconds):
     cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=7, rate_hz=rate_hz)
     link = BenchLink()
     r = Runner(cfg, link, cmap)
-    r.mission.state = State.FLOW
+    given_the_vehicle(r, lambda: (r.step(), time.sleep(1.0 / rate_hz)))
+    link.sent_t.clear()
     r.run(until_done=False, max_duration_s=seconds)
     sent = np.asarray(link.sent_t)
     dev_ms = np.abs(np.diff(sent) - 1.0 / rate_hz) * 1e3
@@ -226,6 +249,8 @@ def _agent_worker(conn, port: int, agent_id: int, map_choice: str, rate_hz: floa
 
     link.poll = counting_poll
     try:
+        r.run(until_done=False, max_duration_s=1.0)  # finds the autopilot and a position
+        r.mission.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))  # airborne: the ground hands it over
         r.run(until_done=False, max_duration_s=warmup_s)
         ticks0, sent0, recv0 = r.ticks, link.setpoints_sent, received[0]
         c0, w0 = time.process_time(), time.monotonic()
