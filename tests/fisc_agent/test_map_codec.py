@@ -87,8 +87,8 @@ def test_container_refusals_name_the_problem_exactly():
     assert refusal(data[:20]) == (T, f"<bytes>: truncated: header declares {body_n} bytes, only 0 present")
     assert refusal(data[:20 + body_n + 8 + 5]) == (T, f"<bytes>: truncated: payload declares {pay_n} bytes, only 5 present")
     assert refusal(data[:seal_at + 7]) == (T, "<bytes>: truncated: file ends inside the seal length field")
-    assert refusal(b"NOTAMAP\0" + data[8:]) == (MapErrorKind.MAGIC,
-                                                "<bytes>: magic: not a FISC map file (bad magic bytes)")
+    for blob in (b"NOTAMAP\0" + data[8:], b"NOTAMAP\0" + data[8:12]):  # 12 bytes: not too short, just not a map
+        assert refusal(blob) == (MapErrorKind.MAGIC, "<bytes>: magic: not a FISC map file (bad magic bytes)")
     assert refusal(data[:8] + b"\x09" + data[9:]) == (MapErrorKind.CONTAINER,
                                                       "<bytes>: container: version 9 is not supported (expected 1)")
     assert refusal(data + b"xyz") == (MapErrorKind.TRAILING, "<bytes>: trailing: 3 unexpected bytes after the seal")
