@@ -42,6 +42,7 @@ swarm_fields   | fisc_ground/fields/swarm_fields.py | tests/fisc_ground/test_swa
 codec          | fisc_agent/map/codec.py            | tests/fisc_agent/test_mapfile.py tests/fisc_agent/test_map_codec.py
 health         | fisc_agent/flight/health.py        | tests/fisc_agent/test_vehicle_health.py
 readiness      | fisc_agent/flight/readiness.py     | tests/fisc_agent/test_authority.py tests/fisc_agent/test_vehicle_health.py
+mission        | fisc_agent/flight/mission.py       | tests/fisc_agent/test_agent_mission.py tests/fisc_agent/test_authority.py tests/fisc_agent/test_mission_reasons.py
 "
 
 field() { echo "$1" | cut -d'|' -f"$2" -s | xargs; }

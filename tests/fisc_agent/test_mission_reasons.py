@@ -1,0 +1,113 @@
+"""The mission's reasons and its fault path at their boundaries (issue 38, mutation testing of
+``fisc_agent.flight.mission``): the exact text of each transition a pass makes, the reasons that carry
+numbers, and ``Mission.fault`` in and out of flight.  On the point vehicle of ``test_agent_mission``,
+whose ``run`` also checks every step's transitions (time, source state, typed cause)."""
+
+from __future__ import annotations
+
+import pytest
+from test_agent_mission import DT, SimVehicle, make, run, run_for, step  # noqa: F401 (sfield fixture below)
+from test_authority import HealthVehicle, make_h
+
+from fisc_agent.flight.health import LandedState
+
+from fisc_agent.flight.control import ScalarField
+from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.flight.mission_types import Cause, HoldCause, MissionOutput, State
+from fisc_agent.map.lookup import CommandField
+
+
+@pytest.fixture(scope="module")
+def sfield(tunnel_map):
+    return ScalarField(CommandField.from_map(tunnel_map))
+
+
+def _reasons(m):
+    return [(tr.dst, tr.reason.cause, str(tr.reason)) for tr in m.transitions]
+
+
+def test_a_two_lap_pass_says_why_at_every_transition(sfield):
+    cfg, m, v = make(sfield, exit_policy="loop", laps=2)
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD, max_s=120)
+    got = _reasons(m)
+    entered = [r for r in got if r[1] == Cause.ENTERED_MAP]
+    assert entered and all(text == f"entered the map at CV {text.rsplit(' ', 1)[1]}" and int(text.rsplit(" ", 1)[1]) >= 0
+                           for _, _, text in entered)
+    assert [r for r in got if r[1] != Cause.ENTERED_MAP] == [
+        (State.ARM, Cause.AUTOPILOT_FOUND, "go; position and px4 heartbeat received"),
+        (State.TAKEOFF, Cause.ARMED, Cause.ARMED.value),
+        (State.JOIN, Cause.TAKEOFF_DONE, "takeoff height 1.0 m reached"),
+        (State.JOIN, Cause.LAP_DONE, "lap 1 done: back to the inlet"),
+        (State.EXIT, Cause.PASSED_OUTLET, "passed the outlet (lap 2)"),
+        (State.HOLD, HoldCause.EXIT, HoldCause.EXIT.value),
+    ]
+
+
+class NeverArms(SimVehicle):
+    """Takes the modes asked for but never arms (a pre-arm check the agent cannot see)."""
+
+    def apply(self, out, cfg):
+        super().apply(out._replace(want_armed=None), cfg)
+
+
+def test_arming_gives_up_just_after_the_command_timeout_saying_so(sfield):
+    cfg, m, _ = make(sfield, command_timeout_s=1.0)
+    v = NeverArms()
+    run(m, v, cfg, lambda m, v, o: m.state == State.ARM)
+    arm_t, s = m.transitions[-1].t_s, v.status()
+    assert step(m, s._replace(t_s=arm_t + 1.0)).state == State.ARM        # exactly the timeout: still trying
+    assert step(m, s._replace(t_s=arm_t + 1.0 + 1e-6)).state == State.DONE
+    assert m.reason.cause == Cause.ARM_FAILED and str(m.reason) == f"{Cause.ARM_FAILED.value} after 1 s" and m.failed
+
+
+def test_take_off_gives_up_just_after_its_timeout_saying_so(sfield):
+    cfg, m, _ = make_h(sfield, takeoff_timeout_s=2.0)
+    v = HealthVehicle()
+    v.health = VehicleHealth(landed=LandedState.ON_GROUND)   # never leaves the ground
+    run(m, v, cfg, lambda m, v, o: m.state == State.TAKEOFF)
+    t0, s = m.transitions[-1].t_s, v.status()
+    assert step(m, s._replace(t_s=t0 + 2.0)).state == State.TAKEOFF
+    assert step(m, s._replace(t_s=t0 + 2.0 + 1e-6)).state == State.LAND
+    assert m.reason.cause == Cause.TAKEOFF_TIMEOUT and str(m.reason) == "take-off not done after 2 s: landing"
+
+
+def test_low_battery_while_joining_lands_saying_how_low(sfield):
+    cfg, m, _ = make_h(sfield, min_battery_pct=30.0)
+    v = HealthVehicle()
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
+    v.health = VehicleHealth(battery_pct=29.4)
+    run(m, v, cfg, lambda m, v, o: m.state == State.LAND, max_s=v.t + 1)
+    assert m.reason.cause == Cause.LOW_BATTERY
+    assert str(m.reason) == "battery 29 % below 30 %: no new pass, landing"
+
+
+def test_a_fault_in_flight_holds_and_outputs_the_hold(sfield):
+    cfg, m, v = make(sfield, hold_grace_s=5.0)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    t = 100.0  # later than the last step, and exact: the grace boundary below is exactly 5 s
+    out = m.fault(t, "tick raised")
+    assert m.state == State.HOLD and m.hold_cause == HoldCause.AGENT_FAULT and m.reason == "agent fault: tick raised"
+    assert out == MissionOutput(State.HOLD, (0.0, 0.0, 0.0), "offboard", None, None, -1, m.reason)
+    assert m.transitions[-1].t_s == t and m.transitions[-1].src == State.FLOW
+    again = m.fault(t + 1.0, "again")       # an armed hold takes the newer fault, and its grace starts again
+    assert m.reason == "agent fault: again" and again == MissionOutput(State.HOLD, (0.0, 0.0, 0.0), "offboard", None,
+                                                                       None, -1, m.reason)
+    assert m.fault(t + 5.999, "again").want_mode == "offboard"
+    assert m.fault(t + 6.0, "again") == MissionOutput(State.HOLD, None, "hold", None, None, -1, m.reason)  # grace over
+    v.t = t + 6.0
+    run_for(m, v, cfg, 1.0)
+    assert m.state == State.HOLD  # latched: a good position does not end it
+
+
+def test_a_fault_on_the_ground_changes_nothing(sfield):
+    cfg, m, v = make(sfield, go=False)
+    run_for(m, v, cfg, 0.5)
+    assert m.state == State.STANDBY
+    before = list(m.transitions)
+    assert m.fault(v.t, "tick raised") == MissionOutput(State.STANDBY, None, None, None, None, -1, m.reason)
+    assert m.transitions == before
+    m.command("hold")                                 # a fleet hold on the ground: not armed
+    run_for(m, v, cfg, 0.2)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND
+    assert m.fault(v.t, "tick raised") == MissionOutput(State.HOLD, None, None, None, None, -1, m.reason)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND  # an unarmed hold is not made a fault hold
