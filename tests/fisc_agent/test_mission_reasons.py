@@ -111,3 +111,66 @@ def test_a_fault_on_the_ground_changes_nothing(sfield):
     assert m.hold_cause == HoldCause.FLEET_ON_GROUND
     assert m.fault(v.t, "tick raised") == MissionOutput(State.HOLD, None, None, None, None, -1, m.reason)
     assert m.hold_cause == HoldCause.FLEET_ON_GROUND  # an unarmed hold is not made a fault hold
+
+
+def test_a_fresh_or_restored_mission_reports_its_start(sfield):
+    from fisc_agent.flight.authority import AuthorityCause
+    from fisc_agent.flight.mission import Mission
+    from fisc_agent.flight.state_file import AgentState
+
+    cfg, m, _ = make(sfield, go=False)
+    assert (m.laps, m.authority_cause, m.saved_state()) == (0, AuthorityCause.START, AgentState())
+    back = Mission(cfg, sfield, restored=AgentState(laps=3, fleet_hold=True))
+    assert back.laps == 3 and back.saved_state() == AgentState(fleet_hold=True, laps=3)
+
+
+def test_a_fleet_hold_on_the_ground_resumes_where_it_was(sfield):
+    for go, before in ((False, State.STANDBY), (True, State.WAIT_POSITION)):
+        cfg, m, v = make(sfield, go=go)
+        if before == State.WAIT_POSITION:
+            v.drop_position, v.last_fix = True, -10.0  # no fix yet: the mission waits for one
+        run_for(m, v, cfg, 0.2)
+        assert m.state == before
+        m.command("hold")
+        run_for(m, v, cfg, 0.1)
+        assert m.hold_cause == HoldCause.FLEET_ON_GROUND and m.saved_state().fleet_hold
+        m.command("resume")
+        run_for(m, v, cfg, DT)
+        resumed = [tr for tr in m.transitions if tr.reason.cause == Cause.FLEET_RESUME]
+        assert [tr.dst for tr in resumed] == [before] and m.state == before
+        assert not m.saved_state().fleet_hold
+
+
+def test_a_go_ends_a_fleet_hold_on_the_ground_and_a_land_ends_a_mission_on_it(sfield):
+    cfg, m, v = make(sfield, go=False)
+    run_for(m, v, cfg, 0.2)
+    m.command("hold")
+    run_for(m, v, cfg, 0.1)
+    m.command("go")
+    run(m, v, cfg, lambda m, v, o: m.state == State.ARM, max_s=v.t + 1)
+    assert [(tr.dst, tr.reason.cause) for tr in m.transitions[-3:]] == [
+        (State.HOLD, HoldCause.FLEET_ON_GROUND), (State.STANDBY, Cause.GO), (State.ARM, Cause.AUTOPILOT_FOUND)]
+    cfg, m, v = make(sfield, go=False)
+    run_for(m, v, cfg, 0.2)
+    m.command("land")  # disarmed on the ground: the mission ends
+    run_for(m, v, cfg, DT)
+    assert m.state == State.DONE and m.reason.cause == Cause.FLEET_LAND_DISARMED and not v.armed
+    m.command("land")
+    run_for(m, v, cfg, DT)
+    assert len([tr for tr in m.transitions if tr.dst == State.DONE]) == 1
+
+
+def test_px4_climbs_by_velocity_to_its_take_off_height(sfield):
+    cfg, m, v = make(sfield, climb_speed_m_s=2.0, takeoff_alt_m=1.0)
+    seen = []
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN, hook=lambda m, v, o: seen.append((o, m.state)))
+    outs = [o for o, _ in seen]
+    arm = [o for o in outs if o.state == State.ARM]
+    assert arm and all(o.want_armed is True and o.want_mode == "offboard" for o in arm)
+    take = [o for o in outs if o.state == State.TAKEOFF]
+    assert len(take) > 5 and all(o.want_armed is True and o.want_mode == "offboard" for o in take)
+    home_z, target_z = -3.0, -3.0 + 1.0
+    vz = [o.velocity_m_s[2] for o in take[1:]]  # (the first is the arming tick's)
+    assert vz[0] == pytest.approx(min(2.0, 1.5 * (target_z - home_z)))     # 1.5 m/s per metre to go, capped
+    assert min(vz) == pytest.approx(0.2)                                     # never slower than 0.2 m/s
+    assert v.pos[2] >= target_z - 0.1 - 0.2 * DT - 1e-9 and v.pos[2] < target_z  # up to 0.1 m short: done
