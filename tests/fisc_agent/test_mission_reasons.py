@@ -11,9 +11,10 @@ from test_authority import HealthVehicle, make_h
 
 from fisc_agent.flight.health import LandedState
 
+from fisc_agent.flight.authority import AuthorityCause
 from fisc_agent.flight.control import ScalarField
 from fisc_agent.flight.health import VehicleHealth
-from fisc_agent.flight.mission_types import Cause, HoldCause, MissionOutput, State
+from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, MissionOutput, State
 from fisc_agent.map.lookup import CommandField
 
 
@@ -114,7 +115,6 @@ def test_a_fault_on_the_ground_changes_nothing(sfield):
 
 
 def test_a_fresh_or_restored_mission_reports_its_start(sfield):
-    from fisc_agent.flight.authority import AuthorityCause
     from fisc_agent.flight.mission import Mission
     from fisc_agent.flight.state_file import AgentState
 
@@ -174,3 +174,54 @@ def test_px4_climbs_by_velocity_to_its_take_off_height(sfield):
     assert vz[0] == pytest.approx(min(2.0, 1.5 * (target_z - home_z)))     # 1.5 m/s per metre to go, capped
     assert min(vz) == pytest.approx(0.2)                                     # never slower than 0.2 m/s
     assert v.pos[2] >= target_z - 0.1 - 0.2 * DT - 1e-9 and v.pos[2] < target_z  # up to 0.1 m short: done
+
+
+def _armed_by_someone_else(sfield, pos, with_map=True):
+    from fisc_agent.flight.mission import Mission
+
+    cfg, m, v = make(sfield)
+    if not with_map:
+        m = Mission(cfg)
+    v.armed, v.mode, v.pos = True, "offboard", list(pos)
+    run_for(m, v, cfg, 0.5)
+    assert m.authority == (Authority.NOT_OURS if with_map else Authority.WAITING)  # no map: still waiting for one
+    return cfg, m, v
+
+
+def test_an_addressed_takeover_needs_a_good_fix_and_a_map(sfield):
+    takeover = FleetOrder(MissionCommand.TAKEOVER, addressed=True)
+    cfg, m, v = _armed_by_someone_else(sfield, (1.0, 0.1, 0.1), with_map=False)
+    m.command(takeover)
+    run_for(m, v, cfg, DT)
+    assert m.authority == Authority.WAITING and m.state == State.WAIT_POSITION  # no map: nothing to fly
+    cfg, m, v = _armed_by_someone_else(sfield, (1.0, 0.1, 0.1))
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: v.t - v.last_fix > cfg.stale_timeout_s)
+    m.command(takeover)
+    run_for(m, v, cfg, DT)
+    assert m.authority == Authority.NOT_OURS  # a stale fix: not taken over blind
+    v.drop_position = False
+    m.command(takeover)
+    run_for(m, v, cfg, DT)
+    assert (m.authority, m.authority_cause, m.state) == (Authority.COMMAND, AuthorityCause.TAKEOVER, State.FLOW)
+    assert m.transitions[-1].reason.cause == Cause.TAKING_OVER
+    run_for(m, v, cfg, 1.0)
+    assert m.authority == Authority.COMMAND   # the mode it was in at the takeover is no change of mode
+
+
+def test_a_takeover_outside_the_map_joins_it(sfield):
+    cfg, m, v = _armed_by_someone_else(sfield, (-3.0, 0.0, 0.5))
+    m.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))
+    run_for(m, v, cfg, DT)
+    assert m.state == State.JOIN and m.authority == Authority.COMMAND
+
+
+def test_a_vehicle_given_back_after_a_pilot_override_says_so(sfield):
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    v.mode = "other"
+    run(m, v, cfg, lambda m, v, o: m.hands_off)
+    assert m.authority_cause == AuthorityCause.MODE_CHANGED
+    m.command(FleetOrder(MissionCommand.RESUME, addressed=True))
+    run_for(m, v, cfg, DT)
+    assert (m.authority, m.authority_cause) == (Authority.COMMAND, AuthorityCause.GIVEN_BACK)
