@@ -225,3 +225,25 @@ def test_a_vehicle_given_back_after_a_pilot_override_says_so(sfield):
     m.command(FleetOrder(MissionCommand.RESUME, addressed=True))
     run_for(m, v, cfg, DT)
     assert (m.authority, m.authority_cause) == (Authority.COMMAND, AuthorityCause.GIVEN_BACK)
+
+
+def test_the_response_is_recorded_while_taking_off_and_joining_and_learnt_again_in_the_flow(sfield):
+    cfg, m, v = make(sfield)
+    calls = {}
+
+    def observe(m, v, out):
+        sp = out.velocity_m_s if out.velocity_m_s is not None else (0.0, 0.0, 0.0)
+        key = m.state if m.response is None else "identified"  # (the join's final leg identifies it)
+        calls[key] = calls.get(key, 0) + 1
+        m.observe_response(v.t, sp, tuple(v.vel))
+
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, hook=observe)
+    recorded = calls.get(State.TAKEOFF, 0) + calls.get(State.JOIN, 0)
+    assert calls[State.ARM] > 0 and recorded > 0 and len(m.nav.recorder) == recorded  # not while arming
+    assert m.response.n_samples == recorded and m.response.gain == pytest.approx(1.0, abs=0.1)  # it obeys (accel-limited)
+    for _ in range(40):  # 2 s of the pass
+        out = step(m, v.status())
+        observe(m, v, out)
+        v.apply(out, cfg)
+    assert len(m.nav.recorder) == recorded        # identified: no more recording
+    assert m.nav.online_gain is not None          # the flow feeds the online gain
