@@ -247,3 +247,24 @@ def test_the_response_is_recorded_while_taking_off_and_joining_and_learnt_again_
         v.apply(out, cfg)
     assert len(m.nav.recorder) == recorded        # identified: no more recording
     assert m.nav.online_gain is not None          # the flow feeds the online gain
+
+
+def test_cv_0_is_in_the_map(sfield):
+    """CV 0 (the id boundary of ``cv >= 0``) counts as inside: a takeover there flies the flow, a resume there
+    flies on instead of returning."""
+    at_cv0 = tuple(float(c) for c in sfield.field.centers_m[0])
+    assert sfield.cv_of(*at_cv0) == 0
+    cfg, m, v = _armed_by_someone_else(sfield, at_cv0)
+    m.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))
+    run_for(m, v, cfg, DT)
+    assert m.transitions[-1].src == State.STANDBY and m.transitions[-1].dst == State.FLOW
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    m.command("hold")
+    run_for(m, v, cfg, 0.2)
+    v.pos, v.vel = list(at_cv0), [0.0, 0.0, 0.0]
+    run_for(m, v, cfg, 0.2)
+    m.command("resume")
+    run_for(m, v, cfg, DT)
+    resumed = [tr for tr in m.transitions if tr.reason.cause == Cause.FLEET_RESUME]
+    assert [tr.dst for tr in resumed] == [State.FLOW]
