@@ -268,3 +268,17 @@ def test_cv_0_is_in_the_map(sfield):
     run_for(m, v, cfg, DT)
     resumed = [tr for tr in m.transitions if tr.reason.cause == Cause.FLEET_RESUME]
     assert [tr.dst for tr in resumed] == [State.FLOW]
+
+
+def test_a_resumed_fleet_hold_leaves_no_latch_on_the_next_stale_position_hold(sfield):
+    cfg, m, v = make(sfield, hold_grace_s=5.0)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    m.command("hold")                      # latched: only a resume ends it
+    run_for(m, v, cfg, 0.3)
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 2)
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: m.hold_cause == HoldCause.POSITION_STALE, max_s=v.t + 2)
+    v.drop_position = False                # back well within the grace: the hold ends by itself
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
+    assert m.transitions[-1].reason.cause == Cause.POSITION_BACK
