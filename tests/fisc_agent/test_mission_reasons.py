@@ -282,3 +282,70 @@ def test_a_resumed_fleet_hold_leaves_no_latch_on_the_next_stale_position_hold(sf
     v.drop_position = False                # back well within the grace: the hold ends by itself
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
     assert m.transitions[-1].reason.cause == Cause.POSITION_BACK
+
+
+# ------------------------------------------------------------------ the log an operator reads
+def _log(caplog):
+    return [(r.levelname, r.getMessage()) for r in caplog.records if r.name == "fisc_agent.flight.mission"]
+
+
+def test_every_transition_authority_change_and_fleet_command_is_logged_in_full(sfield, caplog):
+    caplog.set_level("INFO", logger="fisc_agent.flight.mission")
+    cfg, m, v = make(sfield, hold_grace_s=0.5)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    m.command("go")                                        # swarm-wide, and refused: a warning with the note
+    m.command("hold")
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + 2)
+    m.command(FleetOrder(MissionCommand.RESUME, addressed=True))
+    run_for(m, v, cfg, DT)
+    log = _log(caplog)
+    for tr in m.transitions:
+        assert ("INFO", f"mission {tr.src.value} -> {tr.dst.value} ({tr.reason})") in log
+    assert ("INFO", f"authority waiting -> command ({AuthorityCause.ARMING.value})") in log
+    assert ("WARNING", "fleet command go (swarm-wide) in state FLOW: already flying") in log
+    assert ("INFO", "fleet command hold (swarm-wide) in state FLOW") in log
+    assert ("INFO", "hold: zero-velocity grace over, requesting the autopilot's hold mode") in log
+    assert ("INFO", "fleet command resume (addressed) in state HOLD") in log
+
+
+def test_failsafes_and_refusals_are_logged_in_full(sfield, caplog):
+    caplog.set_level("INFO", logger="fisc_agent.flight.mission")
+    cfg, m, v = make(sfield, hold_grace_s=0.3, stale_timeout_s=0.5)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    status = v.status()._replace(integrity_ok=False, integrity_reason="estimator reset (x 1.2 m)")
+    step(m, status)
+    assert ("WARNING", "position integrity: estimator reset (x 1.2 m); holding until the track is consistent "
+                       "again") in _log(caplog)
+    cfg, m, v = make(sfield, hold_grace_s=0.3, stale_timeout_s=0.5)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + 3)
+    lost = [text for level, text in _log(caplog) if text.startswith("position lost for ")]
+    assert len(lost) == 1 and lost[0].endswith(" s: requesting the autopilot's hold mode")
+    m.command("resume")
+    run_for(m, v, cfg, DT)
+    assert ("WARNING", "fleet resume refused: position is lost") in _log(caplog)
+    v.drop_position, v.mute = False, True
+    run(m, v, cfg, lambda m, v, o: m.hold_cause == HoldCause.LINK_LOST, max_s=v.t + 10)
+    age = v.t - DT - v.last_hb
+    assert ("WARNING", f"link lost: no autopilot HEARTBEAT for {age:.1f} s; the autopilot's offboard-loss failsafe "
+                       "is in charge") in _log(caplog)
+
+
+def test_hands_off_and_not_ours_are_logged_in_full(sfield, caplog):
+    caplog.set_level("INFO", logger="fisc_agent.flight.mission")
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    v.mode = "other"
+    run(m, v, cfg, lambda m, v, o: m.hands_off)
+    assert ("WARNING", "mode changed to other outside the agent (in FLOW): hands off, no mode request and no "
+                       "setpoint until a command addressed to this agent") in _log(caplog)
+    caplog.clear()
+    cfg, m, v = _armed_by_someone_else(sfield, (1.0, 0.1, 0.1))     # with --go: the go is withdrawn
+    assert ("WARNING", "the go is withdrawn: the vehicle was armed by someone else") in _log(caplog)
+    assert ("INFO", f"authority waiting -> not-ours ({AuthorityCause.ARMED_BY_OTHER.value})") in _log(caplog)
+    from fisc_agent.flight.mission import Mission
+    m = Mission(cfg)                                   # no map: a takeover is refused
+    m.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))
+    step(m, v.status())
+    assert ("WARNING", "takeover refused: no good position or no map yet") in _log(caplog)
