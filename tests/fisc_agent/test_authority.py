@@ -286,6 +286,7 @@ def test_low_battery_ends_the_laps_at_the_exit(sfield):
     assert m.state == State.FLOW
     run(m, v, cfg, lambda m, v, o: m.state != State.FLOW)
     assert m.state == State.EXIT and m.reason.cause == Cause.LOW_BATTERY and m.laps == 1
+    assert str(m.reason) == "battery 29 % below 30 % after lap 1: to the exit, then hold"
     run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)   # ... then the low-battery action at the exit
     assert m.hold_cause == HoldCause.EXIT
 

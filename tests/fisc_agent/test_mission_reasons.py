@@ -5,6 +5,8 @@ whose ``run`` also checks every step's transitions (time, source state, typed ca
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from test_agent_mission import DT, SimVehicle, make, run, run_for, step  # noqa: F401 (sfield fixture below)
 from test_authority import HealthVehicle, make_h
@@ -29,7 +31,11 @@ def _reasons(m):
 
 def test_a_two_lap_pass_says_why_at_every_transition(sfield):
     cfg, m, v = make(sfield, exit_policy="loop", laps=2)
-    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD, max_s=120)
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD, max_s=120)
+    flying = [o for prev, o in zip(outs, outs[1:]) if o.state == prev.state in (State.JOIN, State.FLOW, State.EXIT)]
+    assert len(flying) > 100                                   # (the tick a state is entered has the last one's asks)
+    assert all(o.want_mode == "offboard" and o.want_armed is None for o in flying)  # offboard, arming left alone
+    assert all(o.velocity_m_s is not None for o in outs if o.state == State.FLOW)  # from the tick it enters
     got = _reasons(m)
     entered = [r for r in got if r[1] == Cause.ENTERED_MAP]
     assert entered and all(text == f"entered the map at CV {text.rsplit(' ', 1)[1]}" and int(text.rsplit(" ", 1)[1]) >= 0
@@ -192,7 +198,7 @@ def test_an_addressed_takeover_needs_a_good_fix_and_a_map(sfield):
     takeover = FleetOrder(MissionCommand.TAKEOVER, addressed=True)
     cfg, m, v = _armed_by_someone_else(sfield, (1.0, 0.1, 0.1), with_map=False)
     m.command(takeover)
-    run_for(m, v, cfg, DT)
+    assert step(m, v.status()).cv_id == -1                 # no map: no CV
     assert m.authority == Authority.WAITING and m.state == State.WAIT_POSITION  # no map: nothing to fly
     cfg, m, v = _armed_by_someone_else(sfield, (1.0, 0.1, 0.1))
     v.drop_position = True
@@ -316,12 +322,18 @@ def test_failsafes_and_refusals_are_logged_in_full(sfield, caplog):
     step(m, status)
     assert ("WARNING", "position integrity: estimator reset (x 1.2 m); holding until the track is consistent "
                        "again") in _log(caplog)
+    assert m.reason == "position jump: estimator reset (x 1.2 m)"
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    step(m, v.status()._replace(integrity_ok=False, integrity_reason=""))  # no reason given
+    assert ("WARNING", "position integrity: estimator reset; holding until the track is consistent again") in _log(caplog)
+    assert m.hold_cause == HoldCause.POSITION_JUMP and m.reason == "position jump: reset"
     cfg, m, v = make(sfield, hold_grace_s=0.3, stale_timeout_s=0.5)
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
     v.drop_position = True
     run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + 3)
     lost = [text for level, text in _log(caplog) if text.startswith("position lost for ")]
-    assert len(lost) == 1 and lost[0].endswith(" s: requesting the autopilot's hold mode")
+    assert len(lost) == 1 and re.fullmatch(r"position lost for \d+\.\d s: requesting the autopilot's hold mode", lost[0])
     m.command("resume")
     run_for(m, v, cfg, DT)
     assert ("WARNING", "fleet resume refused: position is lost") in _log(caplog)
@@ -349,3 +361,35 @@ def test_hands_off_and_not_ours_are_logged_in_full(sfield, caplog):
     m.command(FleetOrder(MissionCommand.TAKEOVER, addressed=True))
     step(m, v.status())
     assert ("WARNING", "takeover refused: no good position or no map yet") in _log(caplog)
+
+
+def test_a_fault_while_landing_asks_for_nothing(sfield):
+    cfg, m, v = make(sfield)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    m.command("hold")                                  # an armed hold ...
+    run_for(m, v, cfg, 0.2)
+    m.command("land")                                  # ... then a landing: the fault must not ask for offboard
+    run_for(m, v, cfg, DT)
+    assert m.state == State.LAND
+    assert m.fault(v.t, "tick raised") == MissionOutput(State.LAND, None, None, None, None, -1, m.reason)
+    assert all(o.want_armed is None for o in run_for(m, v, cfg, 0.5))  # landing: arming left alone
+
+
+def test_not_arming_names_every_blocker(sfield):
+    cfg, m, _ = make_h(sfield, min_battery_pct=25.0)
+    v = HealthVehicle()
+    v.health = VehicleHealth(battery_pct=24.0, estimator_ok=False, estimator_detail="no GPS fix")
+    run_for(m, v, cfg, 0.3)
+    assert m.reason.cause == Cause.NOT_READY
+    assert str(m.reason) == "not arming: battery 24 % < 25 %; estimator: no GPS fix"
+
+
+def test_a_restored_fleet_hold_keeps_the_vehicle_on_the_ground_saying_so(sfield):
+    from fisc_agent.flight.mission import Mission
+    from fisc_agent.flight.state_file import AgentState
+
+    cfg, _, v = make(sfield)
+    m = Mission(cfg, sfield, restored=AgentState(fleet_hold=True))
+    run_for(m, v, cfg, 0.2)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND and not v.armed
+    assert str(m.reason) == "fleet hold (restored from the state file)"
