@@ -5,6 +5,10 @@
 #   tools/mutation.sh position_gate   # one or more modules by key
 #   tools/mutation.sh --list          # the table
 #
+# A row may name, in a fourth column, the functions to mutate (mutmut mutant-name globs such as
+# 'fisc_agent.flight.mission.x_gate_*'); the other functions of the module are then neither mutated
+# nor counted.
+#
 # Each module is mutated by mutmut (pip install 'fisc[mutation]', part of the test extra) and judged by ITS OWN focused unit tests only
 # (never the whole suite, never SITL), one module at a time, one worker (--max-children 1).  The checkout is
 # copied to a scratch directory per module ($FISC_MUTATION_DIR, default ${TMPDIR:-/tmp}/fisc-mutation), so the
@@ -24,7 +28,7 @@ WORK="${FISC_MUTATION_DIR:-${TMPDIR:-/tmp}/fisc-mutation}"
 EQUIV="$REPO/tools/mutation_equivalent.txt"
 TARGET_PCT=90
 
-# key | the module mutated | its focused tests (space separated)
+# key | the module mutated | its focused tests (space separated) [| only these functions (mutant-name globs)]
 TABLE="
 position_gate  | fisc_agent/flight/position_gate.py | tests/hostile/test_inputs_pure.py
 command_gate   | fisc_agent/zenoh/command_gate.py   | tests/zenoh/test_fleet_commands_v2.py
@@ -35,9 +39,13 @@ authority      | fisc_agent/flight/authority.py     | tests/fisc_agent/test_auth
 chunks         | fisc_agent/map/chunks.py           | tests/hostile/test_inputs_pure.py tests/zenoh/test_codecs.py
 metrics        | fisc_ground/fields/metrics.py      | tests/fisc_ground/test_metrics.py
 swarm_fields   | fisc_ground/fields/swarm_fields.py | tests/fisc_ground/test_swarm_fields.py
+codec          | fisc_agent/map/codec.py            | tests/fisc_agent/test_mapfile.py tests/fisc_agent/test_map_codec.py
+health         | fisc_agent/flight/health.py        | tests/fisc_agent/test_vehicle_health.py
+readiness      | fisc_agent/flight/readiness.py     | tests/fisc_agent/test_authority.py tests/fisc_agent/test_vehicle_health.py
+mission        | fisc_agent/flight/mission.py       | tests/fisc_agent/test_agent_mission.py tests/fisc_agent/test_authority.py tests/fisc_agent/test_mission_reasons.py
 "
 
-field() { echo "$1" | cut -d'|' -f"$2" | xargs; }
+field() { echo "$1" | cut -d'|' -f"$2" -s | xargs; }
 row_of() { echo "$TABLE" | grep -E "^$1 +\|" || true; }
 
 if [ "${1:-}" = "--list" ]; then echo "$TABLE" | sed '/^$/d'; exit 0; fi
@@ -55,10 +63,11 @@ equivalent_of() {  # the mutant names listed as equivalent (first word of each n
 }
 
 run_one() {
-  local key="$1" row src tests dir
+  local key="$1" row src tests only dir
   row="$(row_of "$key")"
   src="$(field "$row" 2)"
   tests="$(field "$row" 3)"
+  only="$(field "$row" 4)"
   dir="$WORK/$key"
   rm -rf "$dir" && mkdir -p "$dir"
   # the checkout as it is: tracked and new files, without what .gitignore ignores
@@ -71,11 +80,26 @@ run_one() {
     echo "pytest_add_cli_args_test_selection ="; printf '    %s\n' $tests
     echo "pytest_add_cli_args ="; printf '    %s\n' -p no:cacheprovider -p no:randomly
   } > "$dir/setup.cfg"
-  echo "== $key: mutating $src against $tests"
-  (cd "$dir" && "${MUTMUT[@]}" run --max-children 1 > "$dir/run.log" 2>&1) || {
+  echo "== $key: mutating $src${only:+ ($only)} against $tests"
+  # shellcheck disable=SC2086  # the globs are words for mutmut, not for the shell
+  (cd "$dir" && set -f && "${MUTMUT[@]}" run --max-children 1 $only > "$dir/run.log" 2>&1) || {
     echo "   mutmut failed; the last lines of $dir/run.log:"; tail -c 2000 "$dir/run.log" | tr '\r' '\n' | tail -15
     return 1; }
-  (cd "$dir" && "${MUTMUT[@]}" results --all true 2>/dev/null) | sed 's/^ *//' > "$dir/results.txt"
+  (cd "$dir" && "${MUTMUT[@]}" results --all true 2>/dev/null) | sed 's/^ *//' | in_scope "$only" > "$dir/results.txt"
+}
+
+in_scope() {  # the result lines of the mutants the row's globs select (every line without globs)
+  local globs="$1" line name g
+  set -f
+  while IFS= read -r line; do
+    name="${line%%:*}"
+    if [ -z "$globs" ]; then echo "$line"; continue; fi
+    for g in $globs; do
+      # shellcheck disable=SC2053  # $g is a glob on purpose
+      if [[ $name == $g ]]; then echo "$line"; break; fi
+    done
+  done
+  set +f
 }
 
 summarise() {

@@ -229,7 +229,7 @@ def _check_array_entry(name: str, entry: Any, payload_len: int) -> tuple[np.dtyp
         offset, nbytes = int(entry["offset"]), int(entry["nbytes"])
     except (KeyError, TypeError, ValueError) as exc:
         raise MapError(MapErrorKind.SCHEMA, f"array {name!r} has a malformed table entry ({exc})") from exc
-    if dtype.hasobject or any(s < 0 for s in shape):
+    if dtype.hasobject or dtype.itemsize == 0 or any(s < 0 for s in shape):
         raise MapError(MapErrorKind.SCHEMA, f"array {name!r} has an invalid dtype or shape")
     if nbytes != int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
         raise MapError(MapErrorKind.SCHEMA, f"array {name!r} size does not match dtype {dtype.str} and shape {shape}")
@@ -361,7 +361,7 @@ def _decode(data: memoryview, trusted_keys: list[bytes] | None) -> CommandMap:
     arrays = {}
     for name, entry in body["arrays"].items():
         dtype, shape, offset, nbytes = _check_array_entry(name, entry, len(payload))
-        arr = np.frombuffer(payload, dtype=dtype, count=nbytes // dtype.itemsize if dtype.itemsize else 0, offset=offset)
+        arr = np.frombuffer(payload, dtype=dtype, count=nbytes // dtype.itemsize, offset=offset)  # itemsize > 0: checked
         arrays[name] = arr.reshape(shape)
     _check_schema(body, arrays)
     return CommandMap(body=body, arrays=arrays, sha256=digest.hex(), signed=signed,

@@ -98,10 +98,25 @@ def make(sfield, autopilot="px4", **kw):
     return cfg, Mission(cfg, sfield), SimVehicle(autopilot)
 
 
+def step(m, status):
+    """``m.step(status)``, checking what every step keeps: each transition it makes is stamped with the
+    tick's time, leaves the state the one before entered, and carries a typed cause and a text (no
+    ``None`` in it); the output reports the state and reason the mission is in."""
+    src, n = m.state, len(m.transitions)
+    out = m.step(status)
+    for tr in m.transitions[n:]:
+        assert tr.t_s == status.t_s and tr.src == src, (tr, status.t_s, src)
+        assert isinstance(tr.reason, Reason) and isinstance(tr.reason.cause, (Cause, HoldCause)), tr
+        assert tr.reason and "None" not in tr.reason, tr
+        src = tr.dst
+    assert m.state == src and out.state == m.state and out.reason is m.reason
+    return out
+
+
 def run(m, v, cfg, until, max_s=60.0, hook=None):
     outs = []
     while v.t < max_s:
-        out = m.step(v.status())
+        out = step(m, v.status())
         outs.append(out)
         if hook:
             hook(m, v, out)
@@ -114,7 +129,7 @@ def run(m, v, cfg, until, max_s=60.0, hook=None):
 def run_for(m, v, cfg, seconds):
     outs, end = [], v.t + seconds
     while v.t < end:
-        out = m.step(v.status())
+        out = step(m, v.status())
         outs.append(out)
         v.apply(out, cfg)
     return outs

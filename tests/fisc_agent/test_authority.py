@@ -177,6 +177,8 @@ def test_health_problems_are_typed():
     assert kinds == [HealthKind.BATTERY, HealthKind.ESTIMATOR, HealthKind.SYSTEM]
     assert health_problems(VehicleHealth(estimator_ok=None, system_state=SystemState.ACTIVE), 20.0) == ()
     assert health_problems(VehicleHealth(system_state=SystemState.STANDBY, estimator_ok=True), 20.0) == ()
+    unsaid = health_problems(VehicleHealth(estimator_ok=False), None)  # bad, and the autopilot said nothing more
+    assert [(p.kind, p.text) for p in unsaid] == [(HealthKind.ESTIMATOR, "estimator: not healthy")]
 
 
 def test_distance_to_box_and_the_start_distance_gate(sfield):
@@ -189,7 +191,10 @@ def test_distance_to_box_and_the_start_distance_gate(sfield):
     at = (x0 - 10.0, geom.lo_m[1], geom.lo_m[2])
     assert arming_blockers(VehicleHealth(), cfg, at, geom) == []                 # exactly the limit
     blocked = arming_blockers(VehicleHealth(), cfg, (x0 - 10.001, geom.lo_m[1], geom.lo_m[2]), geom)
-    assert len(blocked) == 1 and "from the map" in blocked[0]
+    assert blocked == ["start point 10 m from the map (more than 10 m: check --origin / --geodetic-anchor)"]
+    far = (x0 - 1000.0, geom.lo_m[1], geom.lo_m[2])
+    assert arming_blockers(VehicleHealth(), cfg, far, None) == []           # no map yet: nothing to measure
+    assert arming_blockers(VehicleHealth(), cfg, None, geom) == []          # no position yet: likewise
 
 
 # ---- the mission ----------------------------------------------------------------------------
@@ -281,6 +286,7 @@ def test_low_battery_ends_the_laps_at_the_exit(sfield):
     assert m.state == State.FLOW
     run(m, v, cfg, lambda m, v, o: m.state != State.FLOW)
     assert m.state == State.EXIT and m.reason.cause == Cause.LOW_BATTERY and m.laps == 1
+    assert str(m.reason) == "battery 29 % below 30 % after lap 1: to the exit, then hold"
     run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)   # ... then the low-battery action at the exit
     assert m.hold_cause == HoldCause.EXIT
 

@@ -83,6 +83,22 @@ def test_bad_estimator_flags_differ_between_autopilots():
     assert estimator_health(0, True)[0] is False
 
 
+def test_every_estimator_problem_is_named_in_one_comma_separated_detail():
+    assert estimator_health(0, ardupilot=False) == (False, "no attitude, no horizontal velocity, no vertical velocity, "
+                                                           "no horizontal position, no vertical position")
+    assert estimator_health(PX4_FLAGS_AT_REST | 1024 | 2048, False) == (False, "GNSS glitch, accelerometer error")
+
+
+def test_gps_time_needs_both_the_time_and_when_it_was_received():
+    """``unix_time_at`` extrapolates to the second (a drift of seconds would misdate a fleet command), and is
+    None unless both the GNSS time and its reception time are known."""
+    h = VehicleHealth(gps_unix_s=1_000_000.0, gps_rx_s=10.0)
+    assert h.unix_time_at(10.0) == 1_000_000.0
+    assert h.unix_time_at(12.5) == 1_000_002.5 and h.unix_time_at(9.0) == 999_999.0  # before reception: earlier
+    assert VehicleHealth(gps_unix_s=1_000_000.0).unix_time_at(12.5) is None
+    assert VehicleHealth(gps_rx_s=10.0).unix_time_at(12.5) is None
+
+
 def test_problems_at_the_battery_boundary_and_unknowns():
     from fisc_agent.flight.readiness import health_problems
 
@@ -145,7 +161,7 @@ def test_system_time_gives_gps_time_and_detects_reboots():
     assert r.health.gps_unix_s is None and r.health.unix_time_at(11.0) is None   # 0: the autopilot has no time
     assert not r.on_message(system_time(1_796_459_816_339_252, 6000), 11.0).rebooted
     assert r.health.gps_unix_s == pytest.approx(1_796_459_816.339252) and r.health.gps_rx_s == 11.0
-    assert r.health.unix_time_at(13.5) == pytest.approx(1_796_459_818.839252)
+    assert r.health.unix_time_at(13.5) == pytest.approx(1_796_459_818.839252, abs=1e-6)  # 2.5 s later, to the us
     assert not r.on_message(system_time(1, 6000), 12.0).rebooted                   # equal boot time: no reboot
     r.on_message(odometry(7), 12.0)
     up = r.on_message(system_time(1, 5999), 13.0)                                  # 1 ms backwards: reboot

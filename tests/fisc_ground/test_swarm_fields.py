@@ -287,3 +287,68 @@ def test_the_random_temperature_uses_the_boltzmann_like_constant_and_samples_are
     assert t1.samples.dtype == np.int64 and t1.samples.tolist() == [2]
     given = fields_from_moments(mom, 1.0, samples=np.array([7.0]))
     assert given.samples.dtype == np.int64 and given.samples.tolist() == [7]
+
+
+def test_a_sample_that_leaves_the_last_cvs_empty_adds_nothing_to_them():
+    """Every moment has one row per CV even when the highest CVs hold nobody; the accumulator
+    must not spread CV 0's momentum over CVs that were empty in that sample."""
+    mom = cv_moments(np.array([0]), np.array([[2.0, 4.0, 6.0]]), 0.5, n_cv=3)
+    np.testing.assert_array_equal(mom.momentum_kg_m_s, [[1.0, 2.0, 3.0], [0, 0, 0], [0, 0, 0]])
+    outside = cv_moments(np.array([-1]), np.zeros((1, 3)), 1.0, n_cv=2)  # nobody inside: still 2 rows
+    np.testing.assert_array_equal(outside.momentum_kg_m_s, np.zeros((2, 3)))
+    acc = FieldAccumulator(2, DV)
+    acc.add(np.array([0]), np.array([[2.0, 0, 0]]), 1.0)   # CV 1 empty in this sample
+    acc.add(np.array([1]), np.array([[-1.0, 0, 0]]), 1.0)  # then one agent at -1 m/s
+    np.testing.assert_array_equal(acc.momentum_kg_m_s, [[2.0, 0, 0], [-1.0, 0, 0]])
+    np.testing.assert_allclose(acc.result().u_axial_m_s, [2.0, -1.0])
+
+
+def test_result_uses_the_accumulators_own_drift_direction_and_parameters():
+    params = SwarmGasParams(k_b_s=2.5, a_max_m_s2=7.0)
+    acc = FieldAccumulator(2, DV, drift_dir=[0.0, 2.0, 0.0], params=params)
+    acc.add(IDS, VEL, 1.0)
+    got = acc.result()
+    want = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, drift_dir=[0.0, 1.0, 0.0], params=params)
+    for name, arr in want.as_arrays().items():
+        np.testing.assert_allclose(getattr(got, name), arr, err_msg=name)
+    np.testing.assert_allclose(got.u_axial_m_s, [0.0, 1.0])  # projected on +y, not the default +x
+    default = instantaneous_fields(IDS, VEL, 1.0, n_cv=2, cell_volume_m3=DV, drift_dir=[0.0, 1.0, 0.0])
+    assert got.t_rand_m2_s2[0] == pytest.approx(2.5 / SwarmGasParams().k_b_s * default.t_rand_m2_s2[0])
+    assert not np.allclose(got.t_ctrl_m2_s2[0], default.t_ctrl_m2_s2[0])  # a_max is the accumulator's
+
+
+def test_result_before_any_referenced_sample_divides_nothing_by_zero():
+    import warnings
+    acc = FieldAccumulator(2, DV)
+    acc.add(IDS, VEL, 1.0)  # no reference velocity: no dispersion moment
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # 0/0 would warn (RuntimeWarning: invalid value)
+        f = acc.result()
+    assert np.isnan(f.p_dispersion_pa).all()
+
+
+def test_from_state_refuses_a_bad_state_naming_the_array_or_key():
+    acc = FieldAccumulator(2, DV)
+    acc.add(IDS, VEL, 1.0, REF)
+    state = acc.state()
+    _refused("state array 'mass_kg' has shape (3,), expected (2,)", FieldAccumulator.from_state,
+             {**state, "mass_kg": np.zeros(3)})
+    _refused("state array 'momentum_kg_m_s' has shape (2,), expected (2, 3)", FieldAccumulator.from_state,
+             {**state, "momentum_kg_m_s": np.zeros(2)})
+    for key in ("drift_dir", "m_dev2_kg_m2_s2", "n_ref_samples"):
+        _refused(f"accumulator state lacks {key!r}", FieldAccumulator.from_state,
+                 {k: v for k, v in state.items() if k != key})
+
+
+def test_from_state_of_integer_sums_keeps_accumulating_in_floats():
+    """A state written as integers (a JSON replay of whole counts and masses) must take further
+    fractional samples, not fail on an integer array."""
+    state = {"count": [2, 1], "mass_kg": [2, 1], "momentum_kg_m_s": [[6, 0, 2], [1, 1, 0]],
+             "m_v2_kg_m2_s2": [24, 2], "m_dev2_kg_m2_s2": [0, 0], "n_time_samples": 1, "n_ref_samples": 0,
+             "cell_volume_m3": DV, "drift_dir": [1, 0, 0]}
+    acc = FieldAccumulator.from_state(state)
+    assert all(getattr(acc, name).dtype == np.float64 for name in FieldAccumulator._SUMS)
+    acc.add(np.array([1]), np.array([[0.5, 0, 0]]), 0.25)
+    np.testing.assert_allclose(acc.mass_kg, [2.0, 1.25])
+    np.testing.assert_allclose(acc.momentum_kg_m_s, [[6, 0, 2], [1.125, 1, 0]])
+    np.testing.assert_allclose(acc.result().count, [1.0, 1.0])

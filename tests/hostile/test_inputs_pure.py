@@ -663,10 +663,11 @@ def test_fuzz_the_udp_input_path_never_raises_and_the_next_fix_gets_through(udp_
 def test_installing_a_map_drops_the_maps_in_progress_it_makes_old_and_gives_their_bytes_back():
     asm = MapAssembler()
     asm.feed(header(5, 100, count=2, sha=b"E" * 32) + bytes(50))  # no clock given: time 0
-    asm.feed(header(6, 100, count=2, sha=b"F" * 32) + bytes(50))
+    asm.feed(header(6, 100, count=2, sha=b"F" * 32) + bytes(30))  # another size: the bytes given back are E's
     assert asm.pending[b"E" * 32].last_chunk_s == 0.0
+    assert asm.buffered_bytes == (50 + OVER) + (30 + OVER)
     asm.accept(5, b"G" * 32)  # the equal version goes, the newer one stays
-    assert list(asm.pending) == [b"F" * 32] and asm.buffered_bytes == 50 + OVER
+    assert list(asm.pending) == [b"F" * 32] and asm.buffered_bytes == 30 + OVER
     asm.feed(split_map(os.urandom(10), 4)[0])
     assert [(d.reason, d.received_bytes) for d in asm.drain_drops()] == [(DropReason.OLD_VERSION, 0)]
     raw = split_map(b"abc", 9)[0]
