@@ -58,7 +58,6 @@ hold); a pass need not be complete.  Measured wall time: see docs/zenoh.md, "Wha
 
 from __future__ import annotations
 
-import json
 import math
 import subprocess
 import time
@@ -74,7 +73,10 @@ from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.builtin import load_builtin
 
 from .evidence import Evidence, read_evidence
-from .lab import FaultLab, Kill, ground, listening
+from .lab import FaultLab, ground, listening
+from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, STALE_AFTER_S, heard_throughout,
+                       lab_port_holder_loses_no_link, lab_port_holder_silence_is_alarmed,
+                       monitor_restart_hears_everyone)
 from ..e2e.conftest import Proc, cli, poll
 from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, px4_ulog,
                             truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic)
@@ -85,14 +87,6 @@ SWARM = "px4faults"
 N = 3
 FAILSAFE_PARAMS = {"COM_OF_LOSS_T": 0.5, "COM_OBL_RC_ACT": 5}
 """docs/deployment.md's offboard-loss failsafe (0.5 s, Hold); every other parameter stock."""
-SLOT_S = 6.0
-"""Time between two faults [s]."""
-STALE_AFTER_S = 3.0
-"""The monitors' ``--stale-after`` [s]."""
-HUB_OBSERVE_S = 15.0
-"""Observation window after the lab port's holder is killed [s]."""
-NEWCOMER_AFTER_S = 8.0
-"""A ``status --wait 5`` started this long after the holder's kill must list every survivor [s]."""
 FAILSAFE_STOP_S = 5.0
 """PX4's failsafe has stopped the killed agent's vehicle this long after the kill (measured: it
 comes to rest 2-3 s after; COM_OF_LOSS_T 0.5 s, then Hold's braking) [s]."""
@@ -204,24 +198,18 @@ def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.Complet
     return victim, restarted, newcomer
 
 
-def _heard_throughout(flight: Px4Flight, kill: Kill, after_s: float = SLOT_S - 1.0) -> None:
-    ids = flight.survivors(kill.t_s + after_s)
-    gaps = flight.ev.gaps(ids, kill.t_s - 1.0, kill.t_s + after_s, STALE_AFTER_S)
-    assert not gaps, f"after the {kill.case} kill ({kill}), silent > {STALE_AFTER_S} s: {gaps}"
-
-
 def _failsafe_held(flight: Px4Flight, agent_id: int, t0_s: float, t1_s: float) -> list[float]:
     s = flight.ev.agents[agent_id].between(t0_s, t1_s)
     return [round(t - t0_s, 2) for t in s.failsafe_holds_s()]
 
 
 def test_a_running_status_killed_disturbs_nobody(flight):
-    _heard_throughout(flight, flight.lab.kills.of("status"))
+    heard_throughout(flight, flight.lab.kills.of("status"))
 
 
 def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
     kill = flight.lab.kills.of("publisher")
-    _heard_throughout(flight, kill)
+    heard_throughout(flight, kill)
     for i in flight.survivors(kill.t_s + SLOT_S):
         s = flight.ev.agents[i].between(kill.t_s, kill.t_s + SLOT_S - 1.0)
         assert s.recv_s.size and set(sha_hex(s.records)) == {flight.lab.sha}, f"agent {i} lost or changed its map"
@@ -232,23 +220,12 @@ def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
 
 
 def test_a_monitor_killed_and_restarted_picks_the_fleet_up_again(flight):
-    kill = flight.lab.kills.of("monitor")
-    _heard_throughout(flight, kill)
-    killed = read_evidence(flight.lab.dir / "monitor.mcap")
-    assert killed.agents and max(s.recv_s[-1] for s in killed.agents.values()) <= kill.t_s + 0.5
-    assert flight.restarted.popen.returncode == 0, flight.restarted.log_tail()
-    again = read_evidence(flight.lab.dir / "restarted.mcap")
-    start = min(again.first_heard_s(i) for i in again.agents)
-    heard_after = {i: round(again.first_heard_s(i) - kill.t_s, 2) for i in range(N)}
-    print(f"restarted monitor: first message {start - kill.t_s:.2f} s after the kill; per agent {heard_after}")
-    late = {i: round(again.first_heard_s(i) - start, 2) for i in flight.survivors(start + 5.0)
-            if again.first_heard_s(i) > start + 5.0}
-    assert not late, f"the restarted monitor took > 5 s (or never) to hear: {late}"
+    monitor_restart_hears_everyone(flight)
 
 
 def test_an_agent_killed_its_px4_fails_safe_by_itself_and_the_ground_alarms(flight):
     kill = flight.lab.kills.of("agent")
-    _heard_throughout(flight, kill)
+    heard_throughout(flight, kill)
     lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + STALE_AFTER_S + 4.0)
     stale = [t for t, got in flight.ev.alarms if kill.t_s <= t <= kill.t_s + STALE_AFTER_S + 4.0
              and any(line.startswith("stale") and str(flight.victim) in line for line in got)]
@@ -270,20 +247,11 @@ def test_an_agent_killed_its_px4_fails_safe_by_itself_and_the_ground_alarms(flig
 
 
 def test_the_lab_port_holder_killed_loses_no_link(flight):
-    kill = flight.lab.kills.of("first")
-    _heard_throughout(flight, kill, after_s=HUB_OBSERVE_S)
-    assert flight.newcomer.returncode == 0, flight.newcomer.stderr[-2000:]
-    listed = {a["id"] for a in json.loads(flight.newcomer.stdout)["agents"] if a["last_seen_s"] < 2.5}
-    missing = sorted(set(flight.survivors(kill.t_s)) - listed)
-    assert not missing, f"a status started {NEWCOMER_AFTER_S} s after the holder's kill misses {missing}"
+    lab_port_holder_loses_no_link(flight)
 
 
 def test_the_lab_port_holder_killed_any_silence_is_alarmed(flight):
-    kill = flight.lab.kills.of("first")
-    gaps = flight.ev.gaps(flight.survivors(kill.t_s), kill.t_s, kill.t_s + HUB_OBSERVE_S, STALE_AFTER_S)
-    if gaps:
-        lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + HUB_OBSERVE_S)
-        assert any(line.startswith(("stale", "every agent stale")) for line in lines), (gaps, flight.ev.alarms)
+    lab_port_holder_silence_is_alarmed(flight)
 
 
 def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(flight):
