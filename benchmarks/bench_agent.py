@@ -171,14 +171,18 @@ def given_the_vehicle(r: Runner, tick) -> None:
         raise RuntimeError(f"the agent did not take the vehicle over: {r.mission.state}, {r.mission.authority}")
 
 
+class ManualClock:
+    """A clock the caller advances (``clock.t += dt``): the runner's time without waiting."""
+
+    def __init__(self, t_s: float = 1000.0) -> None:
+        self.t = t_s
+
+    def __call__(self) -> float:
+        return self.t
+
+
 def bench_runner_step(cmap, n=20000):
-    class Clock:
-        t = 1000.0
-
-        def __call__(self):
-            return self.t
-
-    clock = Clock()
+    clock = ManualClock()
     cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=7, mode="slot")
     link = BenchLink(clock)
     r = Runner(cfg, link, cmap, clock=clock)

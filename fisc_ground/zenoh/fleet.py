@@ -264,15 +264,15 @@ def run_status(args: Any) -> int:
     from fisc_ground.zenoh.config import open_ground_session
 
     keys = Keys(args.prefix, args.swarm)
+    expect = getattr(args, "expect", None)
     session = open_ground_session(args.zenoh_config, LabRole.VISITOR)
     try:
         listener = TelemetryListener(session, keys)
-        latest = listen(listener, args.wait, getattr(args, "expect", None), args.stale_after)
+        latest = listen(listener, args.wait, expect, args.stale_after)
         listener.close()
     finally:
         session.close()
     report = status_report(latest, time.time(), args.stale_after, args.low_battery)
-    expect = getattr(args, "expect", None)
     shortfall = None if expect is None else expect_shortfall(report, expect)
     if shortfall is not None:
         log.error("status --expect %d: %s", expect, shortfall)

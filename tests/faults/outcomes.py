@@ -72,3 +72,33 @@ def lab_port_holder_silence_is_alarmed(flight: Any) -> None:
     if gaps:  # the ground lost some agents: it must say so
         lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + HUB_OBSERVE_S)
         assert any(line.startswith(("stale", "every agent stale")) for line in lines), (gaps, flight.ev.alarms)
+
+
+def keeps_map_and_flight(flight: Any, agent_id: int, t0_s: float, t1_s: float, flying_states=None) -> None:
+    """Agent ``agent_id`` heard in [t0_s, t1_s] on the signed map, progressing, never in a failsafe
+    hold (and only in ``flying_states`` when given)."""
+    from fisc_agent.zenoh.telemetry_codec import sha_hex
+
+    series = flight.ev.agents[agent_id].between(t0_s, t1_s)
+    assert series.recv_s.size, f"agent {agent_id} not heard in [{t0_s}, {t1_s}]"
+    assert set(sha_hex(series.records)) == {flight.lab.sha}, f"agent {agent_id} lost or changed its map"
+    if flying_states is not None:
+        assert set(series.states()) <= flying_states, \
+            f"agent {agent_id} stopped flying: {sorted(set(series.states()))}"
+    assert not series.failsafe_holds_s().size, f"agent {agent_id} failed safe"
+    assert series.records["seq"][-1] > series.records["seq"][0], f"agent {agent_id} stopped progressing"
+
+
+def nothing_stale_alarmed(flight: Any, t0_s: float, t1_s: float) -> None:
+    """No ``stale`` or ``every agent stale`` alarm in [t0_s, t1_s]."""
+    assert not any(line.startswith(("stale", "every agent stale"))
+                   for line in flight.ev.alarm_lines(t0_s, t1_s)), flight.ev.alarms
+
+
+def stale_alarm_names(flight: Any, kill: Kill, agent_id: int, within_s: float = STALE_AFTER_S + 4.0) -> None:
+    """The ground alarms ``stale`` naming ``agent_id`` within ``within_s`` of the kill (printed: how soon)."""
+    lines = flight.ev.alarm_lines(kill.t_s, kill.t_s + within_s)
+    stale = [t for t, got in flight.ev.alarms if kill.t_s <= t <= kill.t_s + within_s
+             and any(line.startswith("stale") and str(agent_id) in line for line in got)]
+    print(f"agent {agent_id} killed: stale alarm {stale[0] - kill.t_s if stale else None} s after")
+    assert any(line.startswith("stale") and str(agent_id) in line for line in lines), flight.ev.alarms

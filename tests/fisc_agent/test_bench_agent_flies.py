@@ -20,13 +20,7 @@ def test_the_runner_step_bench_flows_and_sends_a_setpoint_every_tick():
 
 
 def test_the_bench_track_is_continuous_so_the_position_gate_keeps_it():
-    class Clock:
-        t = 0.0
-
-        def __call__(self):
-            return self.t
-
-    clock = Clock()
+    clock = bench_agent.ManualClock(0.0)
     link = bench_agent.BenchLink(clock)
     xs, vs = [], []
     for _ in range(600):  # 30 s at 2 m/s: both ends of the 14 m track
@@ -44,13 +38,7 @@ def test_a_given_vehicle_is_under_the_agents_command():
     from fisc_agent.config import AgentConfig
     from fisc_agent.runner import Runner
 
-    class Clock:
-        t = 1000.0
-
-        def __call__(self):
-            return self.t
-
-    clock = Clock()
+    clock = bench_agent.ManualClock()
     r = Runner(AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=7, state_file=None),
                bench_agent.BenchLink(clock), cmap, clock=clock)
 
