@@ -181,6 +181,12 @@ class _SitlSet:
 
 MAX_EXCURSION_M = 0.3
 """Bound on a vehicle flown by its agent beyond the duct's wall [m] (issue 37: < 0.3 m outside)."""
+TRUTH_EXCURSION_M = 0.45
+"""Bound by SIH's ground truth on a vehicle flown by its agent beyond the duct's wall [m].  The agent
+steers on PX4's position estimate, held to ``MAX_EXCURSION_M`` by that estimate (``view_excursion_m``);
+the estimator's error adds to it.  Measured on 2026-12-05: +0.304 m (the hexacopter, PX4's estimate up
+to 0.89 m off the truth) and +0.365 m (three PX4, the link-loss flight: 0.31 m inside by PX4's estimate,
+which was 0.65 m low there); -0.47 to +0.06 m in the other fleet flights."""
 FAILSAFE_EXCURSION_M = 0.45
 """After the agent is killed, PX4 alone: it flies the last setpoint for COM_OF_LOSS_T (0.5 s), then its
 Hold brakes.  That is PX4's own stopping distance, not the agent's flight: 0.16 m inside to 0.03 m
@@ -293,6 +299,15 @@ class ArduPilotSitl(_SitlSet):
 
     def _stop(self) -> None:
         subprocess.run([str(self.shared / "stop.sh")], env=self._env(), capture_output=True, timeout=60)
+
+
+def px4_pid(run: SitlRun, i: int) -> int:
+    """pid of the running PX4 instance ``i`` (``start.sh``'s ``px4.pids``)."""
+    for line in (run.run_dir / "px4.pids").read_text().splitlines():
+        pid, inst = line.split()
+        if int(inst) == i:
+            return int(pid)
+    raise LookupError(f"PX4 instance {i} is not in {run.run_dir / 'px4.pids'}")
 
 
 # ---- the autopilots' own logs ------------------------------------------------------------
@@ -530,6 +545,14 @@ class Track:
         seg = hold[hold >= start]
         z = self.pos_m[seg, 2]
         return float(np.max(np.abs(z - z[0]))), float(self.t_s[seg[-1]] - self.t_s[seg[0]])
+
+
+def view_excursion_m(track: Track, ref, scale: float, wall) -> float:
+    """Largest distance beyond ``wall`` in the agent's own view (its flight log's FLOW rows: PX4's
+    estimate, what it steers on) [m]; nan when it never flowed."""
+    from fisc_ground.fields.flight_score import score_track
+
+    return score_track(track.t_s, track.pos_m, track.vel_m_s, track.states, ref, scale, wall=wall).max_excursion_m
 
 
 # ---- the ground side of a fleet test ----------------------------------------------------------

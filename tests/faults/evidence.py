@@ -29,6 +29,8 @@ LOAD_CAUSES = ("position stale", "pilot override")
 """Hold causes a starved emulator produces (its position stream pauses; catching up its clock it
 trips PX4's offboard-loss failsafe, which the agent obeys hands-off) and no killed Zenoh process can:
 the emulated vehicles talk MAVLink to their own emulators, which no fault here touches."""
+FLYING = frozenset({"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"})
+"""States in which an agent flies its vehicle along its mission."""
 FLEET_HOLD_CAUSE = HoldCause.FLEET.value
 """Reason text of a hold a ``fisc-ground cmd hold`` caused."""
 STARVED_EMULATOR_S = 0.5
@@ -77,6 +79,16 @@ class AgentSeries:
                 start = None
         return out
 
+    def flying(self, exit_x_m: float | None = None) -> np.ndarray:
+        """Bool per message: in a ``FLYING`` state, or (``exit_x_m`` given) in the exit's hold: HOLD,
+        no ``failsafe``, at or past ``exit_x_m`` (the map's outlet) in the map frame."""
+        states = self.states()
+        out = np.array([s in FLYING for s in states], dtype=bool)
+        if exit_x_m is not None:
+            held = np.array([s == "HOLD" for s in states], dtype=bool) & ~self.flagged("failsafe")
+            out |= held & (self.records["position_m"][:, 0] >= exit_x_m)
+        return out
+
     def between(self, t0_s: float, t1_s: float) -> "AgentSeries":
         """The messages received in [t0_s, t1_s]."""
         sel = (self.recv_s >= t0_s) & (self.recv_s <= t1_s)
@@ -123,6 +135,12 @@ class Evidence:
             if bad:
                 out[i] = bad
         return out
+
+    def first_heard_s_after(self, agent_id: int, t_s: float) -> float:
+        """Receive time of the agent's first message at or after ``t_s`` (inf: none)."""
+        series = self.agents.get(agent_id)
+        t = series.recv_s[series.recv_s >= t_s] if series is not None else np.zeros(0)
+        return float(t[0]) if t.size else float("inf")
 
     def first_heard_s(self, agent_id: int) -> float:
         """Receive time of the agent's first message (inf: never heard)."""

@@ -91,8 +91,22 @@ class KillLog:
         time.sleep(delay)
         assert proc.alive, f"{proc.name} ended before its kill:\n{proc.log_tail()}"
         os.kill(proc.popen.pid, signal.SIGKILL)
-        kill = Kill(case, proc.name, proc.popen.pid, round(delay, 3), time.time())
+        t_s = time.time()
         proc.popen.wait(timeout=10)
+        return self._log(Kill(case, proc.name, proc.popen.pid, round(delay, 3), t_s))
+
+    def kill_pid_at(self, case: str, name: str, pid: int, low_s: float, high_s: float) -> Kill:
+        """``kill_at`` for a process that is not this lab's child (a PX4 that ``start.sh`` started):
+        SIGKILL ``pid``, then wait until it is gone (or a zombie)."""
+        delay = self.rng.uniform(low_s, high_s)
+        time.sleep(delay)
+        assert _running(pid), f"{name} (pid {pid}) ended before its kill"
+        os.kill(pid, signal.SIGKILL)
+        t_s = time.time()
+        assert poll(lambda: not _running(pid), 10, period_s=0.05), f"{name} (pid {pid}) outlived its SIGKILL"
+        return self._log(Kill(case, name, pid, round(delay, 3), t_s))
+
+    def _log(self, kill: Kill) -> Kill:
         self.kills.append(kill)
         line = json.dumps(kill.__dict__ | {"seed": self.seed})
         print(f"fault: {line}")
@@ -105,6 +119,28 @@ class KillLog:
         got = [k for k in self.kills if k.case == case]
         assert got, f"the flight never killed {case!r} (kills: {[k.case for k in self.kills]})"
         return got[0]
+
+
+def _running(pid: int) -> bool:
+    """``pid`` exists and is not a zombie."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def router_configs(lab: "FaultLab") -> tuple[int, Path, Path]:
+    """The field set-up of docs/zenoh.md on loopback: a router config listening on a free port and
+    a client config connecting to it, no gossip nor multicast (nothing bypasses the router).
+    Returns (the port, router.json5, client.json5) in the lab's directory."""
+    port = free_tcp_port()
+    router = lab.dir / "router.json5"
+    router.write_text(json.dumps({"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                                  "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}}}))
+    client = lab.dir / "client.json5"
+    client.write_text(json.dumps({"mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+                                  "scouting": {"multicast": {"enabled": False}}}))
+    return port, router, client
 
 
 class FaultLab:
@@ -175,14 +211,24 @@ class FaultLab:
             "--telemetry-rate", "5", "--mode", "staggered", "--geofence", "return", *zenoh])
         return autopilot, agent
 
+    def start_px4_agents(self, logs: list[Path], anchor: str, *zenoh) -> list[Proc]:
+        """``fisc-agent --go`` for PX4 SITL instances 0..len(logs)-1 (udp 14540+i, ``--geodetic-anchor
+        anchor``): one pass, then the exit's hold (``--exit-policy loop --laps 1``), flight log i in
+        ``logs[i]``."""
+        return [self.start(f"agent-{i}", cli("fisc-agent") + [
+            "--go", "--swarm", self.swarm, "--trusted-key", self.pub, "--mavlink", f"udpin:0.0.0.0:{14540 + i}",
+            "--id", i, "--autopilot", "px4", "--geodetic-anchor", anchor, "--exit-policy", "loop", "--laps", 1,
+            "--flight-log", log, *zenoh]) for i, log in enumerate(logs)]
+
     def wait_in_air(self, agent: Proc, timeout_s: float) -> None:
         """Until the agent's log shows it joining or flowing (it commands its vehicle in OFFBOARD)."""
         assert poll(lambda: not agent.alive or "mission TAKEOFF -> JOIN" in agent.log_tail(400),
                     timeout_s, period_s=0.5) and agent.alive, f"{agent.name} never took off\n{self.procs.report()}"
 
-    def heard(self) -> set[int]:
-        """Agent ids a ``status --wait 1`` on the lab port hears now."""
-        out = self.run(ground("status", "--swarm", self.swarm, "--wait", "1", "--json"))
+    def heard(self, zenoh_config: Path | None = None) -> set[int]:
+        """Agent ids a ``status --wait 1`` on the lab port (or through ``zenoh_config``) hears now."""
+        extra = ["--zenoh-config", zenoh_config] if zenoh_config is not None else []
+        out = self.run(ground("status", "--swarm", self.swarm, "--wait", "1", "--json", *extra))
         return {a["id"] for a in json.loads(out.stdout)["agents"]} if out.returncode == 0 else set()
 
     def stop_all(self) -> None:

@@ -33,7 +33,7 @@ monitor      the recorder hears everyone throughout; the killed monitor's log is
 agent 100    its vehicle's autopilot fails safe (PX4 offboard loss: "Failsafe: offboard setpoints
              lost"); the ground alarms ``stale`` naming 100 within stale-after + 4 s; the others
              are heard throughout
-emulator     (autopilot 101) agent 101 loses MAVLink, holds (failsafe, no ``mavlink_ok``) within
+autopilot    (the emulator of 101) agent 101 loses MAVLink, holds (failsafe, no ``mavlink_ok``) within
              5 s, keeps its map and keeps reporting (no gap > 3 s); the others are heard throughout
 first        the holder of the lab port killed: every agent is still heard for 15 s, no gap > 3 s,
              and a ``status --wait 5`` started 8 s later lists every flying agent; whatever
@@ -50,7 +50,6 @@ flight       no failsafe before their own kill; an emulated agent never holds bu
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import time
@@ -60,9 +59,11 @@ import pytest
 
 from .evidence import EXCURSION_MAX_S, Evidence, emulated_holds, read_evidence
 from .lab import FaultLab, ground, listening
-from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, heard_throughout, keeps_map_and_flight,
+from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, cmd_acted, heard_throughout,
+                       kill_a_running_cmd, keeps_map_and_flight, killed_cmd_reached_all_or_none,
                        lab_port_holder_loses_no_link, lab_port_holder_silence_is_alarmed,
-                       monitor_restart_hears_everyone, nothing_stale_alarmed, stale_alarm_names)
+                       lost_autopilot_agent_holds_and_reports, monitor_restart_hears_everyone,
+                       nothing_stale_alarmed, stale_alarm_names)
 from ..e2e.conftest import Proc, cli, poll
 
 pytestmark = pytest.mark.slow
@@ -77,17 +78,10 @@ emulator (gaps near 1 s, every position stale, the fleet holding hands-off): suc
 the holds as xfail "inconclusive" (``evidence.emulated_holds``); ``FISC_FAULT_AGENTS=10`` flies fewer."""
 DURATION_S = 100
 """``fisc-sim emulate --duration``: outlives the last observation window on this 2-core machine."""
-FLYING = {"TAKEOFF", "JOIN", "FLOW", "RETURN", "EXIT"}
 KILLED_AGENT, KILLED_EMULATOR = 100, 101
 CMD_TARGETS = (0, 1, 2)
 """The killed ``cmd hold``'s agents, in one emulate agent process (one per 300 agents,
 ``sim.emulate.config``): one Zenoh session receives the command for the three."""
-NOBODY = 999
-"""An id no agent has: the killed ``cmd`` waits its whole ``--ack-wait`` for it."""
-HOLD_WITHIN_S = 3.0
-"""A delivered hold is flown (telemetry HOLD) within this long of its acknowledgement [s]."""
-RESUMED_WITHIN_S = 5.0
-"""After a completed ``cmd resume`` every held target flies again within this long [s]."""
 
 
 @dataclass
@@ -148,17 +142,7 @@ def _fly(lab: FaultLab) -> Flight:
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
     time.sleep(SLOT_S)
-    cmd_started_s = time.time()
-    cmd = lab.start("cmd", ground("cmd", "hold", "--swarm", SWARM, "--key", lab.key, "--ack-wait", "30",
-                                  "--agents", f"{CMD_TARGETS[0]}-{CMD_TARGETS[-1]},{NOBODY}"))
-    kills.kill_at("cmd", cmd, 0.5, 4.0)  # while it starts, waits for subscribers, or waits for 999's ack
-    time.sleep(HOLD_WITHIN_S)  # a delivered hold is flown by now
-    resume_sent_s = time.time()
-    resume = lab.run(ground("cmd", "resume", "--swarm", SWARM, "--key", lab.key, "--ack-wait", "8",
-                            "--agents", f"{CMD_TARGETS[0]}-{CMD_TARGETS[-1]}"))
-    resume_sent = (resume_sent_s, time.time())
-    print(f"fault: resume after the killed cmd ({resume_sent[1] - resume_sent_s:.2f} s): {resume.stdout.strip()}")
-    time.sleep(RESUMED_WITHIN_S)
+    cmd_run = kill_a_running_cmd(lab, CMD_TARGETS)
     kills.kill_at("publisher", publisher, 0.0, 2.0)
     time.sleep(SLOT_S)
     kills.kill_at("monitor", monitor, 0.0, 2.0)
@@ -166,7 +150,7 @@ def _fly(lab: FaultLab) -> Flight:
     time.sleep(SLOT_S)
     kills.kill_at("agent", agent_100, 0.0, 2.0)
     time.sleep(SLOT_S)
-    kills.kill_at("emulator", autopilot_101, 0.0, 2.0)
+    kills.kill_at("autopilot", autopilot_101, 0.0, 2.0)
     time.sleep(SLOT_S)
     hub_kill = kills.kill_at("first", first, 0.0, 2.0)
     time.sleep(NEWCOMER_AFTER_S)  # a newcomer asks who flies (it finds the lab port free)
@@ -180,27 +164,7 @@ def _fly(lab: FaultLab) -> Flight:
     assert poll(lambda: not restarted.alive, 30), lab.procs.report()
     assert lab.interrupt(recorder) == 0, recorder.log_tail()  # Ctrl-C: the monitor closes its MCAP log
     return Flight(lab, read_evidence(d / "recorder.mcap"), restarted, emulate, ran_to_the_end, newcomer,
-                  cmd_started_s, resume, resume_sent)
-
-
-def _first_flying_s(series, t_s: float) -> float:
-    """Receive time of the agent's first message in a flying state from ``t_s`` on (inf: none)."""
-    after = series.between(t_s, float("inf"))
-    return next((t for t, st in zip(after.recv_s, after.states()) if st in FLYING), float("inf"))
-
-
-def _hold_acks(flight: Flight, agent_id: int) -> list[int]:
-    """Sequence numbers of the holds ``agent_id`` acknowledged from the killed ``cmd``'s start until
-    the resume has been flown (a hold's acknowledgement shows until the resume replaces it)."""
-    from fisc_agent.zenoh.telemetry_codec import ACK_COMMANDS
-
-    r = flight.ev.agents[agent_id].between(flight.cmd_started_s, flight.resume_sent_s[1] + RESUMED_WITHIN_S).records
-    return sorted(set(r["ack_seq"][r["ack_command"] == ACK_COMMANDS.index("hold")].tolist()))
-
-
-def _cmd_acted(flight: Flight) -> bool:
-    """The killed ``cmd``'s hold reached its targets (one acknowledged it)."""
-    return any(_hold_acks(flight, i) for i in CMD_TARGETS if i in flight.ev.agents)
+                  *cmd_run)
 
 
 def test_a_running_status_killed_disturbs_nobody(flight):
@@ -208,52 +172,14 @@ def test_a_running_status_killed_disturbs_nobody(flight):
 
 
 def test_a_running_cmd_killed_its_hold_reached_every_target_or_none_and_a_resume_restores_them(flight):
-    from fisc_agent.zenoh.telemetry_codec import ACK_COMMANDS
-
-    ev, kill = flight.ev, flight.lab.kills.of("cmd")
-    t_resume, t_resumed = flight.resume_sent_s
-    heard_throughout(flight, kill, after_s=t_resumed + RESUMED_WITHIN_S - kill.t_s)
-    hold = ACK_COMMANDS.index("hold")
-    acks, refused = {}, {}
-    for i in flight.survivors(kill.t_s):
-        before = ev.agents[i].between(0.0, flight.cmd_started_s).records
-        during = ev.agents[i].between(flight.cmd_started_s, t_resumed + RESUMED_WITHIN_S).records
-        acks[i] = _hold_acks(flight, i)
-        refused[i] = int(during["cmds_refused"].max(initial=0)) - int(before["cmds_refused"].max(initial=0))
-    acted = {i for i, seqs in acks.items() if seqs}
-    print(f"cmd killed {kill.t_s - flight.cmd_started_s:.2f} s after its start: hold acknowledged by {sorted(acted)}")
-    assert acted in (set(), set(CMD_TARGETS)), f"the killed cmd's hold reached only some: {acks}"
-    assert len({s for seqs in acks.values() for s in seqs}) <= 1, f"more than one hold acknowledged: {acks}"
-    assert not any(refused.values()), f"agents refused a command (a half command?): {refused}"
-    for i in CMD_TARGETS:
-        s = ev.agents[i].between(flight.cmd_started_s, t_resume)
-        if acted:  # the hold was flown: HOLD, not a failsafe, soon after its acknowledgement
-            t_ack = s.recv_s[s.records["ack_command"] == hold][0]
-            held = [t for t, st in zip(s.recv_s, s.states()) if st == "HOLD" and t <= t_ack + HOLD_WITHIN_S]
-            assert held, f"agent {i} acknowledged the hold but did not hold: {s.states()}"
-            assert not s.failsafe_holds_s().size, f"agent {i} held in a failsafe"
-        else:  # nothing arrived: it flew on
-            assert set(s.states()) <= FLYING, f"agent {i} stopped flying: {sorted(set(s.states()))}"
-    assert flight.resume.returncode == 0, flight.resume.stderr[-2000:]
-    sent = json.loads(flight.resume.stdout.strip().splitlines()[-1])
-    assert sorted(sent["acked"]) == list(CMD_TARGETS), sent
-    flying_again = {i: _first_flying_s(ev.agents[i], t_resume) - t_resume for i in CMD_TARGETS}
-    print(f"cmd resume: ended {t_resumed - t_resume:.2f} s after its start; " + (
-          f"the targets fly again {', '.join(f'{i}: {v:.2f}' for i, v in flying_again.items())} s after its start"
-          if acted else "nothing to resume"))
-    for i in CMD_TARGETS:
-        t_check = t_resumed + RESUMED_WITHIN_S
-        after = ev.agents[i].between(t_check, t_check + 1.0)
-        assert after.recv_s.size and set(after.states()) <= FLYING, \
-            f"agent {i} not flying {RESUMED_WITHIN_S} s after the resume: {after.states()}"
-        assert (ev.agents[i].records["ack_seq"] == sent["seq"]).any(), f"agent {i}: no resume acknowledged"
+    killed_cmd_reached_all_or_none(flight, CMD_TARGETS)
 
 
 def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
     kill = flight.lab.kills.of("publisher")
     heard_throughout(flight, kill)
     for agent_id in (KILLED_AGENT, KILLED_EMULATOR):
-        keeps_map_and_flight(flight, agent_id, kill.t_s, kill.t_s + SLOT_S - 1.0, FLYING)
+        keeps_map_and_flight(flight, agent_id, kill.t_s, kill.t_s + SLOT_S - 1.0, flying=True)
     nothing_stale_alarmed(flight, kill.t_s, kill.t_s + SLOT_S)
 
 
@@ -269,18 +195,10 @@ def test_an_agent_killed_its_vehicle_fails_safe_and_the_ground_alarms(flight):
     stale_alarm_names(flight, kill, KILLED_AGENT)
 
 
-def test_an_emulator_killed_its_agent_holds_keeps_its_map_and_keeps_reporting(flight):
-    kill = flight.lab.kills.of("emulator")
-    heard_throughout(flight, kill)  # 101 included: it keeps publishing
+def test_an_autopilot_killed_its_agent_holds_keeps_its_map_and_keeps_reporting(flight):
     agent = flight.proc(f"agent-{KILLED_EMULATOR}")
     assert agent.popen.returncode in (None, 0, -15), agent.log_tail()  # alive until the teardown's SIGTERM
-    after = flight.ev.agents[KILLED_EMULATOR].between(kill.t_s + 5.0, kill.t_s + SLOT_S)
-    assert after.recv_s.size, "agent 101 silent after its emulator died"
-    assert set(after.states()) == {"HOLD"} and after.flagged("failsafe").all(), after.states()
-    assert not after.flagged("mavlink_ok").any()
-    from fisc_agent.zenoh.telemetry_codec import sha_hex
-
-    assert set(sha_hex(after.records)) == {flight.lab.sha}
+    lost_autopilot_agent_holds_and_reports(flight, KILLED_EMULATOR)
 
 
 def test_the_lab_port_holder_killed_loses_no_link(flight):
@@ -301,9 +219,9 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
         assert set(shas) <= {flight.lab.sha}, f"agent {agent_id} flew another map"
     for agent_id in (KILLED_AGENT, KILLED_EMULATOR):  # the stand-alone ones, before their own kill
         held = ev.agents[agent_id].failsafe_holds_s()
-        held = held[held < flight.lab.kills.of("agent" if agent_id == KILLED_AGENT else "emulator").t_s]
+        held = held[held < flight.lab.kills.of("agent" if agent_id == KILLED_AGENT else "autopilot").t_s]
         assert not held.size, f"agent {agent_id} held in a failsafe at {held[:5]} ({flight.lab.kills.kills})"
-    holds = emulated_holds(flight.lab.dir / "emu", commanded=CMD_TARGETS if _cmd_acted(flight) else ())
+    holds = emulated_holds(flight.lab.dir / "emu", commanded=CMD_TARGETS if cmd_acted(flight, CMD_TARGETS) else ())
     breaches = ev.duct_breaches(ev.agents, EXCURSION_MAX_S)
     assert not breaches, f"left the duct (start, duration, geofence acting): {breaches}"
     assert flight.emulate_ran_to_the_end, "fisc-sim emulate ended before the last fault was judged"

@@ -25,6 +25,11 @@ fault        what must happen (checked on the recorder's MCAP log unless said ot
 ==========  =====================================================================================
 status       a running ``status`` killed: nobody notices; every agent heard without a gap > 3 s
              (the monitors' --stale-after; the same limit for every "heard throughout" below)
+cmd          a running ``cmd hold --agents 0,1,2,999`` killed (signed; 999 is nobody, so it is still
+             waiting when killed; ``outcomes.kill_a_running_cmd``): the hold reached every agent or
+             none, once, refused by nobody; delivered, it is flown (HOLD within 3 s, not a failsafe),
+             and a completed ``cmd resume`` has them flying again within 5 s; undelivered, they fly
+             on (flying includes the exit's hold past the outlet); everyone heard throughout
 publisher    every agent keeps its map (same sha256) and its flight (no failsafe hold); no gap
              > 3 s; nothing alarms ``stale``
 monitor      the recorder hears everyone throughout; the killed monitor's log is readable up to
@@ -33,16 +38,21 @@ agent        the least advanced vehicle's agent (so that no other flies through 
              its PX4 fails safe by its own logic, by its ULog: ``failsafe`` set within 2 s of the
              kill (COM_OF_LOSS_T 0.5 s), then Hold (nav_state AUTO_LOITER) to the end; the ground
              alarms ``stale`` naming it within stale-after + 4 s; the others are heard throughout
+autopilot    the PX4 process of the least advanced vehicle still flown (kill -9 of ``px4``: the
+             vehicle is gone, as a flight controller that dies is): its agent loses MAVLink, holds
+             (failsafe, no ``mavlink_ok``) within 5 s, keeps its map and keeps reporting; the others
+             are heard throughout
 first        the holder of the lab port killed: every surviving agent still heard for 15 s, no gap
              > 3 s, and a ``status --wait 5`` started 8 s later lists them; any silence is alarmed
-whole        no agent ever flies a map other than the signed one; from the first fault on no agent
-flight       holds in a failsafe (before it the agents hold ~2 s for PX4's estimator reset during
-             take-off, "position jump"), and no surviving PX4 logs a failsafe; no vehicle leaves
-             the duct by SIH's ground truth (ULog on the agents' wall clock,
-             ``sitl_kit.truth_on_wall_clock``): in its pass a vehicle flown by its agent goes at
-             most 0.3 m beyond the wall (the PX4 tests' bound), the killed one, in the 5 s of PX4's
-             failsafe stop, at most PX4's own stopping distance (0.45 m,
-             ``sitl_kit.FAILSAFE_EXCURSION_M``)
+whole        no agent ever flies a map other than the signed one; from the first fault to its own
+flight       (the killed agent's, the killed PX4's) no agent holds in a failsafe (before it the
+             agents hold ~2 s for PX4's estimator reset during take-off, "position jump"), and no
+             surviving PX4 logs a failsafe; no vehicle leaves the duct: in its pass a vehicle flown
+             by its agent goes at most 0.3 m beyond the wall by its agent's view (PX4's estimate)
+             and 0.45 m by SIH's ground truth (``sitl_kit.TRUTH_EXCURSION_M``; the ULog on the
+             agents' wall clock, ``sitl_kit.truth_on_wall_clock``), the killed agent's, in the 5 s
+             of PX4's failsafe stop, at most PX4's own stopping distance (0.45 m,
+             ``sitl_kit.FAILSAFE_EXCURSION_M``); the killed PX4's vehicle is judged up to its kill
 ==========  =====================================================================================
 
 Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
@@ -75,11 +85,13 @@ from fisc_ground.reference.builtin import load_builtin
 from .evidence import Evidence, read_evidence
 from .lab import FaultLab, ground, listening
 from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, heard_throughout, keeps_map_and_flight,
+                       kill_a_running_cmd, killed_cmd_reached_all_or_none, lost_autopilot_agent_holds_and_reports,
                        lab_port_holder_loses_no_link, lab_port_holder_silence_is_alarmed,
                        monitor_restart_hears_everyone, nothing_stale_alarmed, stale_alarm_names)
-from ..e2e.conftest import Proc, cli, poll
-from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, px4_ulog,
-                            truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic)
+from ..e2e.conftest import Proc, poll
+from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, TRUTH_EXCURSION_M, Px4Sitl, SitlRun,
+                            Track, px4_pid, px4_ulog, truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic,
+                            view_excursion_m)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(420)]
 
@@ -114,9 +126,19 @@ class Px4Flight:
     px4_stopped_s: float
     """Wall-clock moment the PX4 instances were stopped: their ULogs end just before [UNIX s]."""
 
+    lost: int
+    """The agent id whose PX4 was killed."""
+    cmd_started_s: float
+    """Wall-clock start of the killed ``cmd hold`` [UNIX s]."""
+    resume: subprocess.CompletedProcess
+    """The completed ``cmd resume`` that follows it."""
+    resume_sent_s: tuple[float, float]
+    """Wall-clock start and end of that resume [UNIX s]."""
+
     def truth(self, i: int):
         """SIH's ground truth of vehicle ``i`` on the wall clock (``sitl_kit.truth_on_wall_clock``)."""
-        return truth_on_wall_clock(self.ulogs[i], Track.read(self.flight_logs[i]), MAP_ANCHOR, self.px4_stopped_s)
+        end_s = self.lab.kills.of("autopilot").t_s if i == self.lost else self.px4_stopped_s
+        return truth_on_wall_clock(self.ulogs[i], Track.read(self.flight_logs[i]), MAP_ANCHOR, end_s)
 
     def survivors(self, t_s: float) -> list[int]:
         """Agents that must be heard at ``t_s``: all, the victim until its kill."""
@@ -133,14 +155,14 @@ def flight(tmp_path_factory, shared_path) -> Px4Flight:
                 ready_timeout_s=120.0) as run:  # 51 s measured on a loaded machine
         print(f"fault lab {SWARM}: {N} PX4 ready {time.monotonic() - t0:.1f} s after start")
         try:
-            victim, restarted, newcomer = _fly(lab, logs)
+            victim, lost, restarted, newcomer, cmd_run = _fly(lab, logs, run)
         finally:
             lab.stop_all()
         ulogs = [px4_ulog(run, i) for i in range(N)]
     stopped_s = time.time()
     print(f"fault lab {SWARM}: flight over {time.monotonic() - t0:.1f} s after start")
     return Px4Flight(lab, read_evidence(lab.dir / "recorder.mcap"), victim, restarted, newcomer, ulogs, logs,
-                     stopped_s)
+                     stopped_s, lost, *cmd_run)
 
 
 def _latest(log: Path) -> tuple[str, float]:
@@ -154,17 +176,14 @@ def _latest(log: Path) -> tuple[str, float]:
     return (rows[-1]["state"], float(rows[-1]["x_m"])) if rows else ("", -math.inf)
 
 
-def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.CompletedProcess]:
+def _fly(lab: FaultLab, logs: list[Path], run: SitlRun) -> tuple[int, int, Proc, subprocess.CompletedProcess, tuple]:
     d, kills = lab.dir, lab.kills
     first = lab.start("first", ground("status", "--swarm", SWARM, "--wait", "600", "--json"))
     assert poll(lambda: listening(lab.port) or "lab default" in first.log_tail(), 30), lab.procs.report()
     recorder = lab.monitor("recorder", d / "recorder.mcap")
     publisher = lab.start("publisher", ground("publish", lab.map, "--swarm", SWARM))
     monitor = lab.monitor("monitor", d / "monitor.mcap")
-    agents = [lab.start(f"agent-{i}", cli("fisc-agent") + [
-        "--go", "--swarm", SWARM, "--trusted-key", lab.pub, "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i,
-        "--autopilot", "px4", "--geodetic-anchor", MAP_ANCHOR, "--exit-policy", "loop", "--laps", 1,
-        "--flight-log", logs[i]]) for i in range(N)]
+    agents = lab.start_px4_agents(logs, MAP_ANCHOR)
     for agent in agents:
         lab.wait_in_air(agent, 120)
     assert poll(lambda: set(range(N)) <= lab.heard(), 60, period_s=0.0), lab.procs.report()
@@ -175,6 +194,7 @@ def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.Complet
     status = lab.start("status", ground("status", "--swarm", SWARM, "--wait", "30", "--json"))
     kills.kill_at("status", status, 1.5, 3.0)
     time.sleep(SLOT_S)
+    cmd_run = kill_a_running_cmd(lab, range(N))
     kills.kill_at("publisher", publisher, 0.0, 2.0)
     time.sleep(SLOT_S)
     kills.kill_at("monitor", monitor, 0.0, 2.0)
@@ -186,6 +206,12 @@ def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.Complet
     print(f"fault: the agent killed is {victim}, the least advanced of {where}")
     kills.kill_at("agent", agents[victim], 0.0, 0.0)
     time.sleep(SLOT_S)
+    time.sleep(kills.rng.uniform(0.0, 2.0))
+    where = [_latest(p) for p in logs]
+    lost = min((i for i in range(N) if i != victim), key=lambda i: (PROGRESS.get(where[i][0], 0), where[i][1]))
+    print(f"fault: the PX4 killed is {lost}'s, the least advanced still flown of {where}")
+    kills.kill_pid_at("autopilot", f"px4-{lost}", px4_pid(run, lost), 0.0, 0.0)
+    time.sleep(SLOT_S)
     hub_kill = kills.kill_at("first", first, 0.0, 2.0)
     time.sleep(NEWCOMER_AFTER_S)
     newcomer = lab.run(ground("status", "--swarm", SWARM, "--wait", "5", "--json"))
@@ -195,7 +221,7 @@ def _fly(lab: FaultLab, logs: list[Path]) -> tuple[int, Proc, subprocess.Complet
     assert lab.interrupt(recorder) == 0, recorder.log_tail()
     survivors = [a for i, a in enumerate(agents) if i != victim]
     assert all(a.alive for a in survivors), lab.procs.report()
-    return victim, restarted, newcomer
+    return victim, lost, restarted, newcomer, cmd_run
 
 
 def _failsafe_held(flight: Px4Flight, agent_id: int, t0_s: float, t1_s: float) -> list[float]:
@@ -207,11 +233,24 @@ def test_a_running_status_killed_disturbs_nobody(flight):
     heard_throughout(flight, flight.lab.kills.of("status"))
 
 
+def _outlet_x_m(lab: FaultLab) -> float:
+    """The map's outlet plane: past it an agent's HOLD is its exit's (map frame) [m]."""
+    from fisc_agent.map.codec import load_map
+
+    m = load_map(lab.map, lab.pub)
+    return float(m["cv_center_m"][:, 0].max() + 0.5 * m.cell_size_m)
+
+
+def test_a_running_cmd_killed_its_hold_reached_every_agent_or_none_and_a_resume_restores_them(flight):
+    killed_cmd_reached_all_or_none(flight, range(N), exit_x_m=_outlet_x_m(flight.lab))
+
+
 def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
     kill = flight.lab.kills.of("publisher")
     heard_throughout(flight, kill)
     for i in flight.survivors(kill.t_s + SLOT_S):
-        keeps_map_and_flight(flight, i, kill.t_s, kill.t_s + SLOT_S - 1.0)
+        keeps_map_and_flight(flight, i, kill.t_s, kill.t_s + SLOT_S - 1.0, flying=True,
+                             exit_x_m=_outlet_x_m(flight.lab))
     nothing_stale_alarmed(flight, kill.t_s, kill.t_s + SLOT_S)
 
 
@@ -238,6 +277,10 @@ def test_an_agent_killed_its_px4_fails_safe_by_itself_and_the_ground_alarms(flig
     assert set(after.tolist()) == {NAV_AUTO_LOITER}, f"PX4 {flight.victim} after its failsafe: {sorted(set(after))}"
 
 
+def test_a_px4_killed_its_agent_holds_keeps_its_map_and_keeps_reporting(flight):
+    lost_autopilot_agent_holds_and_reports(flight, flight.lost)
+
+
 def test_the_lab_port_holder_killed_loses_no_link(flight):
     lab_port_holder_loses_no_link(flight)
 
@@ -252,9 +295,10 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     for i, series in ev.agents.items():
         assert set(s for s in sha_hex(series.records) if s) <= {flight.lab.sha}, f"agent {i} flew another map"
     first_fault_s = flight.lab.kills.kills[0].t_s  # (a take-off's estimator reset may hold before it)
+    own_fault_s = {flight.victim: kill.t_s, flight.lost: flight.lab.kills.of("autopilot").t_s}
     for i in range(N):
         held = ev.agents[i].failsafe_holds_s()
-        held = held[(held >= first_fault_s) & (held < (kill.t_s if i == flight.victim else math.inf))]
+        held = held[(held >= first_fault_s) & (held < own_fault_s.get(i, math.inf))]
         assert not held.size, f"agent {i} held in a failsafe at {held[:5]} ({flight.lab.kills.kills})"
     for i in flight.survivors(math.inf):
         u = ulog_summary(flight.ulogs[i])
@@ -264,8 +308,9 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     from fisc_agent.map.codec import load_map
 
     scale = load_map(flight.lab.map, flight.lab.pub).scale
-    excursion, drift = {}, math.nan
+    excursion, drift, view = {}, math.nan, {}
     for i in range(N):
+        view[i] = view_excursion_m(Track.read(flight.flight_logs[i]), ref, scale, wall)
         truth = flight.truth(i)
         assert truth.fit_rms_m < 0.1, (i, truth.fit_rms_m)  # the clocks matched: the truth is on the wall clock
         t, pos, vel, states = truth_pass(truth)
@@ -281,7 +326,9 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
             excursion[i] = (beyond_wall_m(-math.inf, math.inf), math.nan)
     print(f"ground truth, largest distance beyond the wall in the pass [m] (nan: not in the duct): {excursion} "
           f"(vehicle {flight.victim}: before its agent's kill, in PX4's stop); then in PX4's hold: {drift}")
+    print(f"by the agents' view (PX4's estimate, up to each agent's end): {view}")
+    assert all(math.isnan(e) or e < MAX_EXCURSION_M for e in view.values()), view
     for i, (flown, stop) in excursion.items():
-        assert math.isnan(flown) or flown < MAX_EXCURSION_M, f"vehicle {i} left the duct by {flown:.2f} m"
+        assert math.isnan(flown) or flown < TRUTH_EXCURSION_M, f"vehicle {i} left the duct by {flown:.2f} m"
         assert math.isnan(stop) or stop < FAILSAFE_EXCURSION_M, f"vehicle {i} stopped {stop:.2f} m beyond the wall"
     assert not all(math.isnan(e[0]) for e in excursion.values()), "no vehicle entered the duct: nothing judged"
