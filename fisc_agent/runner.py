@@ -277,9 +277,12 @@ class Runner:
         """Write the state file when what it holds changed."""
         if not self.state_path:
             return
-        state = self.mission.saved_state()
+        state, saved = self.mission.saved_state(), self._saved
+        if (saved is not None and state.hands_off == saved.hands_off and state.fleet_hold == saved.fleet_hold
+                and state.laps == saved.laps and self.command_floors == saved.command_floors):
+            return  # unchanged (compared field by field: no copy of the floors every tick)
         state = AgentState(state.hands_off, state.fleet_hold, state.laps, dict(self.command_floors))
-        if state == self._saved:
+        if state == saved:
             return
         try:
             save_state(self.state_path, state)
