@@ -106,29 +106,23 @@ class TrackingConfig:
             raise ValueError(f"tracking: feedforward_gain must be in [0.5, 2], is {self.feedforward_gain!r}")
 
 
-def _scale(a: Vec, k: float) -> Vec:
-    return (a[0] * k, a[1] * k, a[2] * k)
-
-
-def _dot(a: Vec, b: Vec) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _norm(a: Vec) -> float:
-    return math.sqrt(_dot(a, a))
-
-
 def _unit(a: Vec) -> Vec:
-    """``a / |a|``; the zero vector for a (near) zero ``a``."""
-    n = _norm(a)
-    return _scale(a, 1.0 / n) if n > 1e-9 else ZERO
+    """``a / |a|`` (as ``a * (1 / |a|)``); the zero vector for a (near) zero ``a``."""
+    a0, a1, a2 = a
+    n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if n > 1e-9:
+        k = 1.0 / n
+        return (a0 * k, a1 * k, a2 * k)
+    return ZERO
 
 
 def saturate(v: Vec, limit: float) -> Vec:
     """``v`` scaled down to length ``limit`` if longer."""
-    n = _norm(v)
+    v0, v1, v2 = v
+    n = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     if n > limit and n > 0.0:
-        return _scale(v, limit / n)
+        k = limit / n
+        return (v0 * k, v1 * k, v2 * k)
     return v
 
 
