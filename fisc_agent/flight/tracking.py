@@ -181,15 +181,18 @@ class ParcelTracker:
             return self._v_last  # downstream of the outlet: the parcel coasts out
         return v
 
-    def _slide(self, p: Vec, d: Vec, field: FieldFn) -> Vec:
-        """``p + d``; if that lands outside the map's CVs, only its axial part; if that does too, ``p``."""
+    def _slide(self, p: Vec, d: Vec, field: FieldFn) -> tuple[Vec, Vec | None]:
+        """``p + d``; if that lands outside the map's CVs, only its axial part; if that does too, ``p``.
+        With it, the field there (``_field_at``, sampled once) where it moved; None where it stayed at ``p``."""
         nxt = (p[0] + d[0], p[1] + d[1], p[2] + d[2])
-        if self._field_at(nxt, field) is not None:
-            return nxt
+        v = self._field_at(nxt, field)
+        if v is not None:
+            return nxt, v
         nxt = (p[0] + d[0], p[1] + 0.0, p[2] + 0.0)  # + 0.0 as the vector sum gives it (a -0.0 turns +0.0)
-        if self._field_at(nxt, field) is not None:
-            return nxt
-        return p
+        v = self._field_at(nxt, field)
+        if v is not None:
+            return nxt, v
+        return p, None
 
     def _ahead(self, p: Vec, v: Vec, field: FieldFn) -> Vec:
         """The field ``lookahead_s`` ahead along the streamline: ``v(p + L v)`` within the reach,
@@ -241,8 +244,8 @@ class ParcelTracker:
         for _ in range(2):
             t0, t1, t2 = _unit(v)
             a = (x0 - p[0]) * t0 + (x1 - p[1]) * t1 + (x2 - p[2]) * t2
-            p = self._slide(p, (t0 * a, t1 * a, t2 * a), field)
-            v = self._field_at(p, field) or v
+            p, v_p = self._slide(p, (t0 * a, t1 * a, t2 * a), field)
+            v = (v_p if v_p is not None else self._field_at(p, field)) or v  # the field at p, sampled once
         t0, t1, t2 = _unit(v)
         if abs((x0 - p[0]) * t0 + (x1 - p[1]) * t1 + (x2 - p[2]) * t2) > cfg.resync_distance_m:
             v_here = field(x0, x1, x2)
@@ -257,7 +260,7 @@ class ParcelTracker:
             a = dev[0] * t0 + dev[1] * t1 + dev[2] * t2
             c0, c1, c2 = dev[0] - a * t0, dev[1] - a * t1, dev[2] - a * t2
             if dt > 0.0:
-                p = self._slide(p, (c0 * dt, c1 * dt, c2 * dt), field)
+                p = self._slide(p, (c0 * dt, c1 * dt, c2 * dt), field)[0]
             v_ff = (v_ff[0] + dev[0], v_ff[1] + dev[1], v_ff[2] + dev[2])
             # a vehicle lagging by about lookahead_s trails its deviated parcel by cross * lookahead_s:
             # the position feedback aims there, so it does not amplify the deviation

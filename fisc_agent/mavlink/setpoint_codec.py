@@ -20,6 +20,7 @@ CRC_EXTRA = bytes((mavlink2.MAVLink_set_position_target_local_ned_message.crc_ex
 _PAYLOAD = struct.Struct("<IfffffffffffHBBB")
 _HEADER = struct.Struct("<BBBBBBBHB")
 _CRC = struct.Struct("<H")
+_MCRF4XX = getattr(mavlink2, "mcrf4xx", None)
 
 
 def pack_velocity_setpoint(mav, boot_ms: int, target_system: int, target_component: int, frame: int,
@@ -35,9 +36,14 @@ def pack_velocity_setpoint(mav, boot_ms: int, target_system: int, target_compone
     if n < len(payload):
         payload = payload[:n]
     head = _HEADER.pack(253, n, 0, 0, mav.seq, mav.srcSystem, mav.srcComponent, MSG_ID & 0xFFFF, MSG_ID >> 16)
-    crc = mavlink2.x25crc(head[1:] + payload)
-    crc.accumulate(CRC_EXTRA)
-    return head + payload + _CRC.pack(crc.crc)
+    return head + payload + _CRC.pack(_crc(head[1:] + payload + CRC_EXTRA))
+
+
+def _crc(buf: bytes) -> int:
+    """pymavlink's X.25 CRC (CRC-16/MCRF4XX) of ``buf``: its C routine where installed (``fastcrc``)."""
+    if _MCRF4XX is not None:
+        return _MCRF4XX(buf, 0xFFFF)
+    return mavlink2.x25crc(buf).crc
 
 
 def send_velocity_setpoint(mav, boot_ms: int, target_system: int, target_component: int, frame: int,
