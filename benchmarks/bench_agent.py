@@ -2,7 +2,8 @@
 
 1. Per-iteration compute, position -> setpoint message encoded (MAVLink 2 bytes):
    - hot path: NED -> map, CV lookup, command, speed/accel clamp, map -> NED velocity,
-     SET_POSITION_TARGET_LOCAL_NED encode + pack (scalar fast path, ``control.ScalarField``);
+     SET_POSITION_TARGET_LOCAL_NED packed as the agent packs it (``setpoint_codec``; scalar fast path,
+     ``control.ScalarField``);
    - the same with the vectorised numpy ``lookup.CommandField`` for one agent (for comparison);
    - a whole ``Runner.step()`` (mission state machine, failsafes, snapshot) on an in-memory link.
 2. Setpoint period jitter of ``Runner.run()`` at 20 Hz and 50 Hz (real clock, in-memory link):
@@ -40,6 +41,7 @@ from fisc_agent.flight.control import ScalarField, clamp_velocity  # noqa: E402
 from fisc_agent.flight.health import VehicleHealth  # noqa: E402
 from fisc_agent.flight.integrity import IntegrityVerdict  # noqa: E402
 from fisc_agent.mavlink.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, PositionSample  # noqa: E402
+from fisc_agent.mavlink.setpoint_codec import pack_velocity_setpoint  # noqa: E402
 from fisc_agent.map.lookup import CommandField  # noqa: E402
 from fisc_agent.flight.mission import State  # noqa: E402
 from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand  # noqa: E402
@@ -92,10 +94,9 @@ class BenchLink:
         return PositionSample(now, (x, 0.2, -10.3), (self.speed if out else -self.speed, 0.0, 0.0))
 
     def send_velocity_ned(self, vn, ve, vd):
-        msg = self.mav.set_position_target_local_ned_encode(
-            int(self.clock() * 1000) & 0xFFFFFFFF, 1, 1, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY,
-            0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
-        self.nbytes = len(msg.pack(self.mav))
+        # packed as MavlinkLink.send_velocity_ned packs it (fisc_agent.mavlink.setpoint_codec)
+        self.nbytes = len(pack_velocity_setpoint(self.mav, int(self.clock() * 1000) & 0xFFFFFFFF, 1, 1,
+                                                 MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, vn, ve, vd))
         self.sent_t.append(self.clock())
 
     def use_adapter(self, adapter):
@@ -153,8 +154,7 @@ def bench_hot_path(cmap, n=50000):
             v = clamp_velocity(v, prev, 0.05, cfg.max_speed_m_s, cfg.max_accel_m_s2)
             prev = v
             vn, ve, vd = tf.vel_map_to_ned_xyz(*v)
-            mav.set_position_target_local_ned_encode(i, 1, 1, 1, TYPEMASK_VELOCITY_ONLY, 0.0, 0.0, 0.0, vn, ve, vd,
-                                                     0.0, 0.0, 0.0, 0.0, 0.0).pack(mav)
+            pack_velocity_setpoint(mav, i, 1, 1, 1, TYPEMASK_VELOCITY_ONLY, vn, ve, vd)
         results[label] = (time.perf_counter() - t) / n * 1e6
     return results
 

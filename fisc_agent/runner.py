@@ -277,9 +277,13 @@ class Runner:
         """Write the state file when what it holds changed."""
         if not self.state_path:
             return
-        state = self.mission.saved_state()
-        state = AgentState(state.hands_off, state.fleet_hold, state.laps, dict(self.command_floors))
-        if state == self._saved:
+        m, saved = self.mission, self._saved
+        hands_off, fleet_hold, laps = m.hands_off, m.fleet_held(), m.laps  # as ``Mission.saved_state`` gives them
+        if (saved is not None and hands_off == saved.hands_off and fleet_hold == saved.fleet_hold
+                and laps == saved.laps and self.command_floors == saved.command_floors):
+            return  # unchanged (compared field by field: no AgentState, no copy of the floors every tick)
+        state = AgentState(hands_off, fleet_hold, laps, dict(self.command_floors))
+        if state == saved:
             return
         try:
             save_state(self.state_path, state)

@@ -100,10 +100,10 @@ class Mission:
 
     def saved_state(self) -> AgentState:
         """What a restarted process must not forget (without the command floors, which the runner adds)."""
-        return AgentState(hands_off=self.authority == Authority.HANDS_OFF, fleet_hold=self._fleet_held(),
-                          laps=self.laps)
+        return AgentState(hands_off=self.hands_off, fleet_hold=self.fleet_held(), laps=self.laps)
 
-    def _fleet_held(self) -> bool:
+    def fleet_held(self) -> bool:
+        """A fleet hold is in force (in the air, on the ground, or restored from the state file and not yet lifted)."""
         cause = self.hold_cause
         return cause in (HoldCause.FLEET, HoldCause.FLEET_ON_GROUND) or (
             self._restored_fleet_hold and self.state in (State.WAIT_POSITION, State.STANDBY))

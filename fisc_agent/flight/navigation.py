@@ -19,8 +19,8 @@ from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, appr
                                        speed_for_arrival)
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule, entry_slot_open
+from fisc_agent.flight.point_command import PointCommand, point_command
 from fisc_agent.flight.tracking import ParcelTracker
-from fisc_agent.map.lookup import POINT_MODES
 from fisc_agent.map.separation import Separation
 
 log = logging.getLogger("fisc_agent.flight.mission")
@@ -54,6 +54,8 @@ class Navigator:
         self.tracker = ParcelTracker(cfg.tracking)
         self.tracked_mode = "mean"
         self.kinetic = False
+        self._point_cmd: PointCommand | None = None
+        """The map's command in ``tracked_mode`` at a point (``point_command``; None before a map)."""
         self.response: VehicleResponse | None = None
         """The vehicle's velocity response identified during take-off and join (``lookahead_auto``)."""
         self.recorder = ResponseRecorder()
@@ -91,6 +93,7 @@ class Navigator:
         # agent's deviation (ParcelTracker.step), when the mode was asked for explicitly
         self.tracked_mode = "staggered" if mode == "kinetic" else mode
         self.kinetic = mode == "kinetic" and self.cfg.mode == "kinetic"
+        self._point_cmd = point_command(sfield, self.tracked_mode, self.cfg.agent_id)
         if mode == "kinetic" and not self.kinetic and self.cfg.tracking.gain_1_s > 0.0:
             log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "
                         "with an explicit --mode kinetic (which turns them within --wall-margin of the map's real "
@@ -285,10 +288,7 @@ class Navigator:
 
     def field_command(self, x: float, y: float, z: float) -> Vec | None:
         """The map's command at a point in the tracked mode (None outside the map's CVs)."""
-        mode = self.tracked_mode
-        if mode in POINT_MODES:
-            return self.sfield.command(x, y, z, self.cfg.agent_id, mode)
-        return self.sfield.flight((x, y, z), None, self.cfg.agent_id, 0.0, mode, 0.0)
+        return self._point_cmd(x, y, z)
 
     def flow_velocity(self, t: float, pos: Vec, vel: Vec | None, cv: int) -> Vec | None:
         """The FLOW setpoint: the simulator's command function open loop (tracking gain 0), else the
@@ -297,7 +297,7 @@ class Navigator:
         if cfg.tracking.gain_1_s == 0.0:
             return self.sfield.flight(pos, vel, cfg.agent_id, t, cfg.mode, self.lookahead_s(), cv)
         deviation = self._deviation_fn(t, vel) if self.kinetic else None
-        out = self.tracker.step(t, pos, self.field_command, deviation)
+        out = self.tracker.step(t, pos, self._point_cmd, deviation)
         if out is None:  # the parcel's CV vanished with a new map: fly the field where we are
             self.tracker.reset(pos, t)
             out = self.field_command(*pos)

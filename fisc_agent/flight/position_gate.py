@@ -86,9 +86,15 @@ class PositionGate:
 
     def check(self, t_s: float, pos: Vec, vel: Vec) -> GateVerdict:
         """Judge one fix; an accepted fix becomes the reference."""
-        if not all(math.isfinite(v) for v in (*pos, *vel, t_s)):
+        p0, p1, p2 = pos
+        v0, v1, v2 = vel
+        isfinite = math.isfinite  # written out, not all(...) over a generator: every fix of every tick
+        if not (isfinite(p0) and isfinite(p1) and isfinite(p2) and isfinite(v0) and isfinite(v1) and isfinite(v2)
+                and isfinite(t_s)):
             return GateVerdict.NON_FINITE
-        if not all(abs(v) <= self.cfg.max_abs_m for v in (*pos, *vel)):
+        lim = self.cfg.max_abs_m
+        if not (abs(p0) <= lim and abs(p1) <= lim and abs(p2) <= lim and abs(v0) <= lim and abs(v1) <= lim
+                and abs(v2) <= lim):
             return GateVerdict.OUT_OF_RANGE
         pos = (float(pos[0]), float(pos[1]), float(pos[2]))
         if self.ref is None or reachable(self.ref[1], pos, t_s - self.ref[0], self.cfg):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 from fisc_agent.flight.control import Vec
 from fisc_agent.flight.health import VehicleHealth
@@ -16,10 +17,10 @@ from fisc_agent.map.codec import CommandMap
 from fisc_agent.mavlink.adapters import ModeClass
 
 
-@dataclass(frozen=True, slots=True)
-class TickRecord:
+class TickRecord(NamedTuple):
     """What one tick saw and did (replaced whole every tick, so reading it is atomic); ``snapshot()``
-    turns it into the telemetry snapshot on demand."""
+    turns it into the telemetry snapshot on demand.  Immutable (a NamedTuple: built every tick, cheaper
+    than a frozen dataclass)."""
 
     now_s: float
     """Monotonic time of the tick [s]."""

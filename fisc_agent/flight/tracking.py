@@ -106,33 +106,23 @@ class TrackingConfig:
             raise ValueError(f"tracking: feedforward_gain must be in [0.5, 2], is {self.feedforward_gain!r}")
 
 
-def _add(a: Vec, b: Vec, k: float = 1.0) -> Vec:
-    return (a[0] + k * b[0], a[1] + k * b[1], a[2] + k * b[2])
-
-
-def _scale(a: Vec, k: float) -> Vec:
-    return (a[0] * k, a[1] * k, a[2] * k)
-
-
-def _dot(a: Vec, b: Vec) -> float:
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _norm(a: Vec) -> float:
-    return math.sqrt(_dot(a, a))
-
-
 def _unit(a: Vec) -> Vec:
-    """``a / |a|``; the zero vector for a (near) zero ``a``."""
-    n = _norm(a)
-    return _scale(a, 1.0 / n) if n > 1e-9 else ZERO
+    """``a / |a|`` (as ``a * (1 / |a|)``); the zero vector for a (near) zero ``a``."""
+    a0, a1, a2 = a
+    n = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    if n > 1e-9:
+        k = 1.0 / n
+        return (a0 * k, a1 * k, a2 * k)
+    return ZERO
 
 
 def saturate(v: Vec, limit: float) -> Vec:
     """``v`` scaled down to length ``limit`` if longer."""
-    n = _norm(v)
+    v0, v1, v2 = v
+    n = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     if n > limit and n > 0.0:
-        return _scale(v, limit / n)
+        k = limit / n
+        return (v0 * k, v1 * k, v2 * k)
     return v
 
 
@@ -166,12 +156,16 @@ class ParcelTracker:
         dt = t_s - prev[0]
         if not 0.0 < dt <= 0.5:
             return
-        rate = _scale(_add(pos_m, prev[1], -1.0), 1.0 / dt)
-        if _norm(_add(rate, vel_m_s, -1.0)) > 2.0 * self.cfg.max_bias_m_s:
+        q, inv_dt = prev[1], 1.0 / dt
+        # the rate of the reported position minus the reported velocity, written out on floats
+        d0 = (pos_m[0] - q[0]) * inv_dt - vel_m_s[0]
+        d1 = (pos_m[1] - q[1]) * inv_dt - vel_m_s[1]
+        d2 = (pos_m[2] - q[2]) * inv_dt - vel_m_s[2]
+        if math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > 2.0 * self.cfg.max_bias_m_s:
             return  # a position jump (an estimator reset), not a velocity bias
         k = min(1.0, dt / tau)
-        self.bias_m_s = saturate(_add(self.bias_m_s, _add(_add(rate, vel_m_s, -1.0), self.bias_m_s, -1.0), k),
-                                 self.cfg.max_bias_m_s)
+        b0, b1, b2 = self.bias_m_s
+        self.bias_m_s = saturate((b0 + k * (d0 - b0), b1 + k * (d1 - b1), b2 + k * (d2 - b2)), self.cfg.max_bias_m_s)
 
     def reset(self, pos_m: Vec, t_s: float) -> None:
         """A new parcel at the vehicle (entering the map, resuming after a hold)."""
@@ -187,13 +181,18 @@ class ParcelTracker:
             return self._v_last  # downstream of the outlet: the parcel coasts out
         return v
 
-    def _slide(self, p: Vec, d: Vec, field: FieldFn) -> Vec:
-        """``p + d``; if that lands outside the map's CVs, only its axial part; if that does too, ``p``."""
-        for step in (d, (d[0], 0.0, 0.0)):
-            nxt = _add(p, step)
-            if self._field_at(nxt, field) is not None:
-                return nxt
-        return p
+    def _slide(self, p: Vec, d: Vec, field: FieldFn) -> tuple[Vec, Vec | None]:
+        """``p + d``; if that lands outside the map's CVs, only its axial part; if that does too, ``p``.
+        With it, the field there (``_field_at``, sampled once) where it moved; None where it stayed at ``p``."""
+        nxt = (p[0] + d[0], p[1] + d[1], p[2] + d[2])
+        v = self._field_at(nxt, field)
+        if v is not None:
+            return nxt, v
+        nxt = (p[0] + d[0], p[1] + 0.0, p[2] + 0.0)  # + 0.0 as the vector sum gives it (a -0.0 turns +0.0)
+        v = self._field_at(nxt, field)
+        if v is not None:
+            return nxt, v
+        return p, None
 
     def _ahead(self, p: Vec, v: Vec, field: FieldFn) -> Vec:
         """The field ``lookahead_s`` ahead along the streamline: ``v(p + L v)`` within the reach,
@@ -201,14 +200,22 @@ class ParcelTracker:
         la = self.cfg.lookahead_s
         if la <= 0.0:
             return v
-        dist = la * _norm(v)
+        vx, vy, vz = v
+        n = math.sqrt(vx * vx + vy * vy + vz * vz)
+        dist = la * n
         if dist <= 1e-9:
             return v
         d = min(dist, self.cfg.lookahead_reach_m)
-        ahead = self._field_at(_add(p, _unit(v), d), field)
+        if n > 1e-9:
+            k = 1.0 / n
+            ux, uy, uz = vx * k, vy * k, vz * k
+        else:
+            ux = uy = uz = 0.0
+        ahead = self._field_at((p[0] + d * ux, p[1] + d * uy, p[2] + d * uz), field)
         if ahead is None:
             return v
-        return _add(v, _add(ahead, v, -1.0), dist / d)
+        f = dist / d
+        return (vx + f * (ahead[0] - vx), vy + f * (ahead[1] - vy), vz + f * (ahead[2] - vz))
 
     def step(self, t_s: float, pos_m: Vec, field: FieldFn, deviation: DeviationFn | None = None) -> Vec | None:
         """Move the parcel abreast of the vehicle and return the velocity command (map frame).
@@ -231,33 +238,45 @@ class ParcelTracker:
         v = self._field_at(p, field)
         if v is None:
             return None
+        # the vector algebra written out on floats (issue 40: the tick's hot path); each line computes
+        # exactly what the vector helpers' form (a + k b, k a, a . b) did, operation for operation
+        x0, x1, x2 = pos_m
         for _ in range(2):
-            t_hat = _unit(v)
-            p = self._slide(p, _scale(t_hat, _dot(_add(pos_m, p, -1.0), t_hat)), field)
-            v = self._field_at(p, field) or v
-        t_hat = _unit(v)
-        if abs(_dot(_add(pos_m, p, -1.0), t_hat)) > cfg.resync_distance_m:
-            v_here = field(*pos_m)
+            t0, t1, t2 = _unit(v)
+            a = (x0 - p[0]) * t0 + (x1 - p[1]) * t1 + (x2 - p[2]) * t2
+            p, v_p = self._slide(p, (t0 * a, t1 * a, t2 * a), field)
+            v = (v_p if v_p is not None else self._field_at(p, field)) or v  # the field at p, sampled once
+        t0, t1, t2 = _unit(v)
+        if abs((x0 - p[0]) * t0 + (x1 - p[1]) * t1 + (x2 - p[2]) * t2) > cfg.resync_distance_m:
+            v_here = field(x0, x1, x2)
             if v_here is not None:  # the parcel is stuck behind a corner: a new parcel at the vehicle
                 p, v = pos_m, v_here
-                t_hat = _unit(v)
+                t0, t1, t2 = _unit(v)
         self._v_last = v
         v_ff = self._ahead(p, v, field)
-        lag_m: Vec = ZERO
+        l0 = l1 = l2 = 0.0
         if deviation is not None:
             dev = deviation(p)
-            cross = _add(dev, t_hat, -_dot(dev, t_hat))
+            a = dev[0] * t0 + dev[1] * t1 + dev[2] * t2
+            c0, c1, c2 = dev[0] - a * t0, dev[1] - a * t1, dev[2] - a * t2
             if dt > 0.0:
-                p = self._slide(p, _scale(cross, dt), field)
-            v_ff = _add(v_ff, dev)
+                p = self._slide(p, (c0 * dt, c1 * dt, c2 * dt), field)[0]
+            v_ff = (v_ff[0] + dev[0], v_ff[1] + dev[1], v_ff[2] + dev[2])
             # a vehicle lagging by about lookahead_s trails its deviated parcel by cross * lookahead_s:
             # the position feedback aims there, so it does not amplify the deviation
-            lag_m = _scale(cross, cfg.lookahead_s)
+            la = cfg.lookahead_s
+            l0, l1, l2 = c0 * la, c1 * la, c2 * la
         self.parcel_m = p
-        e = _add(_add(p, lag_m, -1.0), pos_m, -1.0)
-        e = _add(e, t_hat, -_dot(e, t_hat))  # across the stream only: no along-stream catch-up
+        e0, e1, e2 = (p[0] - l0) - x0, (p[1] - l1) - x1, (p[2] - l2) - x2
+        a = e0 * t0 + e1 * t1 + e2 * t2
+        e0, e1, e2 = e0 - a * t0, e1 - a * t1, e2 - a * t2  # across the stream only: no along-stream catch-up
         if dt > 0.0 and deviation is None:  # a kinetic agent's offsets are its deviations' lag, not a bias
-            self.integral_m_s = saturate(_add(self.integral_m_s, e, cfg.integral_gain_1_s2 * dt),
-                                         cfg.max_integral_m_s)
-        corr = saturate(_add(_scale(e, cfg.gain_1_s), self.integral_m_s), cfg.max_correction_m_s)
-        return _add(_add(_scale(v_ff, cfg.feedforward_gain), corr), self.bias_m_s, -1.0)
+            k = cfg.integral_gain_1_s2 * dt
+            i0, i1, i2 = self.integral_m_s
+            self.integral_m_s = saturate((i0 + k * e0, i1 + k * e1, i2 + k * e2), cfg.max_integral_m_s)
+        g = cfg.gain_1_s
+        i0, i1, i2 = self.integral_m_s
+        c0, c1, c2 = saturate((e0 * g + i0, e1 * g + i1, e2 * g + i2), cfg.max_correction_m_s)
+        f = cfg.feedforward_gain
+        b0, b1, b2 = self.bias_m_s
+        return ((v_ff[0] * f + c0) - b0, (v_ff[1] * f + c1) - b1, (v_ff[2] * f + c2) - b2)

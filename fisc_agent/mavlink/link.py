@@ -66,6 +66,7 @@ from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, Setpoi
 from fisc_agent.flight.frames import GeodeticAnchor
 from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
+from fisc_agent.mavlink.setpoint_codec import send_velocity_setpoint
 from fisc_agent.mavlink.transport import MavutilStreamTransport, TcpClientTransport, UdpTransport
 from fisc_agent.flight.health import VehicleHealth
 from fisc_agent.flight.integrity import IntegrityConfig, IntegrityMonitor, IntegrityVerdict
@@ -434,8 +435,9 @@ class MavlinkLink:
             0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
-        """Send one velocity-only SET_POSITION_TARGET_LOCAL_NED [m/s]."""
-        self.mav.send(self.velocity_setpoint_message(vn, ve, vd))
+        """Send one velocity-only SET_POSITION_TARGET_LOCAL_NED [m/s] (``velocity_setpoint_message``'s bytes)."""
+        send_velocity_setpoint(self.mav, int(self.clock() * 1000) & 0xFFFFFFFF, self.target_system or 1,
+                               self.target_component, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, vn, ve, vd)
         self.setpoints_sent += 1
 
     # ---- intents (adapters.VehicleCommands) as COMMAND_LONGs --------------------------------
