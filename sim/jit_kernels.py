@@ -131,3 +131,28 @@ def fused_lookup(pos, ids, origin, inv_l, hi, strides, flat, mean_ned, slot_ned,
             r = j if j >= 0 else mean_ned.shape[0] - 1  # j = -1: the zero row
             for k in range(3):
                 cmd_out[i, k] = mean_ned[r, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def compact(keep, rows3, rows1, rows_int):
+    """Remove the rows where ``keep`` is False (``sim.kernels.compact_kernel``); returns the rows kept."""
+    n = keep.shape[0]
+    m = 0
+    for i in range(n):
+        m += keep[i]
+    j = m
+    for i in range(m):
+        if keep[i]:
+            continue
+        while not keep[j]:
+            j += 1
+        for b in rows3:
+            b[i, 0] = b[j, 0]
+            b[i, 1] = b[j, 1]
+            b[i, 2] = b[j, 2]
+        for b in rows1:
+            b[i] = b[j]
+        for b in rows_int:
+            b[i] = b[j]
+        j += 1
+    return m
