@@ -156,3 +156,26 @@ def compact(keep, rows3, rows1, rows_int):
             b[i] = b[j]
         j += 1
     return m
+
+
+@numba.njit(cache=True, nogil=True)
+def cv_moment_sums(cv, vel_ned, map_to_ned, mass, ref, count, mass_kg, momentum, m_v2, m_dev2):
+    """Per-CV moment sums of one sample (``sim.moments.swarm_moments``), added into the zeroed outputs."""
+    for i in range(cv.shape[0]):
+        j = cv[i]
+        if j < 0:
+            continue
+        v0 = vel_ned[i, 0] * map_to_ned[0]
+        v1 = vel_ned[i, 1] * map_to_ned[1]
+        v2 = vel_ned[i, 2] * map_to_ned[2]
+        count[j] += 1.0
+        mass_kg[j] += mass
+        momentum[j, 0] += mass * v0
+        momentum[j, 1] += mass * v1
+        momentum[j, 2] += mass * v2
+        # (x^2 + z^2) + y^2: the order of numpy's einsum on this path (as ``return_commands``)
+        m_v2[j] += mass * ((v0 * v0 + v2 * v2) + v1 * v1)
+        d0 = v0 - ref[j, 0]
+        d1 = v1 - ref[j, 1]
+        d2 = v2 - ref[j, 2]
+        m_dev2[j] += mass * ((d0 * d0 + d2 * d2) + d1 * d1)

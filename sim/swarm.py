@@ -6,8 +6,8 @@ Every step of ``dt`` (paper: 0.05 s), for all agents at once (arrays ``(N, 3)``,
    regular grid, so the nearest centre of a point inside an occupied cell is that cell's CV; the lookup is
    O(1) per agent through a padded copy of the map's ``grid_cv`` table (the same rule as
    ``fisc_agent.map.lookup.CommandField.cv_of``), never a search over CVs.
-2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already
-   applies S) in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
+2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already applies S)
+   in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
 3. *Update the velocity* with the quadrotor plant (``sim.plant.model.step_plant``, NED).
 4. *Update the position* ``x += u dt`` (semi-implicit: with the new velocity).
 
@@ -139,9 +139,8 @@ class SwarmCounters:
 class Swarm:
     """N agents flown by a command map (state held here; see the module docstring).
 
-    State (first ``n`` rows of capacity buffers, map frame unless stated):
-    ``pos_m`` (n, 3), ``vel_ned_m_s`` (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,),
-    ``outside_s`` (n,) time spent outside the CVs.
+    State (first ``n`` rows of capacity buffers, map frame unless stated): ``pos_m`` (n, 3), ``vel_ned_m_s``
+    (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,), ``outside_s`` (n,) time spent outside the CVs.
 
     ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the
     realised velocities in place after the plant step (``sim.collisions.CollisionModel``).
