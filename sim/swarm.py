@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_agent.map.hashing import slot_hash
-from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
+from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState
 from fisc_agent.map.lookup import (
     COMMAND_MODES,
     RETURN_GAIN_1_S,
@@ -48,15 +48,15 @@ from fisc_agent.map.lookup import (
     return_pull,
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
+from sim.entry import entry_phase, entry_thrust
 from sim.kernels import compact_kernel, move_kernel, removal_kernel, return_commands_kernel
 from sim.kinetic_step import KineticStep
-from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper, trim_thrust_accel
+from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
-#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted
-#: when agents leave: position, velocity, thrust, id, time outside, and the kinetic state
-#: (``fisc_agent.map.kinetic.DeviationState``).
+#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted when agents
+#: leave: position, velocity, thrust, id, time outside, and the kinetic state (``DeviationState``).
 _AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
 
 
@@ -142,10 +142,10 @@ class Swarm:
     State (first ``n`` rows of capacity buffers, map frame unless stated): ``pos_m`` (n, 3), ``vel_ned_m_s``
     (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,), ``outside_s`` (n,) time spent outside the CVs.
 
-    ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the
-    realised velocities in place after the plant step (``sim.collisions.CollisionModel``).
-    ``command_filter``: optional ``apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)`` that adjusts the step's
-    NED commands in place before the plant step (``sim.safety_net.SwarmSafetyNet``).
+    ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the realised velocities
+    in place after the plant step (``sim.collisions.CollisionModel``).  ``command_filter``: optional
+    ``apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)`` that adjusts the step's NED commands in place before the
+    plant step (``sim.safety_net.SwarmSafetyNet``).
     """
 
     def __init__(self, field: CommandField, plant: PlantParams | None = None,
@@ -287,7 +287,7 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        phase = deviation_phase(ids)
+        phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
         if vel_map_m_s is None and self._kinetic is not None:
             vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
         elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
@@ -305,7 +305,7 @@ class Swarm:
         s = slice(self.n, self.n + k)
         self._pos[s] = pos
         self._vel[s] = vel * MAP_TO_NED
-        self._thr[s] = trim_thrust_accel(self._vel[s], self._co)
+        self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
         self._ids[s] = ids
         self._out[s] = 0.0
         self._epoch[s] = -1
@@ -319,8 +319,8 @@ class Swarm:
         return ids
 
     def _keep(self, keep: np.ndarray, cv: np.ndarray) -> np.ndarray:
-        """Remove the agents where ``keep`` is False by moving survivors from the tail into their
-        slots (O(removed) copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
+        """Remove the agents where ``keep`` is False, survivors from the tail into their slots (O(removed)
+        copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
         if self._kernel is not None:  # numba: the same moves in one pass (sim.kernels.compact_kernel)
             rows = (self._pos, self._vel, self._thr, self._sign, self._dir, self._cmd)
             self.n = compact_kernel()(keep, rows, (self._out, self._phase), (self._ids, self._epoch, cv))
