@@ -292,7 +292,7 @@ def plant_stepper(params: PlantParams | PlantCoefficients, dt_s: float,
     wind or noise, for the fleet-wide ``params`` (one coefficient row), with the sub-step, the
     coefficients and the kernel chosen once: the same arithmetic without the per-call checks (the
     caller owns C-contiguous float64 (N, 3) buffers).  For a loop stepping thousands of times."""
-    co = _coeffs(params, 1)
+    co = params if isinstance(params, PlantCoefficients) else params.coefficients()
     if co.rows != 1:
         raise ValueError("plant_stepper needs fleet-wide (one-row) plant coefficients")
     if not (math.isfinite(dt_s) and dt_s > 0):
