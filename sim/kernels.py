@@ -19,11 +19,14 @@ Each factory returns the compiled kernel, or None when numba is not importable.
 
 from __future__ import annotations
 
+import functools
 from types import ModuleType
 
 
+@functools.lru_cache(maxsize=1)
 def jit_kernels() -> ModuleType | None:
-    """The module of compiled kernels (``sim.jit_kernels``), or None when numba is not installed."""
+    """The module of compiled kernels (``sim.jit_kernels``), or None when numba is not installed (looked up
+    once: the swarm asks for its kernels every step)."""
     try:
         from sim import jit_kernels as module
     except ModuleNotFoundError as exc:
