@@ -82,6 +82,9 @@ def admit_batch(inlet_cvs: np.ndarray, counts: np.ndarray, field: CommandField, 
     from sim import kinetic_jit
 
     k = u.shape[0]
+    if not (u.shape == (k, 3) and r.shape == (k,) and int(np.sum(counts)) == k and counts.shape == inlet_cvs.shape):
+        raise ValueError(f"admit_batch: {int(np.sum(counts))} candidates need u ({k}, 3) and r ({k},), got "
+                         f"{u.shape} and {r.shape}")  # the kernel trusts its sizes
     pos, ids = np.empty((k, 3)), np.empty(k, dtype=np.int64)
     m = kinetic_jit.admit_batch(np.ascontiguousarray(inlet_cvs, dtype=np.int64), counts,
                                 np.ascontiguousarray(field.centers_m, dtype=np.float64), float(field.cell_size_m),
