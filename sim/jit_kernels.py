@@ -179,3 +179,29 @@ def cv_moment_sums(cv, vel_ned, map_to_ned, mass, ref, count, mass_kg, momentum,
         d1 = v1 - ref[j, 1]
         d2 = v2 - ref[j, 2]
         m_dev2[j] += mass * ((d0 * d0 + d2 * d2) + d1 * d1)
+
+
+
+@numba.njit(cache=True, nogil=True)
+def deviation_phases(ids, out):
+    """``fisc_agent.map.kinetic.deviation_phase`` of agents ``ids`` into ``out`` (``sim.entry``)."""
+    for i in range(ids.shape[0]):
+        out[i] = slot_mix32(np.uint64(ids[i]), np.uint64(0x2545F491)) * (1.0 / 4294967296.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def trim_thrust(vel_ned, drag_k, g, accel_max, tan_tilt, thr_out):
+    """``sim.plant.model.trim_thrust_accel`` for fleet-wide coefficients, its operations in their order
+    (``sim.entry``)."""
+    amax2 = accel_max * accel_max
+    for i in range(vel_ned.shape[0]):
+        a0 = -((-drag_k[0] * abs(vel_ned[i, 0])) * vel_ned[i, 0])
+        a1 = -((-drag_k[1] * abs(vel_ned[i, 1])) * vel_ned[i, 1])
+        a2 = -((-drag_k[2] * abs(vel_ned[i, 2])) * vel_ned[i, 2]) - g
+        up = min(max(-a2, 0.0), accel_max)
+        h_norm = math.hypot(a0, a1)
+        h_max = min(up * tan_tilt, math.sqrt(max(amax2 - up * up, 0.0)))
+        scale = h_max / h_norm if h_norm > h_max else 1.0
+        thr_out[i, 0] = a0 * scale
+        thr_out[i, 1] = a1 * scale
+        thr_out[i, 2] = -up

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_agent.map.hashing import slot_hash
-from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
+from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState
 from fisc_agent.map.lookup import (
     COMMAND_MODES,
     RETURN_GAIN_1_S,
@@ -48,9 +48,10 @@ from fisc_agent.map.lookup import (
     return_pull,
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
+from sim.entry import entry_phase, entry_thrust
 from sim.kernels import compact_kernel, move_kernel, removal_kernel, return_commands_kernel
 from sim.kinetic_step import KineticStep
-from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper, trim_thrust_accel
+from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
@@ -286,7 +287,7 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        phase = deviation_phase(ids)
+        phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
         if vel_map_m_s is None and self._kinetic is not None:
             vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
         elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
@@ -304,7 +305,7 @@ class Swarm:
         s = slice(self.n, self.n + k)
         self._pos[s] = pos
         self._vel[s] = vel * MAP_TO_NED
-        self._thr[s] = trim_thrust_accel(self._vel[s], self._co)
+        self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
         self._ids[s] = ids
         self._out[s] = 0.0
         self._epoch[s] = -1

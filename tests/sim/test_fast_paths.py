@@ -1,5 +1,5 @@
 """The numba passes that replaced small numpy passes of the swarm loop (issue 40) give the numpy
-reference's bits: agent removal, the prepared plant step, the per-CV moments, a kinetic reservoir's batches."""
+reference's bits: agent removal, the prepared plant step, the per-CV moments, entering agents' state."""
 
 from pathlib import Path
 
@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from fisc_agent.map.codec import load_map
+from fisc_agent.map.kinetic import deviation_phase
 from fisc_agent.map.lookup import CommandField
 from fisc_ground.fields.swarm_fields import cv_moments
+from sim.entry import entry_phase, entry_thrust
 from sim.kernels import compact_kernel
 from sim.moments import swarm_moments
-from sim.plant.model import PlantParams, plant_stepper, step_plant
+from sim.plant.model import PlantParams, plant_stepper, step_plant, trim_thrust_accel
 from sim.scenarios import seed_positions
 from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig
 
@@ -101,9 +103,25 @@ def test_swarm_moments_refuse_what_cv_moments_refuses():
     swarm_moments(np.array([-1]), np.array([[np.nan, 0, 0]]), MAP_TO_NED, 1.0, 2, ref)  # outside: ignored
 
 
+def test_entry_phase_equals_deviation_phase():
+    ids = np.concatenate([np.arange(0, 2000), [2**31 - 1, 2**32 - 1, 2**32, 2**40 + 17]]).astype(np.int64)
+    np.testing.assert_array_equal(entry_phase(ids), deviation_phase(ids))
+    assert entry_phase(np.zeros(0, np.int64)).shape == (0,)
+
+
+def test_entry_thrust_equals_trim_thrust_accel():
+    rng = np.random.default_rng(11)
+    co = PlantParams().coefficients()
+    vel = np.concatenate([rng.normal(0, 5, (3000, 3)) * rng.lognormal(0, 1, (3000, 3)),
+                          np.zeros((1, 3)), [[40.0, 0.0, 0.0], [0.0, 0.0, 80.0], [0.0, 0.0, -80.0]]])
+    np.testing.assert_array_equal(entry_thrust(vel, co), trim_thrust_accel(vel, co))
+    per_agent = PlantParams(mass_kg=np.array([1.0, 2.0])).coefficients(2)  # per-agent rows: the numpy path
+    np.testing.assert_array_equal(entry_thrust(vel[:2], per_agent), trim_thrust_accel(vel[:2], per_agent))
+
+
 def test_kinetic_swarm_with_exits_and_inflow_equals_the_numpy_path():
-    """A kinetic run on the default map whose agents leave (the compaction) gives the all-numpy run's state,
-    bit for bit."""
+    """A kinetic run on the default map whose agents leave (the compaction) and enter (their phase and
+    trim thrust) gives the all-numpy run's state, bit for bit."""
     field = CommandField.from_map(load_map(DEFAULT_MAP))
     runs = []
     for backend in ("numpy", "numba"):
