@@ -131,3 +131,77 @@ def fused_lookup(pos, ids, origin, inv_l, hi, strides, flat, mean_ned, slot_ned,
             r = j if j >= 0 else mean_ned.shape[0] - 1  # j = -1: the zero row
             for k in range(3):
                 cmd_out[i, k] = mean_ned[r, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def compact(keep, rows3, rows1, rows_int):
+    """Remove the rows where ``keep`` is False (``sim.kernels.compact_kernel``); returns the rows kept."""
+    n = keep.shape[0]
+    m = 0
+    for i in range(n):
+        m += keep[i]
+    j = m
+    for i in range(m):
+        if keep[i]:
+            continue
+        while not keep[j]:
+            j += 1
+        for b in rows3:
+            b[i, 0] = b[j, 0]
+            b[i, 1] = b[j, 1]
+            b[i, 2] = b[j, 2]
+        for b in rows1:
+            b[i] = b[j]
+        for b in rows_int:
+            b[i] = b[j]
+        j += 1
+    return m
+
+
+@numba.njit(cache=True, nogil=True)
+def cv_moment_sums(cv, vel_ned, map_to_ned, mass, ref, count, mass_kg, momentum, m_v2, m_dev2):
+    """Per-CV moment sums of one sample (``sim.moments.swarm_moments``), added into the zeroed outputs."""
+    for i in range(cv.shape[0]):
+        j = cv[i]
+        if j < 0:
+            continue
+        v0 = vel_ned[i, 0] * map_to_ned[0]
+        v1 = vel_ned[i, 1] * map_to_ned[1]
+        v2 = vel_ned[i, 2] * map_to_ned[2]
+        count[j] += 1.0
+        mass_kg[j] += mass
+        momentum[j, 0] += mass * v0
+        momentum[j, 1] += mass * v1
+        momentum[j, 2] += mass * v2
+        # (x^2 + z^2) + y^2: the order of numpy's einsum on this path (as ``return_commands``)
+        m_v2[j] += mass * ((v0 * v0 + v2 * v2) + v1 * v1)
+        d0 = v0 - ref[j, 0]
+        d1 = v1 - ref[j, 1]
+        d2 = v2 - ref[j, 2]
+        m_dev2[j] += mass * ((d0 * d0 + d2 * d2) + d1 * d1)
+
+
+
+@numba.njit(cache=True, nogil=True)
+def deviation_phases(ids, out):
+    """``fisc_agent.map.kinetic.deviation_phase`` of agents ``ids`` into ``out`` (``sim.entry``)."""
+    for i in range(ids.shape[0]):
+        out[i] = slot_mix32(np.uint64(ids[i]), np.uint64(0x2545F491)) * (1.0 / 4294967296.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def trim_thrust(vel_ned, drag_k, g, accel_max, tan_tilt, thr_out):
+    """``sim.plant.model.trim_thrust_accel`` for fleet-wide coefficients, its operations in their order
+    (``sim.entry``)."""
+    amax2 = accel_max * accel_max
+    for i in range(vel_ned.shape[0]):
+        a0 = -((-drag_k[0] * abs(vel_ned[i, 0])) * vel_ned[i, 0])
+        a1 = -((-drag_k[1] * abs(vel_ned[i, 1])) * vel_ned[i, 1])
+        a2 = -((-drag_k[2] * abs(vel_ned[i, 2])) * vel_ned[i, 2]) - g
+        up = min(max(-a2, 0.0), accel_max)
+        h_norm = math.hypot(a0, a1)
+        h_max = min(up * tan_tilt, math.sqrt(max(amax2 - up * up, 0.0)))
+        scale = h_max / h_norm if h_norm > h_max else 1.0
+        thr_out[i, 0] = a0 * scale
+        thr_out[i, 1] = a1 * scale
+        thr_out[i, 2] = -up

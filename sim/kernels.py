@@ -9,6 +9,7 @@ masked numpy passes, which dominate the step once the plant kernel is fast:
   outside every CV (``cv < 0``) the return-policy command (nearest CV's command plus the capped
   inward pull, ``Swarm._return_commands``) and their time outside; the others' time outside
   reset to 0.
+* :func:`compact_kernel` - the removal of agents (survivors from the tail into the holes).
 * :func:`move_kernel` - the position update ``x += (MAP_TO_NED * dt) * v_NED`` (step 4).
 * :func:`kinetic_commands_kernel` - the ``kinetic`` mode's commands (look-ahead, staggered field,
   deviation, wall reflection) in one pass (``sim.kinetic_jit``, glued in by ``sim.kinetic_step``).
@@ -18,11 +19,14 @@ Each factory returns the compiled kernel, or None when numba is not importable.
 
 from __future__ import annotations
 
+import functools
 from types import ModuleType
 
 
+@functools.lru_cache(maxsize=1)
 def jit_kernels() -> ModuleType | None:
-    """The module of compiled kernels (``sim.jit_kernels``), or None when numba is not installed."""
+    """The module of compiled kernels (``sim.jit_kernels``), or None when numba is not installed (looked up
+    once: the swarm asks for its kernels every step)."""
     try:
         from sim import jit_kernels as module
     except ModuleNotFoundError as exc:
@@ -78,6 +82,18 @@ def move_kernel():
     """Kernel ``(pos, vel, fdt)``: ``pos[i, k] += vel[i, k] * fdt[k]`` in place (one pass)."""
     jk = jit_kernels()
     return None if jk is None else jk.move
+
+
+def compact_kernel():
+    """Kernel ``(keep, rows3, rows1, rows_int) -> m``: the agent removal of ``Swarm._keep`` in one pass.
+
+    ``keep`` (n,) bool; ``rows3`` a tuple of (>= n, 3) float64 buffers, ``rows1`` of (>= n,) float64 and
+    ``rows_int`` of (>= n,) int64 ones.  With ``m`` the number kept, each hole ``i < m`` (``keep[i]``
+    False) gets the row of the next kept ``j >= m``, in increasing order of both: the same moves as the
+    numpy ``buf[holes] = buf[src]``, so the same state.  Returns ``m``.
+    """
+    jk = jit_kernels()
+    return None if jk is None else jk.compact
 
 
 def kinetic_commands_kernel():

@@ -143,3 +143,38 @@ def deviation_x(ids, t_over_p, out):
         u2 = slot_mix32(np.uint64(ids[i] ^ 0x5BD1E995), np.uint64(e)) * _INV_2_32
         z = 2.0 * u1 - 1.0
         out[i] = math.sqrt(max(0.0, 1.0 - z * z)) * math.cos(_TWO_PI * u2)
+
+
+@numba.njit(cache=True, nogil=True)
+def admit_batch(inlet_cvs, counts, centers, cell, entry_x, interval_s, u, r, first_id, t_over_p, entry_u, spread,
+                pos_out, ids_out):
+    """One kinetic reservoir batch (``sim.scenarios.Reservoir.entering``): the candidates' positions (``_batch``)
+    and their admission (``admit``: ``deviation_x``, ``kinetic_admission``, ``r < p``), the operations of
+    the numpy path in its order; writes the admitted rows and returns how many."""
+    idx = 0
+    m = 0
+    for q in range(inlet_cvs.shape[0]):
+        j = inlet_cvs[q]
+        depth = min(abs(entry_x[q]) * interval_s, cell)
+        for _ in range(counts[q]):
+            p0 = (centers[j, 0] - 0.5 * cell) + u[idx, 0] * depth
+            p1 = (centers[j, 1] - 0.5 * cell) + u[idx, 1] * cell
+            p2 = (centers[j, 2] - 0.5 * cell) + u[idx, 2] * cell
+            agent = first_id + idx
+            phase = slot_mix32(np.uint64(agent), np.uint64(0x2545F491)) * _INV_2_32
+            e = np.int64(math.floor(t_over_p + phase))
+            u1 = slot_mix32(np.uint64(agent), np.uint64(e)) * _INV_2_32
+            u2 = slot_mix32(np.uint64(agent ^ 0x5BD1E995), np.uint64(e)) * _INV_2_32
+            z = 2.0 * u1 - 1.0
+            d_x = math.sqrt(max(0.0, 1.0 - z * z)) * math.cos(_TWO_PI * u2)
+            ua = abs(entry_u[j])
+            p = (ua + spread[j] * d_x) / max(ua + spread[j], 1e-12)
+            p = min(max(p, 0.0), 1.0)
+            if r[idx] < p:
+                pos_out[m, 0] = p0
+                pos_out[m, 1] = p1
+                pos_out[m, 2] = p2
+                ids_out[m] = agent
+                m += 1
+            idx += 1
+    return m

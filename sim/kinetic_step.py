@@ -70,3 +70,25 @@ def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray
     out = np.empty(ids.size)
     kinetic_jit.deviation_x(ids, float(t_s) / persistence_s, out)
     return out
+
+
+def admit_batch(inlet_cvs: np.ndarray, counts: np.ndarray, field: CommandField, entry_x_m_s: np.ndarray,
+                interval_s: float, u: np.ndarray, r: np.ndarray, first_id: int, t_over_p: float,
+                entry_u_m_s: np.ndarray, spread_m_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A kinetic reservoir's batch in one numba pass (``sim.kinetic_jit.admit_batch``; numba must be installed):
+    ``counts[q]`` candidates in inlet CV ``inlet_cvs[q]`` at the uniform draws ``u`` (k, 3) (``Reservoir._batch``),
+    candidate k id ``first_id + k``, admitted when ``r[k] < kinetic_admission`` of its deviation at
+    ``t_over_p`` = t / persistence (``Reservoir.admit``).  Returns the admitted positions (m, 3) and ids (m,)."""
+    from sim import kinetic_jit
+
+    k = u.shape[0]
+    if not (u.shape == (k, 3) and r.shape == (k,) and int(np.sum(counts)) == k and counts.shape == inlet_cvs.shape):
+        raise ValueError(f"admit_batch: {int(np.sum(counts))} candidates need u ({k}, 3) and r ({k},), got "
+                         f"{u.shape} and {r.shape}")  # the kernel trusts its sizes
+    pos, ids = np.empty((k, 3)), np.empty(k, dtype=np.int64)
+    m = kinetic_jit.admit_batch(np.ascontiguousarray(inlet_cvs, dtype=np.int64), counts,
+                                np.ascontiguousarray(field.centers_m, dtype=np.float64), float(field.cell_size_m),
+                                np.ascontiguousarray(entry_x_m_s, dtype=np.float64), float(interval_s), u, r,
+                                np.int64(first_id), float(t_over_p), np.ascontiguousarray(entry_u_m_s, dtype=np.float64),
+                                np.ascontiguousarray(spread_m_s, dtype=np.float64), pos, ids)
+    return pos[:m], ids[:m]

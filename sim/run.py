@@ -33,7 +33,7 @@ from fisc_ground.figures.forked import ForkedCall, can_fork
 from fisc_ground.fit.scaling import DEFAULT_MAX_SPEED_M_S
 from fisc_ground.fields.intervals import honest_statistics, stats_inputs
 from fisc_ground.fields.separation_stats import ApproachTracker, ClosestApproach
-from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields, cv_moments
+from fisc_ground.fields.swarm_fields import FieldAccumulator, SwarmFields
 from fisc_ground.fields.time_blocks import DEFAULT_BLOCK_S, BlockAccumulator
 from fisc_agent.flight.safety_net import DuctAxis
 from fisc_agent.map.separation import map_separation
@@ -42,7 +42,8 @@ from sim.collisions import CollisionModel, CollisionParams
 from sim.plant.fit import plant_preset
 from sim.safety_net import SwarmSafetyNet
 from sim.scenarios import Reservoir, StaggeredInlet, scale_for_agents, seed_positions
-from sim.swarm import Swarm, SwarmConfig, SwarmCounters
+from sim.moments import swarm_moments
+from sim.swarm import MAP_TO_NED, Swarm, SwarmConfig, SwarmCounters
 
 log = logging.getLogger(__name__)
 
@@ -372,7 +373,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
             snapshots.append((snap_steps[k], swarm.pos_m.copy()))
         if k > first_sample and (n_steps - k) % every == 0:
             cv = swarm.assign()
-            mom = cv_moments(cv, swarm.velocity_map(), mass, cf.n_cv, target_cmd)
+            mom = swarm_moments(cv, swarm.vel_ned_m_s, MAP_TO_NED, mass, cf.n_cv, target_cmd)
             acc.add_moments(mom)
             blocks.add_moments(k * config.dt_s, mom)
         if measures and (n_steps - k) % sep_every == 0:

@@ -38,7 +38,8 @@ from __future__ import annotations
 import numpy as np
 
 from fisc_agent.map.lookup import CommandField
-from sim.kinetic_step import deviation_x
+from sim.kernels import jit_kernels
+from sim.kinetic_step import admit_batch, deviation_x
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -178,14 +179,27 @@ class Reservoir:
         return self._batch(rng)[0]
 
     def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """One batch after admission: positions (k, 3) and ids (``batch`` then ``admit``)."""
+        """One batch after admission: positions (k, 3) and ids (``batch`` then ``admit``; a kinetic reservoir
+        with numba: both in one pass, ``sim.kinetic_step.admit_batch``, the same draws and bits)."""
+        if self.kinetic_persistence_s is not None and jit_kernels() is not None:
+            counts = self._counts()
+            k = int(counts.sum())
+            u = rng.random((k, 3))
+            r = rng.random(k) if k else np.zeros(0)
+            return admit_batch(self.cvs, counts, self.field, self.entry_cmd_m_s[:, 0], self.interval_s, u, r,
+                               first_id, float(t_s) / self.kinetic_persistence_s, self._entry_u_m_s, self._spread_m_s)
         pos, cv = self._batch(rng)
         return self.admit(pos, first_id, t_s, rng, cv)
 
-    def _batch(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def _counts(self) -> np.ndarray:
+        """Candidates of the next batch per inlet CV (the accumulators advanced by one interval)."""
         self._carry += self._candidate_rate_per_cv * self.interval_s
         counts = np.floor(self._carry).astype(np.int64)
         self._carry -= counts
+        return counts
+
+    def _batch(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        counts = self._counts()
         cv = np.repeat(self.cvs, counts)
         l = self.field.cell_size_m
         lo = self.field.centers_m[cv] - 0.5 * l

@@ -1,31 +1,29 @@
 """Algorithm 1 of the paper ("Velocity command execution for each agent"), vectorised.
 
-Every step of ``dt`` (paper: 0.05 s), for all agents at once (arrays ``(N, 3)``, no per-agent
-Python):
+Every step of ``dt`` (paper: 0.05 s), for all agents at once (arrays ``(N, 3)``, no per-agent Python):
 
-1. *Assign control volume* (eq. cv_assignment, nearest CV centre): the CVs are the occupied
-   cells of a regular grid, so the nearest centre of a point inside an occupied cell is that
-   cell's CV; the lookup is O(1) per agent through a padded copy of the map's ``grid_cv``
-   table (the same rule as ``fisc_agent.map.lookup.CommandField.cv_of``), never a search over CVs.
-2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already
-   applies S) in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
+1. *Assign control volume* (eq. cv_assignment, nearest CV centre): the CVs are the occupied cells of a
+   regular grid, so the nearest centre of a point inside an occupied cell is that cell's CV; the lookup is
+   O(1) per agent through a padded copy of the map's ``grid_cv`` table (the same rule as
+   ``fisc_agent.map.lookup.CommandField.cv_of``), never a search over CVs.
+2. *Retrieve the command* (eq. scaled_command_map, ``S v_{s,d,j}``; ``CommandField`` already applies S)
+   in one of the modes ``mean`` (the paper), ``slot`` or ``interpolated``.
 3. *Update the velocity* with the quadrotor plant (``sim.plant.model.step_plant``, NED).
 4. *Update the position* ``x += u dt`` (semi-implicit: with the new velocity).
 
-Frames.  Positions and commands live in the map (reference) frame: x along the tunnel, z up.
-The plant works in NED with the default deployment axis mapping map x -> North, y -> East,
-z -> Up, i.e. ``v_NED = (v_x, v_y, -v_z)``.  The command tables are flipped once at start-up,
-so the per-step conversion is a single multiply in the position update.
+Frames.  Positions and commands live in the map (reference) frame: x along the tunnel, z up.  The plant
+works in NED with the default deployment axis mapping map x -> North, y -> East, z -> Up, i.e. ``v_NED =
+(v_x, v_y, -v_z)``.  The command tables are flipped once at start-up, so the per-step conversion is a single
+multiply in the position update.
 
 Agents leaving the map.
 * Past the outlet (x beyond the last slice): removed and counted as ``exited`` (outflow).
-* Sideways or upstream, into a grid cell without a CV (near the wall, or behind the inlet):
-  the *return* policy.  The agent flies the command of the nearest CV within
-  ``return_radius_cells`` cells plus an inward correction ``k (x_c - x)`` towards that CV's
-  centre (magnitude capped at ``return_speed_fraction`` of that CV's mean command speed), for at most ``escape_grace_s``
-  seconds in a row.  If it has not re-entered a CV by then, or no CV lies within the
-  radius, it is removed and counted as ``escaped``.  This mirrors the onboard geofence option
-  "fly back to the nearest CV" (DESIGN.md section 5).
+* Sideways or upstream, into a grid cell without a CV (near the wall, or behind the inlet): the *return*
+  policy.  The agent flies the command of the nearest CV within ``return_radius_cells`` cells plus an inward
+  correction ``k (x_c - x)`` towards that CV's centre (magnitude capped at ``return_speed_fraction`` of that
+  CV's mean command speed), for at most ``escape_grace_s`` seconds in a row.  If it has not re-entered a CV
+  by then, or no CV lies within the radius, it is removed and counted as ``escaped``.  This mirrors the
+  onboard geofence option "fly back to the nearest CV" (DESIGN.md section 5).
 
 Bookkeeping: ``injected == alive + exited + escaped`` at all times.
 """
@@ -37,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fisc_agent.map.hashing import slot_hash
-from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState, deviation_phase
+from fisc_agent.map.kinetic import DEFAULT_PERSISTENCE_S, DeviationState
 from fisc_agent.map.lookup import (
     COMMAND_MODES,
     RETURN_GAIN_1_S,
@@ -50,15 +48,15 @@ from fisc_agent.map.lookup import (
     return_pull,
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
-from sim.kernels import move_kernel, removal_kernel, return_commands_kernel
+from sim.entry import entry_phase, entry_thrust
+from sim.kernels import compact_kernel, move_kernel, removal_kernel, return_commands_kernel
 from sim.kinetic_step import KineticStep
-from sim.plant.model import PlantCoefficients, PlantParams, step_plant, trim_thrust_accel
+from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
-#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted
-#: when agents leave: position, velocity, thrust, id, time outside, and the kinetic state
-#: (``fisc_agent.map.kinetic.DeviationState``).
+#: The per-agent row buffers of ``Swarm`` (``_pos``, ...), copied when the buffers grow and compacted when agents
+#: leave: position, velocity, thrust, id, time outside, and the kinetic state (``DeviationState``).
 _AGENT_ROWS = ("pos", "vel", "thr", "ids", "out", "epoch", "sign", "dir", "phase")
 
 
@@ -91,7 +89,6 @@ class SwarmConfig:
     ``x + u t_lead`` (its own CV when that point is outside the CVs) instead of the CV at x,
     compensating the plant lag (~0.58 s for the default plant).  0 = the paper's Algorithm 1.
     The CV assignment (exits, escapes, the fields) always uses x itself."""
-
     persistence_s: float = DEFAULT_PERSISTENCE_S
     """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
     (``fisc_agent.map.kinetic.kinetic_deviation``)."""
@@ -142,14 +139,13 @@ class SwarmCounters:
 class Swarm:
     """N agents flown by a command map (state held here; see the module docstring).
 
-    State (first ``n`` rows of capacity buffers, map frame unless stated):
-    ``pos_m`` (n, 3), ``vel_ned_m_s`` (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,),
-    ``outside_s`` (n,) time spent outside the CVs.
+    State (first ``n`` rows of capacity buffers, map frame unless stated): ``pos_m`` (n, 3), ``vel_ned_m_s``
+    (n, 3), ``thrust_ned_m_s2`` (n, 3), ``ids`` (n,), ``outside_s`` (n,) time spent outside the CVs.
 
-    ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the
-    realised velocities in place after the plant step (``sim.collisions.CollisionModel``).
-    ``command_filter``: optional ``apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)`` that adjusts the step's
-    NED commands in place before the plant step (``sim.safety_net.SwarmSafetyNet``).
+    ``collider``: optional collision layer with ``apply(pos_m, vel_ned)`` that adjusts the realised velocities
+    in place after the plant step (``sim.collisions.CollisionModel``).  ``command_filter``: optional
+    ``apply(pos_m, vel_ned_m_s, cmd_ned_m_s, ids)`` that adjusts the step's NED commands in place before the
+    plant step (``sim.safety_net.SwarmSafetyNet``).
     """
 
     def __init__(self, field: CommandField, plant: PlantParams | None = None,
@@ -160,6 +156,7 @@ class Swarm:
         if not self.plant.is_homogeneous:
             raise ValueError("Swarm needs fleet-wide (homogeneous) PlantParams")
         self._co: PlantCoefficients = self.plant.coefficients()
+        self._plant_step = plant_stepper(self._co, self.config.dt_s, self.config.plant_backend)
         self.collider = collider
         self.command_filter = command_filter
         self.lookup = CVLookup(field, self.config.return_radius_cells)
@@ -290,7 +287,7 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        phase = deviation_phase(ids)
+        phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
         if vel_map_m_s is None and self._kinetic is not None:
             vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
         elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
@@ -308,7 +305,7 @@ class Swarm:
         s = slice(self.n, self.n + k)
         self._pos[s] = pos
         self._vel[s] = vel * MAP_TO_NED
-        self._thr[s] = trim_thrust_accel(self._vel[s], self._co)
+        self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
         self._ids[s] = ids
         self._out[s] = 0.0
         self._epoch[s] = -1
@@ -322,13 +319,16 @@ class Swarm:
         return ids
 
     def _keep(self, keep: np.ndarray, cv: np.ndarray) -> np.ndarray:
-        """Remove the agents where ``keep`` is False by moving survivors from the tail into their
-        slots (O(removed) copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
+        """Remove the agents where ``keep`` is False, survivors from the tail into their slots (O(removed)
+        copies; agent order is not meaningful).  Returns ``cv`` permuted alike."""
+        if self._kernel is not None:  # numba: the same moves in one pass (sim.kernels.compact_kernel)
+            rows = (self._pos, self._vel, self._thr, self._sign, self._dir, self._cmd)
+            self.n = compact_kernel()(keep, rows, (self._out, self._phase), (self._ids, self._epoch, cv))
+            return cv[:self.n]
         m = int(np.count_nonzero(keep))
         holes = np.flatnonzero(~keep[:m])
         src = np.flatnonzero(keep[m:]) + m
-        bufs = [getattr(self, "_" + k) for k in _AGENT_ROWS] + ([self._cmd] if self._cmd_ready else [])
-        for buf in bufs:
+        for buf in [getattr(self, "_" + k) for k in _AGENT_ROWS] + ([self._cmd] if self._cmd_ready else []):
             buf[holes] = buf[src]
         cv = cv.copy()
         cv[holes] = cv[src]
@@ -404,7 +404,7 @@ class Swarm:
         vel, thr = self.vel_ned_m_s, self.thrust_ned_m_s2
         if self.command_filter is not None:
             self.command_filter.apply(self.pos_m, vel, cmd, self.ids)
-        step_plant(vel, thr, cmd, self.config.dt_s, self._co, out=(vel, thr), backend=self.config.plant_backend)
+        self._plant_step(vel, thr, cmd)  # sim.plant.model.step_plant in place
         if self.collider is not None:
             self.collider.apply(self.pos_m, vel)
         if fused:

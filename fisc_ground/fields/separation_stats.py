@@ -164,6 +164,15 @@ def brute_force_closest(ids: np.ndarray, pos_m: np.ndarray) -> ClosestPair:
     return ClosestPair(float(d[i, j]), min(a, b), max(a, b))
 
 
+def _count_in(keys: np.ndarray, sorted_keys: np.ndarray) -> int:
+    """How many of ``keys`` are in ``sorted_keys`` (sorted, unique): ``np.isin(...).sum()`` by binary search."""
+    if not (keys.size and sorted_keys.size):
+        return 0
+    i = np.searchsorted(sorted_keys, keys)
+    i[i == sorted_keys.size] = 0
+    return int(np.count_nonzero(sorted_keys[i] == keys))
+
+
 class ApproachTracker:
     """Closest approach and near-miss encounters over a sequence of time steps (``add`` one step at a time,
     in time order).  State: the best pair so far and the set of pairs closer than d_min at the last step."""
@@ -191,7 +200,7 @@ class ApproachTracker:
             step = _nearest(ids, pos, tree)
         if step.distance_m < self._best.distance_m:
             self._best, self._best_t = step, float(t_s)
-        self.near_misses += int(close.size - np.isin(close, self._close, assume_unique=True).sum())
+        self.near_misses += int(close.size - _count_in(close, self._close))
         self._close = close
         return step
 

@@ -95,8 +95,9 @@ def designed_staircase(node_count: np.ndarray, u_axial_m_s: np.ndarray, pattern:
     if not ref > 0:
         raise ValueError("the reference's slices carry no net CFD flow along +x; cannot design a staircase")
     best_err, best_keep = np.inf, None
+    slices: dict = {}  # the candidates of a slice depend on its upstream slice's choice, not on the scale
     for scale in np.geomspace(*_SCALE_RANGE, _SCALE_STEPS) * ref:
-        keep, err = _select(c, u, open_fraction, log_want + np.log(scale), min_step_open)
+        keep, err = _select(c, u, open_fraction, log_want + np.log(scale), min_step_open, slices)
         if err < best_err:
             best_err, best_keep = err, keep
     if best_keep is None:
@@ -120,24 +121,42 @@ def axial_pockets(keep: np.ndarray) -> np.ndarray:
     return k & ~up & ~down
 
 
+def _candidates(c_i: np.ndarray, u_i: np.ndarray, open_i: np.ndarray, upstream: np.ndarray,
+                min_step_open: float) -> tuple[np.ndarray, list[float | None]]:
+    """A slice's eligible cubes, most covered first, and for each count m of them kept the log of their
+    flux area s(m) (None where m is below the slice's open area or s(m) <= 0: not a choice)."""
+    eligible = (c_i > 0) & (upstream | (open_i >= min_step_open))
+    order = np.argsort(-np.where(eligible, c_i, -1.0), kind="stable")[:int(eligible.sum())]
+    s = np.cumsum(u_i[order])
+    m = np.arange(1, s.size + 1)
+    m_min = min(max(int(np.rint(open_i.sum())), 1), s.size)
+    ok = (m >= m_min) & (s > 0)
+    logs = np.log(np.where(s > 0, s, 1.0))
+    return order, [float(v) if k else None for v, k in zip(logs, ok)]
+
+
 def _select(c: np.ndarray, u: np.ndarray, open_fraction: np.ndarray, log_target: np.ndarray,
-            min_step_open: float) -> tuple[np.ndarray, float]:
+            min_step_open: float, slices: dict) -> tuple[np.ndarray, float]:
     """Slice by slice from the inlet: the m most covered eligible cubes whose log flux area is nearest
-    ``log_target``; the keep mask and the summed squared error (inf if a slice has no positive choice)."""
+    ``log_target``; the keep mask and the summed squared error (inf if a slice has no positive choice).
+    ``slices``: ``_candidates`` by slice and upstream choice, shared by the calls of one staircase (each
+    scale tried meets the same few); the error of a choice is (log s - log_target)^2 as one float64 each."""
     keep = np.zeros(c.shape, dtype=bool)
     upstream = np.ones(c.shape[1], dtype=bool)
     err = 0.0
     for i in range(c.shape[0]):
-        eligible = (c[i] > 0) & (upstream | (open_fraction[i] >= min_step_open))
-        order = np.argsort(-np.where(eligible, c[i], -1.0), kind="stable")[:int(eligible.sum())]
-        s = np.cumsum(u[i, order])
-        m = np.arange(1, s.size + 1)
-        m_min = min(max(int(np.rint(open_fraction[i].sum())), 1), s.size)
-        e = np.where((m >= m_min) & (s > 0), (np.log(np.where(s > 0, s, 1.0)) - log_target[i]) ** 2, np.inf)
-        j = int(np.argmin(e))
-        if not np.isfinite(e[j]):
+        key = (i, upstream.tobytes())
+        if key not in slices:
+            slices[key] = _candidates(c[i], u[i], open_fraction[i], upstream, min_step_open)
+        order, logs = slices[key]
+        target = float(log_target[i])
+        j, best = -1, np.inf
+        for k, log_s in enumerate(logs):  # the first of the smallest, as np.argmin
+            if log_s is not None and (log_s - target) * (log_s - target) < best:
+                j, best = k, (log_s - target) * (log_s - target)
+        if j < 0:
             return keep, np.inf
-        err += float(e[j])
+        err += best
         keep[i, order[:j + 1]] = True
         upstream = keep[i]
     return keep, err

@@ -286,6 +286,26 @@ def step_plant(
     return vel_out, thr_out
 
 
+def plant_stepper(params: PlantParams | PlantCoefficients, dt_s: float,
+                  backend: Backend = "auto") -> Callable[[np.ndarray, np.ndarray, np.ndarray], None]:
+    """``step(vel, thrust, cmd)``: :func:`step_plant` of ``(vel, thrust)`` in place over ``dt_s``, without
+    wind or noise, for the fleet-wide ``params`` (one coefficient row), with the sub-step, the
+    coefficients and the kernel chosen once: the same arithmetic without the per-call checks (the
+    caller owns C-contiguous float64 (N, 3) buffers).  For a loop stepping thousands of times."""
+    co = params if isinstance(params, PlantCoefficients) else params.coefficients()
+    if co.rows != 1:
+        raise ValueError("plant_stepper needs fleet-wide (one-row) plant coefficients")
+    if not (math.isfinite(dt_s) and dt_s > 0):
+        raise ValueError(f"dt_s must be > 0 and finite, got {dt_s!r}")
+    nsub = substep_count(dt_s, co)
+    h = dt_s / nsub
+    kernel = _select_kernel(backend)
+    if kernel is None:
+        return lambda v, a, cmd: step_numpy(v, a, cmd, None, None, None, co, h, nsub) if v.shape[0] else None
+    rows, shared = kernel_args(co, h)
+    return lambda v, a, cmd: kernel(v, a, cmd, None, None, None, rows, shared, h, nsub)
+
+
 # ---------------------------------------------------------------------------------------------
 # Stateful wrapper
 # ---------------------------------------------------------------------------------------------

@@ -125,3 +125,16 @@ def test_tracker_step_equals_brute_force_whether_or_not_pairs_are_close(d_min):
         assert (got.id_a, got.id_b) == (want.id_a, want.id_b)
         best = min(best, want.distance_m)
     assert tr.result().distance_m == pytest.approx(best)
+
+
+@pytest.mark.parametrize("case", ["disjoint", "half", "same", "empty_keys", "empty_set", "beyond_last"])
+def test_count_in_equals_isin(case):
+    """The near-miss count's membership test (binary search) counts what ``np.isin`` counts."""
+    from fisc_ground.fields.separation_stats import _count_in
+
+    rng = np.random.default_rng(4)
+    a = np.unique(rng.integers(0, 2**40, 500).astype(np.uint64))
+    b = {"disjoint": a + np.uint64(2**41), "half": np.unique(np.concatenate([a[::2], a[:50] + np.uint64(1)])),
+         "same": a, "empty_keys": a, "empty_set": a[:0], "beyond_last": a[:10]}[case]
+    keys = a[:0] if case == "empty_keys" else a
+    assert _count_in(keys, b) == int(np.isin(keys, b, assume_unique=True).sum())

@@ -110,3 +110,48 @@ def test_on_the_tunnel_the_swarm_continuity_pattern_follows_the_cfd_density():
     ids = full.grid_cv[tuple(designed.index.T)]
     np.testing.assert_array_equal(full.node_count[ids], designed.node_count)
     np.testing.assert_allclose(full.target_velocity_m_s[ids], designed.target_velocity_m_s)
+
+
+def _reference_select(c, u, open_fraction, log_target, min_step_open):
+    """The per-scale selection as first written (numpy per slice, no cache): the oracle of ``_select``."""
+    keep = np.zeros(c.shape, dtype=bool)
+    upstream = np.ones(c.shape[1], dtype=bool)
+    err = 0.0
+    for i in range(c.shape[0]):
+        eligible = (c[i] > 0) & (upstream | (open_fraction[i] >= min_step_open))
+        order = np.argsort(-np.where(eligible, c[i], -1.0), kind="stable")[:int(eligible.sum())]
+        s = np.cumsum(u[i, order])
+        m = np.arange(1, s.size + 1)
+        m_min = min(max(int(np.rint(open_fraction[i].sum())), 1), s.size)
+        e = np.where((m >= m_min) & (s > 0), (np.log(np.where(s > 0, s, 1.0)) - log_target[i]) ** 2, np.inf)
+        j = int(np.argmin(e))
+        if not np.isfinite(e[j]):
+            return keep, np.inf
+        err += float(e[j])
+        keep[i, order[:j + 1]] = True
+        upstream = keep[i]
+    return keep, err
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_select_with_its_cache_equals_the_uncached_selection(seed):
+    """``_select`` reuses a slice's candidates across scales: the same masks and the same error bits as the
+    plain per-scale selection, over the scales ``designed_staircase`` tries (ties, negative flux, steps)."""
+    from fisc_ground.fit import staircase as sc
+
+    rng = np.random.default_rng(seed)
+    nx, m = rng.integers(1, 12), rng.integers(1, 9)
+    c = rng.integers(0, 4, (nx, m)).astype(float)  # small counts: many ties in the ordering
+    c[np.arange(nx), rng.integers(0, m, nx)] += 1.0  # every slice covered
+    u = rng.normal(1.0, 0.8 if seed % 3 else 0.1, (nx, m))  # some negative axial velocities
+    f = rng.random(nx)
+    open_fraction = c / c.max(axis=1, keepdims=True)
+    log_want = -np.log(1.0 - 0.4 * (1.0 - f))
+    slices: dict = {}
+    for scale in np.geomspace(0.2, 5.0, 60) * max(float(np.where(c > 0, u, 0).sum(axis=1).mean()), 0.1):
+        target = log_want + np.log(scale)
+        for step_open in (0.0, 0.25, 1.0):
+            got = sc._select(c, u, open_fraction, target, step_open, slices.setdefault(step_open, {}))
+            want = _reference_select(c, u, open_fraction, target, step_open)
+            np.testing.assert_array_equal(got[0], want[0])
+            assert got[1] == want[1] or (np.isinf(got[1]) and np.isinf(want[1]))
