@@ -64,6 +64,7 @@ from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, Mo
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
 from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, SetpointSink, VehicleLink
 from fisc_agent.flight.frames import GeodeticAnchor
+from fisc_agent.mavlink.fast_codec import fast_decoder
 from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
 from fisc_agent.mavlink.setpoint_codec import send_velocity_setpoint
@@ -149,6 +150,7 @@ class MavlinkLink:
         self.mav = mavlink2.MAVLink(self.transport, srcSystem=source_system or 255, srcComponent=source_component)
         self._decoder = mavlink2.MAVLink(None)
         self._decoder.robust_parsing = True
+        self._decode = fast_decoder(self._decoder)  # pymavlink's decode, its hot messages without its generic path
         self.autopilot: str | None = None
         self.adapter: Adapter | None = None
         """Encodes intents and decodes modes (``use_adapter``)."""
@@ -238,7 +240,7 @@ class MavlinkLink:
                 if got is None:
                     break
                 data, addr = got
-                scan = parse_datagram(data, self._decoder.decode)
+                scan = parse_datagram(data, self._decode)
                 if scan.bad_bytes:
                     self.bad_bytes += scan.bad_bytes
                     self.rlog.event("mavlink:bad_bytes", logging.WARNING, "MAVLink: %d bad bytes in a %d-byte datagram "

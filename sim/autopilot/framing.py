@@ -15,7 +15,9 @@ from __future__ import annotations
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-__all__ = ["Encoder", "new_parser"]
+from fisc_agent.mavlink.fast_codec import decode_v2, frame_length_v2, pack_v2
+
+__all__ = ["Encoder", "new_parser", "parse"]
 
 
 class Encoder:
@@ -34,6 +36,28 @@ class Encoder:
         """The MAVLink 2 frame of ``msg`` with the next sequence number."""
         self.mav.send(msg)
         return self._frame
+
+    def frame_payload(self, msg_id: int, crc_extra: bytes, payload: bytes) -> bytes:
+        """The MAVLink 2 frame ``frame`` gives for the message whose wire-order payload is ``payload``
+        (``fisc_agent.mavlink.fast_codec.pack_v2``: no message object), with the next sequence number."""
+        mav = self.mav
+        buf = pack_v2(mav, msg_id, crc_extra, payload)
+        mav.seq = (mav.seq + 1) % 256
+        mav.total_packets_sent += 1
+        mav.total_bytes_sent += len(buf)
+        return buf
+
+
+def parse(parser: mavlink.MAVLink, data: bytes) -> list:
+    """The messages of ``data`` as ``parser.parse_buffer(data)`` gives them (BAD_DATA included);
+    a datagram that is exactly one unsigned MAVLink 2 frame, with nothing buffered before it, is
+    decoded by ``fisc_agent.mavlink.fast_codec.decode_v2`` (the same message object), the rest by
+    the parser."""
+    if parser.buf_len() == 0 and frame_length_v2(data) == len(data):
+        m = decode_v2(parser, data)
+        if m is not None:
+            return [m]
+    return parser.parse_buffer(data) or []
 
 
 def new_parser() -> mavlink.MAVLink:

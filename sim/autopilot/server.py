@@ -38,7 +38,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.faults import DelayLine, FaultConfig, FaultInjector
-from sim.autopilot.framing import Encoder, new_parser
+from sim.autopilot.framing import Encoder, new_parser, parse
 from sim.autopilot.personalities import Personality, get_personality
 from sim.autopilot.setpoints import resolve_global_setpoint, resolve_local_setpoint, takeoff_altitude_m
 from sim.autopilot.streams import StreamSchedule
@@ -140,6 +140,7 @@ class AutopilotEmulator:
         self._schedule = StreamSchedule(default_intervals_s(rate_position_hz, rate_attitude_hz))
         self._telemetry = TelemetryBuilder(self._mav, self.personality, self.anchor, self.sysid, wall_clock)
         self._builders = self._telemetry.builders
+        self._payloads = self._telemetry.payloads
         self._handlers: dict[str, Callable[[object, float], None]] = {
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_LONG": self._on_command_long,
@@ -279,7 +280,9 @@ class AutopilotEmulator:
 
     # ------------------------------------------------------------------ output
     def _send(self, msg: object) -> None:
-        buf = self._encoder.frame(msg)
+        self._send_frame(self._encoder.frame(msg))
+
+    def _send_frame(self, buf: bytes) -> None:
         if self.faults.drop_outgoing():
             self.stats["tx_dropped"] += 1
             return
@@ -298,7 +301,11 @@ class AutopilotEmulator:
             return True
         if self._transport is not None and not self._transport.has_peers:
             return True  # nobody listening yet (udpin before the first packet): skip the encoding
-        self._send(build(self._snapshot()))
+        fast = self._payloads.get(msg_id)
+        if fast is not None:
+            self._send_frame(self._encoder.frame_payload(msg_id, fast[0], fast[1](self._snapshot())))
+        else:
+            self._send(build(self._snapshot()))
         return True
 
     def _statustext(self, severity: int, text: str) -> None:
@@ -316,7 +323,7 @@ class AutopilotEmulator:
             parser = self._parsers[key] = new_parser()
             self._schedule.due_now(mavlink.MAVLINK_MSG_ID_HEARTBEAT, now)  # greet a new peer at once
         try:
-            msgs = parser.parse_buffer(data) or []
+            msgs = parse(parser, data)
         except mavlink.MAVError as exc:  # robust parsing should prevent this; count it
             _log.debug("unparsable MAVLink input: %s", exc)
             return

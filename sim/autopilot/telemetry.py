@@ -52,6 +52,17 @@ def default_intervals_s(rate_position_hz: float, rate_attitude_hz: float) -> dic
     }
 
 
+def _payload_packer(cls: type) -> Callable[[tuple], bytes]:
+    """Wire-order payload of a pymavlink message class without arrays, from its ``*_encode`` arguments."""
+    perm = [cls.fieldnames.index(n) for n in cls.ordered_fieldnames]
+    pack = cls.unpacker.pack
+    return lambda args: pack(*[args[i] for i in perm])
+
+
+_HEARTBEAT_PAYLOAD = _payload_packer(mavlink.MAVLink_heartbeat_message)
+_LOCAL_POSITION_PAYLOAD = _payload_packer(mavlink.MAVLink_local_position_ned_message)
+
+
 def _i16(x: float) -> int:
     return int(max(-32768, min(32767, round(x))))
 
@@ -94,6 +105,14 @@ class TelemetryBuilder:
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.autopilot_version,
         }
         """Message id -> builder, for every message the emulator can send on request or stream."""
+        self.payloads: dict[int, tuple[bytes, Callable[[VehicleState], bytes]]] = {
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT: (bytes((mavlink.MAVLink_heartbeat_message.crc_extra,)),
+                                               self.heartbeat_payload),
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: (
+                bytes((mavlink.MAVLink_local_position_ned_message.crc_extra,)), self.local_position_ned_payload),
+        }
+        """Message id -> (CRC extra, wire-order payload of the builder's message) for the streams sent
+        most (framed without a message object by ``sim.autopilot.framing.Encoder.frame_payload``)."""
 
     @staticmethod
     def _boot_ms(st: VehicleState) -> int:
@@ -101,15 +120,20 @@ class TelemetryBuilder:
 
     def heartbeat(self, st: VehicleState) -> object:
         """HEARTBEAT: quadrotor, the personality's autopilot type, mode flags and custom mode."""
+        return self._mav.heartbeat_encode(*self._heartbeat_args(st))
+
+    def heartbeat_payload(self, st: VehicleState) -> bytes:
+        """The wire-order payload of ``heartbeat(st)``."""
+        return _HEARTBEAT_PAYLOAD(self._heartbeat_args(st))
+
+    def _heartbeat_args(self, st: VehicleState) -> tuple:
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_STABILIZE_ENABLED
         if not st.mode.needs_pilot:
             base |= mavlink.MAV_MODE_FLAG_GUIDED_ENABLED | mavlink.MAV_MODE_FLAG_AUTO_ENABLED
         if st.armed:
             base |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         status = mavlink.MAV_STATE_ACTIVE if st.armed else mavlink.MAV_STATE_STANDBY
-        return self._mav.heartbeat_encode(
-            mavlink.MAV_TYPE_QUADROTOR, self._personality.autopilot_type, base, st.custom_mode, status, 3
-        )
+        return (mavlink.MAV_TYPE_QUADROTOR, self._personality.autopilot_type, base, st.custom_mode, status, 3)
 
     def sys_status(self, st: VehicleState) -> object:
         """SYS_STATUS: all sensors present and enabled; position sensors unhealthy without a fix."""
@@ -160,6 +184,10 @@ class TelemetryBuilder:
     def local_position_ned(self, st: VehicleState) -> object:
         """LOCAL_POSITION_NED: position and velocity in the EKF frame."""
         return self._mav.local_position_ned_encode(self._boot_ms(st), *st.position_ned_m, *st.velocity_ned_m_s)
+
+    def local_position_ned_payload(self, st: VehicleState) -> bytes:
+        """The wire-order payload of ``local_position_ned(st)``."""
+        return _LOCAL_POSITION_PAYLOAD((self._boot_ms(st), *st.position_ned_m, *st.velocity_ned_m_s))
 
     def global_position_int(self, st: VehicleState) -> object:
         """GLOBAL_POSITION_INT: WGS-84 position (1e-7 deg, mm AMSL), height above home, velocity."""
