@@ -26,9 +26,9 @@ logged at most once per 5 s per kind.
 One vehicle per link: ``target_system`` (``--target-system``) names the only system id the link
 listens to; without it the first PX4/ArduPilot heard is pinned for the life of the link
 (``framing.AutopilotTracker``).  Messages of other systems are ignored and counted
-(``other_system_messages``).  A COMMAND_ACK is used only when it is addressed to us (its
-target_system/target_component are our source ids) and answers a command we sent in the last
-``ACK_WINDOW_S``.
+(``other_system_messages``).  A COMMAND_ACK is used only when it is addressed to us (its target_system/
+target_component are our source ids) and answers a command we sent in the last ``ACK_WINDOW_S``.
+Datagrams are decoded by ``fast_codec.fast_decoder`` (pymavlink's decode; its common frames faster).
 
 Health and integrity: ``health`` (``VehicleHealth``, from ``health_reader.HealthReader``) and
 ``integrity`` (``IntegrityVerdict`` of ``fisc_agent.flight.integrity.IntegrityMonitor`` over the
@@ -62,9 +62,9 @@ from pymavlink.dialects.v20.ardupilotmega import (MAV_AUTOPILOT_INVALID, MAV_CMD
 from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, ModeClass, arm_command,
                                          autopilot_from_heartbeat, command_result, is_armed)
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
+from fisc_agent.mavlink.fast_codec import fast_decoder
 from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, SetpointSink, VehicleLink
 from fisc_agent.flight.frames import GeodeticAnchor
-from fisc_agent.mavlink.fast_codec import fast_decoder
 from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
 from fisc_agent.mavlink.setpoint_codec import send_velocity_setpoint
@@ -149,8 +149,7 @@ class MavlinkLink:
             self.transport = MavutilStreamTransport(self.endpoint, _import_mavutil())
         self.mav = mavlink2.MAVLink(self.transport, srcSystem=source_system or 255, srcComponent=source_component)
         self._decoder = mavlink2.MAVLink(None)
-        self._decoder.robust_parsing = True
-        self._decode = fast_decoder(self._decoder)  # pymavlink's decode, its hot messages without its generic path
+        self._decoder.robust_parsing, self._decode = True, fast_decoder(self._decoder)
         self.autopilot: str | None = None
         self.adapter: Adapter | None = None
         """Encodes intents and decodes modes (``use_adapter``)."""
