@@ -91,7 +91,7 @@ class EmulateConfig:
     emulator_workers: int = 0
     """Processes hosting the emulators (0: automatic, 1 per 200 vehicles, at most one per CPU)."""
     agent_workers: int = 0
-    """Processes hosting the agents (0: automatic, 1 per 300 vehicles, at most one per CPU)."""
+    """Processes hosting the agents (0: automatic, 1 per 200 vehicles, at most one per CPU)."""
     compare: bool = True
     """Also run ``fisc-sim run`` (vectorised) on the same map/duration/mode and write comparison.json: at the
     population that flies as many agents in the tunnel as the emulation flew vehicles
@@ -179,9 +179,9 @@ class EmulateConfig:
 
     def workers(self) -> tuple[int, int]:
         """(emulator processes, agent processes) actually used.  Automatic: one emulator process
-        per 200 vehicles and one agent process per 300 (an emulator costs about 1.5 x an agent),
-        at most one per CPU."""
+        and one agent process per 200 vehicles (since the fast MAVLink codec an emulator costs about
+        what an agent costs), at most one per CPU."""
         ncpu = os.cpu_count() or 1
         emu = self.emulator_workers or min(ncpu, max(1, math.ceil(self.agents / 200)))
-        agent = self.agent_workers or min(ncpu, max(1, math.ceil(self.agents / 300)))
+        agent = self.agent_workers or min(ncpu, max(1, math.ceil(self.agents / 200)))
         return emu, agent
