@@ -60,8 +60,13 @@ def _same(a, b) -> None:
         assert (x == y and math.copysign(1, x) == math.copysign(1, y)) if isinstance(x, float) and not math.isnan(x) \
             else (math.isnan(x) and math.isnan(y)) if isinstance(x, float) else x == y, name
     assert vars(a.get_header()) == vars(b.get_header())
-    for attr in ("_msgbuf", "_payload", "_crc", "_signed", "_link_id", "_fieldnames", "_instance_field"):
-        assert getattr(a, attr) == getattr(b, attr), attr
+    va, vb = dict(vars(a)), dict(vars(b))
+    assert va.keys() == vb.keys()  # every attribute pymavlink sets, and no other
+    for attr in ("_msgbuf", "_payload", "_crc", "_signed", "_link_id", "_fieldnames", "_instance_field",
+                 "_instance_offset", "_instances", "_type"):
+        assert va.get(attr) == vb.get(attr) and type(va.get(attr)) is type(vb.get(attr)), attr
+    for name in a.get_fieldnames():
+        assert type(va[name]) is type(vb[name]), name
 
 
 @pytest.mark.parametrize("name,frame", _frames(), ids=[d for d, _ in _frames()])
