@@ -1,5 +1,5 @@
 """The swarm step in one numba call (issue 40 item 3): the glue between :class:`sim.swarm.Swarm`'s buffers
-and the fused kernel ``sim.jit_fused.fused_step``.
+and the fused kernel ``sim.fused_kernel.fused_step``.
 
 ``Swarm.step`` flies it when numba is installed and the step has no command filter and no collider (they
 act between the command and the plant, and between the plant and the move).  In modes ``mean`` and
@@ -42,7 +42,7 @@ class FusedStep:
     def make(cls, *args, **kwargs) -> "FusedStep | None":
         """The fused step (arguments of the constructor but the kernel), or None when numba is not installed."""
         try:
-            from sim.jit_fused import fused_step
+            from sim.fused_kernel import fused_step
         except ModuleNotFoundError as exc:
             if exc.name != "numba":
                 raise

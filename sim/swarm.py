@@ -94,7 +94,7 @@ class SwarmConfig:
     persistence_s: float = DEFAULT_PERSISTENCE_S
     """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
     (``fisc_agent.map.kinetic.kinetic_deviation``)."""
-    fused: bool = False
+    fused: bool = True
     """With the numba kernels: each step in one kernel call where it applies (``sim.fused_step``; no command
     filter, no collider); False: the multi-pass step, its reference (same bits)."""
 

@@ -46,6 +46,8 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
     b0, b1, b2 = np.empty(bs), np.empty(bs), np.empty(bs)
     v0, v1, v2 = np.empty(bs), np.empty(bs), np.empty(bs)
     a0, a1, a2 = np.empty(bs), np.empty(bs), np.empty(bs)
+    e0, e1, eu = np.empty(bs), np.empty(bs), np.empty(bs)  # a sub-step's desired thrust (horizontal, up)
+    hn, hm, hs = np.empty(bs), np.empty(bs), np.empty(bs)  # its horizontal norm^2, limit^2, scale
     n_exit = 0
     n_esc = 0
     n_out = 0
@@ -113,18 +115,31 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
             a0[jb], a1[jb], a2[jb] = thr[i, 0], thr[i, 1], thr[i, 2]
         itv, beta, g, am, am2, tt2 = s_itv, s_beta, s_g, s_am, s_am * s_am, s_tt * s_tt
         for _ in range(nsub):
+            # the thrust limit acts on few agents: the block skips its square root and division when it
+            # acts on none (s = 1 exactly, as the reference's ``s = 1.0`` branch, so the same bits)
+            n_over = 0
             for jb in range(m):
-                x0, x1, x2 = v0[jb], v1[jb], v2[jb]
+                x0, x1 = v0[jb], v1[jb]
                 d0 = (r0[jb] - x0) * itv + b0[jb]
                 d1 = (r1[jb] - x1) * itv + b1[jb]
-                d2 = (r2[jb] - x2) * itv + b2[jb]
+                d2 = (r2[jb] - v2[jb]) * itv + b2[jb]
                 up = min(max(-d2, 0.0), am)
                 hn2 = d0 * d0 + d1 * d1
                 hmax2 = min(up * up * tt2, max(am2 - up * up, 0.0))
-                s = math.sqrt(hmax2 / hn2) if hn2 > hmax2 else 1.0
-                y0 = a0[jb] + (d0 * s - a0[jb]) * beta
-                y1 = a1[jb] + (d1 * s - a1[jb]) * beta
-                y2 = a2[jb] + (-up - a2[jb]) * beta
+                e0[jb], e1[jb], eu[jb] = d0, d1, up
+                hn[jb], hm[jb] = hn2, hmax2
+                n_over += hn2 > hmax2
+            if n_over:
+                for jb in range(m):
+                    hs[jb] = math.sqrt(hm[jb] / hn[jb]) if hn[jb] > hm[jb] else 1.0
+                for jb in range(m):
+                    e0[jb] *= hs[jb]
+                    e1[jb] *= hs[jb]
+            for jb in range(m):
+                x0, x1, x2 = v0[jb], v1[jb], v2[jb]
+                y0 = a0[jb] + (e0[jb] - a0[jb]) * beta
+                y1 = a1[jb] + (e1[jb] - a1[jb]) * beta
+                y2 = a2[jb] + (-eu[jb] - a2[jb]) * beta
                 a0[jb], a1[jb], a2[jb] = y0, y1, y2
                 v0[jb] = x0 + (y0 - abs(x0) * x0 * s_k0) * h
                 v1[jb] = x1 + (y1 - abs(x1) * x1 * s_k1) * h
