@@ -32,9 +32,10 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
                map_to_ned, shared, h, nsub, fdt):
     """One swarm step of every agent in place; returns ``(n_exited, n_escaped, n_outside)``.
 
-    ``assigned`` False: look up each agent's CV (``cv`` out) and its mean/slot command (``cmd`` out) and
-    apply the outlet/escape removal rule (``keep`` out; removed agents are not counted outside).
-    ``assigned`` True: ``cv`` and ``cmd`` are given (the removals done), every agent is kept.
+    ``assigned`` False: look up each agent's CV and its mean/slot command (held in the block, ``cv`` and
+    ``cmd`` neither read nor written) and apply the outlet/escape removal rule (``keep`` out; removed agents
+    are not counted outside).  ``assigned`` True: ``cv`` and ``cmd`` are given (the removals done), every
+    agent is kept, ``cmd`` is read only.
     Then for each kept agent outside the CVs the return-policy command and its time outside, then the
     plant sub-steps and ``pos += vel * fdt``."""
     n = pos.shape[0]
@@ -48,39 +49,45 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
     a0, a1, a2 = np.empty(bs), np.empty(bs), np.empty(bs)
     e0, e1, eu = np.empty(bs), np.empty(bs), np.empty(bs)  # a sub-step's desired thrust (horizontal, up)
     hn, hm, hs = np.empty(bs), np.empty(bs), np.empty(bs)  # its horizontal norm^2, limit^2, scale
+    jv = np.empty(bs, dtype=np.int64)  # the block's CVs (0 for agents removed: they are stepped as junk)
     n_exit = 0
     n_esc = 0
     n_out = 0
     for start in range(0, n, bs):
         m = min(bs, n - start)
-        if not assigned:
-            for i in range(start, start + m):  # sim.jit_kernels.fused_lookup
-                c = padded_cell(pos, i, origin, inv_l, hi, strides)
-                j = flat[c]
-                cv[i] = j
+        if assigned:
+            for jb in range(m):
+                i = start + jb
+                jv[jb] = cv[i]
+                r0[jb], r1[jb], r2[jb] = cmd[i, 0], cmd[i, 1], cmd[i, 2]
+        else:
+            for jb in range(m):  # sim.jit_kernels.fused_lookup
+                i = start + jb
+                j = flat[padded_cell(pos, i, origin, inv_l, hi, strides)]
+                jv[jb] = j
                 if slot_mode and j >= 0:
                     kk = slot_of(ids[i], j, n_star[j])
-                    for k in range(3):
-                        cmd[i, k] = slot_ned[j, kk, k]
+                    r0[jb], r1[jb], r2[jb] = slot_ned[j, kk, 0], slot_ned[j, kk, 1], slot_ned[j, kk, 2]
                 else:
                     rr = j if j >= 0 else zero_row
-                    for k in range(3):
-                        cmd[i, k] = mean_ned[rr, k]
-            for i in range(start, start + m):  # sim.jit_kernels.removal
+                    r0[jb], r1[jb], r2[jb] = mean_ned[rr, 0], mean_ned[rr, 1], mean_ned[rr, 2]
+            for jb in range(m):  # sim.jit_kernels.removal
+                i = start + jb
                 if pos[i, 0] >= x_outlet_m:
                     n_exit += 1
                     keep[i] = False
-                elif cv[i] < 0 and (out_s[i] > grace_s
-                                    or near_flat[padded_cell(pos, i, origin, inv_l, hi, strides)] < 0):
+                    jv[jb] = 0  # not flown back, not counted outside
+                elif jv[jb] < 0 and (out_s[i] > grace_s
+                                     or near_flat[padded_cell(pos, i, origin, inv_l, hi, strides)] < 0):
                     n_esc += 1
                     keep[i] = False
+                    jv[jb] = 0
                 else:
                     keep[i] = True
-        for i in range(start, start + m):  # sim.jit_kernels.return_commands (kept agents)
-            if cv[i] >= 0:
+        for jb in range(m):  # sim.jit_kernels.return_commands (kept agents)
+            i = start + jb
+            if jv[jb] >= 0:
                 out_s[i] = 0.0
-                continue
-            if not assigned and not keep[i]:
                 continue
             n_out += 1
             out_s[i] += dt_s
@@ -97,20 +104,19 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
             q2 *= s
             if slot_mode:
                 kk = slot_of(ids[i], q, n_star[q])
-                cmd[i, 0] = slot_ned[q, kk, 0] + q0 * map_to_ned[0]
-                cmd[i, 1] = slot_ned[q, kk, 1] + q1 * map_to_ned[1]
-                cmd[i, 2] = slot_ned[q, kk, 2] + q2 * map_to_ned[2]
+                r0[jb] = slot_ned[q, kk, 0] + q0 * map_to_ned[0]
+                r1[jb] = slot_ned[q, kk, 1] + q1 * map_to_ned[1]
+                r2[jb] = slot_ned[q, kk, 2] + q2 * map_to_ned[2]
             else:
-                cmd[i, 0] = mean_ned[q, 0] + q0 * map_to_ned[0]
-                cmd[i, 1] = mean_ned[q, 1] + q1 * map_to_ned[1]
-                cmd[i, 2] = mean_ned[q, 2] + q2 * map_to_ned[2]
+                r0[jb] = mean_ned[q, 0] + q0 * map_to_ned[0]
+                r1[jb] = mean_ned[q, 1] + q1 * map_to_ned[1]
+                r2[jb] = mean_ned[q, 2] + q2 * map_to_ned[2]
         for jb in range(m):  # sim.plant.kernel.numba_kernel: fleet-wide coefficients, no wind, no noise
             i = start + jb
-            c0, c1, c2 = cmd[i, 0], cmd[i, 1], cmd[i, 2]
+            c0, c1, c2 = r0[jb], r1[jb], r2[jb]
             b0[jb] = abs(c0) * c0 * (s_ff * s_k0)
             b1[jb] = abs(c1) * c1 * (s_ff * s_k1)
             b2[jb] = abs(c2) * c2 * (s_ff * s_k2) - s_g
-            r0[jb], r1[jb], r2[jb] = c0, c1, c2
             v0[jb], v1[jb], v2[jb] = vel[i, 0], vel[i, 1], vel[i, 2]
             a0[jb], a1[jb], a2[jb] = thr[i, 0], thr[i, 1], thr[i, 2]
         itv, beta, g, am, am2, tt2 = s_itv, s_beta, s_g, s_am, s_am * s_am, s_tt * s_tt

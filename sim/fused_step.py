@@ -77,5 +77,6 @@ class FusedStep:
                  cmd: np.ndarray, cv: np.ndarray, keep: np.ndarray, assigned: bool) -> tuple[int, int, int]:
         """Step the (n, 3) rows ``pos``, ``vel``, ``thr`` (and ``out_s``, ``cmd``) in place; returns
         ``(n_exited, n_escaped, n_outside)``.  ``assigned``: ``cv`` and ``cmd`` hold the agents' CVs and
-        commands (removals done); else they are filled and ``keep`` flags the agents that stay."""
+        commands (removals done; read only); else the kernel looks them up itself (``cv`` and ``cmd`` are
+        left as they were) and ``keep`` flags the agents that stay."""
         return self._kernel(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, *self._tables)
