@@ -150,12 +150,11 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
                 v0[jb] = x0 + (y0 - abs(x0) * x0 * s_k0) * h
                 v1[jb] = x1 + (y1 - abs(x1) * x1 * s_k1) * h
                 v2[jb] = x2 + (y2 - abs(x2) * x2 * s_k2 + g) * h
-        f0, f1, f2 = fdt[0], fdt[1], fdt[2]
-        for jb in range(m):  # sim.jit_kernels.move
+        for jb in range(m):
             i = start + jb
             vel[i, 0], vel[i, 1], vel[i, 2] = v0[jb], v1[jb], v2[jb]
             thr[i, 0], thr[i, 1], thr[i, 2] = a0[jb], a1[jb], a2[jb]
-            pos[i, 0] += v0[jb] * f0
-            pos[i, 1] += v1[jb] * f1
-            pos[i, 2] += v2[jb] * f2
+        for i in range(start, start + m):  # sim.jit_kernels.move (a loop of its own: it vectorises)
+            for k in range(3):
+                pos[i, k] += vel[i, k] * fdt[k]
     return n_exit, n_esc, n_out
