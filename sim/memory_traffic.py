@@ -3,9 +3,11 @@
 Two figures put an agent-steps/s rate in context:
 
 - the **bytes moved per agent-step**: for each pass of ``Swarm.step`` (mean mode, numba
-  kernels), the bytes of every per-agent array it reads and writes, summed over the passes (each
-  pass streams its arrays once), beside the **floor**: one fused pass that reads and writes the
-  agent state once (position, velocity, thrust state, time outside) and reads its id;
+  kernels: since 2026-12-05 one fused pass, ``sim.fused_kernel``), the bytes of every per-agent array
+  it reads and writes, summed over the passes (each pass streams its arrays once), beside the same
+  count for the multi-pass reference step (``SwarmConfig(fused=False)``) and the **floor**: one pass
+  that reads and writes the agent state once (position, velocity, thrust state, time outside) and
+  reads its id;
 - the **measured memory bandwidth**: a STREAM-style copy ``c = a`` over arrays far larger than the
   last-level cache, best of a few repeats, counted as STREAM counts it (one read and one write per
   element).
@@ -26,6 +28,14 @@ F8, I8, B1 = 8, 8, 1  # bytes of a float64, an int64 and a bool
 XYZ = 3 * F8
 
 STEP_PASSES: tuple[tuple[str, int, int], ...] = (
+    # pass, bytes read per agent, bytes written per agent
+    ("fused step: position, velocity, thrust, time outside -> the same, keep flag", 3 * XYZ + F8, 3 * XYZ + F8 + B1),
+)
+"""``Swarm.step``'s passes over per-agent arrays, mean mode with the numba kernels: the one pass of
+``sim.fused_kernel.fused_step`` (the CV, the command and the plant's inner state stay in a block of
+256 agents in L1; the lookup tables and an outside agent's return inputs are not counted)."""
+
+REFERENCE_PASSES: tuple[tuple[str, int, int], ...] = (
     # pass (sim.kernels), bytes read per agent, bytes written per agent
     ("lookup: position, id -> CV, command, cell", XYZ + I8, I8 + XYZ + I8),
     ("removal: position, CV, cell, time outside -> keep", XYZ + I8 + I8 + F8, B1),
@@ -33,8 +43,8 @@ STEP_PASSES: tuple[tuple[str, int, int], ...] = (
     ("plant: velocity, thrust, command -> velocity, thrust", 3 * XYZ, 2 * XYZ),
     ("move: position, velocity -> position", 2 * XYZ, XYZ),
 )
-"""``Swarm.step``'s passes over per-agent arrays, mean mode with the numba kernels (an agent
-outside the CVs also reads its return command's inputs: rare, not counted)."""
+"""The multi-pass reference step's passes (``SwarmConfig(fused=False)``, mean mode, numba kernels; an
+agent outside the CVs also reads its return command's inputs: rare, not counted)."""
 
 FUSED_FLOOR_BYTES = (3 * XYZ + F8 + I8) + (3 * XYZ + F8)
 """One fused pass: read position, velocity, thrust state, time outside and id; write all but the id."""
@@ -46,13 +56,16 @@ class Traffic:
 
     as_stepped: int
     """Summed over ``STEP_PASSES`` (each pass streams its arrays once) [B]."""
+    reference: int
+    """Summed over ``REFERENCE_PASSES``, the multi-pass reference step [B]."""
     floor: int
     """One fused pass over the agent state (``FUSED_FLOOR_BYTES``) [B]."""
 
 
 def step_traffic() -> Traffic:
-    """Bytes moved per agent-step by ``Swarm.step`` as it is, and its fused floor."""
-    return Traffic(sum(r + w for _, r, w in STEP_PASSES), FUSED_FLOOR_BYTES)
+    """Bytes moved per agent-step by ``Swarm.step`` as it is, by its multi-pass reference, and the floor."""
+    return Traffic(sum(r + w for _, r, w in STEP_PASSES), sum(r + w for _, r, w in REFERENCE_PASSES),
+                   FUSED_FLOOR_BYTES)
 
 
 def copy_bandwidth_gb_s(mib: int = 512, repeats: int = 5) -> float:
@@ -92,8 +105,8 @@ def bandwidth_lines(rates: dict[int, float], state_bytes: dict[int, int], bandwi
     bound = bandwidth_gb_s * 1e9 / tr.as_stepped
     floor_bound = bandwidth_gb_s * 1e9 / tr.floor
     lines = [f"memory: copy bandwidth {bandwidth_gb_s:.1f} GB/s (one core); the step moves {tr.as_stepped} B per "
-             f"agent-step in {len(STEP_PASSES)} passes (fused floor {tr.floor} B): memory-bound rate "
-             f"{bound:.3g} agent-steps/s ({floor_bound:.3g} fused)"]
+             f"agent-step in {len(STEP_PASSES)} pass(es) (the multi-pass reference {tr.reference} B; floor "
+             f"{tr.floor} B): memory-bound rate {bound:.3g} agent-steps/s ({floor_bound:.3g} at the floor)"]
     for n, rate in rates.items():
         where = ("fits in the last-level cache: the cache, not memory, bounds it"
                  if llc_bytes is not None and state_bytes[n] <= llc_bytes else "streams from memory")

@@ -49,9 +49,11 @@ from fisc_agent.map.lookup import (
 )
 from sim.cv_lookup import CVLookup, fused_lookup_kernel
 from sim.entry import entry_phase, entry_thrust
+from sim.fused_step import FusedStep
 from sim.kernels import compact_kernel, move_kernel, removal_kernel, return_commands_kernel
 from sim.kinetic_step import KineticStep
 from sim.plant.model import PlantCoefficients, PlantParams, plant_stepper
+from sim.swarm_counters import SwarmCounters
 
 #: Map frame (x fwd, y, z up) -> NED (x north, y east, z down) for the default deployment.
 MAP_TO_NED = np.array([1.0, 1.0, -1.0])
@@ -92,6 +94,9 @@ class SwarmConfig:
     persistence_s: float = DEFAULT_PERSISTENCE_S
     """Mode ``kinetic``: how long an agent keeps one deviation direction [s]
     (``fisc_agent.map.kinetic.kinetic_deviation``)."""
+    fused: bool = True
+    """With the numba kernels: each step in one kernel call where it applies (``sim.fused_step``; no command
+    filter, no collider); False: the multi-pass step, its reference (same bits)."""
 
     @property
     def flight_settings(self) -> FlightSettings:
@@ -111,29 +116,6 @@ class SwarmConfig:
             raise ValueError(f"SwarmConfig.return_radius_cells must be >= 0, got {self.return_radius_cells!r}")
         if not (self.lookahead_s >= 0 and np.isfinite(self.lookahead_s)):
             raise ValueError(f"SwarmConfig.lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
-
-
-@dataclass
-class SwarmCounters:
-    """Agent bookkeeping of a run (``injected == alive + exited + escaped``)."""
-
-    injected: int = 0
-    """Agents added (seeded or injected from the reservoir)."""
-    exited: int = 0
-    """Agents removed past the outlet (normal outflow)."""
-    escaped: int = 0
-    """Agents removed after leaving the CVs sideways/upstream for longer than the grace period."""
-    returned: int = 0
-    """Agent-steps spent under the return policy (outside every CV, flying back)."""
-    steps: int = 0
-    """Steps taken."""
-    agent_steps: int = 0
-    """Sum over steps of the agents alive during the step."""
-
-    @property
-    def removed(self) -> int:
-        """exited + escaped."""
-        return self.exited + self.escaped
 
 
 class Swarm:
@@ -184,6 +166,11 @@ class Swarm:
                 raise RuntimeError("lookup_backend='numba' requested but numba is not installed (pip install fisc[jit])")
         self._kinetic = KineticStep.make(field, self.config.persistence_s, self.config.lookahead_s) \
             if self._kernel is not None and self.config.mode == "kinetic" else None  # numba: one pass, same bits
+        c = self.config
+        self._fused = FusedStep.make(self.lookup, self._centers_m, self._mean_speed, self._mean_ned, self._slot_ned,
+                                     self._n_star, c.mode == "slot", self._co, c.dt_s, self.x_outlet_m, c.escape_grace_s,
+                                     c.return_gain_1_s, c.return_speed_fraction, MAP_TO_NED) \
+            if self._kernel is not None and c.fused else None
         self._alloc(1024)
         self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
         self._cmd_ready = False  # the fused kernel filled the commands of the current assignment
@@ -379,6 +366,8 @@ class Swarm:
 
     def step(self) -> None:
         """One step of Algorithm 1 for every agent."""
+        if self._fused is not None and self.command_filter is None and self.collider is None:
+            return self._fused.step(self)  # one kernel call, the bits of the passes below
         cv = self.assign()
         n = self.n
         self.counters.steps += 1

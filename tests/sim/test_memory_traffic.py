@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fisc_agent.map.lookup import CommandField
-from sim.memory_traffic import (FUSED_FLOOR_BYTES, STEP_PASSES, bandwidth_lines, copy_bandwidth_gb_s,
+from sim.memory_traffic import (FUSED_FLOOR_BYTES, REFERENCE_PASSES, STEP_PASSES, bandwidth_lines, copy_bandwidth_gb_s,
                                 last_level_cache_bytes, step_traffic)
 from sim.plant.model import PlantParams
 from sim.run import load_command_map
@@ -22,9 +22,11 @@ def test_the_counted_bytes_follow_the_swarms_own_arrays():
     assert xyz == swarm._vel.itemsize * 3 == swarm._thr.itemsize * 3 == 24
     assert swarm._ids.itemsize == swarm._cvbuf.itemsize == swarm._cellbuf.itemsize == swarm._out.itemsize == 8
     tr = step_traffic()
-    assert tr.as_stepped == sum(r + w for _, r, w in STEP_PASSES) == 337
+    assert tr.reference == sum(r + w for _, r, w in REFERENCE_PASSES) == 337
+    assert tr.as_stepped == sum(r + w for _, r, w in STEP_PASSES) == (3 * xyz + 8) + (3 * xyz + 8 + 1) == 161
+    assert swarm._fused is not None  # the step these bytes describe is the fused one
     assert tr.floor == FUSED_FLOOR_BYTES == 3 * xyz + 8 + 8 + 3 * xyz + 8 == 168
-    assert tr.floor < tr.as_stepped
+    assert tr.as_stepped < tr.floor < tr.reference  # mean mode does not read the ids
 
 
 def test_cache_size_is_read_from_sysfs_and_unknown_is_none(tmp_path):
