@@ -4,14 +4,17 @@
 re-published latest commands (``fisc_agent.zenoh.state_bundle``), applied oldest first.  Each
 returns what was accepted; every refusal is counted, remembered as the newest refusal (its check
 and the command it refused, for telemetry) and logged (at most once per 5 s per kind, with the
-number suppressed).  Not refusals: a command for other agents (``target``), and a re-published
-command the agent already has (``replay`` from the state).  A re-published command refused for
-good (anything but ``future``) is judged once, not at every re-publication.
+number suppressed).  Not refusals: a command for other agents (``target``), a re-published
+command the agent already has (``replay`` from the state), and the live copy of a command accepted
+from the state at most ``LATE_LIVE_COPY_S`` before (the same command arriving late by the other
+path).  A re-published command refused for good (anything but ``future``) is judged once, not at
+every re-publication.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from dataclasses import dataclass, replace
 from typing import Callable, Mapping
@@ -49,6 +52,14 @@ class CommandStats:
     """State bundles received."""
 
 
+LATE_LIVE_COPY_S = 0.5
+"""A live command byte-identical to one accepted from the re-published state at most this long before
+is that command arriving late by the other path (the ground's relay re-publishes what it hears at once,
+and its bundle can overtake the live sample), not a replay: ignored, not counted [s].  Counted as a
+refusal, it failed ``tests/zenoh/test_fleet_state.py`` once in a clean-clone run (2026-12-05) and would
+show the ground a refusal nobody made."""
+
+
 class CommandReceiver:
     """Decode + signature + ``CommandGate`` for one agent, with counters (thread-safe)."""
 
@@ -64,6 +75,8 @@ class CommandReceiver:
         self.rlog = rlog or RateLimitedLog(log)
         self._stats = CommandStats()
         self._memo: set[bytes] = set()
+        self._from_state: dict[bytes, float] = {}
+        """Raw commands accepted from the state -> when (``clock``), for ``LATE_LIVE_COPY_S``."""
         self._lock = threading.Lock()
 
     @property
@@ -110,12 +123,19 @@ class CommandReceiver:
         except CommandError as exc:
             if exc.check is CommandCheck.TARGET or (source is Source.STATE and exc.check is CommandCheck.REPLAY):
                 return None  # another agent's command; a state the agent already has
+            late_s = self.clock() - self._from_state.get(raw, -math.inf)
+            if exc.check is CommandCheck.REPLAY and late_s <= LATE_LIVE_COPY_S:
+                return None  # the live copy of a command the state brought first
             if source is Source.STATE and exc.check is not CommandCheck.FUTURE:
                 if len(self._memo) >= MEMO_MAX:
                     self._memo.clear()
                 self._memo.add(raw)
             self._refuse(exc, name, "re-published fleet command" if source is Source.STATE else "fleet command")
             return None
+        if source is Source.STATE:
+            if len(self._from_state) >= MEMO_MAX:
+                self._from_state.clear()
+            self._from_state[raw] = self.clock()
         s = self._stats
         self._stats = replace(s, accepted=s.accepted + 1, last_accepted=cmd.name.value, last_accepted_seq=cmd.seq)
         log.info("fleet command %s (seq %d, key %s%s) accepted%s", cmd.name.value, cmd.seq, cmd.key_id or "-",

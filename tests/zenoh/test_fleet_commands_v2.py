@@ -158,6 +158,26 @@ def test_receiver_counts_refusals_once_and_ignores_state_it_already_has():
     assert rx.floors == {key_id_of(PUB): 5} and rx.stats.accepted == 1
 
 
+@pytest.mark.parametrize("late_s, refused", [(0.0, 0), (0.5, 0), (0.5 + 1e-6, 1), (3.0, 1)])
+def test_a_live_copy_of_a_command_the_state_brought_first_is_no_refusal_for_half_a_second(late_s, refused):
+    """The relay's bundle can overtake the live sample: its live copy within ``LATE_LIVE_COPY_S`` (0.5 s,
+    at and just inside) is ignored, later (just outside) it is a replay, refused and counted.  A
+    command accepted live and then seen live again is a replay at once."""
+    from fisc_agent.zenoh.command_rx import LATE_LIVE_COPY_S
+
+    assert LATE_LIVE_COPY_S == 0.5
+    now = [1000.0]
+    rx = CommandReceiver("alpha", 1, [PUB], False, clock=lambda: now[0])
+    go = encode_command(cmd("go", seq=5, issued=1000.0), KEY.encode())
+    assert [c.name for c in rx.state(encode_bundle([go]))] == ["go"]
+    now[0] += late_s
+    assert rx.live(go) is None
+    assert rx.stats.refused == refused and rx.stats.accepted == 1
+    assert rx.stats.last_refusal == ("replay" if refused else "none")
+    rx2 = CommandReceiver("alpha", 1, [PUB], False, clock=lambda: now[0])
+    assert rx2.live(go).name == "go" and rx2.live(go) is None and rx2.stats.refused == 1
+
+
 def test_cmd_agents_option_parses_lists_and_ranges_and_refuses_the_rest(capsys):
     from fisc_ground.zenoh.fleet import parse_agents
 
