@@ -1,6 +1,6 @@
 """The state of agents entering a swarm: their deviation phase and trim thrust, each in one numba pass
 when numba is installed (``sim.jit_kernels.deviation_phases`` and ``trim_thrust``, the same bits;
-tests/sim/test_entry.py).
+tests/sim/test_fast_paths.py).
 
 The references are ``fisc_agent.map.kinetic.deviation_phase`` and ``sim.plant.model.trim_thrust_accel``:
 a reservoir admits a handful of agents every few steps, and their dozen small numpy passes cost more

@@ -24,6 +24,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from fisc_agent.zenoh.session import PORT_ENV
 
@@ -121,6 +122,20 @@ class KillLog:
         return got[0]
 
 
+@dataclass(frozen=True)
+class Duct:
+    """What a flight is judged against (``FaultLab.duct``)."""
+
+    ref: Any
+    """The built-in reference (``cd_nozzle_inviscid``) the lab's map is fitted from."""
+    wall: Any
+    """Its real wall (``duct_wall_from_reference``)."""
+    scale: float
+    """The map's speed scale."""
+    outlet_x_m: float
+    """The map's outlet plane (map frame): past it an agent's HOLD is its exit's [m]."""
+
+
 def _running(pid: int) -> bool:
     """``pid`` exists and is not a zombie."""
     try:
@@ -155,6 +170,17 @@ class FaultLab:
         print(f"fault lab {swarm}: seed {seed} ({SEED_ENV}), lab port {self.port}, logs {root / 'logs'}")
         self.key, self.pub, self.map = root / "ground.key", root / "ground.pub", root / "tunnel.fiscmap"
         self.sha = ""
+
+    def duct(self) -> "Duct":
+        """The signed map's duct as the PX4 flights judge it: the built-in reference it was fitted from,
+        the wall derived from it, the map's speed scale and its outlet plane."""
+        from fisc_agent.map.codec import load_map
+        from fisc_ground.maps.duct_wall import duct_wall_from_reference
+        from fisc_ground.reference.builtin import load_builtin
+
+        ref, m = load_builtin("cd_nozzle_inviscid"), load_map(self.map, self.pub)
+        outlet_x_m = float(m["cv_center_m"][:, 0].max() + 0.5 * m.cell_size_m)
+        return Duct(ref, duct_wall_from_reference(ref), m.scale, outlet_x_m)
 
     def prepare(self) -> None:
         """Key pair and the signed built-in tunnel (15 m, 560 CVs, default speeds: the agents' 5 m/s

@@ -79,8 +79,6 @@ import pytest
 
 from fisc_agent.zenoh.telemetry_codec import sha_hex
 from fisc_ground.fields.flight_score import score_track
-from fisc_ground.maps.duct_wall import duct_wall_from_reference
-from fisc_ground.reference.builtin import load_builtin
 
 from .evidence import Evidence, read_evidence
 from .lab import FaultLab, ground, listening
@@ -233,16 +231,8 @@ def test_a_running_status_killed_disturbs_nobody(flight):
     heard_throughout(flight, flight.lab.kills.of("status"))
 
 
-def _outlet_x_m(lab: FaultLab) -> float:
-    """The map's outlet plane: past it an agent's HOLD is its exit's (map frame) [m]."""
-    from fisc_agent.map.codec import load_map
-
-    m = load_map(lab.map, lab.pub)
-    return float(m["cv_center_m"][:, 0].max() + 0.5 * m.cell_size_m)
-
-
 def test_a_running_cmd_killed_its_hold_reached_every_agent_or_none_and_a_resume_restores_them(flight):
-    killed_cmd_reached_all_or_none(flight, range(N), exit_x_m=_outlet_x_m(flight.lab))
+    killed_cmd_reached_all_or_none(flight, range(N), exit_x_m=flight.lab.duct().outlet_x_m)
 
 
 def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
@@ -250,7 +240,7 @@ def test_the_publisher_killed_every_agent_keeps_its_map_and_flight(flight):
     heard_throughout(flight, kill)
     for i in flight.survivors(kill.t_s + SLOT_S):
         keeps_map_and_flight(flight, i, kill.t_s, kill.t_s + SLOT_S - 1.0, flying=True,
-                             exit_x_m=_outlet_x_m(flight.lab))
+                             exit_x_m=flight.lab.duct().outlet_x_m)
     nothing_stale_alarmed(flight, kill.t_s, kill.t_s + SLOT_S)
 
 
@@ -303,11 +293,8 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     for i in flight.survivors(math.inf):
         u = ulog_summary(flight.ulogs[i])
         assert not u.failsafe_seen and u.gps_fused, (i, u)
-    ref = load_builtin("cd_nozzle_inviscid")
-    wall = duct_wall_from_reference(ref)
-    from fisc_agent.map.codec import load_map
-
-    scale = load_map(flight.lab.map, flight.lab.pub).scale
+    duct = flight.lab.duct()
+    ref, wall, scale = duct.ref, duct.wall, duct.scale
     excursion, drift, view = {}, math.nan, {}
     for i in range(N):
         view[i] = view_excursion_m(Track.read(flight.flight_logs[i]), ref, scale, wall)

@@ -34,8 +34,6 @@ import math
 import pytest
 
 from fisc_ground.fields.flight_score import score_track
-from fisc_ground.maps.duct_wall import duct_wall_from_reference
-from fisc_ground.reference.builtin import load_builtin
 
 from .evidence import read_evidence
 from .lab import FaultLab, ground, listening, router_configs
@@ -98,12 +96,8 @@ def test_the_fleet_and_its_autopilots_never_noticed_the_outage(outage):
         assert not held.size, f"agent {i} held in a failsafe around the outage: {held[:5] - kill.t_s}"
         u = ulog_summary(outage["ulogs"][i])
         assert not u.failsafe_seen and u.gps_fused, (i, u)
-    ref = load_builtin("cd_nozzle_inviscid")
-    wall = duct_wall_from_reference(ref)
-    from fisc_agent.map.codec import load_map
-
-    lab = outage["lab"]
-    scale = load_map(lab.map, lab.pub).scale
+    duct = outage["lab"].duct()
+    ref, wall, scale = duct.ref, duct.wall, duct.scale
     excursion, view = {}, {}
     for i in range(N):
         track = Track.read(outage["logs"][i])
