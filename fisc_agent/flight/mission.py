@@ -18,8 +18,8 @@ not stream), the autopilot mode and arming state wanted (reconciled by
 ``adapters.Commander``), and, for ArduPilot, the takeoff height.  Velocities are *unclamped*;
 the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
 
-Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping the spot where the hold began,
-``mission_types.KEEPING_SPOT``, else zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
+Holds: ``zero`` stage (zero-velocity setpoints, the vehicle stays in offboard/guided) for
+``hold_grace_s``, then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
 position or a position jump resumes by itself once the fix is good again (a stale one only
 before that escalation); every other hold (escalated, link lost, geofence, exit, fleet, pilot
 override) waits for a fleet ``resume``.
@@ -33,9 +33,8 @@ from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
-from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, KEEPING_SPOT, Authority, Cause,
-                                             FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput, Reason,
-                                             State, Transition, VehicleStatus)
+from fisc_agent.flight.mission_types import (FLYING, Authority, Cause, FleetOrder, HoldCause, MissionCommand,
+                                             MissionOutput, Reason, State, Transition, VehicleStatus)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.flight.readiness import arming_blockers, battery_low
 from fisc_agent.flight.state_file import AgentState
@@ -48,6 +47,9 @@ log = logging.getLogger(__name__)
 AIRBORNE_ABOVE_HOME_M = 0.2
 """Height above home from which a vehicle counts as airborne (an interrupted takeoff then
 finishes with climb setpoints: ArduPilot refuses a takeoff command once flying)."""
+
+AUTO_RESUMING = frozenset({HoldCause.POSITION_STALE, HoldCause.POSITION_JUMP})
+"""Holds that end by themselves when the position is good again (unless latched)."""
 
 
 class Mission:
@@ -74,7 +76,6 @@ class Mission:
         self._hold_latched = False
         self._hold_escalated = False
         self._hold_armed = False
-        self._hold_spot: Vec | None = None
         self.nav = Navigator(cfg)
         self._last_pos: Vec | None = None
         if restored is not None:
@@ -168,10 +169,13 @@ class Mission:
         self.state, self.reason, self._t_state = dst, reason, t
 
     def _hold(self, t: float, reason: Reason, latched: bool, armed: bool) -> None:
-        self._hold_latched = (self._hold_latched and self.state == State.HOLD) or latched
         if self.state != State.HOLD:
-            self._resume_state, self._hold_escalated = self.state, False
-            self._hold_spot = self._last_pos if reason.cause in KEEPING_SPOT else None
+            self._resume_state = self.state
+            self._hold_escalated = False
+        if self.state == State.HOLD:
+            self._hold_latched = self._hold_latched or latched
+        else:
+            self._hold_latched = latched
         self._hold_armed = armed
         self._go(t, State.HOLD, reason)
 
@@ -353,8 +357,7 @@ class Mission:
                 self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 vel = None
         if self.state == State.HOLD:
-            fresh = pos if ph == PositionHealth.OK and s.integrity_ok else None
-            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s, fresh)
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s)
         elif self.state == State.LAND:
             vel, want_mode = None, ModeClass.LAND
             if not s.armed:
@@ -421,11 +424,10 @@ class Mission:
             return self.nav.goto(pos, self.nav.waypoints[0], cfg.join_speed_m_s)
         return self.nav.exit_velocity(pos)
 
-    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None) -> HoldOutput:
-        """The hold's output: in offboard/guided for ``hold_grace_s`` (from a fresh ``pos``, back towards
-        the spot of a hold in ``mission_types.KEEPING_SPOT``; else zero velocity), then the autopilot's hold
-        mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent blind
-        could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
+    def _hold_output(self, t: float, heard: bool = True) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
+        """The hold's output: zero velocity in offboard/guided for ``hold_grace_s``, then the autopilot's
+        hold mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent
+        blind could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:
@@ -433,12 +435,10 @@ class Mission:
             # a position jump ends when the track is consistent again, however long the estimator takes
             # (a real EKF3 GPS glitch: 15 s); every other escalated hold waits for a resume
             self._hold_latched = self._hold_latched or self.hold_cause != HoldCause.POSITION_JUMP
-            log.info("hold: grace over, requesting the autopilot's hold mode")
+            log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
             return None, ModeClass.HOLD, None, None
-        spot = self._hold_spot
-        vel = self.nav.goto(pos, spot, HOLD_KEEP_SPEED_M_S) if pos is not None and spot is not None else ZERO
-        return vel, ModeClass.OFFBOARD, None, None
+        return ZERO, ModeClass.OFFBOARD, None, None
 
     def _fleet(self, t: float, order: FleetOrder, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
         verdict = fleet_action(order, self.authority, s.armed, self.state == State.HOLD)
