@@ -18,11 +18,13 @@ not stream), the autopilot mode and arming state wanted (reconciled by
 ``adapters.Commander``), and, for ArduPilot, the takeoff height.  Velocities are *unclamped*;
 the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
 
-Holds: ``zero`` stage (zero-velocity setpoints, the vehicle stays in offboard/guided) for
-``hold_grace_s``, then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
+Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping the spot where the hold began,
+``mission_types.KEEPING_SPOT``, else zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
 position or a position jump resumes by itself once the fix is good again (a stale one only
 before that escalation); every other hold (escalated, link lost, geofence, exit, fleet, pilot
-override) waits for a fleet ``resume``.
+override) waits for a fleet ``resume``.  Where the map carries the duct's wall, a resume and the
+geofence's RETURN end clear of it (``fisc_agent.map.wall.rejoin_point``), and a fleet hold begun at
+the wall keeps the point straight in from it (``Mission._spot_to_keep``).
 """
 
 from __future__ import annotations
@@ -33,12 +35,14 @@ from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
-from fisc_agent.flight.mission_types import (FLYING, Authority, Cause, FleetOrder, HoldCause, MissionCommand,
-                                             MissionOutput, Reason, State, Transition, VehicleStatus)
+from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, KEEPING_SPOT, Authority, Cause,
+                                             FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput, Reason,
+                                             State, Transition, VehicleStatus)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.flight.readiness import arming_blockers, battery_low
 from fisc_agent.flight.state_file import AgentState
 from fisc_agent.mavlink.adapters import ModeClass
+from fisc_agent.map.wall import rejoin_point
 from fisc_agent.flight.health import LandedState
 
 log = logging.getLogger(__name__)
@@ -47,9 +51,6 @@ log = logging.getLogger(__name__)
 AIRBORNE_ABOVE_HOME_M = 0.2
 """Height above home from which a vehicle counts as airborne (an interrupted takeoff then
 finishes with climb setpoints: ArduPilot refuses a takeoff command once flying)."""
-
-AUTO_RESUMING = frozenset({HoldCause.POSITION_STALE, HoldCause.POSITION_JUMP})
-"""Holds that end by themselves when the position is good again (unless latched)."""
 
 
 class Mission:
@@ -76,6 +77,7 @@ class Mission:
         self._hold_latched = False
         self._hold_escalated = False
         self._hold_armed = False
+        self._hold_spot: Vec | None = None
         self.nav = Navigator(cfg)
         self._last_pos: Vec | None = None
         if restored is not None:
@@ -169,15 +171,26 @@ class Mission:
         self.state, self.reason, self._t_state = dst, reason, t
 
     def _hold(self, t: float, reason: Reason, latched: bool, armed: bool) -> None:
+        self._hold_latched = (self._hold_latched and self.state == State.HOLD) or latched
         if self.state != State.HOLD:
-            self._resume_state = self.state
-            self._hold_escalated = False
-        if self.state == State.HOLD:
-            self._hold_latched = self._hold_latched or latched
-        else:
-            self._hold_latched = latched
+            self._resume_state, self._hold_escalated = self.state, False
+            self._hold_spot = self._spot_to_keep(self._last_pos, reason.cause)
         self._hold_armed = armed
         self._go(t, State.HOLD, reason)
+
+    def _spot_to_keep(self, pos: Vec | None, cause: HoldCause | Cause) -> Vec | None:
+        """Where a hold that began at ``pos`` keeps the vehicle in its first stage: None (zero velocity) unless
+        its cause is in ``KEEPING_SPOT``; that spot, except that a fleet hold at the wall (inside the rejoin
+        inset, ``fisc_agent.map.wall.rejoin_point``) keeps the point straight in from it, so that the
+        autopilot's own hold begins clear of the wall (a geofence hold keeps the spot where it left the map:
+        its policy is to stop there)."""
+        if cause not in KEEPING_SPOT:
+            return None
+        wall, margin = (None, None) if self.sfield is None else (self.sfield.wall, self.cfg.wall_margin_m)
+        if pos is None or cause != HoldCause.FLEET or wall is None or margin is None:
+            return pos
+        inward = rejoin_point(wall, pos, margin)
+        return pos if inward is None else inward
 
     def _hands_off_now(self, t: float, mode: ModeClass, armed: bool) -> None:
         """A mode the agent did not ask for: hands off for the rest of the flight."""
@@ -325,9 +338,12 @@ class Mission:
                     st = State.FLOW
         elif st == State.RETURN:
             want_mode = ModeClass.OFFBOARD
-            if cv >= 0:
-                self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}"))
+            inward = nav.rejoin_velocity(pos) if cv >= 0 else None
+            if cv >= 0 and inward is None:
+                self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}, clear of the wall"))
                 st = State.FLOW
+            elif inward is not None:  # in the map, but not yet the wall margin inside it
+                vel = inward
             elif pos[0] >= self.geom.x_outlet_m:  # carried past the outlet while rejoining: that lap is done
                 vel = self._passed_outlet(t, pos, s)
             else:
@@ -357,7 +373,8 @@ class Mission:
                 self._hold(t, Reason(HoldCause.GEOFENCE), latched=True, armed=s.armed)
                 vel = None
         if self.state == State.HOLD:
-            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s)
+            fresh = pos if ph == PositionHealth.OK and s.integrity_ok else None
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s, fresh)
         elif self.state == State.LAND:
             vel, want_mode = None, ModeClass.LAND
             if not s.armed:
@@ -424,10 +441,11 @@ class Mission:
             return self.nav.goto(pos, self.nav.waypoints[0], cfg.join_speed_m_s)
         return self.nav.exit_velocity(pos)
 
-    def _hold_output(self, t: float, heard: bool = True) -> tuple[Vec | None, ModeClass | None, bool | None, float | None]:
-        """The hold's output: zero velocity in offboard/guided for ``hold_grace_s``, then the autopilot's
-        hold mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent
-        blind could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
+    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None) -> HoldOutput:
+        """The hold's output: in offboard/guided for ``hold_grace_s`` (from a fresh ``pos``, back towards
+        the spot of a hold in ``mission_types.KEEPING_SPOT``; else zero velocity), then the autopilot's hold
+        mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent blind
+        could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:
@@ -435,10 +453,12 @@ class Mission:
             # a position jump ends when the track is consistent again, however long the estimator takes
             # (a real EKF3 GPS glitch: 15 s); every other escalated hold waits for a resume
             self._hold_latched = self._hold_latched or self.hold_cause != HoldCause.POSITION_JUMP
-            log.info("hold: zero-velocity grace over, requesting the autopilot's hold mode")
+            log.info("hold: grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
             return None, ModeClass.HOLD, None, None
-        return ZERO, ModeClass.OFFBOARD, None, None
+        spot = self._hold_spot
+        vel = self.nav.goto(pos, spot, HOLD_KEEP_SPEED_M_S) if pos is not None and spot is not None else ZERO
+        return vel, ModeClass.OFFBOARD, None, None
 
     def _fleet(self, t: float, order: FleetOrder, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
         verdict = fleet_action(order, self.authority, s.armed, self.state == State.HOLD)
@@ -494,7 +514,8 @@ class Mission:
             nxt = State.RETURN
         elif self.hold_cause == HoldCause.EXIT:
             nxt = State.JOIN
-        elif nxt == State.FLOW and self.sfield is not None and pos is not None and self.sfield.cv_of(*pos) < 0:
-            nxt = State.RETURN
+        elif nxt == State.FLOW and self.sfield is not None and pos is not None and (
+                self.sfield.cv_of(*pos) < 0 or self.nav.rejoin_velocity(pos) is not None):
+            nxt = State.RETURN  # the hold left it outside the map or at its wall: back in first
         self._restored_fleet_hold = False
         self._enter(t, nxt, Reason(Cause.FLEET_RESUME), pos)

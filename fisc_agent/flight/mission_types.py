@@ -95,6 +95,22 @@ class HoldCause(str, Enum):
     AGENT_FAULT = "agent fault"
 
 
+AUTO_RESUMING = frozenset({HoldCause.POSITION_STALE, HoldCause.POSITION_JUMP})
+"""Holds that end by themselves when the position is good again (unless latched)."""
+KEEPING_SPOT = frozenset({HoldCause.FLEET, HoldCause.GEOFENCE})
+"""Holds whose first stage (the vehicle still in offboard/guided, ``hold_grace_s``) keeps the spot where
+they began: back towards it at most ``HOLD_KEEP_SPEED_M_S``, corrected for the bias of the autopilot's
+velocity estimate (``Navigator.goto``).  The others send zero velocity (a stale or jumped position is not
+to be trusted).  Zero velocity alone is held on the autopilot's velocity *estimate* and lets the vehicle
+drift with its bias: a stock PX4 (SIH) in a fleet hold drifted 0.6 m up and 0.6 m sideways in the 2 s
+before its own hold mode (its EKF reporting 0 m/s while its position moved at 0.3-0.4 m/s), then out of
+the duct (``tests/faults/test_px4_kills.py``, seed 7, 2026-12-05)."""
+HOLD_KEEP_SPEED_M_S = 0.5
+"""Fastest a held vehicle is brought back to the spot where its hold began (``KEEPING_SPOT``) [m/s]."""
+HoldOutput = tuple[Vec | None, ModeClass | None, bool | None, float | None]
+"""A hold's (velocity, mode wanted, armed wanted, take-off height) (``Mission._hold_output``)."""
+
+
 class Cause(str, Enum):
     """Why the mission entered a state other than HOLD; the value is the default reason text."""
 

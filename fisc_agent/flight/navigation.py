@@ -22,6 +22,7 @@ from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_sched
 from fisc_agent.flight.point_command import PointCommand, point_command
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.separation import Separation
+from fisc_agent.map.wall import rejoin_point
 
 log = logging.getLogger("fisc_agent.flight.mission")
 _NO_BUDGET = Separation()
@@ -267,9 +268,25 @@ class Navigator:
     # ---- velocities ----------------------------------------------------------------------
     def return_velocity(self, pos: Vec) -> Vec:
         """Geofence ``return``: near the map, rejoin the flow of the nearest CV (the simulator's rule,
-        ``ScalarField.return_command``); farther, fly straight back to the CV chosen on leaving."""
+        ``ScalarField.return_command``), or where the map carries the wall fly straight in across the stream
+        (``rejoin_velocity``: on stock PX4 SIH the flow and its inward pull kept a vehicle 0.3-0.5 m beyond
+        the wall for 6 s, the straight line brings it in at the return speed); farther, fly straight back
+        to the CV chosen on leaving."""
         near = self.sfield.return_command(pos)
-        return self.goto(pos, self.target, self.cfg.return_speed_m_s) if near is None else self.unbiased(near)
+        if near is None:
+            return self.goto(pos, self.target, self.cfg.return_speed_m_s)
+        inward = self.rejoin_velocity(pos)
+        return self.unbiased(near) if inward is None else inward
+
+    def rejoin_velocity(self, pos: Vec) -> Vec | None:
+        """Inside the map but too near the wall to flow again (``fisc_agent.map.wall.rejoin_point``, with the
+        wall margin ``wall_margin_m``): fly straight in, across the stream, at the return speed; None when
+        clear of the wall, or when the map carries no wall or no margin is set (then the CVs alone decide)."""
+        wall, margin = self.sfield.wall, self.cfg.wall_margin_m
+        if wall is None or margin is None:
+            return None
+        point = rejoin_point(wall, pos, margin)
+        return None if point is None else self.goto(pos, point, self.cfg.return_speed_m_s)
 
     def goto(self, pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0) -> Vec:
         """``goto_velocity`` towards ``target``, corrected for the velocity-estimate bias (``unbiased``)."""

@@ -18,6 +18,7 @@ from a neighbour's half of the spacing (its radius and its share of the position
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -120,3 +121,30 @@ def reflect_at_wall(points_m: np.ndarray, deviation_m_s: np.ndarray, wall: DuctW
     d[:, 1] -= k * ny
     d[:, 2] -= k * nz
     return d
+
+
+def rejoin_inset_m(radius_m: float, margin_m: float) -> float:
+    """How far inside the wall, at a station of local radius ``radius_m`` [m], a vehicle rejoining the flow
+    must be before it flows again (a fleet resume, the end of a geofence RETURN) [m]: the wall margin
+    ``margin_m``, at most ``WALL_MARGIN_FRACTION`` of the radius (so the inner part of a narrow section
+    always qualifies).
+
+    Without it a vehicle that a hold left at the wall (stock PX4 SIH drifts up to 1.2 m in a 4 s hold on
+    its biased velocity estimate) flowed again from the edge of the map and left it within 0.2-6 s,
+    and the geofence held it to the end of the flight (tests/faults, docs/zenoh.md)."""
+    return min(float(margin_m), WALL_MARGIN_FRACTION * float(radius_m))
+
+
+def rejoin_point(wall: DuctWall, pos_m: tuple[float, float, float], margin_m: float) -> tuple[float, float, float] | None:
+    """Where a vehicle at ``pos_m`` (map frame) heads to rejoin the flow clear of the wall, or None when it is
+    clear already (its radius at most the wall's minus ``rejoin_inset_m``).  The point keeps the axial
+    station and the bearing and lies twice the inset inside the wall (on the axis at worst), so that a
+    proportional approach crosses the inset line at speed instead of creeping up to it."""
+    x, y, z = (float(v) for v in pos_m)
+    R = float(wall.radius_at(x))
+    inset = rejoin_inset_m(R, margin_m)
+    r = math.hypot(y, z)
+    if r <= R - inset:
+        return None
+    target_r = max(R - 2.0 * inset, 0.0)
+    return (x, y * target_r / r, z * target_r / r)

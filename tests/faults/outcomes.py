@@ -14,7 +14,6 @@ import time
 from typing import Any
 
 import numpy as np
-import pytest
 
 from .evidence import read_evidence
 from .lab import FaultLab, Kill, ground, listening
@@ -144,18 +143,6 @@ def kill_a_running_cmd(lab: FaultLab, targets) -> tuple[float, subprocess.Comple
     return cmd_started_s, resume, resume_sent
 
 
-def geofence_held_after(flight: Any, agent_id: int, t_s: float) -> str:
-    """The open issue of docs/zenoh.md ("a fleet hold and resume can end in a geofence hold on stock PX4
-    SIH"): a reason to report as xfail when agent ``agent_id`` was held by the geofence (HOLD,
-    ``failsafe``, ``outside_map``) after ``t_s``; "" otherwise (the check then fails as it should)."""
-    s = flight.ev.agents[agent_id].between(t_s, float("inf"))
-    held = np.array([st == "HOLD" for st in s.states()], dtype=bool) & s.flagged("outside_map") & s.flagged("failsafe")
-    if not held.any():
-        return ""
-    return (f"agent {agent_id} held by the geofence {float(s.recv_s[held][0]) - t_s:.1f} s after {t_s:.1f}: the open "
-            "fleet-hold drift on PX4 SIH's biased velocity estimate (docs/zenoh.md, issue 37)")
-
-
 def hold_acks(flight: Any, agent_id: int) -> list[int]:
     """Sequence numbers of the holds ``agent_id`` acknowledged from the killed ``cmd``'s start until
     the resume has been flown (a hold's acknowledgement shows until the resume replaces it)."""
@@ -216,8 +203,6 @@ def killed_cmd_reached_all_or_none(flight: Any, targets, exit_x_m: float | None 
     for i in targets:
         t_check = t_resumed + RESUMED_WITHIN_S
         after = ev.agents[i].between(t_check, t_check + 1.0)
-        if exit_x_m is not None and not after.flying(exit_x_m).all() and geofence_held_after(flight, i, t_resume):
-            pytest.xfail(geofence_held_after(flight, i, t_resume))
         assert after.recv_s.size and after.flying(exit_x_m).all(), \
             f"agent {i} not flying {RESUMED_WITHIN_S} s after the resume: {after.states()}"
         assert (ev.agents[i].records["ack_seq"] == sent["seq"]).any(), f"agent {i}: no resume acknowledged"

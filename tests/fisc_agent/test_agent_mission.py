@@ -14,6 +14,7 @@ from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand
 from fisc_agent.flight.tracking import TrackingConfig
+from fisc_agent.map.wall import DuctWall
 
 DT = 0.05
 
@@ -254,7 +255,8 @@ def test_geofence_hold(sfield):
     _fly_to_flow(m, v, cfg)
     v.pos[1] = 2.5                                   # pushed out through the side
     outs = run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
-    assert m.reason.startswith("geofence") and outs[-1].velocity_m_s == (0.0, 0.0, 0.0)
+    # at the spot where it began, the geofence's hold keeps it (KEEPING_SPOT): zero but the learnt bias (~1e-16)
+    assert m.reason.startswith("geofence") and outs[-1].velocity_m_s == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
     assert m.hold_cause == HoldCause.GEOFENCE and outs[-1].reason.cause == HoldCause.GEOFENCE
     outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
     m.command("resume")                              # resume from a geofence hold flies back
@@ -301,6 +303,99 @@ def test_return_carried_past_the_outlet_ends_the_lap(sfield):
     assert m.state == State.JOIN and m.reason.cause == Cause.LAP_DONE and m.laps == 1
 
 
+@pytest.fixture(scope="module")
+def walled(tunnel_map):
+    """The tunnel with a real wall 1.2 m from the axis, just outside its CV staircase (|y| <= 1 m)."""
+    return ScalarField(CommandField.from_map(tunnel_map), wall=DuctWall(np.array([0.0, 3.0]), np.array([1.2, 1.2])))
+
+
+def test_a_resume_at_the_wall_flies_straight_in_before_it_flows_again(walled, sfield):
+    # a hold that left the vehicle inside the map but at its wall (stock PX4 SIH drifts there on its
+    # biased velocity estimate): the resume first flies it in, across the stream, until it is the
+    # rejoin inset (the 0.8 m margin capped at half the 1.2 m radius: 0.6 m) inside the wall
+    cfg, m, v = make(walled)
+    _fly_to_flow(m, v, cfg)
+    m.command("hold")
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    v.pos[1], v.pos[2] = 0.9, 0.1                    # in a CV, 0.29 m from the wall
+    assert walled.cv_of(*v.pos) >= 0
+    m.command("resume")
+    outs = run(m, v, cfg, lambda m, v, o: m.state != State.HOLD)
+    assert m.state == State.RETURN and m.reason.cause == Cause.FLEET_RESUME
+    vel = outs[-1].velocity_m_s
+    assert vel[1] < 0 and vel[2] < 0 and abs(vel[0]) < 1e-9 and math.hypot(*vel) <= cfg.return_speed_m_s + 1e-9
+    at = []
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 3, hook=lambda m, v, o: at.append(tuple(v.pos)))
+    assert m.reason.cause == Cause.BACK_IN_MAP and "clear of the wall" in m.reason
+    assert math.hypot(at[-1][1], at[-1][2]) <= 0.6 < math.hypot(at[-2][1], at[-2][2])   # the position it decided on
+    # without a wall in the map the CVs alone decide: the same spot flows on at once
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    m.command("hold")
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    v.pos[1], v.pos[2] = 0.9, 0.1
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state != State.HOLD)
+    assert m.state == State.FLOW
+
+
+def test_a_resume_clear_of_the_wall_flows_at_once(walled):
+    cfg, m, v = make(walled)
+    _fly_to_flow(m, v, cfg)
+    m.command("hold")
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    v.pos[1], v.pos[2] = 0.6, 0.0                    # exactly on the inset line
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state != State.HOLD)
+    assert m.state == State.FLOW and m.reason.cause == Cause.FLEET_RESUME
+
+
+def test_a_geofence_return_does_not_end_at_the_edge_of_the_map(walled):
+    # the return's hysteresis: back in a CV is not enough, it flies on until clear of the wall
+    cfg, m, v = make(walled, geofence="return")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1], v.pos[2] = 1.2, 0.0                    # 0.2 m outside the side face
+    seen = []
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW and seen, max_s=v.t + 5,
+        hook=lambda m, v, o: seen.append((m.state, o.cv_id, math.hypot(v.pos[1], v.pos[2]))))
+    returning_inside = [r for st, cv, r in seen if st == State.RETURN and cv >= 0]
+    assert returning_inside and min(returning_inside) > 0.6 - 0.2   # in the map, still returning
+    assert m.reason.cause == Cause.BACK_IN_MAP
+
+
+def test_a_fleet_hold_at_the_wall_keeps_a_spot_clear_of_it_and_a_geofence_hold_its_own(walled):
+    # a fleet hold begun in the rejoin inset keeps the point straight in from where it began (0.6 m inset:
+    # target radius 1.2 - 2 x 0.6 = 0, the axis here), so the autopilot's own hold begins clear of the wall
+    cfg, m, v = make(walled)
+    _fly_to_flow(m, v, cfg)
+    v.pos[1], v.pos[2] = 0.9, 0.1
+    m.command("hold")
+    x0 = v.pos[0]
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + cfg.hold_grace_s + 1)
+    assert math.hypot(v.pos[1], v.pos[2]) < 0.6 and abs(v.pos[0] - x0) < 0.5
+    # a geofence hold (policy hold) stops where it left the map, as its policy says
+    cfg, m, v = make(walled, geofence="hold")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1], v.pos[2] = 1.1, 0.0
+    run(m, v, cfg, lambda m, v, o: m.state == State.HOLD)
+    spot = tuple(v.pos)
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + cfg.hold_grace_s + 1)
+    assert m.hold_cause == HoldCause.GEOFENCE and distance(tuple(v.pos), spot) < 0.3
+
+
+def test_a_geofence_return_beside_a_walled_map_flies_straight_in(walled):
+    cfg, m, v = make(walled, geofence="return")
+    _fly_to_flow(m, v, cfg)
+    v.pos[1], v.pos[2] = 1.3, 0.0                    # 0.3 m outside the side face, 0.1 m beyond the wall
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.RETURN)
+    vel = outs[-1].velocity_m_s
+    assert abs(vel[0]) < 1e-9 and vel[1] == pytest.approx(-cfg.return_speed_m_s) and abs(vel[2]) < 1e-9
+    t0 = v.t
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 3)
+    assert v.t - t0 < 1.2                            # 0.7 m at 1 m/s, then the proportional tail
+
+
 def test_link_loss_holds_latched_and_requests_hold_mode_when_back(sfield):
     cfg, m, v = make(sfield)
     _fly_to_flow(m, v, cfg)
@@ -321,7 +416,8 @@ def test_fleet_hold_resume_and_land(sfield):
     run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
     m.command("hold")
     outs = run(m, v, cfg, lambda m, v, o: True)
-    assert m.state == State.HOLD and m.reason == "fleet hold" and outs[-1].velocity_m_s == (0.0, 0.0, 0.0)
+    assert m.state == State.HOLD and m.reason == "fleet hold"
+    assert outs[-1].velocity_m_s == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)   # at its spot (KEEPING_SPOT)
     run(m, v, cfg, lambda m, v, o: o.want_mode == "hold")
     m.command("resume")
     run(m, v, cfg, lambda m, v, o: True)
@@ -607,6 +703,38 @@ def test_join_corrects_the_velocity_estimate_bias_and_crosses_at_its_entry_point
     run_for(m, v, cfg, 30.0)
     stage = m.nav.waypoints[-2]
     assert m.state == State.JOIN and math.hypot(v.pos[1] - stage[1], v.pos[2] - stage[2]) > 0.3
+
+
+def test_a_fleet_hold_keeps_its_spot_against_the_velocity_estimate_bias(default_sfield):
+    """The vehicle moves 0.35 m/s east and 0.4 m/s up of what it reports, from the take-off on (a stock
+    PX4 SIH in a fleet hold drifted so, 1.2 m in 3 s, and left the duct).  A fleet hold's first stage
+    keeps the spot where the hold began, the learnt bias subtracted: within 0.2 m of it to the end of
+    the grace (a braking overshoot, then back); zero velocity alone drifts with the bias, as a hold
+    outside ``KEEPING_SPOT`` (an agent fault's) still does."""
+    bias = (0.0, 0.35, 0.4)
+
+    def held(cause):
+        cfg, m, v = make(default_sfield, origin_ned_m=(0.0, 0.0, -10.0), lookahead_auto=False)
+        v.pos, v.ground_z = [-6.0, 0.0, -10.0], -10.0
+        v.velocity_bias, v.bias_states = bias, (State.TAKEOFF, State.JOIN, State.FLOW, State.HOLD)
+        run(m, v, cfg, lambda m, v, o: m.state == State.FLOW and v.pos[0] > 3.0, max_s=40.0)
+        if cause == "fleet":
+            m.command("hold")
+        else:
+            m.fault(v.t, "a test")
+        spot, t0 = tuple(v.pos), v.t
+        outs = run(m, v, cfg, lambda m, v, o: v.t - t0 >= cfg.hold_grace_s - 2 * DT)
+        assert m.state == State.HOLD and all(o.want_mode == "offboard" for o in outs)
+        return outs, distance(tuple(v.pos), spot), m
+
+    outs, drift_m, m = held("fleet")
+    assert m.hold_cause == HoldCause.FLEET and m.tracker.bias_m_s[2] == pytest.approx(0.4, abs=0.05)
+    assert drift_m < 0.2, drift_m
+    late = outs[-1].velocity_m_s      # at the spot again: the bias's opposite, so the vehicle stays
+    assert late[1] == pytest.approx(-0.35, abs=0.1) and late[2] == pytest.approx(-0.4, abs=0.1)
+    outs, drift_m, m = held("fault")
+    assert m.hold_cause == HoldCause.AGENT_FAULT and all(o.velocity_m_s == (0.0, 0.0, 0.0) for o in outs)
+    assert drift_m > 0.8, drift_m     # 0.53 m/s for ~1.9 s: 0.98 m
 
 
 def test_entry_slots_stagger_agents_on_the_shared_clock():

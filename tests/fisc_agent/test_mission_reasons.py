@@ -310,7 +310,7 @@ def test_every_transition_authority_change_and_fleet_command_is_logged_in_full(s
     assert ("INFO", f"authority waiting -> command ({AuthorityCause.ARMING.value})") in log
     assert ("WARNING", "fleet command go (swarm-wide) in state FLOW: already flying") in log
     assert ("INFO", "fleet command hold (swarm-wide) in state FLOW") in log
-    assert ("INFO", "hold: zero-velocity grace over, requesting the autopilot's hold mode") in log
+    assert ("INFO", "hold: grace over, requesting the autopilot's hold mode") in log
     assert ("INFO", "fleet command resume (addressed) in state HOLD") in log
 
 

@@ -9,7 +9,7 @@ from fisc_agent.flight.control import ScalarField
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import MapError, decode_map, encode_map, load_map
 from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
-from fisc_agent.map.wall import WALL_ARRAY, DuctWall, map_wall, reflect_at_wall
+from fisc_agent.map.wall import WALL_ARRAY, DuctWall, map_wall, reflect_at_wall, rejoin_inset_m, rejoin_point
 from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.maps.build import default_map_path
 from fisc_ground.reference.builtin import load_builtin
@@ -123,3 +123,27 @@ def test_a_kinetic_parcel_heading_for_the_wall_stays_inside_it():
     assert worst < -0.2 and reached > 14.0                  # the whole duct, at least 0.2 m inside the wall
     worst, reached = fly(None)
     assert worst > 0.3                     # the staircase's outer cubes let it out (then the geofence acts)
+
+
+@pytest.mark.parametrize("radius_m, margin_m, inset_m", [
+    (2.0, 0.8, 0.8),      # wide: the margin
+    (1.6, 0.8, 0.8),      # the margin equals half the radius
+    (1.4, 0.8, 0.7),      # narrower: half the radius
+    (1.0, 0.0, 0.0),      # no margin: the wall itself
+])
+def test_the_rejoin_inset_is_the_margin_capped_at_half_the_local_radius(radius_m, margin_m, inset_m):
+    assert rejoin_inset_m(radius_m, margin_m) == pytest.approx(inset_m)
+
+
+def test_a_vehicle_rejoins_clear_of_the_wall_heading_straight_in():
+    # at x = 5 the cone's wall is 1.5 m: inset 0.5 m with a 0.5 m margin, so clear up to r = 1.0
+    assert rejoin_point(CONE, (5.0, 1.0, 0.0), 0.5) is None                 # on the line: clear
+    assert rejoin_point(CONE, (5.0, 0.0, 0.0), 0.5) is None                 # the axis
+    assert rejoin_point(CONE, (5.0, 0.6, -0.8 + 1e-9), 0.5) is None         # r = 1.0 on a skew bearing
+    got = rejoin_point(CONE, (5.0, 1.0 + 1e-6, 0.0), 0.5)                   # just outside the line
+    assert got == pytest.approx((5.0, 0.5, 0.0))                            # twice the inset inside the wall
+    got = rejoin_point(CONE, (5.0, -1.2, 1.6), 0.5)                         # beyond the wall (r 2.0), skew
+    assert got == pytest.approx((5.0, -0.3, 0.4))                           # same bearing, r = 0.5
+    # a margin wider than half the radius: the inset is half of it, the target the axis
+    assert rejoin_point(CONE, (0.0, 0.6, 0.0), 0.8) == pytest.approx((0.0, 0.0, 0.0))
+    assert rejoin_point(CONE, (0.0, 0.5, 0.0), 0.8) is None
