@@ -84,6 +84,9 @@ class BenchLink:
         self.last_heartbeat_t = self.clock()
         return 0
 
+    def latest_gnss_velocity(self):
+        return None
+
     def latest_position(self):
         """Back and forth along 14 m of the tunnel (a continuous track: a wrap-around would be a jump the
         agent's position gate refuses, and the agent would hold instead of flying)."""

@@ -108,14 +108,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate the field this far ahead, compensating the vehicle's velocity lag [s]; auto: "
                         "identify the lag (and the feed-forward gain) in flight during take-off and join, the "
                         "map's recommended look-ahead until then")
-    t.add_argument("--feedforward-gain", type=float, default=TrackingConfig.feedforward_gain,
-                   help="multiplies the map's command (inverse of the vehicle's steady velocity gain); "
-                        "with --lookahead auto the identified value replaces it")
+    t.add_argument("--feedforward-gain", type=number_or("auto", "auto", "gain"), default=TrackingConfig.feedforward_gain,
+                   metavar="G|auto",
+                   help="multiplies the map's command (inverse of the vehicle's steady velocity gain; default 1); "
+                        "auto (with --lookahead auto): the inverse of the gain identified in flight and learnt "
+                        "again through the pass (stock PX4 flies better at 1: docs/deployment.md)")
     t.add_argument("--online-gain-time", type=number_or("off", 0.0, "seconds"), default=TrackingConfig.online_gain_time_s,
                    metavar="S|off",
-                   help="with --lookahead auto: learn the vehicle's steady velocity gain again through the pass, "
-                        "forgetting over this time, and set the feed-forward gain from it [s]; off: keep the gain "
-                        "identified before the pass")
+                   help="with --feedforward-gain auto: learn the vehicle's steady velocity gain again through the "
+                        "pass, forgetting over this time, and set the feed-forward gain from it [s]; off: keep the "
+                        "gain identified before the pass")
     p.add_argument("--safety-net", choices=("on", "off"), default="on",
                    help="separation safety net: with --swarm, hear the neighbours' telemetry; closing too fast on "
                         "one, slow down, and inside the map's d_min of one, push apart (fisc_agent.flight.safety_net); "
@@ -185,7 +187,8 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         lookahead_auto=a.lookahead == "auto" and not paper,
         tracking=TrackingConfig(gain_1_s=0.0 if paper else a.track_gain, integral_gain_1_s2=a.track_integral_gain,
                                 max_correction_m_s=a.track_max_correction,
-                                feedforward_gain=1.0 if paper else a.feedforward_gain,
+                                feedforward_gain=1.0 if paper or a.feedforward_gain == "auto" else a.feedforward_gain,
+                                feedforward_auto=a.feedforward_gain == "auto" and not paper,
                                 online_gain_time_s=a.online_gain_time),
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,

@@ -30,6 +30,7 @@ from fisc_agent.flight.mission import (FLYING, Mission, MissionCommand, MissionO
                                 VehicleStatus)
 from fisc_agent.flight.mission_types import FleetOrder
 from fisc_agent.flight.tick import NET_STATES, AgentSnapshot, TickRecord, failsafe_active, outside_map
+from fisc_agent.flight.tracking import GNSS_FRESH_S
 from fisc_agent.flight.safety_net import DuctAxis, NeighbourSource, NetAction, keep_apart
 from fisc_agent.flight.readiness import health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
@@ -322,6 +323,11 @@ class Runner:
         else:
             pos = vel = None
             pos_age = math.inf
+        gnss = link.latest_gnss_velocity()
+        gnss_xy: tuple[float, float] | None = None
+        if gnss is not None and now - gnss.t_s <= GNSS_FRESH_S:
+            gx, gy, _ = tf.vel_ned_to_map_xyz(gnss.vel_ne_m_s[0], gnss.vel_ne_m_s[1], 0.0)
+            gnss_xy = (gx, gy)
         link_ok = hb_age <= self.cfg.link_timeout_s
         if link_ok != self._link_was_ok:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
@@ -332,7 +338,8 @@ class Runner:
         status = VehicleStatus(now, pos, vel, pos_age, hb_age, self.adapter.name if self.adapter else None,
                                link.armed, mode, gps_unix if gps_unix is not None else self.wall_clock(),
                                None if sample is None else sample.autopilot_t_s, health,
-                               integrity.ok, "" if integrity.ok else f"{integrity.reason.value}: {integrity.detail}")
+                               integrity.ok, "" if integrity.ok else f"{integrity.reason.value}: {integrity.detail}",
+                               gnss_xy)
         out = self.mission.step(status)
         net = self._safety_net(out, pos, pos_age)
 

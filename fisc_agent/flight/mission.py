@@ -18,13 +18,11 @@ not stream), the autopilot mode and arming state wanted (reconciled by
 ``adapters.Commander``), and, for ArduPilot, the takeoff height.  Velocities are *unclamped*;
 the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
 
-Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping the spot where the hold began,
-``mission_types.KEEPING_SPOT``, else zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale
-position or a position jump resumes by itself once the fix is good again (a stale one only
-before that escalation); every other hold (escalated, link lost, geofence, exit, fleet, pilot
-override) waits for a fleet ``resume``.  Where the map carries the duct's wall, a resume and the
-geofence's RETURN end clear of it (``fisc_agent.map.wall.rejoin_point``), and a fleet hold begun at
-the wall keeps the point straight in from it (``Mission._spot_to_keep``).
+Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping a spot, ``Navigator.hold_spot``, or
+zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale position or
+a position jump resumes by itself once the fix is good again (a stale one only before that escalation);
+every other hold (escalated, link lost, geofence, exit, fleet, pilot override) waits for a fleet ``resume``.
+A resume and the geofence's RETURN end clear of the map's wall (``Navigator.rejoin_velocity``).
 """
 
 from __future__ import annotations
@@ -35,14 +33,13 @@ from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
-from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, KEEPING_SPOT, Authority, Cause,
+from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, Authority, Cause,
                                              FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput, Reason,
                                              State, Transition, VehicleStatus)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.flight.readiness import arming_blockers, battery_low
 from fisc_agent.flight.state_file import AgentState
 from fisc_agent.mavlink.adapters import ModeClass
-from fisc_agent.map.wall import rejoin_point
 from fisc_agent.flight.health import LandedState
 
 log = logging.getLogger(__name__)
@@ -174,23 +171,9 @@ class Mission:
         self._hold_latched = (self._hold_latched and self.state == State.HOLD) or latched
         if self.state != State.HOLD:
             self._resume_state, self._hold_escalated = self.state, False
-            self._hold_spot = self._spot_to_keep(self._last_pos, reason.cause)
+            self._hold_spot = self.nav.hold_spot(self._last_pos, reason.cause)
         self._hold_armed = armed
         self._go(t, State.HOLD, reason)
-
-    def _spot_to_keep(self, pos: Vec | None, cause: HoldCause | Cause) -> Vec | None:
-        """Where a hold that began at ``pos`` keeps the vehicle in its first stage: None (zero velocity) unless
-        its cause is in ``KEEPING_SPOT``; that spot, except that a fleet hold at the wall (inside the rejoin
-        inset, ``fisc_agent.map.wall.rejoin_point``) keeps the point straight in from it, so that the
-        autopilot's own hold begins clear of the wall (a geofence hold keeps the spot where it left the map:
-        its policy is to stop there)."""
-        if cause not in KEEPING_SPOT:
-            return None
-        wall, margin = (None, None) if self.sfield is None else (self.sfield.wall, self.cfg.wall_margin_m)
-        if pos is None or cause != HoldCause.FLEET or wall is None or margin is None:
-            return pos
-        inward = rejoin_point(wall, pos, margin)
-        return pos if inward is None else inward
 
     def _hands_off_now(self, t: float, mode: ModeClass, armed: bool) -> None:
         """A mode the agent did not ask for: hands off for the rest of the flight."""
@@ -247,7 +230,7 @@ class Mission:
             # jump), and an autopilot whose clock runs slow against ours (PX4 SITL on a loaded host
             # ran at ~0.75 x real time) would read as a velocity bias of a quarter of the speed
             fix_t = s.fix_t_s if s.fix_t_s is not None else t - s.position_age_s
-            nav.tracker.observe(fix_t, pos, s.vel_m_s)
+            nav.tracker.observe(fix_t, pos, s.vel_m_s, s.gnss_vel_m_s)
         # -- failsafes in the air ------------------------------------------------------------
         if self.state in FLYING or self.state == State.HOLD:
             if not s.armed and (self.state in FLYING or self._hold_armed) and lk:
@@ -338,13 +321,10 @@ class Mission:
                     st = State.FLOW
         elif st == State.RETURN:
             want_mode = ModeClass.OFFBOARD
-            inward = nav.rejoin_velocity(pos) if cv >= 0 else None
-            if cv >= 0 and inward is None:
+            if cv >= 0 and nav.rejoin_velocity(pos) is None:  # in the map and clear of its wall
                 self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}, clear of the wall"))
                 st = State.FLOW
-            elif inward is not None:  # in the map, but not yet the wall margin inside it
-                vel = inward
-            elif pos[0] >= self.geom.x_outlet_m:  # carried past the outlet while rejoining: that lap is done
+            elif pos[0] >= self.geom.x_outlet_m and cv < 0:  # carried past the outlet while rejoining: lap done
                 vel = self._passed_outlet(t, pos, s)
             else:
                 vel = nav.return_velocity(pos)
@@ -442,10 +422,9 @@ class Mission:
         return self.nav.exit_velocity(pos)
 
     def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None) -> HoldOutput:
-        """The hold's output: in offboard/guided for ``hold_grace_s`` (from a fresh ``pos``, back towards
-        the spot of a hold in ``mission_types.KEEPING_SPOT``; else zero velocity), then the autopilot's hold
-        mode; the escalation waits while the autopilot is not ``heard`` (a hold-mode request sent blind
-        could land on a failsafe's Land; the link-lost hold follows at ``link_timeout_s``)."""
+        """The hold's output: in offboard/guided for ``hold_grace_s`` (from a fresh ``pos``, back to the hold's
+        spot, ``Navigator.hold_spot``; else zero velocity), then the autopilot's hold mode; the escalation waits
+        while the autopilot is not ``heard`` (a blind request could land on a failsafe's Land)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:

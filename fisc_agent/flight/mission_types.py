@@ -191,6 +191,9 @@ class VehicleStatus(NamedTuple):
     """The position track is consistent (no estimator reset or jump since a consistent track)."""
     integrity_reason: str = ""
     """Why it is not ("" when it is)."""
+    gnss_vel_m_s: tuple[float, float] | None = None
+    """The GNSS receiver's own horizontal velocity, map frame (x, y) [m/s], while fresh
+    (``tracking.GNSS_FRESH_S``); None without one."""
 
 
 class MissionOutput(NamedTuple):

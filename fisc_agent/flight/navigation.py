@@ -17,6 +17,7 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
                                        exit_waypoints, goto_velocity, hold_point, join_waypoints, lap_return_waypoints,
                                        speed_for_arrival)
+from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule, entry_slot_open
 from fisc_agent.flight.point_command import PointCommand, point_command
@@ -125,9 +126,9 @@ class Navigator:
     def adapt(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
         """FLOW: learn the vehicle's steady gain again from the setpoint streamed and the velocity
         measured (``identify.OnlineGain``) and fly its feed-forward gain (only with the response
-        identified in flight, ``online_gain_time_s`` > 0)."""
+        identified in flight, ``feedforward_auto`` and ``online_gain_time_s`` > 0)."""
         tau = self.tracker.cfg.online_gain_time_s
-        if self.response is None or tau <= 0.0:
+        if self.response is None or tau <= 0.0 or not self.tracker.cfg.feedforward_auto:
             return
         if self.online_gain is None:
             self.online_gain = OnlineGain(self.response.lookahead_s, tau)
@@ -143,7 +144,8 @@ class Navigator:
             log.info("velocity gain learnt in the pass: %.2f -> feed-forward gain %.2f", g, ff)
 
     def identify(self) -> None:
-        """Fit the velocity response once (``lookahead_auto``) and tune the tracker's feed-forward."""
+        """Fit the velocity response once (``lookahead_auto``): the tracker's look-ahead, and its feed-forward
+        gain with ``feedforward_auto``."""
         if not self.cfg.lookahead_auto or self._identify_tried:
             return
         self._identify_tried = True  # once: the final leg calls this every tick
@@ -154,8 +156,9 @@ class Navigator:
                         self.tracker.cfg.lookahead_s, self.tracker.cfg.feedforward_gain)
             return
         self.response = resp
-        self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=resp.lookahead_s,
-                                   feedforward_gain=resp.feedforward_gain)
+        cfg = self.tracker.cfg
+        self.tracker.cfg = replace(cfg, lookahead_s=resp.lookahead_s,
+                                   feedforward_gain=resp.feedforward_gain if cfg.feedforward_auto else cfg.feedforward_gain)
         log.info("velocity response identified from %d samples: lag %.2f s, dead time %.2f s, gain %.2f (bound over "
                  "halves %.2f), rise time %.2f s, max accel %.1f m/s^2 -> look-ahead %.2f s, feed-forward gain %.2f",
                  resp.n_samples, resp.lag_s, resp.dead_time_s, resp.gain, resp.gain_bound, resp.rise_time_s,
@@ -275,8 +278,22 @@ class Navigator:
         near = self.sfield.return_command(pos)
         if near is None:
             return self.goto(pos, self.target, self.cfg.return_speed_m_s)
-        inward = self.rejoin_velocity(pos)
+        inward = self.rejoin_velocity(pos)  # also in the map while not yet clear of its wall
         return self.unbiased(near) if inward is None else inward
+
+    def hold_spot(self, pos: Vec | None, cause: HoldCause | Cause) -> Vec | None:
+        """Where a hold that began at ``pos`` keeps the vehicle in its first stage: None (zero velocity) unless
+        its cause is in ``KEEPING_SPOT``; that spot, except that a fleet hold at the wall (inside the rejoin
+        inset, ``fisc_agent.map.wall.rejoin_point``) keeps the point straight in from it, so that the
+        autopilot's own hold begins clear of the wall (a geofence hold keeps the spot where it left the map:
+        its policy is to stop there)."""
+        if cause not in KEEPING_SPOT:
+            return None
+        wall, margin = (None, None) if self.sfield is None else (self.sfield.wall, self.cfg.wall_margin_m)
+        if pos is None or cause != HoldCause.FLEET or wall is None or margin is None:
+            return pos
+        inward = rejoin_point(wall, pos, margin)
+        return pos if inward is None else inward
 
     def rejoin_velocity(self, pos: Vec) -> Vec | None:
         """Inside the map but too near the wall to flow again (``fisc_agent.map.wall.rejoin_point``, with the

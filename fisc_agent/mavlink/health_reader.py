@@ -26,7 +26,8 @@ from typing import Callable
 from pymavlink.dialects.v20.ardupilotmega import (MAVLINK_MSG_ID_BATTERY_STATUS, MAVLINK_MSG_ID_EKF_STATUS_REPORT,
                                                   MAVLINK_MSG_ID_ESTIMATOR_STATUS,
                                                   MAVLINK_MSG_ID_EXTENDED_SYS_STATE,
-                                                  MAVLINK_MSG_ID_GLOBAL_POSITION_INT, MAVLINK_MSG_ID_HOME_POSITION,
+                                                  MAVLINK_MSG_ID_GLOBAL_POSITION_INT, MAVLINK_MSG_ID_GPS_RAW_INT,
+                                                  MAVLINK_MSG_ID_HOME_POSITION,
                                                   MAVLINK_MSG_ID_LOCAL_POSITION_NED, MAVLINK_MSG_ID_ODOMETRY,
                                                   MAVLINK_MSG_ID_SYS_STATUS, MAVLINK_MSG_ID_SYSTEM_TIME)
 
@@ -41,13 +42,18 @@ RESET_COUNTER_MODULO = 256
 """ODOMETRY.reset_counter is a uint8: it wraps from 255 to 0."""
 
 
+GNSS_RATE_HZ = 10.0
+"""Rate asked for GPS_RAW_INT [Hz] (the receiver's velocity corrects the estimator's: ``link.MavlinkLink.latest_gnss_velocity``;
+an autopilot sends it at most at its receiver's rate, PX4 SIH's 8 Hz)."""
+
+
 def stream_requests(autopilot: str | None, geodetic: bool, position_rate_hz: float) -> tuple[tuple[int, float], ...]:
     """(message id, rate [Hz]) pairs to request from ``autopilot`` (``px4``, ``ardupilot`` or None:
     both estimator messages); the position message first (GLOBAL_POSITION_INT when ``geodetic``)."""
     position = MAVLINK_MSG_ID_GLOBAL_POSITION_INT if geodetic else MAVLINK_MSG_ID_LOCAL_POSITION_NED
     out = [(position, position_rate_hz), (MAVLINK_MSG_ID_SYS_STATUS, 2.0), (MAVLINK_MSG_ID_BATTERY_STATUS, 1.0),
            (MAVLINK_MSG_ID_EXTENDED_SYS_STATE, 2.0), (MAVLINK_MSG_ID_SYSTEM_TIME, 1.0),
-           (MAVLINK_MSG_ID_HOME_POSITION, 0.5)]
+           (MAVLINK_MSG_ID_HOME_POSITION, 0.5), (MAVLINK_MSG_ID_GPS_RAW_INT, GNSS_RATE_HZ)]
     if autopilot != "ardupilot":
         out += [(MAVLINK_MSG_ID_ESTIMATOR_STATUS, 2.0), (MAVLINK_MSG_ID_ODOMETRY, ODOMETRY_RATE_HZ)]
     if autopilot != "px4":

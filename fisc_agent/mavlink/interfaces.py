@@ -29,11 +29,24 @@ class PositionSample:
     gives none (MAVSDK's callbacks)."""
 
 
+@dataclass(frozen=True)
+class GnssVelocity:
+    """The GNSS receiver's own horizontal velocity (MAVLink GPS_RAW_INT ``vel`` and ``cog``), NED."""
+
+    t_s: float
+    """Local monotonic receive time [s]."""
+    vel_ne_m_s: tuple[float, float]
+    """(north, east) velocity over ground [m/s]."""
+
+
 @runtime_checkable
 class PositionSource(Protocol):
     """Where the runner reads the vehicle's position from."""
     def latest_position(self) -> PositionSample | None:
         """The newest fix, or None if none arrived yet."""
+
+    def latest_gnss_velocity(self) -> GnssVelocity | None:
+        """The GNSS receiver's newest velocity with a 3D fix, or None (none yet, or a source without it)."""
 
 
 @runtime_checkable

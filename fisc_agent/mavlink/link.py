@@ -1,43 +1,36 @@
-"""The MAVLink link (pymavlink) and the interfaces the runner depends on.
+"""The MAVLink link (pymavlink): ``MavlinkLink`` implements the runner's ``interfaces.VehicleLink``
+(``mavsdk_backend.MavsdkLink`` is the alternative).  It takes commands at the level of intent (``arm``,
+``set_mode``, ``takeoff``, ``hold``, ``land``), encodes them as COMMAND_LONGs through the autopilot's
+adapter (``use_adapter``), turns COMMAND_ACKs into ``CommandResult``s and reports the mode as a
+``ModeClass``.  Non-blocking: ``poll()`` drains whatever arrived; the control loop never waits on it.
 
-``PositionSource`` / ``SetpointSink`` / ``VehicleLink`` are the Protocols the runner uses; the
-pymavlink ``MavlinkLink`` implements them (``mavsdk_backend.MavsdkLink`` is the alternative).
-A link takes commands at the level of intent (``arm``, ``set_mode``, ``takeoff``, ``hold``,
-``land``: ``adapters.VehicleCommands``) and reports the vehicle's mode as a ``ModeClass``; this
-one encodes intents as COMMAND_LONGs through the autopilot's adapter (``use_adapter``) and turns
-COMMAND_ACKs into ``CommandResult``s.
-The link is non-blocking: ``poll()`` drains whatever arrived and updates the vehicle state; the
-control loop never waits on the network.
+Positions: LOCAL_POSITION_NED (EKF local frame), or, with a ``GeodeticAnchor``, GLOBAL_POSITION_INT
+converted to NED relative to the anchor; the receiver's own velocity from GPS_RAW_INT (``gnss``).  Times
+are local monotonic receive times (age = now - receive time): a delayed or frozen stream reads as stale.
 
-Positions: LOCAL_POSITION_NED (EKF local frame), or, with a ``GeodeticAnchor``,
-GLOBAL_POSITION_INT converted to NED relative to the anchor.  Times are local monotonic
-receive times (age = now - receive time), so a delayed or frozen stream reads as stale.
+Hostile or broken input (``fisc_agent.mavlink.framing``): on UDP the link owns its socket and parses each
+datagram on its own (a partial or garbage frame is dropped with its datagram and cannot desynchronise
+the parser), and it sends only to the autopilot's address (``udpout``: the configured one; ``udpin``: the
+address the autopilot's HEARTBEATs come from; nothing before that), never to every sender.  On every
+transport only the autopilot's own system, component (and UDP address) change its armed state, mode and
+type or deliver positions and acks.  Every position fix passes ``fisc_agent.flight.position_gate``
+(finite, reachable from the last accepted fix) before it becomes ``latest_position``.  Refusals are
+counted in ``rlog`` and logged at most once per 5 s per kind.
 
-Hostile or broken input (``fisc_agent.mavlink.framing``): on UDP the link owns its socket and
-parses each datagram on its own (a partial or garbage frame is dropped with its datagram and
-cannot desynchronise the parser), and it sends only to the autopilot's address (``udpout``:
-the configured one; ``udpin``: the address the autopilot's HEARTBEATs come from; nothing
-before that), never to every sender.  On every transport only the autopilot's own system,
-component (and UDP address) change its armed state, mode and type or deliver positions and
-acks.  Every position fix passes ``fisc_agent.flight.position_gate`` (finite, reachable from the last
-accepted fix) before it becomes ``latest_position``.  Refusals are counted in ``rlog`` and
-logged at most once per 5 s per kind.
+One vehicle per link: ``target_system`` (``--target-system``) names the only system id the link listens
+to; without it the first PX4/ArduPilot heard is pinned for the life of the link (``framing.AutopilotTracker``).
+Messages of other systems are ignored and counted (``other_system_messages``).  A COMMAND_ACK is used only
+when it is addressed to us (its target_system/target_component are our source ids) and answers a command
+we sent in the last ``ACK_WINDOW_S``.  Datagrams are decoded by ``fast_codec.fast_decoder``.
 
-One vehicle per link: ``target_system`` (``--target-system``) names the only system id the link
-listens to; without it the first PX4/ArduPilot heard is pinned for the life of the link
-(``framing.AutopilotTracker``).  Messages of other systems are ignored and counted
-(``other_system_messages``).  A COMMAND_ACK is used only when it is addressed to us (its target_system/
-target_component are our source ids) and answers a command we sent in the last ``ACK_WINDOW_S``.
-Datagrams are decoded by ``fast_codec.fast_decoder`` (pymavlink's decode; its common frames faster).
+Health and integrity: ``health`` (``VehicleHealth``, from ``health_reader.HealthReader``) and ``integrity``
+(``IntegrityVerdict`` of ``fisc_agent.flight.integrity.IntegrityMonitor`` over the gated fixes, the ODOMETRY
+reset counter and the estimator flags).  The link asks for the streams these need
+(``health_reader.stream_requests``) on locking on and again after an autopilot reboot.
 
-Health and integrity: ``health`` (``VehicleHealth``, from ``health_reader.HealthReader``) and
-``integrity`` (``IntegrityVerdict`` of ``fisc_agent.flight.integrity.IntegrityMonitor`` over the
-gated fixes, the ODOMETRY reset counter and the estimator flags).  The link asks for the streams
-these need (``health_reader.stream_requests``) on locking on and again after an autopilot reboot.
-
-The link cannot die: an ``OSError`` of the socket, serial port or TCP connection never leaves
-``poll`` or a send; it is counted (``errors``, ``last_error``), logged at most every 5 s, and the
-transport is reopened on a later poll (every ``REOPEN_PERIOD_S``).
+The link cannot die: an ``OSError`` of the socket, serial port or TCP connection never leaves ``poll`` or
+a send; it is counted (``errors``, ``last_error``), logged at most every 5 s, and the transport is
+reopened on a later poll (every ``REOPEN_PERIOD_S``).
 """
 
 from __future__ import annotations
@@ -63,7 +56,8 @@ from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, Mo
                                          autopilot_from_heartbeat, command_result, is_armed)
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
 from fisc_agent.mavlink.fast_codec import fast_decoder
-from fisc_agent.mavlink.interfaces import PositionSample, PositionSource, SetpointSink, VehicleLink
+from fisc_agent.mavlink.gnss import gnss_velocity
+from fisc_agent.mavlink.interfaces import GnssVelocity, PositionSample, PositionSource, SetpointSink, VehicleLink
 from fisc_agent.flight.frames import GeodeticAnchor
 from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
@@ -162,6 +156,7 @@ class MavlinkLink:
         self.last_heartbeat_t: float | None = None
         self.heartbeats = 0
         self._position: PositionSample | None = None
+        self._gnss: GnssVelocity | None = None
         self._acks: list[tuple[int, int]] = []
         self._sent_commands: dict[int, float] = {}
         self.status_texts: list[str] = []
@@ -301,6 +296,8 @@ class MavlinkLink:
                 ned = self.anchor.geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
                 self._offer_position(PositionSample(self.clock(), ned, (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
                                                     msg.time_boot_ms * 1e-3))
+        elif mtype == "GPS_RAW_INT":
+            self._gnss = gnss_velocity(msg, self.clock()) or self._gnss
         elif mtype == "COMMAND_ACK":
             self._on_ack(msg)
         elif mtype == "STATUSTEXT":
@@ -411,6 +408,10 @@ class MavlinkLink:
         """The newest gated position fix, or None if none arrived yet."""
         return self._position
 
+    def latest_gnss_velocity(self) -> GnssVelocity | None:
+        """The GNSS receiver's newest velocity with a 3D fix (GPS_RAW_INT), or None."""
+        return self._gnss
+
     def pop_results(self) -> list[CommandResult]:
         """The COMMAND_ACKs received since the last call, as ``CommandResult``s."""
         acks, self._acks = self._acks, []
@@ -427,7 +428,6 @@ class MavlinkLink:
         """The autopilot flavour (PX4 or ArduPilot) that encodes intents and decodes modes."""
         self.adapter = adapter
 
-    # ---- send ----------------------------------------------------------------------------
     def velocity_setpoint_message(self, vn: float, ve: float, vd: float):
         """The SET_POSITION_TARGET_LOCAL_NED message for a velocity-only setpoint."""
         boot_ms = int(self.clock() * 1000) & 0xFFFFFFFF

@@ -48,7 +48,7 @@ from fisc_agent.flight.health import LandedState, VehicleHealth
 from fisc_agent.flight.integrity import IntegrityMonitor, IntegrityVerdict
 from fisc_agent.mavlink.adapters import Adapter, CommandKind, CommandResult, ModeClass
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
-from fisc_agent.mavlink.interfaces import PositionSample
+from fisc_agent.mavlink.interfaces import GnssVelocity, PositionSample
 
 log = logging.getLogger(__name__)
 
@@ -298,6 +298,11 @@ class MavsdkLink:
     def latest_position(self) -> PositionSample | None:
         """The newest position from MAVSDK's telemetry plugin, or None if none arrived yet."""
         return self._position
+
+    def latest_gnss_velocity(self) -> GnssVelocity | None:
+        """None: this backend does not read the receiver's velocity (MAVSDK's ``raw_gps``) yet, so the
+        agent learns its estimator's velocity bias from the position alone (``ParcelTracker.observe``)."""
+        return None
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held (never raises)."""

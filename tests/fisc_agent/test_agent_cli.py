@@ -14,6 +14,7 @@ import pytest
 from agent_testkit import EmulatorProbe, tunnel_map_bytes
 from sim.autopilot import server
 from fisc_agent.cli import build_parser, config_from_args, main
+from fisc_agent.flight.tracking import TrackingConfig
 from fisc_agent.config import AgentConfig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,6 +54,22 @@ def test_mode_and_lookahead_default_to_the_map_and_preset_paper_is_algorithm_1()
     cfg = config_from_args(build_parser().parse_args(base + ["--preset", "paper"]))
     assert cfg.mode == "mean" and cfg.lookahead_s == 0.0
     assert not cfg.lookahead_auto and cfg.tracking.gain_1_s == 0.0    # open loop: Algorithm 1
+
+
+def test_the_feedforward_gain_is_1_by_default_a_number_or_auto(capsys):
+    base = ["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7"]
+    t = config_from_args(build_parser().parse_args(base)).tracking
+    assert (t.feedforward_gain, t.feedforward_auto) == (1.0, False) == (TrackingConfig.feedforward_gain,
+                                                                         TrackingConfig.feedforward_auto)
+    t = config_from_args(build_parser().parse_args(base + ["--feedforward-gain", "1.2"])).tracking
+    assert (t.feedforward_gain, t.feedforward_auto) == (1.2, False)
+    t = config_from_args(build_parser().parse_args(base + ["--feedforward-gain", "auto"])).tracking
+    assert (t.feedforward_gain, t.feedforward_auto) == (1.0, True)
+    t = config_from_args(build_parser().parse_args(base + ["--feedforward-gain", "auto", "--preset", "paper"])).tracking
+    assert (t.feedforward_gain, t.feedforward_auto) == (1.0, False)          # Algorithm 1: open loop
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(base + ["--feedforward-gain", "more"])
+    assert exc.value.code == 2 and "--feedforward-gain: expected gain or 'auto', got 'more'" in capsys.readouterr().err
 
 
 def test_the_wall_margin_defaults_to_the_config_and_off_reflects_at_the_staircase_only(capsys):

@@ -36,6 +36,8 @@ class SimVehicle:
         self.mute = False
         self.takeoff_to = None
         self.modes = []
+        self.gain = 1.0
+        """Steady horizontal velocity gain: the vehicle flies ``gain`` times its horizontal setpoint."""
         self.velocity_bias = (0.0, 0.0, 0.0)
         """Added to the real motion in ``bias_states``, not to the reported velocity: an estimator's velocity bias."""
         self.bias_states = (State.FLOW,)
@@ -77,7 +79,9 @@ class SimVehicle:
         elif self.takeoff_to is not None and self.pos[2] < self.takeoff_to:
             v = (0.0, 0.0, 1.0)
         elif self.mode == "offboard" and out.velocity_m_s is not None and not self.mute:
-            v = clamp_velocity(out.velocity_m_s, tuple(self.vel), DT, cfg.max_speed_m_s, cfg.max_accel_m_s2)
+            want = out.velocity_m_s
+            want = (self.gain * want[0], self.gain * want[1], want[2])
+            v = clamp_velocity(want, tuple(self.vel), DT, cfg.max_speed_m_s, cfg.max_accel_m_s2)
         if not self.armed:
             v = (0.0, 0.0, 0.0)
         self.vel = list(v)

@@ -71,6 +71,12 @@ class MemoryLink(RecordingVehicle):
             self._fix = PositionSample(now, tuple(self.pos), tuple(self.vel))
         return 1
 
+    gnss = None
+    """The GNSS velocity the link reports (``interfaces.GnssVelocity``), None: no receiver velocity."""
+
+    def latest_gnss_velocity(self):
+        return self.gnss
+
     def latest_position(self):
         return self._fix
 
@@ -465,3 +471,19 @@ def test_the_safety_net_stops_the_agent_short_of_a_neighbour_inside_d_min():
 def test_without_the_safety_net_the_agent_flies_through_the_neighbour():
     closest, nets, _ = _fly_at_a_still_neighbour(safety_net=None)
     assert nets == set() and closest < 0.1
+
+
+@pytest.mark.parametrize("age_s, used", [(0.0, True), (0.5, True), (0.55, False)])
+def test_a_fresh_gnss_velocity_reaches_the_mission_in_the_map_frame(age_s, used):
+    from fisc_agent.mavlink.interfaces import GnssVelocity
+
+    cfg, clock, link, r = make(yaw_deg=90.0)      # the map's x axis points East
+    seen = []
+    step = r.mission.step
+    r.mission.step = lambda s: (seen.append(s.gnss_vel_m_s), step(s))[1]
+    link.gnss = GnssVelocity(clock.t - age_s, (0.3, 1.2))   # 0.3 m/s north, 1.2 m/s east
+    r.step()
+    if used:
+        assert seen[-1] == pytest.approx((1.2, -0.3))         # east is map +x, north map -y
+    else:
+        assert seen[-1] is None                               # older than GNSS_FRESH_S: the position's rate

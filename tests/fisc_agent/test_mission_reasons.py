@@ -18,6 +18,7 @@ from fisc_agent.flight.control import ScalarField
 from fisc_agent.flight.health import VehicleHealth
 from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, MissionOutput, State
 from fisc_agent.map.lookup import CommandField
+from fisc_agent.flight.tracking import TrackingConfig
 
 
 @pytest.fixture(scope="module")
@@ -233,8 +234,10 @@ def test_a_vehicle_given_back_after_a_pilot_override_says_so(sfield):
     assert (m.authority, m.authority_cause) == (Authority.COMMAND, AuthorityCause.GIVEN_BACK)
 
 
-def test_the_response_is_recorded_while_taking_off_and_joining_and_learnt_again_in_the_flow(sfield):
-    cfg, m, v = make(sfield)
+@pytest.mark.parametrize("auto", [True, False])
+def test_the_response_is_recorded_while_taking_off_and_joining_and_learnt_again_in_the_flow(sfield, auto):
+    cfg, m, v = make(sfield, tracking=TrackingConfig(feedforward_auto=auto, feedforward_gain=1.0))
+    v.gain = 0.8                                  # a vehicle that settles at 0.8 of its setpoint
     calls = {}
 
     def observe(m, v, out):
@@ -246,13 +249,17 @@ def test_the_response_is_recorded_while_taking_off_and_joining_and_learnt_again_
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, hook=observe)
     recorded = calls.get(State.TAKEOFF, 0) + calls.get(State.JOIN, 0)
     assert calls[State.ARM] > 0 and recorded > 0 and len(m.nav.recorder) == recorded  # not while arming
-    assert m.response.n_samples == recorded and m.response.gain == pytest.approx(1.0, abs=0.1)  # it obeys (accel-limited)
-    for _ in range(40):  # 2 s of the pass
+    assert m.response.n_samples == recorded and m.response.gain == pytest.approx(0.8, abs=0.1)
+    assert m.response.lookahead_s == m.tracker.cfg.lookahead_s             # the look-ahead is always flown
+    # the feed-forward gain only with --feedforward-gain auto; else the configured 1
+    assert m.tracker.cfg.feedforward_gain == (pytest.approx(m.response.feedforward_gain) if auto else 1.0)
+    for _ in range(80):  # 4 s of the pass
         out = step(m, v.status())
         observe(m, v, out)
         v.apply(out, cfg)
     assert len(m.nav.recorder) == recorded        # identified: no more recording
-    assert m.nav.online_gain is not None          # the flow feeds the online gain
+    assert (m.nav.online_gain is not None) == auto                          # the flow feeds the online gain
+    assert m.tracker.cfg.feedforward_gain == (pytest.approx(1 / 0.8, abs=0.05) if auto else 1.0)
 
 
 def test_cv_0_is_in_the_map(sfield):

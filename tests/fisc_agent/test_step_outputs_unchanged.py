@@ -52,6 +52,9 @@ class PlantLink(bench_agent.BenchLink):
         self.t_last = clock()
         self.sent: list[tuple[float, float, float]] = []
 
+    def latest_gnss_velocity(self):
+        return None
+
     def latest_position(self):
         now = self.clock()
         dt = now - self.t_last
