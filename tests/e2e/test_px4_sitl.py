@@ -35,8 +35,9 @@ TUNED_PARAMS = {"MPC_XY_VEL_P_ACC": 3.5, "MPC_XY_VEL_I_ACC": 1.5}
 """PX4's horizontal velocity loop tuned for SIH's drag, the documented option (docs/deployment.md):
 only the kinetic-mode test flies it (see there)."""
 MAX_VELOCITY_NRMSE = 0.12
-"""Bound on SIH's ground-truth velocity nRMSE for either MAVLink backend.  With stock PX4 parameters
-(2026-12-05, the gain learnt in the pass): 0.077 and 0.099 with pymavlink, MAVSDK within the bound;
+"""Bound on SIH's ground-truth velocity nRMSE for either MAVLink backend.  With stock PX4 parameters,
+the GNSS-velocity bias and the feed-forward gain at 1 (2026-12-06): 0.081-0.085 with pymavlink (three
+runs), 0.061 with MAVSDK.  Before (2026-12-05, the gain learnt in the pass): 0.077 and 0.099 with pymavlink, MAVSDK within the bound;
 with the gain fixed at 1, 0.100.  Issue 37's 0.10 sits inside that spread, so the bound leaves it
 room.  With tuned gains (2026-12-02, six flights): 0.063-0.068 with pymavlink, 0.064-0.067 with MAVSDK.  MAVSDK had a looser bound (0.15) while its
 callbacks, which carry no autopilot timestamp, biased the agent's velocity estimate
