@@ -22,7 +22,7 @@ Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping a spot, ``
 zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale position or
 a position jump resumes by itself once the fix is good again (a stale one only before that escalation);
 every other hold (escalated, link lost, geofence, exit, fleet, pilot override) waits for a fleet ``resume``.
-A resume and the geofence's RETURN end clear of the map's wall (``Navigator.rejoin_velocity``).
+A resume and the geofence's RETURN end clear of the map's wall (``Navigator.rejoin_target``).
 """
 
 from __future__ import annotations
@@ -321,7 +321,7 @@ class Mission:
                     st = State.FLOW
         elif st == State.RETURN:
             want_mode = ModeClass.OFFBOARD
-            if cv >= 0 and nav.rejoin_velocity(pos) is None:  # in the map and clear of its wall
+            if cv >= 0 and nav.rejoin_target(pos) is None:  # in the map and clear of its wall
                 self._go(t, State.FLOW, Reason(Cause.BACK_IN_MAP, f"back in the map at CV {cv}, clear of the wall"))
                 st = State.FLOW
             elif pos[0] >= self.geom.x_outlet_m and cv < 0:  # carried past the outlet while rejoining: lap done
@@ -494,7 +494,7 @@ class Mission:
         elif self.hold_cause == HoldCause.EXIT:
             nxt = State.JOIN
         elif nxt == State.FLOW and self.sfield is not None and pos is not None and (
-                self.sfield.cv_of(*pos) < 0 or self.nav.rejoin_velocity(pos) is not None):
+                self.sfield.cv_of(*pos) < 0 or self.nav.rejoin_target(pos) is not None):
             nxt = State.RETURN  # the hold left it outside the map or at its wall: back in first
         self._restored_fleet_hold = False
         self._enter(t, nxt, Reason(Cause.FLEET_RESUME), pos)

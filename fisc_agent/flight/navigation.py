@@ -283,26 +283,24 @@ class Navigator:
 
     def hold_spot(self, pos: Vec | None, cause: HoldCause | Cause) -> Vec | None:
         """Where a hold that began at ``pos`` keeps the vehicle in its first stage: None (zero velocity) unless
-        its cause is in ``KEEPING_SPOT``; that spot, except that a fleet hold at the wall (inside the rejoin
-        inset, ``fisc_agent.map.wall.rejoin_point``) keeps the point straight in from it, so that the
-        autopilot's own hold begins clear of the wall (a geofence hold keeps the spot where it left the map:
-        its policy is to stop there)."""
+        its cause is in ``KEEPING_SPOT``; that spot, except that a fleet hold at the wall keeps the point
+        straight in from it (``rejoin_target``), so that the autopilot's own hold begins clear of the wall
+        (a geofence hold keeps the spot where it left the map: its policy is to stop there)."""
         if cause not in KEEPING_SPOT:
             return None
-        wall, margin = (None, None) if self.sfield is None else (self.sfield.wall, self.cfg.wall_margin_m)
-        if pos is None or cause != HoldCause.FLEET or wall is None or margin is None:
-            return pos
-        inward = rejoin_point(wall, pos, margin)
+        inward = self.rejoin_target(pos) if pos is not None and cause == HoldCause.FLEET else None
         return pos if inward is None else inward
 
+    def rejoin_target(self, pos: Vec) -> Vec | None:
+        """The point straight in from ``pos`` where a vehicle too near the map's wall, or beyond it, rejoins the
+        flow (``fisc_agent.map.wall.rejoin_point``, with the wall margin ``wall_margin_m``); None when clear of
+        the wall, or when the map carries no wall or no margin is set (then the CVs alone decide)."""
+        wall, margin = (None, None) if self.sfield is None else (self.sfield.wall, self.cfg.wall_margin_m)
+        return None if wall is None or margin is None else rejoin_point(wall, pos, margin)
+
     def rejoin_velocity(self, pos: Vec) -> Vec | None:
-        """Inside the map but too near the wall to flow again (``fisc_agent.map.wall.rejoin_point``, with the
-        wall margin ``wall_margin_m``): fly straight in, across the stream, at the return speed; None when
-        clear of the wall, or when the map carries no wall or no margin is set (then the CVs alone decide)."""
-        wall, margin = self.sfield.wall, self.cfg.wall_margin_m
-        if wall is None or margin is None:
-            return None
-        point = rejoin_point(wall, pos, margin)
+        """Towards ``rejoin_target`` across the stream at the return speed; None where there is none."""
+        point = self.rejoin_target(pos)
         return None if point is None else self.goto(pos, point, self.cfg.return_speed_m_s)
 
     def goto(self, pos: Vec, target: Vec, speed_m_s: float, gain_1_s: float = 1.0) -> Vec:
