@@ -365,7 +365,7 @@ class Runner:
         stream_s = now - self._stream_start if self._stream_start is not None else 0.0
         if self.commander is not None and link_ok:
             self.commander.reconcile(now, out.want_mode, out.want_armed, out.takeoff_alt_m, link.armed, mode,
-                                     stream_s)
+                                     stream_s, hb_age)
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
             link.send_heartbeat()
             self._last_hb_sent = now

@@ -47,6 +47,13 @@ log = logging.getLogger(__name__)
 
 MAX_REFUSALS_KEPT = 64
 """How many refused commands ``Commander.refusals`` keeps (the newest)."""
+FRESH_HEARTBEAT_S = 0.25
+"""A mode or arming request to a *disarmed* vehicle waits for a HEARTBEAT at most this old [s].  PX4 and ArduPilot send
+HEARTBEAT, the only message that carries the mode, at 1 Hz: a ground station's mode change in the second before
+the agent's request is invisible to it, and the request would take the vehicle back unseen (PX4 SITL, 2026-12-06:
+the ground's AUTO.TAKEOFF 0.9 s before the agent's OFFBOARD in ARM).  On the ground the wait costs at most a
+second; in the air a request is never delayed.  (The MAVSDK backend counts any telemetry as a heartbeat, so
+there the wait does not close the gap.)"""
 
 # PX4 main / sub modes (PX4 src/modules/commander/px4_custom_mode.h; in no MAVLink dialect)
 PX4_MAIN_AUTO = 4
@@ -300,11 +307,12 @@ class Commander:
         self._attempts.pop(key, None)
 
     def reconcile(self, t: float, want_mode: ModeClass | None, want_armed: bool | None, takeoff_alt_m: float | None,
-                  armed: bool, mode: ModeClass, stream_s: float) -> None:
+                  armed: bool, mode: ModeClass, stream_s: float, heartbeat_age_s: float) -> None:
         """Request at most one thing: the mode first, then arming, then (ArduPilot) the takeoff.
 
         ``stream_s``: how long setpoints have been streamed without a gap (PX4 needs a
-        running stream before it accepts OFFBOARD).
+        running stream before it accepts OFFBOARD).  ``heartbeat_age_s``: the newest HEARTBEAT's age; a
+        disarmed vehicle's mode and arming are requested only on a fresh one (``FRESH_HEARTBEAT_S``).
         """
         if takeoff_alt_m is None:
             self._takeoff_accepted = False
@@ -314,6 +322,8 @@ class Commander:
             for intent in MODE_CLASSES:
                 if intent != want_mode or mode == intent:
                     self._clear(f"mode:{intent.value}")
+        if not armed and heartbeat_age_s > FRESH_HEARTBEAT_S:
+            return  # on the ground: first see whether someone else just changed the mode
         if want_mode is not None and mode != want_mode:
             if want_mode == ModeClass.OFFBOARD and stream_s < self.adapter.stream_before_offboard_s:
                 return

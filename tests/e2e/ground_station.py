@@ -120,6 +120,8 @@ class GroundStation:
         self.autopilot, self.target = autopilot, target_system
         self._m = mavutil.mavlink_connection(url, source_system=source_system, source_component=190)
         self._seen = _Seen()
+        self.mode_requests: list[tuple[float, str]] = []
+        """(wall-clock time, mode name) of every ``set_mode`` this ground station began, oldest first."""
         self._lock = threading.Lock()
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -263,6 +265,7 @@ class GroundStation:
             args = (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF)
         else:
             args = (MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode)
+        self.mode_requests.append((time.time(), mode_name(custom_mode, self.autopilot)))
         beat = self._until(lambda: self.command(MAV_CMD_DO_SET_MODE, *args),
                            lambda: (lambda b: b if b is not None and b.custom_mode == custom_mode else None)(
                                self.last_beat()), timeout_s, f"mode {mode_name(custom_mode, self.autopilot)}")

@@ -3,7 +3,7 @@
 import pytest
 
 from agent_testkit import RecordingVehicle
-from fisc_agent.mavlink.adapters import (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
+from fisc_agent.mavlink.adapters import (FRESH_HEARTBEAT_S, MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_MODE, MAV_CMD_NAV_TAKEOFF,
                                  MAV_CMD_SET_MESSAGE_INTERVAL, ArduPilotAdapter, CommandKind, CommandResult, Commander,
                                  ModeClass, Px4Adapter, adapter_for, autopilot_from_heartbeat, command_result,
                                  is_armed)
@@ -57,34 +57,52 @@ def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():
     v = RecordingVehicle()
     sent = v.sent
     c = Commander(Px4Adapter(), v, retry_s=1.0)
-    c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2)
+    c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2, heartbeat_age_s=0.0)
     assert sent == []                               # stream not running long enough yet
-    c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2)
+    c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2, heartbeat_age_s=0.0)
     assert sent == [("set_mode", ModeClass.OFFBOARD)]
-    c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7)
+    c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7, heartbeat_age_s=0.0)
     assert len(sent) == 1                           # not before retry_s
-    c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3)
+    c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3, heartbeat_age_s=0.0)
     assert len(sent) == 2                           # retried
-    c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4)
+    c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4, heartbeat_age_s=0.0)
     assert sent[-1] == ("arm",)
-    c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5)
+    c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5, heartbeat_age_s=0.0)
     assert len(sent) == 3                           # satisfied: nothing more
-    c.reconcile(9.0, "offboard", True, 2.5, armed=True, mode="offboard", stream_s=9.0)
+    c.reconcile(9.0, "offboard", True, 2.5, armed=True, mode="offboard", stream_s=9.0, heartbeat_age_s=0.0)
     assert len(sent) == 3                           # PX4 takes off by climbing in OFFBOARD: no takeoff request
+
+
+@pytest.mark.parametrize("adapter", [Px4Adapter(), ArduPilotAdapter()], ids=["px4", "ardupilot"])
+def test_a_disarmed_vehicles_mode_is_requested_only_on_a_fresh_heartbeat(adapter):
+    """A ground station's mode change between two 1 Hz HEARTBEATs is invisible: on the ground the mode and arming
+    requests wait for a HEARTBEAT at most FRESH_HEARTBEAT_S old (on its boundary: sent); in the air never."""
+    stream = 5.0
+    for age, armed, expected in [(FRESH_HEARTBEAT_S + 1e-3, False, []), (FRESH_HEARTBEAT_S, False, ["set_mode"]),
+                                 (0.0, False, ["set_mode"]), (0.9, True, ["set_mode"])]:
+        v = RecordingVehicle()
+        Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=armed, mode=ModeClass.HOLD,
+                                        stream_s=stream, heartbeat_age_s=age)
+        assert [x[0] for x in v.sent] == expected, (age, armed)
+    for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("arm",)])]:  # arming likewise
+        v = RecordingVehicle()
+        Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=False, mode=ModeClass.OFFBOARD,
+                                        stream_s=stream, heartbeat_age_s=age)
+        assert v.sent == expected, age
 
 
 def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
     v = RecordingVehicle()
     sent = v.sent
     c = Commander(ArduPilotAdapter(), v, retry_s=1.0)
-    c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0)
-    c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0)
-    c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0, heartbeat_age_s=0.0)
+    c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
+    c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
     assert sent == [("set_mode", ModeClass.OFFBOARD), ("arm",), ("takeoff", 2.0)]
-    c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
     assert len(sent) == 4                           # no ack yet: takeoff resent
     c.on_result(command_result(MAV_CMD_NAV_TAKEOFF, 0))
-    c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0)
+    c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
     assert len(sent) == 4                           # accepted: not resent
     c.on_result(command_result(MAV_CMD_COMPONENT_ARM_DISARM, 2))
     assert list(c.refusals) == [("arming", "DENIED")]
