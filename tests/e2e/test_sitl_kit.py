@@ -53,3 +53,31 @@ def test_a_second_session_waits_for_the_first_sessions_vehicles(tmp_path):
     mine = MachineLock(timeout_s=5.0, path=lock)
     mine.acquire()   # the holder is gone: the lock is free again
     mine.release()
+
+
+def test_the_authority_flights_mode_requests_merge_ground_and_agent_and_set_self_resuming_holds_apart(tmp_path):
+    """``test_authority_sitl._mode_requests``: the ground's and the agent's requests in time order; a jump hold's
+    Hold and the OFFBOARD after its fix came back are in the whole sequence, not in the scripted one."""
+    from datetime import datetime
+    from types import SimpleNamespace
+
+    from .test_authority_sitl import _mode_requests
+
+    console = tmp_path / "agent.log"
+    console.write_text("\n".join([
+        "2026-12-06 04:20:22,827 INFO fisc_agent.mavlink.adapters: requesting set mode OFFBOARD",
+        "2026-12-06 04:20:29,629 INFO fisc_agent.flight.mission: mission TAKEOFF -> HOLD (position jump: reset)",
+        "2026-12-06 04:20:31,629 INFO fisc_agent.mavlink.adapters: requesting set mode AUTO.LOITER",
+        "2026-12-06 04:20:31,677 INFO fisc_agent.flight.mission: mission HOLD -> TAKEOFF (position fix back)",
+        "2026-12-06 04:20:31,700 INFO fisc_agent.mavlink.adapters: requesting set mode OFFBOARD",
+        "2026-12-06 04:20:33,578 INFO fisc_agent.flight.mission: mission TAKEOFF -> HOLD (pilot override: x)",
+        "2026-12-06 04:20:40,477 INFO fisc_agent.flight.mission: mission HOLD -> JOIN (already flying: taking over)",
+        "2026-12-06 04:20:41,478 INFO fisc_agent.mavlink.adapters: requesting set mode OFFBOARD",
+        "2026-12-06 04:20:45,000 WARNING fisc_agent.mavlink.adapters: still requesting set mode AUTO.LAND (attempt 5)",
+    ]) + "\n")
+    ground_hold_t = datetime(2026, 12, 6, 4, 20, 33).timestamp()  # the ground's Hold, before the agent sees it
+    gcs = SimpleNamespace(mode_requests=[(ground_hold_t, "AUTO.LOITER")])
+    every, scripted = _mode_requests(gcs, SimpleNamespace(log_path=console))
+    assert every == ["OFFBOARD", "AUTO.LOITER", "OFFBOARD", "AUTO.LOITER", "OFFBOARD"]
+    assert scripted == ["OFFBOARD", "AUTO.LOITER", "OFFBOARD"]
+    assert _mode_requests(SimpleNamespace(mode_requests=[]), SimpleNamespace(log_path=tmp_path / "none")) == ([], [])
