@@ -402,6 +402,14 @@ def truth_track(path: Path, map_above_start_m: float = 10.0, x_lo_m: float = 0.0
     return gt["timestamp"] / 1e6, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m)
 
 
+CLOCK_WINDOW_S = 10.0
+"""Span of PX4's clock over which ``truth_on_wall_clock`` fits one offset of the clock map [s] (its knots are half
+of it apart)."""
+CLOCK_DRIFT_S = 2.0
+"""How far a knot's offset may stray from the affine map's [s]: lockstep SIH in the full suite drifted 1.96 s over
+two minutes (2026-12-06).  Below 0.95 x CLOCK_WINDOW_S / 4, so the clock map never runs backwards."""
+
+
 @dataclass(frozen=True)
 class WallTruth:
     """SIH's ground truth of one vehicle in the map frame, on the agents' wall clock."""
@@ -410,10 +418,31 @@ class WallTruth:
     """(n,) UNIX time of each sample [s]."""
     pos_m: np.ndarray
     """(n, 3) true position, map frame [m]."""
+    px4_s: np.ndarray
+    """(n,) the sample's time on PX4's own clock [s]."""
     clock_rate: float
-    """Wall seconds per PX4 second: lockstep SIH runs a few per cent slower than the wall clock."""
+    """Wall seconds per PX4 second over the flight: lockstep SIH runs a few per cent slower than the wall clock."""
+    knots_px4_s: np.ndarray
+    """(k,) PX4 times at which the clock map's offset is fitted [s]."""
+    knots_offset_s: np.ndarray
+    """(k,) the offset there: wall = clock_rate * px4 + offset, linear between knots, constant beyond [s]."""
     fit_rms_m: float
     """RMS distance between PX4's estimate and the agent's log once the clocks are matched [m]."""
+
+    def to_wall(self, px4_s) -> np.ndarray:
+        """Times on PX4's clock [s] (a ULog's timestamps / 1e6) on the wall clock [UNIX s]."""
+        t = np.asarray(px4_s, dtype=float)
+        return self.clock_rate * t + np.interp(t, self.knots_px4_s, self.knots_offset_s)
+
+
+def _clock_map_cost(wall_s: np.ndarray, t_est: np.ndarray, p_est: np.ndarray, track: "Track") -> float:
+    """Mean squared distance between PX4's estimate put at ``wall_s`` and the agent's log there (inf: < 50 samples
+    overlap)."""
+    sel = np.flatnonzero((wall_s >= track.wall_s[0]) & (wall_s <= track.wall_s[-1]))
+    if len(sel) < 50:
+        return np.inf
+    logged = np.column_stack([np.interp(wall_s[sel], track.wall_s, track.pos_m[:, k]) for k in range(3)])
+    return float(np.mean(np.sum((logged - p_est[sel]) ** 2, axis=1)))
 
 
 def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s: float | None = None) -> WallTruth:
@@ -421,12 +450,15 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
     ``--geodetic-anchor anchor``, in the map frame and on the agent's wall clock.
 
     A ULog is stamped with PX4's (lockstep, simulated) clock, the agent's log with the UNIX clock.
-    PX4's own position estimate (``vehicle_global_position``) is what the agent logged, so the
-    affine clock map t_wall = a + b t_px4 that best lays one on the other (least squares over a
-    grid of b in [0.95, 1.05] and a within 4 s of the logs' ends meeting) carries the truth onto
-    the wall clock.  The ULog ends at ``ulog_end_wall_s`` [UNIX s] (default: when the agent's log
-    does; give it when PX4 flew on without its agent, which was killed).  Measured: b 1.015-1.025,
-    RMS residual 0.02 m; a pure offset leaves 0.13-0.27 m.
+    PX4's own position estimate (``vehicle_global_position``) is what the agent logged, so the clock map
+    that best lays one on the other carries the truth onto the wall clock: first one affine map
+    t_wall = a + b t_px4 (least squares over a grid of b in [0.95, 1.05] and a within 4 s of the logs' ends
+    meeting), then, with b kept, an offset per ``CLOCK_WINDOW_S`` of PX4's clock (within ``CLOCK_DRIFT_S`` of a),
+    linear between them.  Lockstep's rate follows the host's load: in the full suite on 2 cores one affine map
+    left 0.21-0.46 m RMS, the offsets 0.046-0.051 m (2026-12-06; one affine map 0.02 m on a steady host, a pure
+    offset 0.13-0.27 m).  The ULog ends at
+    ``ulog_end_wall_s`` [UNIX s] (default: when the agent's log does; give it when PX4 flew on without its
+    agent, which was killed).
     """
     from pyulog import ULog
 
@@ -443,34 +475,41 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
 
     t_est, p_est = in_map("vehicle_global_position")
     t_gt, p_gt = in_map("vehicle_global_position_groundtruth")
+    thin = slice(None, None, 10)
     best = (np.inf, 1.0, 0.0)
     for rate in np.arange(0.95, 1.05 + 1e-9, 0.0025):
         end = (track.wall_s[-1] if ulog_end_wall_s is None else ulog_end_wall_s) - rate * t_est[-1]
         for offset in np.arange(end - 4.0, end + 4.0, 0.05):
-            tw = rate * t_est + offset
-            sel = np.flatnonzero((tw >= track.wall_s[0]) & (tw <= track.wall_s[-1]))[::10]
-            if len(sel) < 50:
-                continue
-            logged = np.column_stack([np.interp(tw[sel], track.wall_s, track.pos_m[:, k]) for k in range(3)])
-            cost = float(np.mean(np.sum((logged - p_est[sel]) ** 2, axis=1)))
+            cost = _clock_map_cost(rate * t_est[thin] + offset, t_est[thin], p_est[thin], track)
             if cost < best[0]:
                 best = (cost, float(rate), float(offset))
     if not np.isfinite(best[0]):
         raise ValueError(f"{path}: PX4's estimate and the agent's log {track.wall_s[0]:.0f}-{track.wall_s[-1]:.0f} "
                          "do not overlap")
-    cost, rate, offset = best
-    return WallTruth(rate * t_gt + offset, p_gt, rate, cost ** 0.5)
+    _, rate, offset = best
+    knots = np.arange(t_est[0], t_est[-1] + CLOCK_WINDOW_S / 2, CLOCK_WINDOW_S / 2)
+    offsets = np.full(knots.size, offset)
+    for k, knot in enumerate(knots):
+        near = np.flatnonzero(np.abs(t_est - knot) <= CLOCK_WINDOW_S / 2)[::2]
+        costs = [(_clock_map_cost(rate * t_est[near] + o, t_est[near], p_est[near], track), o)
+                 for o in np.arange(offset - CLOCK_DRIFT_S, offset + CLOCK_DRIFT_S + 1e-9, 0.01)]
+        cost_k, o_k = min(costs)
+        if np.isfinite(cost_k):
+            offsets[k] = o_k
+    wall_est = rate * t_est + np.interp(t_est, knots, offsets)
+    rms = _clock_map_cost(wall_est, t_est, p_est, track) ** 0.5
+    return WallTruth(rate * t_gt + np.interp(t_gt, knots, offsets), p_gt, t_gt, rate, knots, offsets, rms)
 
 
 def truth_pass(truth: WallTruth, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
                near_axis_m: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(t_s, pos_m, vel_m_s, states)`` of a fleet vehicle's ground truth (``truth_on_wall_clock``)
     for ``score_track``, as ``truth_track`` gives them for a lone vehicle: the velocity by central
-    differences on PX4's own clock (the wall clock runs ``clock_rate`` faster), the pass by
+    differences on PX4's own clock (the wall clock runs about ``clock_rate`` faster), the pass by
     ``pass_states``."""
-    keep = np.concatenate([[True], np.diff(truth.wall_s) > 0])
+    keep = np.concatenate([[True], (np.diff(truth.wall_s) > 0) & (np.diff(truth.px4_s) > 0)])
     t, pos = truth.wall_s[keep], truth.pos_m[keep]
-    vel = np.gradient(pos, t, axis=0) * truth.clock_rate
+    vel = np.gradient(pos, truth.px4_s[keep], axis=0)
     return t, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m)
 
 

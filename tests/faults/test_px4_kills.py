@@ -256,9 +256,7 @@ def test_an_agent_killed_its_px4_fails_safe_by_itself_and_the_ground_alarms(flig
     ulog = flight.ulogs[flight.victim]
     truth = flight.truth(flight.victim)
     st = ulog_topic(ulog, "vehicle_status")
-    gt_t = ulog_topic(ulog, "vehicle_global_position_groundtruth")["timestamp"]
-    offset = truth.wall_s[0] - truth.clock_rate * gt_t[0] / 1e6  # PX4's clock -> the wall clock
-    wall = truth.clock_rate * st["timestamp"] / 1e6 + offset
+    wall = truth.to_wall(st["timestamp"] / 1e6)  # PX4's clock -> the wall clock
     onset = wall[np.flatnonzero(st["failsafe"])]
     assert onset.size, "PX4 never set failsafe after its agent's kill"
     print(f"PX4 {flight.victim}: failsafe {onset[0] - kill.t_s:.2f} s after its agent's kill")
