@@ -16,6 +16,8 @@ Mapping onto the runner's interface (one code path with the pymavlink link):
 - ``send_velocity_ned`` -> ``offboard.set_velocity_ned`` (yaw held at the current heading);
 - with a geodetic anchor the fixes come from ``position`` and carry the newest ``velocity_ned``
   (MAVSDK's position has no velocity);
+- the GNSS receiver's velocity (``latest_gnss_velocity``) from ``raw_gps`` (asked for at ``GNSS_RATE_HZ``)
+  with the fix type of ``gps_info``, as the pymavlink link reads GPS_RAW_INT;
 - ``health``: battery % (``battery``), landed state (``landed_state``) and the estimator's local
   (and, with an anchor, global) position flags (``health``); the rest stays unknown.  ``integrity``:
   ``fisc_agent.flight.integrity`` over the fixes and the estimator flags (MAVSDK gives no reset counter);
@@ -48,6 +50,8 @@ from fisc_agent.flight.health import LandedState, VehicleHealth
 from fisc_agent.flight.integrity import IntegrityMonitor, IntegrityVerdict
 from fisc_agent.mavlink.adapters import Adapter, CommandKind, CommandResult, ModeClass
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
+from fisc_agent.mavlink.gnss import mavsdk_ground_velocity
+from fisc_agent.mavlink.health_reader import GNSS_RATE_HZ
 from fisc_agent.mavlink.interfaces import GnssVelocity, PositionSample
 
 log = logging.getLogger(__name__)
@@ -161,6 +165,8 @@ class MavsdkLink:
         self._health = VehicleHealth()
         self._integrity = IntegrityMonitor()
         self._vel_ned: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._gnss: GnssVelocity | None = None
+        self._gnss_fix_type = 0
         self._last_setpoint_s: float | None = None
         self._stop = threading.Event()
         self.watchdog_trips = 0
@@ -204,6 +210,9 @@ class MavsdkLink:
         t.subscribe_armed(self._on_armed)
         t.subscribe_flight_mode(self._on_mode)
         t.subscribe_heading(lambda h, _ud=None: setattr(self, "_heading_deg", float(h.heading_deg)))
+        t.subscribe_gps_info(self._on_gps_info)
+        t.subscribe_raw_gps(self._on_raw_gps)
+        t.set_rate_raw_gps_async(GNSS_RATE_HZ, lambda result, _ud=None: log.debug("raw GPS rate: %s", result))
 
     def _alive(self) -> None:
         self.last_heartbeat_t = self.clock() if self._system.is_connected() else self.last_heartbeat_t
@@ -235,6 +244,13 @@ class MavsdkLink:
         ned = self.anchor.geodetic_to_ned(pos.latitude_deg, pos.longitude_deg, pos.absolute_altitude_m)
         self._set_position(PositionSample(self.clock(), ned, self._vel_ned))
         self._alive()
+
+    def _on_gps_info(self, info, _ud=None) -> None:
+        self._gnss_fix_type = int(info.fix_type)
+
+    def _on_raw_gps(self, raw, _ud=None) -> None:
+        self._gnss = mavsdk_ground_velocity(self.clock(), self._gnss_fix_type, float(raw.velocity_m_s),
+                                            float(raw.cog_deg)) or self._gnss
 
     def _on_velocity(self, v, _ud=None) -> None:
         self._vel_ned = (float(v.north_m_s), float(v.east_m_s), float(v.down_m_s))
@@ -300,9 +316,9 @@ class MavsdkLink:
         return self._position
 
     def latest_gnss_velocity(self) -> GnssVelocity | None:
-        """None: this backend does not read the receiver's velocity (MAVSDK's ``raw_gps``) yet, so the
-        agent learns its estimator's velocity bias from the position alone (``ParcelTracker.observe``)."""
-        return None
+        """The GNSS receiver's newest velocity with a 3D fix (MAVSDK's ``raw_gps`` with the fix of its
+        ``gps_info``, asked for at ``GNSS_RATE_HZ``), or None."""
+        return self._gnss
 
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held (never raises)."""

@@ -6,6 +6,7 @@ through ``agent_testkit.EmulatorProbe``, for injected faults (position loss, lin
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 
@@ -272,11 +273,24 @@ def test_mavsdk_backend_flies_the_emulated_px4_through_the_tunnel(tunnel_map):
     emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
     try:
         cfg = agent_cfg(f"udpout:127.0.0.1:{emu.local_address[1]}", backend="mavsdk")
-        runner = Runner(cfg, MavsdkLink(cfg.mavlink_url), tunnel_map)
+        link = MavsdkLink(cfg.mavlink_url)
+        runner = Runner(cfg, link, tunnel_map)
+        gnss = []  # (the receiver's velocity as MAVSDK gave it, the emulated vehicle's, north-east) while it flows
+
+        def flowed_to_the_exit_hold(s):
+            g, v = link.latest_gnss_velocity(), emu.state.velocity_ned_m_s
+            if s.state == "FLOW" and g is not None and math.hypot(v[0], v[1]) > 0.5:
+                gnss.append((g.vel_ne_m_s, v[:2]))
+            return s.state == "HOLD" and s.mode == "hold"
+
         with Flight(runner) as f:
-            f.wait(lambda s: s.state == "HOLD" and s.mode == "hold", 40, "exit hold")
+            f.wait(flowed_to_the_exit_hold, 40, "exit hold")
         assert emu.state.mode.value == "loiter"
         _check_flight(f, tunnel_map)
+        # MAVSDK's raw_gps reached the agent (10 Hz asked, read within 0.02 s of a 20 Hz physics step)
+        assert len(gnss) > 20, gnss
+        err = [math.dist(g, v) for g, v in gnss]
+        assert np.median(err) < 0.1 and max(err) < 0.6, sorted(err)[-5:]
     finally:
         emu.stop()
 

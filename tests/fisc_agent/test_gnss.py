@@ -7,7 +7,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
-from fisc_agent.mavlink.gnss import UINT16_UNKNOWN, gnss_velocity
+from fisc_agent.mavlink.gnss import UINT16_UNKNOWN, gnss_velocity, ground_velocity, mavsdk_ground_velocity
 
 
 def _decoded(fix_type=3, vel=150, cog=9000):
@@ -34,6 +34,25 @@ def test_gnss_velocity_from_raw_bytes(fix_type, vel, cog, expect):
         assert got is None
     else:
         assert got.t_s == 12.5 and got.vel_ne_m_s == pytest.approx(expect, abs=1e-9)
+
+
+@pytest.mark.parametrize("fix_type, speed, course, expect", [
+    (3, 1.5, 90.0, (0.0, 1.5)),
+    (3, 1.5, 359.99, (1.5 * math.cos(math.radians(0.01)), -1.5 * math.sin(math.radians(0.01)))),  # just west of north
+    (2, 1.5, 90.0, None),                                           # just below a 3D fix
+    (3, 655.34, 90.0, (0.0, 655.34)),                               # the largest known speed
+    (3, 655.35, 90.0, None),                                        # GPS_RAW_INT's unknown, as MAVSDK scales it
+    (3, 1.5, 655.35, None),
+    (3, math.nan, 90.0, None),                                      # or as NaN
+    (3, 1.5, math.inf, None),
+])
+def test_mavsdks_raw_gps_velocity_at_its_boundaries(fix_type, speed, course, expect):
+    got = mavsdk_ground_velocity(4.0, fix_type, speed, course)
+    if expect is None:
+        assert got is None
+    else:
+        assert got.t_s == 4.0 and got.vel_ne_m_s == pytest.approx(expect, abs=1e-9)
+        assert ground_velocity(4.0, fix_type, speed, course) == got
 
 
 def test_the_tracker_learns_the_horizontal_bias_from_the_gnss_velocity_and_the_vertical_from_the_position():
