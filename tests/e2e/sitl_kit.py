@@ -435,7 +435,7 @@ class WallTruth:
         return self.clock_rate * t + np.interp(t, self.knots_px4_s, self.knots_offset_s)
 
 
-def _clock_map_cost(wall_s: np.ndarray, t_est: np.ndarray, p_est: np.ndarray, track: "Track") -> float:
+def _clock_map_cost(wall_s: np.ndarray, p_est: np.ndarray, track: "Track") -> float:
     """Mean squared distance between PX4's estimate put at ``wall_s`` and the agent's log there (inf: < 50 samples
     overlap)."""
     sel = np.flatnonzero((wall_s >= track.wall_s[0]) & (wall_s <= track.wall_s[-1]))
@@ -456,9 +456,8 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
     meeting), then, with b kept, an offset per ``CLOCK_WINDOW_S`` of PX4's clock (within ``CLOCK_DRIFT_S`` of a),
     linear between them.  Lockstep's rate follows the host's load: in the full suite on 2 cores one affine map
     left 0.21-0.46 m RMS, the offsets 0.046-0.051 m (2026-12-06; one affine map 0.02 m on a steady host, a pure
-    offset 0.13-0.27 m).  The ULog ends at
-    ``ulog_end_wall_s`` [UNIX s] (default: when the agent's log does; give it when PX4 flew on without its
-    agent, which was killed).
+    offset 0.13-0.27 m).  The ULog ends at ``ulog_end_wall_s`` [UNIX s] (default: when the agent's log does;
+    give it when PX4 flew on without its agent, which was killed).
     """
     from pyulog import ULog
 
@@ -480,7 +479,7 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
     for rate in np.arange(0.95, 1.05 + 1e-9, 0.0025):
         end = (track.wall_s[-1] if ulog_end_wall_s is None else ulog_end_wall_s) - rate * t_est[-1]
         for offset in np.arange(end - 4.0, end + 4.0, 0.05):
-            cost = _clock_map_cost(rate * t_est[thin] + offset, t_est[thin], p_est[thin], track)
+            cost = _clock_map_cost(rate * t_est[thin] + offset, p_est[thin], track)
             if cost < best[0]:
                 best = (cost, float(rate), float(offset))
     if not np.isfinite(best[0]):
@@ -491,13 +490,13 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
     offsets = np.full(knots.size, offset)
     for k, knot in enumerate(knots):
         near = np.flatnonzero(np.abs(t_est - knot) <= CLOCK_WINDOW_S / 2)[::2]
-        costs = [(_clock_map_cost(rate * t_est[near] + o, t_est[near], p_est[near], track), o)
+        costs = [(_clock_map_cost(rate * t_est[near] + o, p_est[near], track), o)
                  for o in np.arange(offset - CLOCK_DRIFT_S, offset + CLOCK_DRIFT_S + 1e-9, 0.01)]
         cost_k, o_k = min(costs)
         if np.isfinite(cost_k):
             offsets[k] = o_k
     wall_est = rate * t_est + np.interp(t_est, knots, offsets)
-    rms = _clock_map_cost(wall_est, t_est, p_est, track) ** 0.5
+    rms = _clock_map_cost(wall_est, p_est, track) ** 0.5
     return WallTruth(rate * t_gt + np.interp(t_gt, knots, offsets), p_gt, t_gt, rate, knots, offsets, rms)
 
 

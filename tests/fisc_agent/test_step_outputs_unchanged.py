@@ -4,8 +4,9 @@ Deterministic flights on a simulated clock (``bench_agent.ManualClock``; the wal
 clock) drive a ``Runner`` tick by tick; every tick's mission output, the setpoint sent (NED) and the
 telemetry snapshot are recorded (``repr`` of every float) and compared with those recorded from the code
 before the optimisation (``step_outputs_golden.json``): everything but the floats exactly (a digest of the
-records with each float replaced by ``F``), the floats by one weighted sum per tick within ``TOL``.  The floats are not compared bit for bit: numpy takes different SIMD paths on different CPUs, and the
-staggered and kinetic flights then differ in the last bits (3.6e-15 relative on an AVX-512 host, 2026-12-06;
+records with each float replaced by ``F``), the floats by one weighted sum per tick within ``TOL``.  The
+floats are not compared bit for bit: numpy takes different SIMD paths on different CPUs, and the staggered
+and kinetic flights then differ in the last bits (3.6e-15 relative on an AVX-512 host, 2026-12-06;
 the golden was rewritten then from the code that had matched the pre-optimisation digests bit for bit on the
 earlier host).  The flights:
 
