@@ -52,8 +52,10 @@ FRESH_HEARTBEAT_S = 0.25
 HEARTBEAT, the only message that carries the mode, at 1 Hz: a ground station's mode change in the second before
 the agent's request is invisible to it, and the request would take the vehicle back unseen (PX4 SITL, 2026-12-06:
 the ground's AUTO.TAKEOFF 0.9 s before the agent's OFFBOARD in ARM).  On the ground the wait costs at most a
-second; in the air a request is never delayed.  (The MAVSDK backend counts any telemetry as a heartbeat, so
-there the wait does not close the gap.)"""
+second; in the air a first request is never delayed.  A retry, armed or not, waits for a HEARTBEAT this fresh
+that came after the request it repeats: a retry on the view from before the request would take back a pilot's
+switch made since, unseen.  (The MAVSDK backend counts any telemetry as a heartbeat, so there the wait does
+not close the gap.)"""
 
 # PX4 main / sub modes (PX4 src/modules/commander/px4_custom_mode.h; in no MAVLink dialect)
 PX4_MAIN_AUTO = 4
@@ -290,10 +292,11 @@ class Commander:
         forged COMMAND_ACKs must not grow it; the rate-limited log counts them all)."""
         self._refusal_log = RateLimitedLog(log)
 
-    def _try(self, t: float, key: str, label: str, request: Callable[[], None]) -> None:
+    def _try(self, t: float, key: str, label: str, request: Callable[[], None], heartbeat_age_s: float) -> None:
         last = self._last_sent.get(key)
-        if last is not None and t - last < self.retry_s:
-            return
+        if last is not None and (t - last < self.retry_s or heartbeat_age_s > FRESH_HEARTBEAT_S
+                                 or t - heartbeat_age_s <= last):
+            return  # a retry only on a fresh HEARTBEAT newer than the request: never on a view older than it
         n = self._attempts.get(key, 0) + 1
         self._attempts[key], self._last_sent[key] = n, t
         if n == 1:
@@ -312,7 +315,8 @@ class Commander:
 
         ``stream_s``: how long setpoints have been streamed without a gap (PX4 needs a
         running stream before it accepts OFFBOARD).  ``heartbeat_age_s``: the newest HEARTBEAT's age; a
-        disarmed vehicle's mode and arming are requested only on a fresh one (``FRESH_HEARTBEAT_S``).
+        disarmed vehicle's mode and arming are requested only on a fresh one (``FRESH_HEARTBEAT_S``), and so is
+        every retry, armed or not, and only on a HEARTBEAT received after the request it repeats.
         """
         if takeoff_alt_m is None:
             self._takeoff_accepted = False
@@ -329,15 +333,16 @@ class Commander:
                 return
             wanted = ModeClass(want_mode)
             self._try(t, f"mode:{wanted.value}", f"set mode {self.adapter.mode_name(wanted)}",
-                      lambda: self.vehicle.set_mode(wanted))
+                      lambda: self.vehicle.set_mode(wanted), heartbeat_age_s)
             return
         if want_armed and not armed:
-            self._try(t, "arm", "arm", self.vehicle.arm)
+            self._try(t, "arm", "arm", self.vehicle.arm, heartbeat_age_s)
             return
         if self._last_sent:
             self._clear("arm")
         if takeoff_alt_m is not None and armed and not self._takeoff_accepted and self.adapter.takeoff_by_command:
-            self._try(t, "takeoff", f"takeoff to {takeoff_alt_m:.1f} m", lambda: self.vehicle.takeoff(takeoff_alt_m))
+            self._try(t, "takeoff", f"takeoff to {takeoff_alt_m:.1f} m", lambda: self.vehicle.takeoff(takeoff_alt_m),
+                      heartbeat_age_s)
 
     def on_result(self, res: CommandResult) -> None:
         """Handle the autopilot's answer to a command."""

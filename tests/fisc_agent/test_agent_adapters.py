@@ -91,6 +91,31 @@ def test_a_disarmed_vehicles_mode_is_requested_only_on_a_fresh_heartbeat(adapter
         assert v.sent == expected, age
 
 
+@pytest.mark.parametrize(("what", "armed"), [("set_mode", False), ("set_mode", True), ("arm", False),
+                                             ("takeoff", True)])
+def test_a_retry_waits_for_a_fresh_heartbeat_received_after_the_request(what, armed):
+    """A pilot's switch after the agent's request shows only on the next 1 Hz HEARTBEAT: a retry goes out
+    only after retry_s, on a HEARTBEAT at most FRESH_HEARTBEAT_S old *and* received after the request it
+    repeats (the request at t = 0 on a HEARTBEAT at 0; the retry at t with the newest HEARTBEAT at h)."""
+    mode, want_armed, takeoff = {"set_mode": (ModeClass.HOLD, None, None), "arm": (ModeClass.OFFBOARD, True, None),
+                                 "takeoff": (ModeClass.OFFBOARD, True, 2.0)}[what]
+    fresh = FRESH_HEARTBEAT_S
+    for retry_s, t, h, retried in [
+            (1.0, 1.2, 1e-3, False),                 # newer than the request, but 1.199 s old
+            (1.0, 1.2, 1.2 - fresh, True),           # newer and just fresh
+            (1.0, 1.2, 1.2 - fresh - 1e-3, False),   # newer, just stale
+            (1.0, 1.2, 1.2, True),
+            (1.0, 0.999, 0.999, False),              # fresh, but before retry_s
+            (0.1, 0.2, 0.0, False),                  # fresh, but the HEARTBEAT the request was sent on
+            (0.1, 0.2, 1e-3, True)]:                 # fresh and just after the request
+        v = RecordingVehicle()
+        c = Commander(ArduPilotAdapter(), v, retry_s=retry_s)
+        for now, hb_age in [(0.0, 0.0), (t, t - h)]:
+            c.reconcile(now, ModeClass.OFFBOARD, want_armed, takeoff, armed=armed, mode=mode, stream_s=5.0,
+                        heartbeat_age_s=hb_age)
+        assert [x[0] for x in v.sent] == [what] * (2 if retried else 1), (retry_s, t, h)
+
+
 def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
     v = RecordingVehicle()
     sent = v.sent
