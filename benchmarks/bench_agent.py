@@ -84,6 +84,10 @@ class BenchLink:
         self.last_heartbeat_t = self.clock()
         return 0
 
+    @property
+    def mode_t_s(self):
+        return self.last_heartbeat_t
+
     def latest_gnss_velocity(self):
         return None
 

@@ -313,6 +313,8 @@ class Runner:
                 self.commander.on_result(result)
         # ages are >= 0: a message received during this tick's poll is newer than ``now``
         hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
+        mode_t = link.mode_t_s
+        mode_age = max(0.0, now - mode_t) if mode_t is not None else math.inf
         mode = link.mode if self.adapter is not None else ModeClass.UNKNOWN
         sample = self._gated(link.latest_position())
         tf = self.transform
@@ -365,7 +367,7 @@ class Runner:
         stream_s = now - self._stream_start if self._stream_start is not None else 0.0
         if self.commander is not None and link_ok:
             self.commander.reconcile(now, out.want_mode, out.want_armed, out.takeoff_alt_m, link.armed, mode,
-                                     stream_s, hb_age)
+                                     stream_s, mode_age)
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
             link.send_heartbeat()
             self._last_hb_sent = now

@@ -54,8 +54,8 @@ the agent's request is invisible to it, and the request would take the vehicle b
 the ground's AUTO.TAKEOFF 0.9 s before the agent's OFFBOARD in ARM).  On the ground the wait costs at most a
 second; in the air a first request is never delayed.  A retry, armed or not, waits for a HEARTBEAT this fresh
 that came after the request it repeats: a retry on the view from before the request would take back a pilot's
-switch made since, unseen.  (The MAVSDK backend counts any telemetry as a heartbeat, so there the wait does
-not close the gap.)"""
+switch made since, unseen.  The HEARTBEAT's time is the link's ``mode_t_s`` (on the MAVSDK backend too: MAVSDK
+reports the flight mode on every HEARTBEAT)."""
 
 # PX4 main / sub modes (PX4 src/modules/commander/px4_custom_mode.h; in no MAVLink dialect)
 PX4_MAIN_AUTO = 4
@@ -292,10 +292,10 @@ class Commander:
         forged COMMAND_ACKs must not grow it; the rate-limited log counts them all)."""
         self._refusal_log = RateLimitedLog(log)
 
-    def _try(self, t: float, key: str, label: str, request: Callable[[], None], heartbeat_age_s: float) -> None:
+    def _try(self, t: float, key: str, label: str, request: Callable[[], None], mode_age_s: float) -> None:
         last = self._last_sent.get(key)
-        if last is not None and (t - last < self.retry_s or heartbeat_age_s > FRESH_HEARTBEAT_S
-                                 or t - heartbeat_age_s <= last):
+        if last is not None and (t - last < self.retry_s or mode_age_s > FRESH_HEARTBEAT_S
+                                 or t - mode_age_s <= last):
             return  # a retry only on a fresh HEARTBEAT newer than the request: never on a view older than it
         n = self._attempts.get(key, 0) + 1
         self._attempts[key], self._last_sent[key] = n, t
@@ -310,13 +310,14 @@ class Commander:
         self._attempts.pop(key, None)
 
     def reconcile(self, t: float, want_mode: ModeClass | None, want_armed: bool | None, takeoff_alt_m: float | None,
-                  armed: bool, mode: ModeClass, stream_s: float, heartbeat_age_s: float) -> None:
+                  armed: bool, mode: ModeClass, stream_s: float, mode_age_s: float) -> None:
         """Request at most one thing: the mode first, then arming, then (ArduPilot) the takeoff.
 
-        ``stream_s``: how long setpoints have been streamed without a gap (PX4 needs a
-        running stream before it accepts OFFBOARD).  ``heartbeat_age_s``: the newest HEARTBEAT's age; a
-        disarmed vehicle's mode and arming are requested only on a fresh one (``FRESH_HEARTBEAT_S``), and so is
-        every retry, armed or not, and only on a HEARTBEAT received after the request it repeats.
+        ``stream_s``: how long setpoints have been streamed without a gap (PX4 needs a running stream before it
+        accepts OFFBOARD).  ``mode_age_s``: the age of the newest report of the mode (the HEARTBEAT,
+        ``VehicleLink.mode_t_s``); a disarmed vehicle's mode and arming are requested only on a fresh one
+        (``FRESH_HEARTBEAT_S``), and so is every retry, armed or not, and only on a report received after the
+        request it repeats.
         """
         if takeoff_alt_m is None:
             self._takeoff_accepted = False
@@ -326,23 +327,23 @@ class Commander:
             for intent in MODE_CLASSES:
                 if intent != want_mode or mode == intent:
                     self._clear(f"mode:{intent.value}")
-        if not armed and heartbeat_age_s > FRESH_HEARTBEAT_S:
+        if not armed and mode_age_s > FRESH_HEARTBEAT_S:
             return  # on the ground: first see whether someone else just changed the mode
         if want_mode is not None and mode != want_mode:
             if want_mode == ModeClass.OFFBOARD and stream_s < self.adapter.stream_before_offboard_s:
                 return
             wanted = ModeClass(want_mode)
             self._try(t, f"mode:{wanted.value}", f"set mode {self.adapter.mode_name(wanted)}",
-                      lambda: self.vehicle.set_mode(wanted), heartbeat_age_s)
+                      lambda: self.vehicle.set_mode(wanted), mode_age_s)
             return
         if want_armed and not armed:
-            self._try(t, "arm", "arm", self.vehicle.arm, heartbeat_age_s)
+            self._try(t, "arm", "arm", self.vehicle.arm, mode_age_s)
             return
         if self._last_sent:
             self._clear("arm")
         if takeoff_alt_m is not None and armed and not self._takeoff_accepted and self.adapter.takeoff_by_command:
             self._try(t, "takeoff", f"takeoff to {takeoff_alt_m:.1f} m", lambda: self.vehicle.takeoff(takeoff_alt_m),
-                      heartbeat_age_s)
+                      mode_age_s)
 
     def on_result(self, res: CommandResult) -> None:
         """Handle the autopilot's answer to a command."""

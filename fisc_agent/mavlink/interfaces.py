@@ -67,6 +67,11 @@ class VehicleLink(PositionSource, SetpointSink, VehicleCommands, Protocol):
     """Local monotonic time of the newest sign of life [s]; None: never."""
 
     @property
+    def mode_t_s(self) -> float | None:
+        """Local monotonic time [s] of the newest report of the mode, the autopilot's HEARTBEAT (1 Hz on PX4 and
+        ArduPilot); None: never.  The ``Commander`` judges whether a request is made on a fresh view by it."""
+
+    @property
     def mode(self) -> ModeClass:
         """The vehicle's mode class (``UNKNOWN`` before the first HEARTBEAT or ``use_adapter``)."""
 

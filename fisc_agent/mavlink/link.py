@@ -150,9 +150,7 @@ class MavlinkLink:
         self.target_system: int | None = None
         """System id of the autopilot the link is locked on (None before the first HEARTBEAT)."""
         self.target_component: int = 1
-        self.armed = False
-        self.base_mode = 0
-        self.custom_mode = 0
+        self.armed, self.base_mode, self.custom_mode = False, 0, 0
         self.last_heartbeat_t: float | None = None
         self.heartbeats = 0
         self._position: PositionSample | None = None
@@ -166,8 +164,7 @@ class MavlinkLink:
         self.stream_requests_refused = 0
         """SET_MESSAGE_INTERVAL requests the autopilot refused (ArduPilot: ESTIMATOR_STATUS, ODOMETRY; PX4:
         EKF_STATUS_REPORT: expected)."""
-        self._poll_errors = 0
-        self._last_reopen_s: float | None = None
+        self._poll_errors, self._last_reopen_s = 0, None
 
     def _new_health_reader(self) -> HealthReader:
         return HealthReader(None if self.anchor is None else self.anchor.geodetic_to_ned)
@@ -182,6 +179,9 @@ class MavlinkLink:
     def integrity(self) -> IntegrityVerdict:
         """Whether the position may be flown on: ``ok``, or the disruption's typed ``reason`` and since when."""
         return self.integrity_monitor.verdict
+
+    mode_t_s = property(lambda self: self.last_heartbeat_t, doc="When the newest HEARTBEAT, which carries the mode, "
+                        "arrived [s, ``clock``]; None: never (``VehicleLink.mode_t_s``).")
 
     @property
     def errors(self) -> int:

@@ -8,7 +8,8 @@ the agent stays lean without it.
 Mapping onto the runner's interface (one code path with the pymavlink link):
 
 - telemetry callbacks (position_velocity_ned or position, armed, flight_mode) update the
-  position, ``armed`` and ``mode`` (MAVSDK's ``FlightMode`` as a ``ModeClass``);
+  position, ``armed`` and ``mode`` (MAVSDK's ``FlightMode`` as a ``ModeClass``); MAVSDK reports the
+  flight mode on every HEARTBEAT, which dates the mode (``mode_t_s``) as on the pymavlink link;
 - the fixes carry the autopilot's own time (``PositionSample.autopilot_t_s``): MAVSDK's
   position_velocity_ned has none, so the newest ODOMETRY's ``time_usec`` (PX4 streams it with the
   local position, at the same rate) stands in, plus the receive-time gap since it
@@ -156,6 +157,7 @@ class MavsdkLink:
         self.armed = False
         self.last_heartbeat_t: float | None = None
         self._mode = ModeClass.UNKNOWN
+        self._mode_t_s: float | None = None
         self._position: PositionSample | None = None
         self._odometry_stamp: tuple[float, float] | None = None
         self._heading_deg = 0.0
@@ -276,7 +278,9 @@ class MavsdkLink:
         self._alive()
 
     def _on_mode(self, mode, _ud=None) -> None:
+        # MAVSDK calls this on every HEARTBEAT of the autopilot, changed or not (TelemetryImpl::process_heartbeat)
         self._mode = MODE_CLASS_OF.get(getattr(mode, "name", str(mode)), ModeClass.OTHER)
+        self._mode_t_s = self.clock()
         self._alive()
 
     # ---- VehicleLink --------------------------------------------------------------------
@@ -284,6 +288,12 @@ class MavsdkLink:
     def mode(self) -> ModeClass:
         """The vehicle's mode class from MAVSDK's flight mode (``UNKNOWN`` before the first one)."""
         return self._mode if self.last_heartbeat_t is not None else ModeClass.UNKNOWN
+
+    @property
+    def mode_t_s(self) -> float | None:
+        """When MAVSDK last reported the flight mode, on the autopilot's HEARTBEAT [s, ``clock``]; None: never.
+        Unlike ``last_heartbeat_t`` (any telemetry while MAVSDK is connected), 1 Hz as on the pymavlink link."""
+        return self._mode_t_s
 
     @property
     def health(self) -> VehicleHealth:

@@ -57,19 +57,19 @@ def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():
     v = RecordingVehicle()
     sent = v.sent
     c = Commander(Px4Adapter(), v, retry_s=1.0)
-    c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2, heartbeat_age_s=0.0)
+    c.reconcile(0.0, "offboard", True, None, armed=False, mode="other", stream_s=0.2, mode_age_s=0.0)
     assert sent == []                               # stream not running long enough yet
-    c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2, heartbeat_age_s=0.0)
+    c.reconcile(1.0, "offboard", True, None, armed=False, mode="other", stream_s=1.2, mode_age_s=0.0)
     assert sent == [("set_mode", ModeClass.OFFBOARD)]
-    c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7, heartbeat_age_s=0.0)
+    c.reconcile(1.5, "offboard", True, None, armed=False, mode="other", stream_s=1.7, mode_age_s=0.0)
     assert len(sent) == 1                           # not before retry_s
-    c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3, heartbeat_age_s=0.0)
+    c.reconcile(2.1, "offboard", True, None, armed=False, mode="other", stream_s=2.3, mode_age_s=0.0)
     assert len(sent) == 2                           # retried
-    c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4, heartbeat_age_s=0.0)
+    c.reconcile(2.2, "offboard", True, None, armed=False, mode="offboard", stream_s=2.4, mode_age_s=0.0)
     assert sent[-1] == ("arm",)
-    c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5, heartbeat_age_s=0.0)
+    c.reconcile(2.3, "offboard", True, None, armed=True, mode="offboard", stream_s=2.5, mode_age_s=0.0)
     assert len(sent) == 3                           # satisfied: nothing more
-    c.reconcile(9.0, "offboard", True, 2.5, armed=True, mode="offboard", stream_s=9.0, heartbeat_age_s=0.0)
+    c.reconcile(9.0, "offboard", True, 2.5, armed=True, mode="offboard", stream_s=9.0, mode_age_s=0.0)
     assert len(sent) == 3                           # PX4 takes off by climbing in OFFBOARD: no takeoff request
 
 
@@ -82,12 +82,12 @@ def test_a_disarmed_vehicles_mode_is_requested_only_on_a_fresh_heartbeat(adapter
                                  (0.0, False, ["set_mode"]), (0.9, True, ["set_mode"])]:
         v = RecordingVehicle()
         Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=armed, mode=ModeClass.HOLD,
-                                        stream_s=stream, heartbeat_age_s=age)
+                                        stream_s=stream, mode_age_s=age)
         assert [x[0] for x in v.sent] == expected, (age, armed)
     for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("arm",)])]:  # arming likewise
         v = RecordingVehicle()
         Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=False, mode=ModeClass.OFFBOARD,
-                                        stream_s=stream, heartbeat_age_s=age)
+                                        stream_s=stream, mode_age_s=age)
         assert v.sent == expected, age
 
 
@@ -112,7 +112,7 @@ def test_a_retry_waits_for_a_fresh_heartbeat_received_after_the_request(what, ar
         c = Commander(ArduPilotAdapter(), v, retry_s=retry_s)
         for now, hb_age in [(0.0, 0.0), (t, t - h)]:
             c.reconcile(now, ModeClass.OFFBOARD, want_armed, takeoff, armed=armed, mode=mode, stream_s=5.0,
-                        heartbeat_age_s=hb_age)
+                        mode_age_s=hb_age)
         assert [x[0] for x in v.sent] == [what] * (2 if retried else 1), (retry_s, t, h)
 
 
@@ -120,14 +120,14 @@ def test_ardupilot_guided_arm_takeoff_sequence_and_acks():
     v = RecordingVehicle()
     sent = v.sent
     c = Commander(ArduPilotAdapter(), v, retry_s=1.0)
-    c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0, heartbeat_age_s=0.0)
-    c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
-    c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
+    c.reconcile(0.0, "offboard", True, 2.0, armed=False, mode="other", stream_s=0.0, mode_age_s=0.0)
+    c.reconcile(0.1, "offboard", True, 2.0, armed=False, mode="offboard", stream_s=0.0, mode_age_s=0.0)
+    c.reconcile(0.2, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, mode_age_s=0.0)
     assert sent == [("set_mode", ModeClass.OFFBOARD), ("arm",), ("takeoff", 2.0)]
-    c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
+    c.reconcile(1.5, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, mode_age_s=0.0)
     assert len(sent) == 4                           # no ack yet: takeoff resent
     c.on_result(command_result(MAV_CMD_NAV_TAKEOFF, 0))
-    c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, heartbeat_age_s=0.0)
+    c.reconcile(3.0, "offboard", True, 2.0, armed=True, mode="offboard", stream_s=0.0, mode_age_s=0.0)
     assert len(sent) == 4                           # accepted: not resent
     c.on_result(command_result(MAV_CMD_COMPONENT_ARM_DISARM, 2))
     assert list(c.refusals) == [("arming", "DENIED")]

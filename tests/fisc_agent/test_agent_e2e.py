@@ -307,6 +307,47 @@ def _wait_for(pred, timeout_s, what, poll=None):
 
 
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
+def test_the_mode_is_dated_by_the_heartbeat_alone_on_both_backends(backend):
+    """``mode_t_s``, by which the Commander judges a request fresh, advances with the emulated PX4's 1 Hz
+    HEARTBEAT only: not with the 50 Hz positions (MAVSDK's liveness, ``last_heartbeat_t``, does)."""
+    from fisc_agent.mavlink.adapters import FRESH_HEARTBEAT_S, Px4Adapter
+
+    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
+    url = f"udpout:127.0.0.1:{emu.local_address[1]}"
+    if backend == "mavsdk":
+        require_module("mavsdk", extra="mavsdk")
+        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
+
+        link = MavsdkLink(url)
+    else:
+        link = MavlinkLink(url)
+
+    def poll():
+        link.poll()
+        link.send_heartbeat()
+
+    try:
+        _wait_for(lambda: link.mode_t_s is not None and link.latest_position() is not None, 10, "the autopilot",
+                  poll)
+        link.use_adapter(Px4Adapter())
+        stamps, ages, fix_ages = set(), [], []
+        end = time.monotonic() + 3.5
+        while time.monotonic() < end:
+            poll()
+            now = time.monotonic()
+            stamps.add(link.mode_t_s)
+            ages.append(now - link.mode_t_s)
+            fix_ages.append(now - link.latest_position().t_s)
+            time.sleep(0.02)
+        assert 3 <= len(stamps) <= 5, sorted(stamps)            # 1 Hz over 3.5 s
+        assert max(ages) > 0.8 > FRESH_HEARTBEAT_S, max(ages)   # stale between HEARTBEATs ...
+        assert max(fix_ages) < FRESH_HEARTBEAT_S, max(fix_ages)  # ... while the fixes stream
+    finally:
+        link.close()
+        emu.stop()
+
+
+@pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_link_intents_move_the_emulated_px4(backend):
     """The VehicleLink's intents on both backends against the emulator over UDP: arm, hold, land
     change the vehicle's state and come back as accepted CommandResults (MAVSDK: its own actions)."""

@@ -87,6 +87,10 @@ class MemoryLink(RecordingVehicle):
     def mode(self):
         return self.vehicle_mode if self.adapter is not None and self.last_heartbeat_t is not None else ModeClass.UNKNOWN
 
+    @property
+    def mode_t_s(self):
+        return self.last_heartbeat_t
+
     def use_adapter(self, adapter):
         self.adapter = adapter
 
