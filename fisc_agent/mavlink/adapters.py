@@ -48,14 +48,15 @@ log = logging.getLogger(__name__)
 MAX_REFUSALS_KEPT = 64
 """How many refused commands ``Commander.refusals`` keeps (the newest)."""
 FRESH_HEARTBEAT_S = 0.25
-"""A mode or arming request to a *disarmed* vehicle waits for a HEARTBEAT at most this old [s].  PX4 and ArduPilot send
-HEARTBEAT, the only message that carries the mode, at 1 Hz: a ground station's mode change in the second before
-the agent's request is invisible to it, and the request would take the vehicle back unseen (PX4 SITL, 2026-12-06:
-the ground's AUTO.TAKEOFF 0.9 s before the agent's OFFBOARD in ARM).  On the ground the wait costs at most a
-second; in the air a first request is never delayed.  A retry, armed or not, waits for a HEARTBEAT this fresh
-that came after the request it repeats: a retry on the view from before the request would take back a pilot's
-switch made since, unseen.  The HEARTBEAT's time is the link's ``mode_t_s`` (on the MAVSDK backend too: MAVSDK
-reports the flight mode on every HEARTBEAT)."""
+"""Every mode, arming or take-off request waits for a HEARTBEAT at most this old [s], on the ground and in the air.
+PX4 and ArduPilot send HEARTBEAT, the only message that carries the mode, at 1 Hz: a mode change by a pilot, a
+ground station or an autopilot failsafe in the second before the agent's request is invisible to it, and the
+request would take the vehicle back unseen (PX4 SITL, 2026-12-06: the ground's AUTO.TAKEOFF 0.9 s before the
+agent's OFFBOARD in ARM).  The wait costs at most a second (the agent's own setpoints, a zero velocity in its
+holds, fly meanwhile) and leaves a change in the last quarter second unseen, not the last second.  A retry also
+waits for a HEARTBEAT that came after the request it repeats: the view from before the request would take back a
+switch made since.  The HEARTBEAT's time is the link's ``mode_t_s`` (on the MAVSDK backend too: MAVSDK reports the
+flight mode on every HEARTBEAT)."""
 
 # PX4 main / sub modes (PX4 src/modules/commander/px4_custom_mode.h; in no MAVLink dialect)
 PX4_MAIN_AUTO = 4
@@ -294,9 +295,8 @@ class Commander:
 
     def _try(self, t: float, key: str, label: str, request: Callable[[], None], mode_age_s: float) -> None:
         last = self._last_sent.get(key)
-        if last is not None and (t - last < self.retry_s or mode_age_s > FRESH_HEARTBEAT_S
-                                 or t - mode_age_s <= last):
-            return  # a retry only on a fresh HEARTBEAT newer than the request: never on a view older than it
+        if last is not None and (t - last < self.retry_s or t - mode_age_s <= last):
+            return  # a retry only on a HEARTBEAT newer than the request: never on a view older than it
         n = self._attempts.get(key, 0) + 1
         self._attempts[key], self._last_sent[key] = n, t
         if n == 1:
@@ -315,9 +315,8 @@ class Commander:
 
         ``stream_s``: how long setpoints have been streamed without a gap (PX4 needs a running stream before it
         accepts OFFBOARD).  ``mode_age_s``: the age of the newest report of the mode (the HEARTBEAT,
-        ``VehicleLink.mode_t_s``); a disarmed vehicle's mode and arming are requested only on a fresh one
-        (``FRESH_HEARTBEAT_S``), and so is every retry, armed or not, and only on a report received after the
-        request it repeats.
+        ``VehicleLink.mode_t_s``); every request, on the ground or in the air, goes out only on a fresh one
+        (``FRESH_HEARTBEAT_S``), and a retry only on a report received after the request it repeats.
         """
         if takeoff_alt_m is None:
             self._takeoff_accepted = False
@@ -327,8 +326,8 @@ class Commander:
             for intent in MODE_CLASSES:
                 if intent != want_mode or mode == intent:
                     self._clear(f"mode:{intent.value}")
-        if not armed and mode_age_s > FRESH_HEARTBEAT_S:
-            return  # on the ground: first see whether someone else just changed the mode
+        if mode_age_s > FRESH_HEARTBEAT_S:
+            return  # first see whether someone else just changed the mode
         if want_mode is not None and mode != want_mode:
             if want_mode == ModeClass.OFFBOARD and stream_s < self.adapter.stream_before_offboard_s:
                 return

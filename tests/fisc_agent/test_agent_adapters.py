@@ -74,21 +74,33 @@ def test_px4_offboard_waits_for_the_setpoint_stream_then_retries():
 
 
 @pytest.mark.parametrize("adapter", [Px4Adapter(), ArduPilotAdapter()], ids=["px4", "ardupilot"])
-def test_a_disarmed_vehicles_mode_is_requested_only_on_a_fresh_heartbeat(adapter):
-    """A ground station's mode change between two 1 Hz HEARTBEATs is invisible: on the ground the mode and arming
-    requests wait for a HEARTBEAT at most FRESH_HEARTBEAT_S old (on its boundary: sent); in the air never."""
-    stream = 5.0
-    for age, armed, expected in [(FRESH_HEARTBEAT_S + 1e-3, False, []), (FRESH_HEARTBEAT_S, False, ["set_mode"]),
-                                 (0.0, False, ["set_mode"]), (0.9, True, ["set_mode"])]:
+@pytest.mark.parametrize("armed", [False, True], ids=["on-the-ground", "in-the-air"])
+@pytest.mark.parametrize("wanted", [ModeClass.OFFBOARD, ModeClass.HOLD, ModeClass.LAND])
+def test_a_mode_is_requested_only_on_a_fresh_heartbeat(adapter, armed, wanted):
+    """A mode change by someone else between two 1 Hz HEARTBEATs is invisible: every mode request, on the ground
+    and in the air, waits for a HEARTBEAT at most FRESH_HEARTBEAT_S old (on its boundary: sent)."""
+    current = ModeClass.OTHER
+    for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("set_mode", wanted)]),
+                          (0.0, [("set_mode", wanted)]), (0.9, [])]:
         v = RecordingVehicle()
-        Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=armed, mode=ModeClass.HOLD,
-                                        stream_s=stream, mode_age_s=age)
-        assert [x[0] for x in v.sent] == expected, (age, armed)
-    for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("arm",)])]:  # arming likewise
+        Commander(adapter, v).reconcile(0.0, wanted, None, None, armed=armed, mode=current, stream_s=5.0,
+                                        mode_age_s=age)
+        assert v.sent == expected, age
+
+
+@pytest.mark.parametrize("adapter", [Px4Adapter(), ArduPilotAdapter()], ids=["px4", "ardupilot"])
+def test_arming_and_the_take_off_are_requested_only_on_a_fresh_heartbeat(adapter):
+    for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("arm",)])]:
         v = RecordingVehicle()
         Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, None, armed=False, mode=ModeClass.OFFBOARD,
-                                        stream_s=stream, mode_age_s=age)
+                                        stream_s=5.0, mode_age_s=age)
         assert v.sent == expected, age
+    if adapter.takeoff_by_command:
+        for age, expected in [(FRESH_HEARTBEAT_S + 1e-3, []), (FRESH_HEARTBEAT_S, [("takeoff", 2.0)])]:
+            v = RecordingVehicle()
+            Commander(adapter, v).reconcile(0.0, ModeClass.OFFBOARD, True, 2.0, armed=True, mode=ModeClass.OFFBOARD,
+                                            stream_s=5.0, mode_age_s=age)
+            assert v.sent == expected, age
 
 
 @pytest.mark.parametrize(("what", "armed"), [("set_mode", False), ("set_mode", True), ("arm", False),
