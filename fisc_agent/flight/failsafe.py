@@ -4,7 +4,8 @@ Each function maps measured ages/positions to a decision; the mission state mach
 them with this priority: link lost > position lost > position stale > geofence.
 
 - Stale position (no fix for > ``stale_timeout_s``): zero-velocity hold setpoints.
-- Lost position (stale for a further ``hold_grace_s``): request the autopilot's hold/loiter mode.
+- Lost position (stale for a further ``hold_grace_s``): request the autopilot's hold/loiter mode
+  (zero velocity while the request waits, ``Handover``).
 - Link lost (no autopilot HEARTBEAT for > ``link_timeout_s``): our setpoints no longer arrive;
   the autopilot's own offboard-loss failsafe (PX4 COM_OF_LOSS_T/COM_OBL_RC_ACT, ArduPilot
   GUID_TIMEOUT/FS_GCS_ENABLE) takes over.  The agent reports it and holds (latched).
@@ -15,6 +16,8 @@ them with this priority: link lost > position lost > position stale > geofence.
 from __future__ import annotations
 
 from enum import Enum, StrEnum
+
+from fisc_agent.mavlink.adapters import ModeClass
 
 
 class PositionHealth(str, Enum):
@@ -69,3 +72,31 @@ def geofence(cv_id: int, x_m: float, x_outlet_m: float, policy: GeofencePolicy |
     except ValueError:
         raise ValueError(f"unknown geofence policy {policy!r}; choose hold or return") from None
     return GeofenceVerdict.RETURN if p is GeofencePolicy.RETURN else GeofenceVerdict.HOLD
+
+
+
+HANDOVER_S = 1.5
+"""How long zero velocity is streamed while the agent hands its vehicle to the autopilot's own mode [s]: a request
+waits up to a second for a fresh HEARTBEAT (``adapters.FRESH_HEARTBEAT_S``, HEARTBEAT at 1 Hz), then the autopilot
+answers.  After it the stream stops, as it did at once before that wait: an autopilot that refuses the mode (PX4's
+Hold without a position estimate) is left to its own offboard-loss failsafe."""
+
+
+class Handover:
+    """The setpoint while the agent hands its vehicle to the autopilot's own hold or land mode: zero velocity while
+    the vehicle still flies the agent's mode (offboard/guided), for ``HANDOVER_S`` from the first ``velocity``
+    after a ``reset``, so that the autopilot's offboard-loss failsafe (PX4's COM_OF_LOSS_T: 1 s) does not take the
+    vehicle while the request waits for a fresh HEARTBEAT; None, nothing sent, otherwise."""
+
+    def __init__(self) -> None:
+        self._since_s: float | None = None
+
+    def reset(self) -> None:
+        """A new state: the next ``velocity`` starts a new handover."""
+        self._since_s = None
+
+    def velocity(self, t_s: float, mode: ModeClass) -> tuple[float, float, float] | None:
+        """Zero velocity in offboard within ``HANDOVER_S`` of this handover's first call; None otherwise."""
+        if self._since_s is None:
+            self._since_s = t_s
+        return (0.0, 0.0, 0.0) if mode == ModeClass.OFFBOARD and t_s - self._since_s < HANDOVER_S else None

@@ -8,15 +8,14 @@
     any flying state -> HOLD (failsafe or fleet "hold") -> previous state (auto or "resume")
     any armed state  -> LAND (fleet "land", low battery, take-off timeout);  disarmed in flight -> DONE
 
-Who is in charge is the authority model of ``fisc_agent.flight.authority`` (docs/deployment.md,
-"Authority"): the agent arms only after a go, never takes over a vehicle armed by someone else
-(unless a takeover addressed to it says so), and a mode change it did not ask for (pilot, ground
-station, autopilot failsafe) puts it hands-off, in every state, until a command addressed to it.
+Who is in charge is the authority model of ``fisc_agent.flight.authority`` (docs/deployment.md, "Authority"): the
+agent arms only after a go, never takes over a vehicle armed by someone else (unless a takeover addressed to it says
+so), and a mode change it did not ask for (pilot, ground station, autopilot failsafe) puts it hands-off, in every
+state, until a command addressed to it.
 
-Each ``step(status)`` returns a ``MissionOutput``: the map-frame velocity to stream (None: do
-not stream), the autopilot mode and arming state wanted (reconciled by
-``adapters.Commander``), and, for ArduPilot, the takeoff height.  Velocities are *unclamped*;
-the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
+Each ``step(status)`` returns a ``MissionOutput``: the map-frame velocity to stream (None: do not stream), the
+autopilot mode and arming state wanted (reconciled by ``adapters.Commander``), and, for ArduPilot, the takeoff height.
+Velocities are *unclamped*; the runner clamps every setpoint.  Every transition is logged and kept in ``transitions``.
 
 Holds: a first stage in offboard/guided for ``hold_grace_s`` (keeping a spot, ``Navigator.hold_spot``, or
 zero velocity), then the autopilot's hold/loiter mode is requested.  A hold caused by a stale position or
@@ -32,7 +31,7 @@ import logging
 from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
-from fisc_agent.flight.failsafe import GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+from fisc_agent.flight.failsafe import GeofenceVerdict, Handover, PositionHealth, geofence, link_ok, position_health
 from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, Authority, Cause,
                                              FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput, Reason,
                                              State, Transition, VehicleStatus)
@@ -73,6 +72,7 @@ class Mission:
         self._resume_state = State.WAIT_POSITION
         self._hold_latched = False
         self._hold_escalated = False
+        self._handover = Handover()
         self._hold_armed = False
         self._hold_spot: Vec | None = None
         self.nav = Navigator(cfg)
@@ -166,6 +166,7 @@ class Mission:
         if dst == State.DONE and self.authority in (Authority.COMMAND, Authority.HANDS_OFF):
             self._set_authority(Authority.RELEASED, AuthorityCause.FLIGHT_OVER)
         self.state, self.reason, self._t_state = dst, reason, t
+        self._handover.reset()
 
     def _hold(self, t: float, reason: Reason, latched: bool, armed: bool) -> None:
         self._hold_latched = (self._hold_latched and self.state == State.HOLD) or latched
@@ -332,7 +333,8 @@ class Mission:
             want_mode = ModeClass.OFFBOARD
             vel = nav.exit_velocity(pos)
             if nav.exit_arrived(pos, s.vel_m_s):
-                if self._exit_policy(s) is ExitPolicy.LAND:
+                low = battery_low(s.health, cfg.min_battery_pct)  # then the low-battery action, not the exit policy
+                if (cfg.low_battery_action if low else cfg.exit_policy) is ExitPolicy.LAND:
                     self._go(t, State.LAND, Reason(Cause.EXIT_LAND))
                     st = State.LAND
                 else:
@@ -354,9 +356,10 @@ class Mission:
                 vel = None
         if self.state == State.HOLD:
             fresh = pos if ph == PositionHealth.OK and s.integrity_ok else None
-            vel, want_mode, want_armed, takeoff = self._hold_output(t, s.heartbeat_age_s <= cfg.stale_timeout_s, fresh)
+            heard = s.heartbeat_age_s <= cfg.stale_timeout_s
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, heard, fresh, s.mode)
         elif self.state == State.LAND:
-            vel, want_mode = None, ModeClass.LAND
+            vel, want_mode = self._handover.velocity(t, s.mode), ModeClass.LAND
             if not s.armed:
                 self._go(t, State.DONE, Reason(Cause.LANDED))
         if self.state in (State.DONE, State.STANDBY, State.WAIT_POSITION) or self.authority != Authority.COMMAND:
@@ -397,12 +400,6 @@ class Mission:
         self.laps = 0
         self._go(t, State.ARM, Reason(Cause.AUTOPILOT_FOUND, f"go; position and {s.autopilot} heartbeat received"))
 
-    def _exit_policy(self, s: VehicleStatus) -> ExitPolicy:
-        """The configured exit policy, or the low-battery action once the battery is below the minimum."""
-        if battery_low(s.health, self.cfg.min_battery_pct):
-            return self.cfg.low_battery_action
-        return self.cfg.exit_policy
-
     def _passed_outlet(self, t: float, pos: Vec, s: VehicleStatus) -> Vec:
         """A lap is done: back to the inlet (exit policy ``loop``, laps left, battery above the minimum)
         or on to the exit."""
@@ -421,10 +418,10 @@ class Mission:
             return self.nav.goto(pos, self.nav.waypoints[0], cfg.join_speed_m_s)
         return self.nav.exit_velocity(pos)
 
-    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None) -> HoldOutput:
-        """The hold's output: in offboard/guided for ``hold_grace_s`` (from a fresh ``pos``, back to the hold's
-        spot, ``Navigator.hold_spot``; else zero velocity), then the autopilot's hold mode; the escalation waits
-        while the autopilot is not ``heard`` (a blind request could land on a failsafe's Land)."""
+    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None, mode=ModeClass.UNKNOWN) -> HoldOutput:
+        """The hold's output: offboard/guided for ``hold_grace_s`` (from a fresh ``pos`` back to the hold's spot,
+        ``Navigator.hold_spot``; else zero velocity), then the autopilot's hold mode (``Handover`` in the vehicle's
+        ``mode``), not while the autopilot is unheard (blind, it could land on a failsafe's Land)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
         if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:
@@ -434,7 +431,7 @@ class Mission:
             self._hold_latched = self._hold_latched or self.hold_cause != HoldCause.POSITION_JUMP
             log.info("hold: grace over, requesting the autopilot's hold mode")
         if self._hold_escalated:
-            return None, ModeClass.HOLD, None, None
+            return self._handover.velocity(t, mode), ModeClass.HOLD, None, None
         spot = self._hold_spot
         vel = self.nav.goto(pos, spot, HOLD_KEEP_SPEED_M_S) if pos is not None and spot is not None else ZERO
         return vel, ModeClass.OFFBOARD, None, None

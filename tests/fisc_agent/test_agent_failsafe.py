@@ -4,7 +4,9 @@ import math
 
 import pytest
 
-from fisc_agent.flight.failsafe import GeofencePolicy, GeofenceVerdict, PositionHealth, geofence, link_ok, position_health
+from fisc_agent.flight.failsafe import (HANDOVER_S, GeofencePolicy, GeofenceVerdict, Handover, PositionHealth, geofence,
+                                        link_ok, position_health)
+from fisc_agent.mavlink.adapters import FRESH_HEARTBEAT_S, ModeClass
 
 
 def test_position_health_stages():
@@ -46,3 +48,18 @@ def test_policy_options_become_enums_and_bad_ones_name_the_choices():
     assert cfg.exit_policy is ExitPolicy.LOOP and cfg.geofence is GeofencePolicy.RETURN
     with pytest.raises(ValueError, match="exit_policy must be one of hold, land, loop, is 'fly'"):
         AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=1, exit_policy="fly")
+
+
+def test_a_handover_streams_zero_in_offboard_while_the_request_waits_then_stops():
+    """Handing the vehicle to the autopilot's hold or land mode: zero velocity while it is still in offboard, for
+    HANDOVER_S from the handover's first tick (longer than a request's wait for a fresh 1 Hz HEARTBEAT); nothing
+    in any other mode; a reset (a new state) starts over."""
+    assert HANDOVER_S > 1.0 + FRESH_HEARTBEAT_S
+    h = Handover()
+    assert h.velocity(10.0, ModeClass.OFFBOARD) == (0.0, 0.0, 0.0)                  # the first tick starts it
+    assert h.velocity(10.0 + HANDOVER_S - 1e-3, ModeClass.OFFBOARD) == (0.0, 0.0, 0.0)   # just inside
+    assert h.velocity(10.0 + HANDOVER_S, ModeClass.OFFBOARD) is None                # on the bound: over
+    for mode in (ModeClass.HOLD, ModeClass.LAND, ModeClass.OTHER, ModeClass.UNKNOWN):
+        assert Handover().velocity(0.0, mode) is None, mode                         # handed over, or not ours
+    h.reset()
+    assert h.velocity(20.0, ModeClass.OFFBOARD) == (0.0, 0.0, 0.0)

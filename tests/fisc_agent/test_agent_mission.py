@@ -11,6 +11,7 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import MapGeometry, ScalarField, clamp_velocity, distance
 from fisc_agent.flight.spacing import ENTRY_OPEN_FRACTION
 from fisc_agent.map.lookup import CommandField, return_command
+from fisc_agent.flight.failsafe import HANDOVER_S
 from fisc_agent.flight.mission import Cause, HoldCause, Mission, Reason, State, VehicleStatus
 from fisc_agent.flight.mission_types import Authority, FleetOrder, MissionCommand
 from fisc_agent.flight.tracking import TrackingConfig
@@ -245,7 +246,9 @@ def test_position_lost_escalates_to_autopilot_hold_and_waits_for_resume(sfield):
     assert m.state == State.HOLD and m.reason == "position stale"  # the hold is the stale-position one
     assert [t.reason for t in m.transitions].count("position stale") == 1
     assert v.t - v.last_fix > cfg.stale_timeout_s + cfg.hold_grace_s - 2 * DT
-    assert outs[-1].velocity_m_s is None
+    assert outs[-1].velocity_m_s == (0.0, 0.0, 0.0)  # handing over: zero while the request waits, still in offboard
+    outs = run_for(m, v, cfg, HANDOVER_S)
+    assert outs[-1].velocity_m_s is None and outs[-1].want_mode == "hold"  # then nothing (refused: the failsafe's)
     v.drop_position = False
     outs = run_for(m, v, cfg, 2.0)
     assert outs[-1].want_mode == "hold"
