@@ -86,7 +86,8 @@ class Handover:
     """The setpoint while the agent hands its vehicle to the autopilot's own hold or land mode: zero velocity while
     the vehicle still flies the agent's mode (offboard/guided), for ``HANDOVER_S`` from the first ``velocity``
     after a ``reset``, so that the autopilot's offboard-loss failsafe (PX4's COM_OF_LOSS_T: 1 s) does not take the
-    vehicle while the request waits for a fresh HEARTBEAT; None, nothing sent, otherwise."""
+    vehicle while the request waits for a fresh HEARTBEAT; None, nothing sent, otherwise (the mission passes the
+    mode ``UNKNOWN`` while the link is lost: nothing is streamed blind)."""
 
     def __init__(self) -> None:
         self._since_s: float | None = None

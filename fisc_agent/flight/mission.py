@@ -214,6 +214,7 @@ class Mission:
         ph = position_health(s.position_age_s, cfg.stale_timeout_s, cfg.hold_grace_s)
         lk = link_ok(s.heartbeat_age_s, cfg.link_timeout_s)
         foreign = self._modes.observe(t, s.mode) if lk else None
+        seen = s.mode if lk else ModeClass.UNKNOWN  # the mode as last heard, not while the link is lost
 
         for order in self._pending:
             self._fleet(t, order, s, pos, ph)
@@ -357,9 +358,9 @@ class Mission:
         if self.state == State.HOLD:
             fresh = pos if ph == PositionHealth.OK and s.integrity_ok else None
             heard = s.heartbeat_age_s <= cfg.stale_timeout_s
-            vel, want_mode, want_armed, takeoff = self._hold_output(t, heard, fresh, s.mode)
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, heard, fresh, seen)
         elif self.state == State.LAND:
-            vel, want_mode = self._handover.velocity(t, s.mode), ModeClass.LAND
+            vel, want_mode = self._handover.velocity(t, seen), ModeClass.LAND
             if not s.armed:
                 self._go(t, State.DONE, Reason(Cause.LANDED))
         if self.state in (State.DONE, State.STANDBY, State.WAIT_POSITION) or self.authority != Authority.COMMAND:

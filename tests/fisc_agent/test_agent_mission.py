@@ -411,6 +411,8 @@ def test_link_loss_holds_latched_and_requests_hold_mode_when_back(sfield):
     assert m.reason == "position stale"             # positions stop first
     run(m, v, cfg, lambda m, v, o: m.reason == "link lost")
     assert v.t - v.last_hb > cfg.link_timeout_s
+    outs = run_for(m, v, cfg, 1.0)                  # blind: nothing streamed, not even the handover's zero
+    assert v.mode == "offboard" and all(o.velocity_m_s is None and o.want_mode == "hold" for o in outs)
     v.mute = False
     outs = run(m, v, cfg, lambda m, v, o: True)
     assert outs[-1].want_mode == "hold" and m.state == State.HOLD
