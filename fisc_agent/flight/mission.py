@@ -32,9 +32,9 @@ from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, Handover, PositionHealth, geofence, link_ok, position_health
-from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, Authority, Cause,
-                                             FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput, Reason,
-                                             State, Transition, VehicleStatus)
+from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, JUMP_HOLD_GRACE_S, Authority,
+                                             Cause, FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput,
+                                             Reason, State, Transition, VehicleStatus)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.flight.readiness import arming_blockers, battery_low
 from fisc_agent.flight.state_file import AgentState
@@ -425,7 +425,9 @@ class Mission:
         ``mode``), not while the autopilot is unheard (blind, it could land on a failsafe's Land)."""
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
-        if not self._hold_escalated and heard and t - self._t_state >= self.cfg.hold_grace_s:
+        jump = self.hold_cause == HoldCause.POSITION_JUMP  # an estimator reset ends by itself: no escalation before
+        grace = max(self.cfg.hold_grace_s, JUMP_HOLD_GRACE_S) if jump else self.cfg.hold_grace_s
+        if not self._hold_escalated and heard and t - self._t_state >= grace:
             self._hold_escalated = True
             # a position jump ends when the track is consistent again, however long the estimator takes
             # (a real EKF3 GPS glitch: 15 s); every other escalated hold waits for a resume

@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 from fisc_agent.flight.control import Vec
 from fisc_agent.flight.health import VehicleHealth
+from fisc_agent.flight.integrity import IntegrityConfig
 from fisc_agent.mavlink.adapters import ModeClass
 
 
@@ -97,6 +98,12 @@ class HoldCause(str, Enum):
 
 AUTO_RESUMING = frozenset({HoldCause.POSITION_STALE, HoldCause.POSITION_JUMP})
 """Holds that end by themselves when the position is good again (unless latched)."""
+JUMP_HOLD_GRACE_S = IntegrityConfig.consistent_s + 1.0
+"""The first stage of a position-jump hold lasts at least this long [s]: an estimator reset ends once the track has
+been consistent for ``IntegrityConfig.consistent_s`` (2 s) after the jump.  PX4 SIH's EKF2 resets its position near
+2 m in every take-off; with the grace equal to that (``hold_grace_s`` 2 s), the hold escalated to the autopilot's hold
+mode on the tick before it ended by itself, and the autopilot's answer a HEARTBEAT later read as a foreign mode
+change: hands-off (PX4 SITL, 2026-12-06).  A long glitch (a real EKF3 GPS glitch: 15 s) still escalates."""
 KEEPING_SPOT = frozenset({HoldCause.FLEET, HoldCause.GEOFENCE})
 """Holds whose first stage (the vehicle still in offboard/guided, ``hold_grace_s``) keeps the spot where
 they began: back towards it at most ``HOLD_KEEP_SPEED_M_S``, corrected for the bias of the autopilot's

@@ -17,7 +17,9 @@ from fisc_agent.flight.authority import MODE_ECHO_S, SUPERSEDED_ECHO_S, FleetAct
 from fisc_agent.flight.control import MapGeometry, ScalarField
 from fisc_agent.flight.flightlog import FlightLog, rotate
 from fisc_agent.flight.health import LandedState, SystemState, VehicleHealth
+from fisc_agent.flight.integrity import IntegrityConfig
 from fisc_agent.flight.mission import Mission
+from fisc_agent.flight.mission_types import JUMP_HOLD_GRACE_S
 from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, State
 from fisc_agent.flight.readiness import HealthKind, arming_blockers, battery_low, distance_to_box_m, health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
@@ -324,6 +326,21 @@ def test_a_long_position_jump_escalates_to_hold_mode_and_still_resumes(sfield):
     v.integrity = (True, "")
     run(m, v, cfg, lambda m, v, o: m.state == State.FLOW and v.mode == "offboard", max_s=v.t + 2)
     assert m.authority == Authority.COMMAND
+
+
+def test_a_position_jump_hold_escalates_only_after_the_estimator_reset_could_have_ended(sfield):
+    """An estimator reset ends after a consistent track of IntegrityConfig.consistent_s (2 s, as --hold-grace):
+    a jump hold escalates at JUMP_HOLD_GRACE_S, not at --hold-grace (a stale-position hold does, below), so a
+    routine reset never asks for the autopilot's hold mode on the tick before it ends by itself."""
+    for grace_s, expected_s in [(2.0, JUMP_HOLD_GRACE_S), (JUMP_HOLD_GRACE_S + 1.0, JUMP_HOLD_GRACE_S + 1.0)]:
+        cfg, m, v = make_h(sfield, hold_grace_s=grace_s)
+        to_flow(m, v, cfg)
+        v.integrity = (False, "reset counter stepped")
+        outs = run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + 10)
+        held_s = v.t - m.transitions[-1].t_s
+        assert m.hold_cause == HoldCause.POSITION_JUMP and expected_s <= held_s < expected_s + 2 * DT, held_s
+        assert outs[-2].want_mode == "offboard" and outs[-2].velocity_m_s == (0.0, 0.0, 0.0)
+    assert JUMP_HOLD_GRACE_S == IntegrityConfig.consistent_s + 1.0
 
 
 def test_restart_restores_a_fleet_hold_on_the_ground(sfield):
