@@ -306,21 +306,24 @@ def _wait_for(pred, timeout_s, what, poll=None):
     raise AssertionError(f"timeout waiting for {what}")
 
 
+def _emulated_px4_and_link(backend: str):
+    """An emulated PX4 on a free UDP port, and a link to it on ``backend`` (pymavlink, or the optional MAVSDK)."""
+    if backend == "mavsdk":
+        require_module("mavsdk", extra="mavsdk")
+        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink as link_type
+    else:
+        link_type = MavlinkLink
+    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
+    return emu, link_type(f"udpout:127.0.0.1:{emu.local_address[1]}")
+
+
 @pytest.mark.parametrize("backend", ["pymavlink", "mavsdk"])
 def test_the_mode_is_dated_by_the_heartbeat_alone_on_both_backends(backend):
     """``mode_t_s``, by which the Commander judges a request fresh, advances with the emulated PX4's 1 Hz
     HEARTBEAT only: not with the 50 Hz positions (MAVSDK's liveness, ``last_heartbeat_t``, does)."""
     from fisc_agent.mavlink.adapters import FRESH_HEARTBEAT_S, Px4Adapter
 
-    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
-    url = f"udpout:127.0.0.1:{emu.local_address[1]}"
-    if backend == "mavsdk":
-        require_module("mavsdk", extra="mavsdk")
-        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
-
-        link = MavsdkLink(url)
-    else:
-        link = MavlinkLink(url)
+    emu, link = _emulated_px4_and_link(backend)
 
     def poll():
         link.poll()
@@ -353,15 +356,7 @@ def test_link_intents_move_the_emulated_px4(backend):
     change the vehicle's state and come back as accepted CommandResults (MAVSDK: its own actions)."""
     from fisc_agent.mavlink.adapters import CommandKind, ModeClass, Px4Adapter
 
-    emu = server.AutopilotEmulator("udpin:127.0.0.1:0", personality="px4").start()
-    url = f"udpout:127.0.0.1:{emu.local_address[1]}"
-    if backend == "mavsdk":
-        require_module("mavsdk", extra="mavsdk")
-        from fisc_agent.mavlink.mavsdk_backend import MavsdkLink
-
-        link = MavsdkLink(url)
-    else:
-        link = MavlinkLink(url)
+    emu, link = _emulated_px4_and_link(backend)
     results = []
 
     def poll():
