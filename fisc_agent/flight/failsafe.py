@@ -74,7 +74,6 @@ def geofence(cv_id: int, x_m: float, x_outlet_m: float, policy: GeofencePolicy |
     return GeofenceVerdict.RETURN if p is GeofencePolicy.RETURN else GeofenceVerdict.HOLD
 
 
-
 HANDOVER_S = 1.5
 """How long zero velocity is streamed while the agent hands its vehicle to the autopilot's own mode [s]: a request
 waits up to a second for a fresh HEARTBEAT (``adapters.FRESH_HEARTBEAT_S``, HEARTBEAT at 1 Hz), then the autopilot
