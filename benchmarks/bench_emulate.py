@@ -9,7 +9,8 @@ loop ran >= 95 % of its ticks, and every loop (agents and emulators) kept its p9
 one control period (50 ms) and its p99 gap between ticks below two.
 
 The search goes up through ``--sizes`` until a size fails, then bisects between the last pass
-and the first failure (``--bisect`` steps).  Prints one line per size and a summary.
+and the first failure (``--bisect`` steps).  Prints one line per size (with how many agents reached FLOW:
+the agents must fly the map, not wait on the ground) and a summary.
 
     python benchmarks/bench_emulate.py                       # default settings of fisc-sim emulate
     python benchmarks/bench_emulate.py --telemetry lean --physics-rate 20 --physics-dt 0.05
@@ -42,6 +43,8 @@ def measure(n: int, args, map_path: Path, field: CommandField) -> dict:
     t_from = steady_start_s(plan, cfg.duration_s)
     rt = realtime_summary(swarm, cfg.rate_hz, n, t_from)
     rt["workers"] = cfg.workers()
+    # the agents must really fly: an agent stuck before FLOW costs less than one flying the map
+    rt["reached_flow"] = sum(any(dst == "FLOW" for _, _, dst, _ in a["transitions"]) for a in swarm.agents)
     return rt
 
 
@@ -57,7 +60,8 @@ def line(n: int, rt: dict) -> str:
             f"{1e3 * max(x['lag_p99_s'] for x in e):4.0f}/{1e3 * max(x['gap_p99_s'] for x in e):4.0f} ms  "
             f"CPU {rt['cpu_cores_used']:.2f} cores (agents {sum(x['cpu_cores'] for x in a):.2f}, emulators "
             f"{sum(x['cpu_cores'] for x in e):.2f}) = {1e3 * rt['cpu_per_agent']:.2f} ms per vehicle-second  "
-            f"(window {rt['window_s'][0]:.0f}-{rt['window_s'][1]:.0f} s, setup {rt['setup_s']:.1f} s)")
+            f"(window {rt['window_s'][0]:.0f}-{rt['window_s'][1]:.0f} s, setup {rt['setup_s']:.1f} s)  "
+            f"reached FLOW {rt['reached_flow']}/{n}")
 
 
 def main() -> None:

@@ -25,8 +25,10 @@ log = logging.getLogger(__name__)
 # ------------------------------------------------------------------------------------ workers
 #: Streams an agent needs (HEARTBEAT is fixed-rate): with ``telemetry="lean"`` the agents switch
 #: every other stream of their autopilot off (MAV_CMD_SET_MESSAGE_INTERVAL, interval -1).
-LEAN_OFF_MSG_IDS = (33, 1, 245, 2, 24, 242, 74, 30)
-"""GLOBAL_POSITION_INT, SYS_STATUS, EXTENDED_SYS_STATE, SYSTEM_TIME, GPS_RAW_INT, HOME_POSITION, VFR_HUD, ATTITUDE."""
+#: EXTENDED_SYS_STATE stays on: its landed state tells the mission that the take-off has left the
+#: ground (``mission.Mission``), and without it no lean agent ever got past TAKEOFF.
+LEAN_OFF_MSG_IDS = (33, 1, 2, 24, 242, 74, 30)
+"""GLOBAL_POSITION_INT, SYS_STATUS, SYSTEM_TIME, GPS_RAW_INT, HOME_POSITION, VFR_HUD, ATTITUDE."""
 
 
 @dataclass(frozen=True)

@@ -360,6 +360,22 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
                                                              "pearson_velocity", "n_cv_compared"))
 
 
+def test_lean_telemetry_agents_still_take_off_and_flow(tmp_path):
+    """``--telemetry lean`` (the emulate benchmark's setting) switches off every stream the agent does not
+    need; the landed state (EXTENDED_SYS_STATE) is one it needs: without it no agent left TAKEOFF (the
+    mission waits for the autopilot to say it is off the ground) and the benchmark measured agents stuck
+    in take-off."""
+    from sim.emulate import run
+    from sim.emulate.workers import LEAN_OFF_MSG_IDS
+
+    assert 245 not in LEAN_OFF_MSG_IDS  # MAVLINK_MSG_ID_EXTENDED_SYS_STATE
+    cfg = EmulateConfig(out_dir=str(tmp_path), agents=1, duration_s=16.0, figures=False, compare=False,
+                        telemetry="lean", physics_rate_hz=20.0, physics_dt_s=0.05)
+    res = run(cfg)
+    reached = [dst for _, _, dst, _ in res.swarm.agents[0]["transitions"]]
+    assert "FLOW" in reached, res.swarm.agents[0]["transitions"]
+
+
 def test_launch_plan_start_positions_are_finite_on_the_ground_for_many_vehicles():
     from fisc_agent.flight.frames import DeploymentTransform
     from fisc_agent.map.lookup import CommandField
