@@ -292,8 +292,12 @@ def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_d
     nav.join_step(s_pt, -1, due + 10.0)                                  # once on time, it stays on its way
     assert nav.waypoints == planned and nav.late_entries == 0
     nav, s_pt, due = _cleared_join(maps)
+    lead = nav.entry_lead_s
     vel = nav.join_step(s_pt, -1, due + ENTRY_TIMING_TOLERANCE_S + 1e-6)  # just later: back to the wait point
     assert nav.late_entries == 1 and not nav.entry_cleared and nav.staging_due_s is None
+    # ... and its joins leave earlier by the delay (the lead from the same wait point, plus what it learnt)
+    assert nav.lead_learnt_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)
+    assert nav.entry_lead_s == pytest.approx(lead + nav.lead_learnt_s, abs=1e-9)
     assert nav.waypoints[nav.wait_index] == planned[0]                        # its wait point again
     z_top = nav.geom.hi_m[2] + nav.cfg.keepout_margin_m
     assert nav.waypoints[0] == (s_pt[0], s_pt[1], z_top) and vel[2] > 0       # up over the tunnel first
@@ -318,11 +322,33 @@ def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering
         vel += k * (0.84 * np.asarray(cmd) - vel)
         pos = pos + vel * dt
     else:
-        raise AssertionError("never entered")
+        raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
     cycle = 2.89 * 13
     assert nav.late_entries == 1
     assert t - first_due > cycle - 2.89                      # a later window (the next cycle's), not the first
     assert nav.entry_on_time                                 # at its staging point in time, this once
+
+
+def test_a_vehicle_too_slow_for_its_lead_learns_it_and_enters_on_time_in_a_later_window(maps):
+    """Lag 2 s and gain 0.5 (beyond the arrival governor's reach): late, it gives the window up and learns
+    the delay, and within two more windows it reaches its staging point in time."""
+    g, sfield = maps["tunnel"]
+    nav, _, first_due = _cleared_join(maps)
+    pos, vel, dt = np.array(nav.waypoints[nav.wait_index]), np.zeros(3), 0.05
+    t0 = first_due - nav.entry_lead_s
+    k = 1.0 - math.exp(-dt / 2.0)
+    for step in range(1, 8000):
+        t = t0 + step * dt
+        cmd = nav.join_step(tuple(pos), sfield.cv_of(*pos), t)
+        if cmd is None:
+            break
+        vel += k * (0.5 * np.asarray(cmd) - vel)
+        pos = pos + vel * dt
+    else:
+        raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
+    # without the learnt lead it was late at every window (paced to the due time, it flew at half the pace)
+    assert 1 <= nav.late_entries <= 2 and nav.entry_on_time and 1.0 < nav.lead_learnt_s < 10.0, (
+        nav.late_entries, nav.lead_learnt_s, t - first_due)
 
 
 def test_the_exit_holds_only_on_its_spot_and_once_slow(maps):
