@@ -26,7 +26,8 @@ from pathlib import Path
 
 from fisc_agent.flight.frames import DeploymentTransform
 from fisc_agent.map.lookup import CommandField
-from sim.emulate import EmulateConfig, fly_swarm, launch_plan, prepare_map, realtime_summary, steady_start_s
+from sim.emulate import (EmulateConfig, entry_statistics, fly_swarm, launch_plan, prepare_map, realtime_summary,
+                         steady_start_s)
 
 
 PROJECTION_BUSY = 0.7
@@ -44,7 +45,7 @@ def measure(n: int, args, map_path: Path, field: CommandField) -> dict:
     rt = realtime_summary(swarm, cfg.rate_hz, n, t_from)
     rt["workers"] = cfg.workers()
     # the agents must really fly: an agent stuck before FLOW costs less than one flying the map
-    rt["reached_flow"] = sum(any(dst == "FLOW" for _, _, dst, _ in a["transitions"]) for a in swarm.agents)
+    rt["reached_flow"] = entry_statistics(swarm.agents, plan)["vehicles_entered"]
     return rt
 
 
