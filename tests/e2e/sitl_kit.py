@@ -501,24 +501,33 @@ def truth_on_wall_clock(path: Path, track: "Track", anchor: str, ulog_end_wall_s
 
 
 def truth_pass(truth: WallTruth, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
-               near_axis_m: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               near_axis_m: float = 3.0, track: "Track | None" = None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                                               np.ndarray]:
     """``(t_s, pos_m, vel_m_s, states)`` of a fleet vehicle's ground truth (``truth_on_wall_clock``)
     for ``score_track``, as ``truth_track`` gives them for a lone vehicle: the velocity by central
     differences on PX4's own clock (the wall clock runs about ``clock_rate`` faster), the pass by
-    ``pass_states``."""
+    ``pass_states``; with the agent's ``track``, the pass starts only while its log says FLOW (a join
+    that gave its window up climbs over the tunnel, near the axis and moving forward, without flowing)."""
     keep = np.concatenate([[True], (np.diff(truth.wall_s) > 0) & (np.diff(truth.px4_s) > 0)])
     t, pos = truth.wall_s[keep], truth.pos_m[keep]
     vel = np.gradient(pos, truth.px4_s[keep], axis=0)
-    return t, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m)
+    flowing = None
+    if track is not None:
+        idx = np.clip(np.searchsorted(track.wall_s, t), 0, len(track.wall_s) - 1)
+        flowing = track.states[idx] == "FLOW"
+    return t, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m, flowing)
 
 
 def pass_states(pos_m: np.ndarray, vel_m_s: np.ndarray, x_lo_m: float, x_hi_m: float,
-                near_axis_m: float) -> np.ndarray:
+                near_axis_m: float, flowing: np.ndarray | None = None) -> np.ndarray:
     """(n,) ``FLOW`` from the first forward motion inside ``[x_lo_m, x_hi_m]`` within ``near_axis_m`` of
-    the map's axis (map frame) up to the first sample past ``x_hi_m``, ``JOIN`` elsewhere."""
+    the map's axis (map frame; where ``flowing`` is given, only where it is True) up to the first sample
+    past ``x_hi_m``, ``JOIN`` elsewhere."""
     x = pos_m[:, 0]
     states = np.full(len(x), "JOIN", dtype=object)
     near = np.hypot(pos_m[:, 1], pos_m[:, 2]) <= near_axis_m
+    if flowing is not None:
+        near = near & flowing
     start = np.flatnonzero((x >= x_lo_m) & (x <= x_hi_m) & (vel_m_s[:, 0] > 0.2) & near)
     if start.size:
         past = np.flatnonzero((x > x_hi_m) & (np.arange(len(x)) > start[0]))

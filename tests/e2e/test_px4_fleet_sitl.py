@@ -156,7 +156,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
     scores = [score_track(t.t_s, t.pos_m, t.vel_m_s, t.states, ref, good.scale, wall=wall) for t in tracks]
     truths = [truth_on_wall_clock(p, t, MAP_ANCHOR) for p, t in zip(ulog_paths, tracks)]
     sep = min_separation_m([(w.wall_s, w.pos_m) for w in truths])
-    truth_scores = [score_track(*truth_pass(w), ref, good.scale, wall=wall) for w in truths]
+    truth_scores = [score_track(*truth_pass(w, track=t), ref, good.scale, wall=wall) for w, t in zip(truths, tracks)]
     passes = [sum(1 for a, b in zip(t.states, t.states[1:]) if a == "JOIN" and b == "FLOW") for t in tracks]
     heard = [safety_net_view(p) for p in logs]
     report = {"hold_ack": out, "min_separation_m": sep, "passes": passes, "safety_net": heard,

@@ -299,7 +299,7 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
         view[i] = view_excursion_m(Track.read(flight.flight_logs[i]), ref, scale, wall)
         truth = flight.truth(i)
         assert truth.fit_rms_m < 0.1, (i, truth.fit_rms_m)  # the clocks matched: the truth is on the wall clock
-        t, pos, vel, states = truth_pass(truth)
+        t, pos, vel, states = truth_pass(truth, track=Track.read(flight.flight_logs[i]))
 
         def beyond_wall_m(t0_s: float, t1_s: float) -> float:
             sel = (t >= t0_s) & (t <= t1_s)

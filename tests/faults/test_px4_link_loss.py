@@ -104,7 +104,7 @@ def test_the_fleet_and_its_autopilots_never_noticed_the_outage(outage):
         view[i] = view_excursion_m(track, ref, scale, wall)
         truth = truth_on_wall_clock(outage["ulogs"][i], track, MAP_ANCHOR)
         assert truth.fit_rms_m < 0.1, (i, truth.fit_rms_m)  # the clocks matched: the truth is on the wall clock
-        t, pos, vel, states = truth_pass(truth)
+        t, pos, vel, states = truth_pass(truth, track=track)
         excursion[i] = score_track(t, pos, vel, states, ref, scale, wall=wall).max_excursion_m
     print(f"largest distance beyond the wall in the pass [m] (nan: not in the duct), by the agent's view (PX4's "
           f"estimate): {view}; by SIH's ground truth: {excursion}")
