@@ -19,7 +19,8 @@ from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, appr
                                        speed_for_arrival)
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
-from fisc_agent.flight.spacing import EntrySchedule, ScheduleSource, entry_schedule, entry_slot_open
+from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, EntrySchedule, ScheduleSource, entry_schedule,
+                                      entry_slot_open)
 from fisc_agent.flight.point_command import PointCommand, point_command
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.separation import Separation
@@ -35,6 +36,10 @@ JOIN_LEG_ALLOWANCE_S = 1.0
 to arrive when due even with a lag, and the arrival governor (``_join_speed``) slows it to arrive on
 time; arriving late cannot be made up.  Without it, a stock PX4 (lag 0.9 s) 17 m from the inlet
 arrived 2.3 s late at 1.5 x the join speed, 0.6 s after the next vehicle's entry (0.29 m apart)."""
+
+
+MAX_LEAD_LEARNT_S = 20.0
+"""Most a join's lead grows by what late arrivals taught it (``Navigator.lead_learnt_s``) [s]."""
 
 
 EXIT_CORNER_RADIUS_M = 1.0
@@ -72,6 +77,13 @@ class Navigator:
         self.entry_cleared = False
         self.staging_due_s: float | None = None
         """When (shared clock) the join, cleared to leave, is due at its staging point (``join_step``)."""
+        self.entry_on_time = False
+        """The join reached its staging point in time and may cross the inlet (``_late_at_staging``)."""
+        self.late_entries = 0
+        """Entries given up: at the staging point more than ``ENTRY_TIMING_TOLERANCE_S`` late."""
+        self.lead_learnt_s = 0.0
+        """Added to every join's lead: how much later than planned this vehicle reached its staging point
+        when it was too late (summed, at most ``MAX_LEAD_LEARNT_S``; ``_late_at_staging``)."""
         self.target: Vec | None = None
         self.exit_route: list[Vec] = []
         """The exit's waypoints (``plan_exit``), ending at ``target``, the agent's hold spot."""
@@ -183,16 +195,46 @@ class Navigator:
             elif home is not None:
                 wait_at = (home[0], home[1], home[2] + cfg.takeoff_alt_m)
                 route = lap_return_waypoints(pos, wait_at, self.geom, cfg.keepout_margin_m)[:-1]
+        self._plan_join_via(pos, route, wait_at)
+
+    def _plan_join_via(self, pos: Vec, route: list[Vec], wait_at: Vec | None) -> None:
+        """The join's waypoints: ``route``, the wait point ``wait_at`` (None: no wait), then on to the entry."""
+        cfg = self.cfg
         path = join_waypoints(pos if wait_at is None else wait_at, self.entry, self.geom, cfg.staging_m,
                               cfg.keepout_margin_m)
         self.waypoints = route + ([] if wait_at is None else [wait_at]) + path
         self.wait_index = len(self.waypoints) - 2 if wait_at is None else len(route)
         legs = self.waypoints[self.wait_index:-1]
-        self.entry_lead_s = sum(approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m)
-                                + JOIN_LEG_ALLOWANCE_S for a, b in zip(legs, legs[1:]))
+        self.entry_lead_s = self.lead_learnt_s + sum(
+            approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m) + JOIN_LEG_ALLOWANCE_S
+            for a, b in zip(legs, legs[1:]))
         self.wp_index = 0
         self.entry_cleared = False
         self.staging_due_s = None
+        self.entry_on_time = False
+
+    def _late_at_staging(self, pos: Vec, wall_time_s: float) -> bool:
+        """At the staging point later than ``ENTRY_TIMING_TOLERANCE_S`` after its due time (held up on the
+        way: the safety net, a lag beyond the governor's reach)?  Then the agent does not enter: entering
+        late, it would start across next to the vehicle of the following window (on eight real PX4 one
+        so delayed 4 s by the net entered 1.8 s before the next, and the two came within 0.47 m by SIH's
+        ground truth).  It flies back over the tunnel to its wait point (``lap_return_waypoints``) and
+        waits for its next window; counted in ``late_entries``.  Its joins then leave earlier by the
+        delay (``lead_learnt_s``) and the arrival governor (``_join_speed``) aims that much before the
+        due time, so a vehicle late by habit reaches the staging point when due (stock PX4 with the net
+        acting on the way were 2.6-7.8 s late on every lap, paced to the due time itself)."""
+        late_s = wall_time_s - self.staging_due_s
+        if late_s <= ENTRY_TIMING_TOLERANCE_S:
+            self.entry_on_time = True
+            return False
+        wait_at = self.waypoints[self.wait_index]
+        log.warning("at the staging point %.1f s after its due time (more than %.1f s): not entering; back to the "
+                    "wait point for the next entry window", late_s, ENTRY_TIMING_TOLERANCE_S)
+        self.late_entries += 1
+        self.lead_learnt_s = min(MAX_LEAD_LEARNT_S, self.lead_learnt_s + late_s)
+        self._plan_join_via(pos, lap_return_waypoints(pos, wait_at, self.geom, self.cfg.keepout_margin_m)[:-1],
+                            wait_at)
+        return True
 
     def join_step(self, pos: Vec, cv: int, wall_time_s: float) -> Vec | None:
         """JOIN's velocity: along the waypoints, waiting at the wait point for the agent's entry window
@@ -210,6 +252,9 @@ class Navigator:
             if self.schedule.stagger_s > 0:
                 self.staging_due_s = wall_time_s + self.entry_lead_s
                 log.info("entry slot open: on to the inlet")
+        if (self.wp_index == last and self.staging_due_s is not None and not self.entry_on_time
+                and self._late_at_staging(pos, wall_time_s)):
+            return self.goto(pos, self.waypoints[0], cfg.join_speed_m_s)
         if self.wp_index == last and cv >= 0:
             return None
         if self.wp_index == last and self.staging_due_s is not None and wall_time_s < self.staging_due_s:
@@ -225,14 +270,17 @@ class Navigator:
     def _join_speed(self, pos: Vec, wall_time_s: float) -> float:
         """The join's speed: with entry windows, from the wait point to the staging point the one
         that brings the vehicle there when it is due (``control.speed_for_arrival``, up to 1.5 x the
-        join speed and the speed limit), else the join speed."""
+        join speed and the speed limit), else the join speed.  It aims ``lead_learnt_s`` before the due
+        time: the delay this vehicle showed (slower than commanded, held by the net) then brings it
+        there when due; an early arrival waits at the staging point until due."""
         cfg, last = self.cfg, len(self.waypoints) - 1
         if self.staging_due_s is None or self.wp_index >= last:
             return cfg.join_speed_m_s
         path = [pos] + self.waypoints[self.wp_index:last]   # on to the staging point S = waypoints[-2]
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
         hi = min(cfg.max_speed_m_s, 1.5 * cfg.join_speed_m_s)
-        return speed_for_arrival(legs, self.staging_due_s - wall_time_s, cfg.waypoint_radius_m, min(0.3, hi), hi)
+        return speed_for_arrival(legs, self.staging_due_s - self.lead_learnt_s - wall_time_s, cfg.waypoint_radius_m,
+                                 min(0.3, hi), hi)
 
     def plan_exit(self, pos: Vec, min_z_m: float | None) -> None:
         """The exit from past the outlet ``pos`` to the agent's hold spot (``target``), over the spots

@@ -11,8 +11,8 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
                                        entry_point, entry_points, exit_waypoints, hold_point, hold_points,
                                        speed_for_arrival)
-from fisc_agent.flight.spacing import (ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, VOGEL_64_MIN_SPACING, check_min_distance,
-                                       entry_slot_open, hold_altitude_m, hold_sites, lattice_hold_points,
+from fisc_agent.flight.spacing import (ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M,
+                                       VOGEL_64_MIN_SPACING, check_min_distance, entry_slot_open, hold_altitude_m, hold_sites, lattice_hold_points,
                                        min_pairwise_distance_m)
 from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, Navigator
 from fisc_agent.map.lookup import CommandField
@@ -261,6 +261,94 @@ def test_a_lagging_vehicle_reaches_its_staging_point_when_due_and_waits_there_if
     at_s, inlet = _staging_times_s(maps, lag_s, gain)
     assert -1.0 < at_s < 0.3, at_s       # on time: early by under a second (it then waits), never late
     assert 0.0 <= inlet < 5.0, inlet     # across the inlet only once due, at the inlet's crawl
+
+
+def _cleared_join(maps, agent_id=3):
+    """A Navigator whose join (stagger 2.89 s, 13 windows) has just been cleared at its wait point:
+    (navigator, its staging point S, the time it is due there)."""
+    g, sfield = maps["tunnel"]
+    cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=agent_id, entry_stagger_s=2.89, entry_slots=13,
+                      lookahead_auto=False)
+    nav = Navigator(cfg)
+    nav.set_map(sfield)
+    wait = (g.x_inlet_m + 0.6, 8.0, -8.0)
+    nav.plan_join(wait, None, wait_where_planned=True)
+    t = next(k * 0.05 for k in range(20000) if entry_slot_open(k * 0.05 + nav.entry_lead_s, agent_id, 2.89, 13))
+    nav.join_step(wait, -1, t)
+    assert nav.entry_cleared and nav.staging_due_s is not None
+    for wp in nav.waypoints[nav.wait_index + 1:-2]:   # on its way, in time, up to the staging point S
+        nav.join_step(wp, -1, t)
+    assert nav.wp_index == len(nav.waypoints) - 2 and not nav.entry_on_time
+    return nav, nav.waypoints[-2], nav.staging_due_s
+
+
+def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_does_not(maps):
+    """The entry windows keep consecutive entries d_min apart only if each vehicle starts across within
+    ENTRY_TIMING_TOLERANCE_S of its due time (``separation_budget``)."""
+    nav, s_pt, due = _cleared_join(maps)
+    planned = list(nav.waypoints)
+    nav.join_step(s_pt, -1, due + ENTRY_TIMING_TOLERANCE_S)              # late by exactly the tolerance: on
+    assert nav.entry_on_time and nav.waypoints == planned and nav.late_entries == 0
+    nav.join_step(s_pt, -1, due + 10.0)                                  # once on time, it stays on its way
+    assert nav.waypoints == planned and nav.late_entries == 0
+    nav, s_pt, due = _cleared_join(maps)
+    lead = nav.entry_lead_s
+    vel = nav.join_step(s_pt, -1, due + ENTRY_TIMING_TOLERANCE_S + 1e-6)  # just later: back to the wait point
+    assert nav.late_entries == 1 and not nav.entry_cleared and nav.staging_due_s is None
+    # ... and its joins leave earlier by the delay (the lead from the same wait point, plus what it learnt)
+    assert nav.lead_learnt_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)
+    assert nav.entry_lead_s == pytest.approx(lead + nav.lead_learnt_s, abs=1e-9)
+    assert nav.waypoints[nav.wait_index] == planned[0]                        # its wait point again
+    z_top = nav.geom.hi_m[2] + nav.cfg.keepout_margin_m
+    assert nav.waypoints[0] == (s_pt[0], s_pt[1], z_top) and vel[2] > 0       # up over the tunnel first
+    assert nav.waypoints[-1] == planned[-1]                                   # the same entry point
+
+
+def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering_late(maps):
+    """As the safety net held a real PX4 for 4 s: stopped for 6 s on the way to its staging point, the
+    vehicle goes back to its wait point and crosses the inlet in a later window, on time."""
+    g, sfield = maps["tunnel"]
+    nav, _, first_due = _cleared_join(maps)
+    pos, vel, dt = np.array(nav.waypoints[nav.wait_index]), np.zeros(3), 0.05
+    t0 = first_due - nav.entry_lead_s
+    k = 1.0 - math.exp(-dt / 0.9)
+    for step in range(1, 6000):
+        t = t0 + step * dt
+        cmd = nav.join_step(tuple(pos), sfield.cv_of(*pos), t)
+        if cmd is None:
+            break
+        if t0 + 2.0 <= t < t0 + 8.0:   # held on the way
+            cmd = (0.0, 0.0, 0.0)
+        vel += k * (0.84 * np.asarray(cmd) - vel)
+        pos = pos + vel * dt
+    else:
+        raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
+    cycle = 2.89 * 13
+    assert nav.late_entries == 1
+    assert t - first_due > cycle - 2.89                      # a later window (the next cycle's), not the first
+    assert nav.entry_on_time                                 # at its staging point in time, this once
+
+
+def test_a_vehicle_too_slow_for_its_lead_learns_it_and_enters_on_time_in_a_later_window(maps):
+    """Lag 2 s and gain 0.5 (beyond the arrival governor's reach): late, it gives the window up and learns
+    the delay, and within two more windows it reaches its staging point in time."""
+    g, sfield = maps["tunnel"]
+    nav, _, first_due = _cleared_join(maps)
+    pos, vel, dt = np.array(nav.waypoints[nav.wait_index]), np.zeros(3), 0.05
+    t0 = first_due - nav.entry_lead_s
+    k = 1.0 - math.exp(-dt / 2.0)
+    for step in range(1, 8000):
+        t = t0 + step * dt
+        cmd = nav.join_step(tuple(pos), sfield.cv_of(*pos), t)
+        if cmd is None:
+            break
+        vel += k * (0.5 * np.asarray(cmd) - vel)
+        pos = pos + vel * dt
+    else:
+        raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
+    # without the learnt lead it was late at every window (paced to the due time, it flew at half the pace)
+    assert 1 <= nav.late_entries <= 2 and nav.entry_on_time and 1.0 < nav.lead_learnt_s < 10.0, (
+        nav.late_entries, nav.lead_learnt_s, t - first_due)
 
 
 def test_the_exit_holds_only_on_its_spot_and_once_slow(maps):
