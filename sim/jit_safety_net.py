@@ -15,8 +15,8 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, push_gain_1_s, max_push_m_s, coincident_m,
-                     duct, out):
+def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_m, push_gain_1_s, max_push_m_s,
+                     coincident_m, duct, out):
     """``out`` (n, 3) = ``cmd`` after the net for index pairs ``pairs`` (m, 2), every report fresh
     (``fisc_agent.flight.safety_net.keep_apart_pairs``; all arrays float64 but ``ids``, ``pairs`` int64).
     ``horizon_s``: the effective horizon; ``duct``: (x_lo, x_hi, y_axis, z_axis) of the wall rule
@@ -50,7 +50,19 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, push_gain_1_
                 allowed += max(0.0, gap) / horizon_s
             elif gap >= 0:
                 allowed = math.inf
-            excess = max(0.0, closing - allowed)
+            # passing, not closing: the straight-line closest approach within the horizon
+            ww = 0.0
+            rw = 0.0
+            for k in range(3):
+                w = cmd[me, k] - vel[nb, k]
+                ww += w * w
+                rw += (pos[me, k] - pos[nb, k]) * w
+            t = min(max(-rw / ww, 0.0), horizon_s) if ww > 0.0 else 0.0
+            c2 = 0.0
+            for k in range(3):
+                c = pos[me, k] - pos[nb, k] + (cmd[me, k] - vel[nb, k]) * t
+                c2 += c * c
+            excess = 0.0 if math.sqrt(c2) >= d_min_m + pass_margin_m else max(0.0, closing - allowed)
             depth = push_gain_1_s * max(0.0, -gap)
             for k in range(3):
                 out[me, k] += excess * nv[k]

@@ -27,6 +27,14 @@ Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep
   closing fast starts braking ``horizon_s`` of closing before the radius.  (Acting only inside d_min
   is too late: a vehicle closing at 1.5 m/s on a lag of 0.9 s, stock PX4's, is through the 0.42 m
   of margin a 0.92 m d_min leaves between two 0.25 m radii before it has slowed.)
+- **Passing is not closing.**  The closing cut applies only to a pair whose straight-line closest
+  approach within the horizon (this vehicle at its command, the neighbour at its reported velocity while
+  fresh, still otherwise) comes nearer than ``r_j + pass_margin_m``: a vehicle that flies past a
+  neighbour, however fast its distance shrinks on the way, is left alone.  (Without it, on eight stock
+  PX4 the net acted in 13-22 % of the joins' ticks all over the routes around the inlet, for example on
+  a lap's return coming down 3 m beside a waiting vehicle: the joins reached the inlet 2.6-7.8 s late.)
+  Head-on it changes nothing: where the closing limit acts, the vehicle would be inside the radius
+  within the horizon.
 - **Push apart**, only inside the radius: ``push_gain_1_s (r_j - d) n``.
 - The corrections of all neighbours are summed (each from the command as the mission gave it), then
   the total push is capped at ``max_push_m_s``.  Two neighbours on the same side correct twice (more
@@ -81,14 +89,18 @@ class SafetyNetConfig:
     lag_factor: float = 4.0
     """The horizon is at least this many times the vehicle's identified velocity lag (look-ahead:
     lag plus dead time): 4 brakes a first-order lag without overshoot."""
+    pass_margin_m: float = 0.5
+    """A pair whose straight-line closest approach within the horizon stays this far beyond the keep-out
+    radius is passing: its closing is not limited [m] (how far a vehicle of velocity lag 0.8 s, stock
+    PX4's, strays from a straight line when its command turns by 0.6 m/s)."""
     push_gain_1_s: float = 1.0
     """Push apart at this gain times the depth inside the keep-out radius [1/s]."""
     max_push_m_s: float = 0.5
     """Cap of the summed push [m/s]."""
 
     def __post_init__(self) -> None:
-        for name in ("fresh_s", "growth_m_s", "forget_s", "horizon_s", "lag_factor", "push_gain_1_s",
-                     "max_push_m_s"):
+        for name in ("fresh_s", "growth_m_s", "forget_s", "horizon_s", "lag_factor", "pass_margin_m",
+                     "push_gain_1_s", "max_push_m_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"safety net: {name} must be a finite number >= 0, is {value!r}")
@@ -187,6 +199,18 @@ def predicted_and_radius(reports: NeighbourReports, d_min_m: float,
     return pos, radius, kept
 
 
+def closest_approach_m(rel_m: np.ndarray, rel_vel_m_s: np.ndarray, horizon_s: float) -> np.ndarray:
+    """(m,) least distance within ``[0, horizon_s]`` of pairs at relative positions ``rel_m`` (m, 3) moving
+    at relative velocities ``rel_vel_m_s`` (m, 3) in straight lines [m] (the distance now for a pair at
+    rest relative to each other)."""
+    ww = np.einsum("ij,ij->i", rel_vel_m_s, rel_vel_m_s)
+    moving = ww > 0.0
+    t = np.where(moving, -np.einsum("ij,ij->i", rel_m, rel_vel_m_s) / np.where(moving, ww, 1.0), 0.0)
+    t = np.clip(t, 0.0, horizon_s)
+    at = rel_m + rel_vel_m_s * t[:, None]
+    return np.sqrt(np.einsum("ij,ij->i", at, at))
+
+
 def _corrections(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_nb_m_s: np.ndarray,
                  radius_m: np.ndarray, fresh: np.ndarray, cfg: SafetyNetConfig, horizon_s: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -199,13 +223,15 @@ def _corrections(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_n
     n[apart] = rel_m[apart] / dist[apart, None]
     n[~apart, 0] = tie_sign[~apart]
     closing = -np.einsum("ij,ij->i", v_m_s, n)
-    allowed = np.where(fresh, np.maximum(0.0, -np.einsum("ij,ij->i", v_nb_m_s, n)), 0.0)
+    v_nb = np.where(fresh[:, None], v_nb_m_s, 0.0)
+    allowed = np.maximum(0.0, -np.einsum("ij,ij->i", v_nb, n))
     gap = dist - radius_m
     if horizon_s > 0:
         allowed = allowed + np.maximum(0.0, gap) / horizon_s
     else:
         allowed = np.where(gap >= 0, np.inf, allowed)
-    excess = np.maximum(0.0, closing - allowed)
+    passing = closest_approach_m(rel_m, v_m_s - v_nb, horizon_s) >= radius_m + cfg.pass_margin_m
+    excess = np.where(passing, 0.0, np.maximum(0.0, closing - allowed))
     inside = gap < 0
     push = (cfg.push_gain_1_s * np.maximum(0.0, -gap))[:, None] * n
     return excess[:, None] * n, push, inside | (excess > 0)

@@ -9,9 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from fisc_agent.flight.safety_net import (DuctAxis, NeighbourReports, SafetyNetConfig, effective_horizon_s, keep_apart,
-                                          keep_apart_pairs,
-                                          predicted_and_radius)
+from fisc_agent.flight.safety_net import (DuctAxis, NeighbourReports, SafetyNetConfig, closest_approach_m,
+                                          effective_horizon_s, keep_apart, keep_apart_pairs, predicted_and_radius)
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.zenoh.neighbours import NeighbourTable
 
@@ -136,7 +135,7 @@ def test_reports_older_than_forget_s_are_dropped(age, kept):
 
 
 @pytest.mark.parametrize("field, value", [("fresh_s", -0.1), ("growth_m_s", math.nan), ("forget_s", math.inf),
-                                          ("max_push_m_s", -1.0)])
+                                          ("max_push_m_s", -1.0), ("pass_margin_m", -0.01)])
 def test_bad_settings_are_named(field, value):
     with pytest.raises(ValueError, match=field):
         SafetyNetConfig(**{field: value})
@@ -276,3 +275,59 @@ def test_a_lagging_vehicle_starts_braking_farther_out():
     assert not keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, far, D).active
     slow = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, far, D, lag_s=0.89)
     assert slow.velocity_m_s[0] == pytest.approx((2.5 - D) / (4 * 0.89))
+
+
+# ---- passing is not closing ------------------------------------------------------------------
+@pytest.mark.parametrize("rel, w, horizon, expect", [
+    ((3.0, 4.0, 0.0), (0.0, 0.0, 0.0), 1.5, 5.0),      # at rest relative to each other: the distance now
+    ((3.0, 4.0, 0.0), (1.0, 0.0, 0.0), 1.5, 5.0),      # moving apart: now is the closest
+    ((-2.0, 1.0, 0.0), (2.0, 0.0, 0.0), 1.5, 1.0),     # passing within the horizon: the offset
+    ((-4.0, 1.0, 0.0), (2.0, 0.0, 0.0), 1.5, math.hypot(1.0, 1.0)),  # beyond it: where the horizon ends
+    ((-4.0, 0.0, 0.0), (2.0, 0.0, 0.0), 0.0, 4.0),     # no horizon: now
+])
+def test_the_closest_approach_within_the_horizon(rel, w, horizon, expect):
+    got = closest_approach_m(np.array([rel]), np.array([w]), horizon)
+    assert got == pytest.approx([expect], abs=1e-15)
+
+
+@pytest.mark.parametrize("offset, acts", [(1.5 + 1e-6, False), (1.5, False), (1.5 - 1e-6, True), (0.0, True)])
+def test_a_vehicle_flying_past_a_neighbour_is_not_braked(offset, acts):
+    # 2 m/s along x, 2 m short of a still neighbour, offset across: closest approach = offset after 1 s;
+    # d_min 1 m + the 0.5 m pass margin = 1.5 m.  At 1.5 m the old rule would cut: closing 1.6 m/s, allowed 0.95
+    act = keep_apart((-2.0, offset, 0.0), (2.0, 0.0, 0.0), 1, one((0.0, 0.0, 0.0)), 1.0)
+    assert act.active is acts
+    if not acts:
+        assert act.velocity_m_s == (2.0, 0.0, 0.0)
+
+
+def test_a_vehicle_descending_beside_a_waiting_one_is_left_alone_but_not_one_above_it():
+    # eight stock PX4: a lap's return came down at 2 m/s to its wait point 3 m beside a waiting vehicle,
+    # braked by the old rule from 3 m above (closing 1.41 m/s, allowed 0.92 m/s over its 3.6 s horizon)
+    waiting = one((0.0, 0.0, 0.0))
+    beside = keep_apart((0.0, 3.0, 3.0), (0.0, 0.0, -2.0), 1, waiting, D, lag_s=0.9)
+    assert not beside.active and beside.velocity_m_s == (0.0, 0.0, -2.0)
+    above = keep_apart((0.0, 0.0, 3.0), (0.0, 0.0, -2.0), 1, waiting, D, lag_s=0.9)
+    assert above.active and above.velocity_m_s[2] == pytest.approx(-(3.0 - D) / (4 * 0.9))
+
+
+def test_a_fresh_neighbour_moving_out_of_the_way_lets_a_vehicle_pass_a_stale_one_does_not():
+    # heading for where the neighbour is; it reports moving across at 3 m/s.  Fresh: the paths miss; stale
+    # (age 1 s): taken as still (extrapolated by fresh_s only) and the closing is cut
+    fresh = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((2.0, 0.0, 0.0), vel=(0.0, 3.0, 0.0)), D)
+    assert not fresh.active
+    stale = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((2.0, 0.0, 0.0), vel=(0.0, 3.0, 0.0), age=1.0), D)
+    assert stale.active and stale.velocity_m_s[0] < 1.0
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_head_on_the_pass_rule_changes_nothing(seed):
+    # straight at a still neighbour: the closing limit (d - d_min) / T wherever it acts, as without the rule
+    rng = np.random.default_rng(seed)
+    lag = 0.9
+    horizon = effective_horizon_s(CFG, lag)
+    cut = 0
+    for d, v in zip(rng.uniform(D + 1e-3, 10.0, 200), rng.uniform(0.0, 3.0, 200)):
+        act = keep_apart((0.0, 0.0, 0.0), (v, 0.0, 0.0), 1, one((d, 0.0, 0.0)), D, lag_s=lag)
+        assert act.velocity_m_s[0] == pytest.approx(min(v, (d - D) / horizon), abs=1e-12)
+        cut += act.active
+    assert 20 < cut < 180   # both sides of the limit were drawn
