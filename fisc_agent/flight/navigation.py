@@ -82,8 +82,9 @@ class Navigator:
         self.late_entries = 0
         """Entries given up: at the staging point more than ``ENTRY_TIMING_TOLERANCE_S`` late."""
         self.lead_learnt_s = 0.0
-        """Added to every join's lead: how much later than planned this vehicle reached its staging point
-        when it was too late (summed, at most ``MAX_LEAD_LEARNT_S``; ``_late_at_staging``)."""
+        """Added to every join's lead: what this vehicle's arrivals at its staging point taught it, the
+        lateness of each one more than ``ENTRY_TIMING_TOLERANCE_S`` late added, the earliness of each one
+        more than that early taken off (within 0 and ``MAX_LEAD_LEARNT_S``; ``_late_at_staging``)."""
         self.target: Vec | None = None
         self.exit_route: list[Vec] = []
         """The exit's waypoints (``plan_exit``), ending at ``target``, the agent's hold spot."""
@@ -222,10 +223,17 @@ class Navigator:
         waits for its next window; counted in ``late_entries``.  Its joins then leave earlier by the
         delay (``lead_learnt_s``) and the arrival governor (``_join_speed``) aims that much before the
         due time, so a vehicle late by habit reaches the staging point when due (stock PX4 with the net
-        acting on the way were 2.6-7.8 s late on every lap, paced to the due time itself)."""
+        acting on the way were 2.6-7.8 s late on every lap, paced to the due time itself).  An arrival
+        more than the tolerance early takes its earliness off the learnt lead: a delay that has gone (the
+        net no longer acting on the way) stops sending the vehicle early, to wait at its staging point
+        beside the one entering before it."""
         late_s = wall_time_s - self.staging_due_s
         if late_s <= ENTRY_TIMING_TOLERANCE_S:
             self.entry_on_time = True
+            if late_s < -ENTRY_TIMING_TOLERANCE_S:
+                self.lead_learnt_s = max(0.0, self.lead_learnt_s + late_s)
+            log.info("at the staging point %+.1f s from its due time: entering (learnt lead %.1f s)", late_s,
+                     self.lead_learnt_s)
             return False
         wait_at = self.waypoints[self.wait_index]
         log.warning("at the staging point %.1f s after its due time (more than %.1f s): not entering; back to the "

@@ -304,6 +304,17 @@ def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_d
     assert nav.waypoints[-1] == planned[-1]                                   # the same entry point
 
 
+@pytest.mark.parametrize("early_s, learnt_after", [(ENTRY_TIMING_TOLERANCE_S, 3.0),
+                                                   (ENTRY_TIMING_TOLERANCE_S + 1e-6, 3.0 - ENTRY_TIMING_TOLERANCE_S - 1e-6),
+                                                   (2.5, 0.5), (3.0, 0.0), (7.0, 0.0)])
+def test_an_arrival_more_than_the_tolerance_early_takes_its_earliness_off_the_learnt_lead(maps, early_s, learnt_after):
+    nav, s_pt, due = _cleared_join(maps)
+    nav.lead_learnt_s = 3.0
+    nav.join_step(s_pt, -1, due - early_s)
+    assert nav.entry_on_time and nav.late_entries == 0                   # early: it enters (after waiting)
+    assert nav.lead_learnt_s == pytest.approx(learnt_after, abs=1e-9)
+
+
 def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering_late(maps):
     """As the safety net held a real PX4 for 4 s: stopped for 6 s on the way to its staging point, the
     vehicle goes back to its wait point and crosses the inlet in a later window, on time."""
