@@ -79,12 +79,20 @@ class Navigator:
         """When (shared clock) the join, cleared to leave, is due at its staging point (``join_step``)."""
         self.entry_on_time = False
         """The join reached its staging point in time and may cross the inlet (``_late_at_staging``)."""
+        self.crossing_due_s: float | None = None
+        """When (shared clock) the join, on time at its staging point, is due across the inlet plane: the
+        staging point's due time plus the final leg at the inlet's crawl and ``JOIN_LEG_ALLOWANCE_S``."""
         self.late_entries = 0
-        """Entries given up: at the staging point more than ``ENTRY_TIMING_TOLERANCE_S`` late."""
+        """Entries given up: at the staging point, or across the inlet plane, more than
+        ``ENTRY_TIMING_TOLERANCE_S`` after the due time."""
         self.lead_learnt_s = 0.0
         """Added to every join's lead: what this vehicle's arrivals at its staging point taught it, the
         lateness of each one more than ``ENTRY_TIMING_TOLERANCE_S`` late added, the earliness of each one
         more than that early taken off (within 0 and ``MAX_LEAD_LEARNT_S``; ``_late_at_staging``)."""
+        self.leg_lead_s = 0.0
+        """How much before its staging point's due time this vehicle starts its final leg, learnt as
+        ``lead_learnt_s`` is from its crossings of the inlet plane (``_late_across``): a vehicle slower than
+        the inlet's crawl then crosses when due.  Also added to every join's lead."""
         self.target: Vec | None = None
         self.exit_route: list[Vec] = []
         """The exit's waypoints (``plan_exit``), ending at ``target``, the agent's hold spot."""
@@ -206,20 +214,64 @@ class Navigator:
         self.waypoints = route + ([] if wait_at is None else [wait_at]) + path
         self.wait_index = len(self.waypoints) - 2 if wait_at is None else len(route)
         legs = self.waypoints[self.wait_index:-1]
-        self.entry_lead_s = self.lead_learnt_s + sum(
+        self.entry_lead_s = self.lead_learnt_s + self.leg_lead_s + sum(
             approach_time_s(distance(a, b), cfg.join_speed_m_s, cfg.waypoint_radius_m) + JOIN_LEG_ALLOWANCE_S
             for a, b in zip(legs, legs[1:]))
         self.wp_index = 0
         self.entry_cleared = False
         self.staging_due_s = None
         self.entry_on_time = False
+        self.crossing_due_s = None
+
+    def _crawl_m_s(self) -> float:
+        """The final leg's least speed along x: the flow's own at the entry point (times the feed-forward
+        gain), at least 0.3 m/s."""
+        v_in = self.field_command(*self.waypoints[-1])
+        return 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
+
+    def _give_up_window(self, pos: Vec, late_s: float, where: str) -> None:
+        """Not entering in this window: back the way it came to the wait point for the next one (its own
+        join route, away from the staging points where the routes meet); counted in ``late_entries``.
+        (Up over the tunnel from where it gave up, a vehicle 3.9 s late at its staging point climbed
+        beside the next one arriving at its own: 0.58 m apart by SIH's ground truth, eight stock PX4.)"""
+        log.warning("%s %.1f s after its due time (more than %.1f s): not entering; back to the wait point for "
+                    "the next entry window", where, late_s, ENTRY_TIMING_TOLERANCE_S)
+        self.late_entries += 1
+        wait_at = self.waypoints[self.wait_index]
+        self._plan_join_via(pos, self.waypoints[self.wait_index + 1:self.wp_index][::-1], wait_at)
+
+    def _late_across(self, pos: Vec, wall_time_s: float) -> bool:
+        """On the final leg, not yet across the inlet plane more than ``ENTRY_TIMING_TOLERANCE_S`` after
+        ``crossing_due_s``?  Then the agent gives its window up (``_give_up_window``), as at the staging
+        point: the admission budget spaces the crossings, not the departures from the staging points.
+        (Emulated stock PX4: two vehicles on time at their staging points were held back by the net behind
+        a jam at the inlet and crossed it 0.2 s apart, then came within 0.6 m.)  The lateness is learnt into
+        ``leg_lead_s``: a vehicle slower than the crawl starts its final leg that much earlier next time."""
+        late_s = wall_time_s - self.crossing_due_s
+        if late_s <= ENTRY_TIMING_TOLERANCE_S:
+            return False
+        self.leg_lead_s = min(MAX_LEAD_LEARNT_S, self.leg_lead_s + late_s)
+        self._give_up_window(pos, late_s, "not across the inlet")
+        return True
+
+    def _crossed(self, wall_time_s: float) -> None:
+        """Across the inlet plane: more than ``ENTRY_TIMING_TOLERANCE_S`` before ``crossing_due_s``, the
+        earliness comes off ``leg_lead_s`` (not below 0), as on early arrivals at the staging point."""
+        if self.crossing_due_s is None:
+            return
+        late_s = wall_time_s - self.crossing_due_s
+        if late_s < -ENTRY_TIMING_TOLERANCE_S:
+            self.leg_lead_s = max(0.0, self.leg_lead_s + late_s)
+        log.info("across the inlet %+.1f s from its due time (leg lead now %.1f s)", late_s,
+                 self.leg_lead_s)
 
     def _late_at_staging(self, pos: Vec, wall_time_s: float) -> bool:
-        """At the staging point later than ``ENTRY_TIMING_TOLERANCE_S`` after its due time (held up on the
+        """At the staging point later than ``ENTRY_TIMING_TOLERANCE_S`` after its due time (the window's
+        opening less ``leg_lead_s``, when the final leg starts; held up on the
         way: the safety net, a lag beyond the governor's reach)?  Then the agent does not enter: entering
         late, it would start across next to the vehicle of the following window (on eight real PX4 one
         so delayed 4 s by the net entered 1.8 s before the next, and the two came within 0.47 m by SIH's
-        ground truth).  It flies back over the tunnel to its wait point (``lap_return_waypoints``) and
+        ground truth).  It flies back the way it came to its wait point (``_give_up_window``) and
         waits for its next window; counted in ``late_entries``.  Its joins then leave earlier by the
         delay (``lead_learnt_s``) and the arrival governor (``_join_speed``) aims that much before the
         due time, so a vehicle late by habit reaches the staging point when due (stock PX4 with the net
@@ -227,21 +279,18 @@ class Navigator:
         more than the tolerance early takes its earliness off the learnt lead: a delay that has gone (the
         net no longer acting on the way) stops sending the vehicle early, to wait at its staging point
         beside the one entering before it."""
-        late_s = wall_time_s - self.staging_due_s
+        late_s = wall_time_s - (self.staging_due_s - self.leg_lead_s)
         if late_s <= ENTRY_TIMING_TOLERANCE_S:
             self.entry_on_time = True
             if late_s < -ENTRY_TIMING_TOLERANCE_S:
                 self.lead_learnt_s = max(0.0, self.lead_learnt_s + late_s)
+            leg_m = distance(self.waypoints[-2], self.waypoints[-1])
+            self.crossing_due_s = self.staging_due_s + leg_m / self._crawl_m_s() + JOIN_LEG_ALLOWANCE_S
             log.info("at the staging point %+.1f s from its due time: entering (learnt lead %.1f s)", late_s,
                      self.lead_learnt_s)
             return False
-        wait_at = self.waypoints[self.wait_index]
-        log.warning("at the staging point %.1f s after its due time (more than %.1f s): not entering; back to the "
-                    "wait point for the next entry window", late_s, ENTRY_TIMING_TOLERANCE_S)
-        self.late_entries += 1
         self.lead_learnt_s = min(MAX_LEAD_LEARNT_S, self.lead_learnt_s + late_s)
-        self._plan_join_via(pos, lap_return_waypoints(pos, wait_at, self.geom, self.cfg.keepout_margin_m)[:-1],
-                            wait_at)
+        self._give_up_window(pos, late_s, "at the staging point")
         return True
 
     def join_step(self, pos: Vec, cv: int, wall_time_s: float) -> Vec | None:
@@ -262,17 +311,19 @@ class Navigator:
                 log.info("entry slot open: on to the inlet")
         if (self.wp_index == last and self.staging_due_s is not None and not self.entry_on_time
                 and self._late_at_staging(pos, wall_time_s)):
-            return self.goto(pos, self.waypoints[0], cfg.join_speed_m_s)
+            return self.join_step(pos, cv, wall_time_s)   # on the way back (no due time: once)
         if self.wp_index == last and cv >= 0:
+            self._crossed(wall_time_s)
             return None
-        if self.wp_index == last and self.staging_due_s is not None and wall_time_s < self.staging_due_s:
+        if self.entry_on_time and self.crossing_due_s is not None and self._late_across(pos, wall_time_s):
+            return self.join_step(pos, cv, wall_time_s)
+        if (self.wp_index == last and self.staging_due_s is not None
+                and wall_time_s < self.staging_due_s - self.leg_lead_s):
             return self.goto(pos, self.waypoints[last - 1], cfg.join_speed_m_s)   # early at S: wait until due
         vel = self.goto(pos, self.waypoints[self.wp_index], self._join_speed(pos, wall_time_s))
         if self.wp_index == last:  # final leg: cross the inlet plane at the flow's own speed
             self.identify()
-            v_in = self.field_command(*self.waypoints[last])
-            crawl = 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
-            vel = (max(vel[0], crawl), vel[1], vel[2])
+            vel = (max(vel[0], self._crawl_m_s()), vel[1], vel[2])
         return vel
 
     def _join_speed(self, pos: Vec, wall_time_s: float) -> float:
@@ -287,7 +338,8 @@ class Navigator:
         path = [pos] + self.waypoints[self.wp_index:last]   # on to the staging point S = waypoints[-2]
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
         hi = min(cfg.max_speed_m_s, 1.5 * cfg.join_speed_m_s)
-        return speed_for_arrival(legs, self.staging_due_s - self.lead_learnt_s - wall_time_s, cfg.waypoint_radius_m,
+        aim_s = self.staging_due_s - self.leg_lead_s - self.lead_learnt_s
+        return speed_for_arrival(legs, aim_s - wall_time_s, cfg.waypoint_radius_m,
                                  min(0.3, hi), hi)
 
     def plan_exit(self, pos: Vec, min_z_m: float | None) -> None:

@@ -10,11 +10,11 @@ import pytest
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
                                        entry_point, entry_points, exit_waypoints, hold_point, hold_points,
-                                       speed_for_arrival)
+                                       distance, speed_for_arrival)
 from fisc_agent.flight.spacing import (ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M,
                                        VOGEL_64_MIN_SPACING, check_min_distance, entry_slot_open, hold_altitude_m, hold_sites, lattice_hold_points,
                                        min_pairwise_distance_m)
-from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, Navigator
+from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, JOIN_LEG_ALLOWANCE_S, Navigator
 from fisc_agent.map.lookup import CommandField
 
 
@@ -289,7 +289,7 @@ def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_d
     planned = list(nav.waypoints)
     nav.join_step(s_pt, -1, due + ENTRY_TIMING_TOLERANCE_S)              # late by exactly the tolerance: on
     assert nav.entry_on_time and nav.waypoints == planned and nav.late_entries == 0
-    nav.join_step(s_pt, -1, due + 10.0)                                  # once on time, it stays on its way
+    nav.join_step(s_pt, -1, due + ENTRY_TIMING_TOLERANCE_S + 1.0)      # once on time, on its way until the crossing's due
     assert nav.waypoints == planned and nav.late_entries == 0
     nav, s_pt, due = _cleared_join(maps)
     lead = nav.entry_lead_s
@@ -298,9 +298,11 @@ def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_d
     # ... and its joins leave earlier by the delay (the lead from the same wait point, plus what it learnt)
     assert nav.lead_learnt_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)
     assert nav.entry_lead_s == pytest.approx(lead + nav.lead_learnt_s, abs=1e-9)
-    assert nav.waypoints[nav.wait_index] == planned[0]                        # its wait point again
-    z_top = nav.geom.hi_m[2] + nav.cfg.keepout_margin_m
-    assert nav.waypoints[0] == (s_pt[0], s_pt[1], z_top) and vel[2] > 0       # up over the tunnel first
+    # back the way it came, away from the staging points where the routes meet, to its wait point again
+    assert nav.waypoints[:nav.wait_index + 1] == planned[1:-1][::-1] + [planned[0]]   # S itself first: passed at once
+    assert nav.wait_index >= 1 and distance(nav.waypoints[0], planned[0]) > 0
+    back = nav.waypoints[nav.wp_index]                                        # S passed at once: the next one back
+    assert back == planned[1] and sum(v * (b - a) for v, a, b in zip(vel, s_pt, back)) > 0
     assert nav.waypoints[-1] == planned[-1]                                   # the same entry point
 
 
@@ -313,6 +315,43 @@ def test_an_arrival_more_than_the_tolerance_early_takes_its_earliness_off_the_le
     nav.join_step(s_pt, -1, due - early_s)
     assert nav.entry_on_time and nav.late_entries == 0                   # early: it enters (after waiting)
     assert nav.lead_learnt_s == pytest.approx(learnt_after, abs=1e-9)
+
+
+def test_a_join_not_across_the_inlet_by_its_crossing_due_time_gives_its_window_up(maps):
+    """Held back on its final leg (the net behind a jam at the inlet), a vehicle on time at its staging
+    point would still cross beside the next one: past its crossing due time plus the tolerance it turns
+    back, learning nothing; once across the inlet plane it is in the flow whatever the time."""
+    nav, s_pt, due = _cleared_join(maps)
+    nav.join_step(s_pt, -1, due)                                        # on time at the staging point
+    entry = nav.waypoints[-1]
+    assert nav.entry_on_time
+    assert nav.crossing_due_s == pytest.approx(due + distance(s_pt, entry) / nav._crawl_m_s() + JOIN_LEG_ALLOWANCE_S)
+    assert nav._crawl_m_s() > 0.3                                       # the flow's own speed at the inlet
+    planned = list(nav.waypoints)
+    mid = tuple((a + b) / 2 for a, b in zip(s_pt, entry))
+    late = nav.crossing_due_s + ENTRY_TIMING_TOLERANCE_S
+    assert nav.join_step(mid, -1, late)[0] > 0 and nav.waypoints == planned  # exactly the tolerance: on
+    assert nav.join_step(entry, 0, late + 5.0) is None                  # across: in the flow
+    nav, s_pt, due = _cleared_join(maps)
+    nav.join_step(s_pt, -1, due)
+    vel = nav.join_step(mid, -1, nav.crossing_due_s + ENTRY_TIMING_TOLERANCE_S + 1e-6)
+    assert nav.late_entries == 1 and not nav.entry_cleared and nav.crossing_due_s is None
+    assert nav.lead_learnt_s == 0.0                                     # not its way to the staging point...
+    assert nav.leg_lead_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)   # ... but its final leg
+    assert nav.waypoints[:nav.wait_index + 1] == planned[1:-1][::-1] + [planned[0]]   # back through S, the way it came
+    assert sum(v * (b - a) for v, a, b in zip(vel, mid, nav.waypoints[nav.wp_index])) > 0
+
+
+@pytest.mark.parametrize("early_s, leg_lead_after", [(ENTRY_TIMING_TOLERANCE_S, 3.0),
+                                                     (ENTRY_TIMING_TOLERANCE_S + 1e-6, 3.0 - ENTRY_TIMING_TOLERANCE_S - 1e-6),
+                                                     (5.0, 0.0)])
+def test_a_crossing_more_than_the_tolerance_early_takes_its_earliness_off_the_leg_lead(maps, early_s, leg_lead_after):
+    nav, s_pt, due = _cleared_join(maps)
+    nav.leg_lead_s = 3.0
+    nav.join_step(s_pt, -1, due - 3.0)                                  # starts its final leg 3 s before due
+    assert nav.entry_on_time and nav.lead_learnt_s == 0.0
+    assert nav.join_step(nav.waypoints[-1], 0, nav.crossing_due_s - early_s) is None
+    assert nav.leg_lead_s == pytest.approx(leg_lead_after, abs=1e-9)
 
 
 def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering_late(maps):
@@ -342,7 +381,8 @@ def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering
 
 def test_a_vehicle_too_slow_for_its_lead_learns_it_and_enters_on_time_in_a_later_window(maps):
     """Lag 2 s and gain 0.5 (beyond the arrival governor's reach): late, it gives the window up and learns
-    the delay, and within two more windows it reaches its staging point in time."""
+    the delay, and within three more windows it reaches its staging point in time and crosses the inlet
+    when due."""
     g, sfield = maps["tunnel"]
     nav, _, first_due = _cleared_join(maps)
     pos, vel, dt = np.array(nav.waypoints[nav.wait_index]), np.zeros(3), 0.05
@@ -357,9 +397,11 @@ def test_a_vehicle_too_slow_for_its_lead_learns_it_and_enters_on_time_in_a_later
         pos = pos + vel * dt
     else:
         raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
-    # without the learnt lead it was late at every window (paced to the due time, it flew at half the pace)
-    assert 1 <= nav.late_entries <= 2 and nav.entry_on_time and 1.0 < nav.lead_learnt_s < 10.0, (
+    # without the learnt leads it was late at every window (paced to the due time, it flew at half the pace):
+    # late at its staging point, it learns the way there; late across the inlet, its final leg
+    assert 1 <= nav.late_entries <= 3 and nav.entry_on_time and 1.0 < nav.lead_learnt_s < 10.0, (
         nav.late_entries, nav.lead_learnt_s, t - first_due)
+    assert 0.0 < nav.leg_lead_s < 10.0 and t - nav.crossing_due_s <= ENTRY_TIMING_TOLERANCE_S, (nav.leg_lead_s, t)
 
 
 def test_the_exit_holds_only_on_its_spot_and_once_slow(maps):
