@@ -39,7 +39,8 @@ arrived 2.3 s late at 1.5 x the join speed, 0.6 s after the next vehicle's entry
 
 
 MAX_LEAD_LEARNT_S = 20.0
-"""Most a join's lead grows by what late arrivals taught it (``Navigator.lead_learnt_s``) [s]."""
+"""Most a join's lead grows by what late arrivals taught it (each of ``Navigator.lead_learnt_s`` and
+``Navigator.leg_lead_s``) [s]."""
 
 
 EXIT_CORNER_RADIUS_M = 1.0
