@@ -146,7 +146,8 @@ class SwarmSafetyNet:
                 else np.array([np.inf, -np.inf, 0.0, 0.0]))  # an empty x range: the rule applies nowhere
         self._kernel(np.ascontiguousarray(pos_m, dtype=float), np.ascontiguousarray(vel_m_s, dtype=float),
                      np.ascontiguousarray(cmd_m_s, dtype=float), np.ascontiguousarray(ids, dtype=np.int64), pairs,
-                     self.d_min_m, self.horizon_s, float(cfg.pass_margin_m), float(cfg.push_gain_1_s), float(cfg.max_push_m_s),
+                     self.d_min_m, self.horizon_s, float(cfg.pass_margin_m), float(cfg.push_gain_1_s),
+                     float(cfg.max_push_m_s),
                      COINCIDENT_M, duct, out)
         return out, pairs.shape[0]
 

@@ -511,11 +511,15 @@ def truth_pass(truth: WallTruth, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
     keep = np.concatenate([[True], (np.diff(truth.wall_s) > 0) & (np.diff(truth.px4_s) > 0)])
     t, pos = truth.wall_s[keep], truth.pos_m[keep]
     vel = np.gradient(pos, truth.px4_s[keep], axis=0)
-    flowing = None
-    if track is not None:
-        idx = np.clip(np.searchsorted(track.wall_s, t), 0, len(track.wall_s) - 1)
-        flowing = track.states[idx] == "FLOW"
+    flowing = None if track is None else flowing_at(track, t)
     return t, pos, vel, pass_states(pos, vel, x_lo_m, x_hi_m, near_axis_m, flowing)
+
+
+def flowing_at(track: "Track", wall_s: np.ndarray) -> np.ndarray:
+    """(n,) bool: does the agent's log say FLOW at the wall times ``wall_s`` (the state of the log row at or
+    after each time, the last row beyond it)?"""
+    idx = np.clip(np.searchsorted(track.wall_s, wall_s), 0, len(track.wall_s) - 1)
+    return track.states[idx] == "FLOW"
 
 
 def pass_states(pos_m: np.ndarray, vel_m_s: np.ndarray, x_lo_m: float, x_hi_m: float,

@@ -39,7 +39,7 @@ from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, free_tcp_port, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, ground, latest_states, ok, px4_ulog,
+from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, Px4Sitl, Track, flowing_at, ground, latest_states, ok, px4_ulog,
                        signed_map_on_zenoh, truth_on_wall_clock)
 from .test_px4_fleet_sitl import min_separation_m, safety_net_view
 
@@ -56,9 +56,8 @@ PREDICTION_TOLERANCE = 0.1
 
 def flowing_excursion_m(truth, track: Track, wall) -> float:
     """Largest distance outside the wall [m] of the true positions while the agent's log says FLOW
-    (each truth sample takes the state of the log row nearest in wall time)."""
-    idx = np.clip(np.searchsorted(track.wall_s, truth.wall_s), 0, len(track.wall_s) - 1)
-    flowing = track.states[idx] == "FLOW"
+    (``sitl_kit.flowing_at``)."""
+    flowing = flowing_at(track, truth.wall_s)
     x, r = truth.pos_m[flowing, 0], np.hypot(truth.pos_m[flowing, 1], truth.pos_m[flowing, 2])
     inside = (x >= wall.x_m[0]) & (x <= wall.x_m[-1])
     return float(np.max(r[inside] - wall.radius_at(x[inside]), initial=-np.inf))
