@@ -266,6 +266,28 @@ class Navigator:
         log.info("across the inlet %+.1f s from its due time (leg lead now %.1f s)", late_s,
                  self.leg_lead_s)
 
+    def _late_on_the_way(self, pos: Vec, wall_time_s: float) -> bool:
+        """On its way to the staging point S, already sure to reach it more than ``ENTRY_TIMING_TOLERANCE_S``
+        after its due time (the window's opening less ``leg_lead_s``)?  Sure: even the rest of the route
+        flown straight at the governor's top speed, without slowing at its corners (a lower bound on the
+        time it takes), would bring it there late.  Then it gives the window up where it is
+        (``_give_up_window``) instead of at S, where the join routes meet: decided at S, a join late by
+        about one window turned back just as the next vehicle arrived at its own staging point.  It
+        learns (``lead_learnt_s``) the lateness of its arrival at top speed as the join's lead counts
+        the legs (``approach_time_s``, slowing at each corner): more than the sure lateness, less than
+        what it would have shown at S."""
+        last = len(self.waypoints) - 1
+        path = [pos] + self.waypoints[self.wp_index:last]   # on to S = waypoints[-2]
+        legs = [distance(a, b) for a, b in zip(path, path[1:])]
+        hi = self._top_join_speed_m_s()
+        due_s = self.staging_due_s - self.leg_lead_s
+        if wall_time_s + sum(legs) / hi - due_s <= ENTRY_TIMING_TOLERANCE_S:
+            return False
+        late_s = wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s
+        self.lead_learnt_s = min(MAX_LEAD_LEARNT_S, self.lead_learnt_s + late_s)
+        self._give_up_window(pos, late_s, "on its way: at top speed at the staging point")
+        return True
+
     def _late_at_staging(self, pos: Vec, wall_time_s: float) -> bool:
         """At the staging point later than ``ENTRY_TIMING_TOLERANCE_S`` after its due time (the window's
         opening less ``leg_lead_s``, when the final leg starts; held up on the
@@ -310,6 +332,9 @@ class Navigator:
             if self.schedule.stagger_s > 0:
                 self.staging_due_s = wall_time_s + self.entry_lead_s
                 log.info("entry slot open: on to the inlet")
+        if (self.wp_index < last and self.staging_due_s is not None and not self.entry_on_time
+                and self._late_on_the_way(pos, wall_time_s)):
+            return self.join_step(pos, cv, wall_time_s)   # on the way back (no due time: once)
         if (self.wp_index == last and self.staging_due_s is not None and not self.entry_on_time
                 and self._late_at_staging(pos, wall_time_s)):
             return self.join_step(pos, cv, wall_time_s)   # on the way back (no due time: once)
@@ -327,6 +352,10 @@ class Navigator:
             vel = (max(vel[0], self._crawl_m_s()), vel[1], vel[2])
         return vel
 
+    def _top_join_speed_m_s(self) -> float:
+        """The arrival governor's top speed (``_join_speed``): 1.5 x the join speed, within the speed limit."""
+        return min(self.cfg.max_speed_m_s, 1.5 * self.cfg.join_speed_m_s)
+
     def _join_speed(self, pos: Vec, wall_time_s: float) -> float:
         """The join's speed: with entry windows, from the wait point to the staging point the one
         that brings the vehicle there when it is due (``control.speed_for_arrival``, up to 1.5 x the
@@ -338,7 +367,7 @@ class Navigator:
             return cfg.join_speed_m_s
         path = [pos] + self.waypoints[self.wp_index:last]   # on to the staging point S = waypoints[-2]
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
-        hi = min(cfg.max_speed_m_s, 1.5 * cfg.join_speed_m_s)
+        hi = self._top_join_speed_m_s()
         aim_s = self.staging_due_s - self.leg_lead_s - self.lead_learnt_s
         return speed_for_arrival(legs, aim_s - wall_time_s, cfg.waypoint_radius_m,
                                  min(0.3, hi), hi)

@@ -283,6 +283,50 @@ def _cleared_join(maps, agent_id=3):
     return nav, nav.waypoints[-2], nav.staging_due_s
 
 
+def test_a_join_sure_to_be_late_at_its_staging_point_gives_its_window_up_on_its_way(maps):
+    """Decided only at the staging point S, a join late by about one window turned back just as the next
+    vehicle arrived at its own.  On its way, once even the rest of its route flown straight at the
+    governor's top speed would bring it to S more than the tolerance late, it turns back where it is."""
+    g, sfield = maps["tunnel"]
+
+    def half_way():
+        cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=3, entry_stagger_s=2.89, entry_slots=13,
+                          lookahead_auto=False)
+        nav = Navigator(cfg)
+        nav.set_map(sfield)
+        wait = (g.x_inlet_m + 0.6, 8.0, -8.0)
+        nav.plan_join(wait, None, wait_where_planned=True)
+        t = next(k * 0.05 for k in range(20000) if entry_slot_open(k * 0.05 + nav.entry_lead_s, 3, 2.89, 13))
+        nav.join_step(wait, -1, t)
+        assert nav.entry_cleared and nav.staging_due_s is not None and nav.wp_index == nav.wait_index + 1
+        nxt = nav.waypoints[nav.wp_index]
+        here = tuple(a + 0.5 * (b - a) for a, b in zip(wait, nxt))
+        rest = [here] + nav.waypoints[nav.wp_index:-1]
+        rest_m = sum(distance(a, b) for a, b in zip(rest, rest[1:]))
+        top = min(cfg.max_speed_m_s, 1.5 * cfg.join_speed_m_s)
+        sure_late_at = nav.staging_due_s + ENTRY_TIMING_TOLERANCE_S - rest_m / top  # straight on at top speed
+        return nav, here, rest, top, sure_late_at, nav.staging_due_s
+
+    nav, here, _, _, sure_late_at, _ = half_way()
+    planned = list(nav.waypoints)
+    assert nav.join_step(here, -1, sure_late_at - 1e-6) is not None         # just in time at best: on
+    assert nav.waypoints == planned and nav.late_entries == 0 and nav.staging_due_s is not None
+    nav, *_, sure_late_at, _ = half_way()
+    assert nav.join_step(here, -1, sure_late_at) is not None                 # late by exactly the tolerance: on
+    assert nav.waypoints == planned and nav.late_entries == 0
+    nav, here, rest, top, sure_late_at, due = half_way()
+    t = sure_late_at + 1e-3
+    vel = nav.join_step(here, -1, t)                                         # just later: back from here
+    assert nav.late_entries == 1 and not nav.entry_cleared and nav.staging_due_s is None
+    # back along its own route to its wait point, not on to S
+    assert nav.waypoints[nav.wait_index] == planned[0] and nav.waypoints[-1] == planned[-1]
+    assert sum(v * (b - a) for v, a, b in zip(vel, here, planned[0])) > 0
+    # it learns its lateness at top speed as the lead counts the legs (slowing at each corner): more than sure
+    model_s = sum(approach_time_s(distance(a, b), top, nav.cfg.waypoint_radius_m) for a, b in zip(rest, rest[1:]))
+    assert nav.lead_learnt_s == pytest.approx(t + model_s - due, abs=1e-9)
+    assert nav.lead_learnt_s > ENTRY_TIMING_TOLERANCE_S
+
+
 def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_does_not(maps):
     """The entry windows keep consecutive entries d_min apart only if each vehicle starts across within
     ENTRY_TIMING_TOLERANCE_S of its due time (``separation_budget``)."""
@@ -359,13 +403,16 @@ def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering
     """As the safety net held a real PX4 for 4 s: stopped for 6 s on the way to its staging point, the
     vehicle goes back to its wait point and crosses the inlet in a later window, on time."""
     g, sfield = maps["tunnel"]
-    nav, _, first_due = _cleared_join(maps)
+    nav, s_pt, first_due = _cleared_join(maps)
     pos, vel, dt = np.array(nav.waypoints[nav.wait_index]), np.zeros(3), 0.05
     t0 = first_due - nav.entry_lead_s
     k = 1.0 - math.exp(-dt / 0.9)
+    turned_back_at = None
     for step in range(1, 6000):
         t = t0 + step * dt
         cmd = nav.join_step(tuple(pos), sfield.cv_of(*pos), t)
+        if nav.late_entries and turned_back_at is None:
+            turned_back_at = tuple(pos)
         if cmd is None:
             break
         if t0 + 2.0 <= t < t0 + 8.0:   # held on the way
@@ -376,6 +423,7 @@ def test_a_join_held_up_on_its_way_waits_for_its_next_window_instead_of_entering
         raise AssertionError(("never entered", nav.late_entries, nav.lead_learnt_s))
     cycle = 2.89 * 13
     assert nav.late_entries == 1
+    assert distance(turned_back_at, s_pt) > 2.0              # on its way, sure to be late: not at its staging point
     assert t - first_due > cycle - 2.89                      # a later window (the next cycle's), not the first
     assert nav.entry_on_time                                 # at its staging point in time, this once
 
