@@ -266,6 +266,11 @@ class Navigator:
         log.info("across the inlet %+.1f s from its due time (leg lead now %.1f s)", late_s,
                  self.leg_lead_s)
 
+    def _final_leg_due_s(self) -> float:
+        """When (shared clock) the join is due to leave its staging point on its final leg: the staging
+        point's due time less ``leg_lead_s``."""
+        return self.staging_due_s - self.leg_lead_s
+
     def _late_on_the_way(self, pos: Vec, wall_time_s: float) -> bool:
         """On its way to the staging point S, already sure to reach it more than ``ENTRY_TIMING_TOLERANCE_S``
         after its due time (the window's opening less ``leg_lead_s``)?  Sure: even the rest of the route
@@ -280,7 +285,7 @@ class Navigator:
         path = [pos] + self.waypoints[self.wp_index:last]   # on to S = waypoints[-2]
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
         hi = self._top_join_speed_m_s()
-        due_s = self.staging_due_s - self.leg_lead_s
+        due_s = self._final_leg_due_s()
         if wall_time_s + sum(legs) / hi - due_s <= ENTRY_TIMING_TOLERANCE_S:
             return False
         late_s = wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s
@@ -302,7 +307,7 @@ class Navigator:
         more than the tolerance early takes its earliness off the learnt lead: a delay that has gone (the
         net no longer acting on the way) stops sending the vehicle early, to wait at its staging point
         beside the one entering before it."""
-        late_s = wall_time_s - (self.staging_due_s - self.leg_lead_s)
+        late_s = wall_time_s - self._final_leg_due_s()
         if late_s <= ENTRY_TIMING_TOLERANCE_S:
             self.entry_on_time = True
             if late_s < -ENTRY_TIMING_TOLERANCE_S:
@@ -344,7 +349,7 @@ class Navigator:
         if self.entry_on_time and self.crossing_due_s is not None and self._late_across(pos, wall_time_s):
             return self.join_step(pos, cv, wall_time_s)
         if (self.wp_index == last and self.staging_due_s is not None
-                and wall_time_s < self.staging_due_s - self.leg_lead_s):
+                and wall_time_s < self._final_leg_due_s()):
             return self.goto(pos, self.waypoints[last - 1], cfg.join_speed_m_s)   # early at S: wait until due
         vel = self.goto(pos, self.waypoints[self.wp_index], self._join_speed(pos, wall_time_s))
         if self.wp_index == last:  # final leg: cross the inlet plane at the flow's own speed
@@ -368,7 +373,7 @@ class Navigator:
         path = [pos] + self.waypoints[self.wp_index:last]   # on to the staging point S = waypoints[-2]
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
         hi = self._top_join_speed_m_s()
-        aim_s = self.staging_due_s - self.leg_lead_s - self.lead_learnt_s
+        aim_s = self._final_leg_due_s() - self.lead_learnt_s
         return speed_for_arrival(legs, aim_s - wall_time_s, cfg.waypoint_radius_m,
                                  min(0.3, hi), hi)
 
