@@ -23,13 +23,15 @@ import numba
 import numpy as np
 
 from sim.jit_kernels import padded_cell, slot_of
+from sim.kinetic_jit import kinetic_commands
 from sim.plant.kernel import BLOCK
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
                centers, mean_speed, mean_ned, slot_ned, n_star, slot_mode, x_outlet_m, grace_s, dt_s, gain, frac,
-               map_to_ned, shared, h, nsub, fdt):
+               map_to_ned, shared, h, nsub, fdt, kin, t_over_p, lead_s, epoch, sign, direction, phase, k_origin,
+               k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s):
     """One swarm step of every agent in place; returns ``(n_exited, n_escaped, n_outside)``.
 
     ``assigned`` False: look up each agent's CV and its mean/slot command (held in the block, ``cv`` and
@@ -37,7 +39,13 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
     are not counted outside).  ``assigned`` True: ``cv`` and ``cmd`` are given (the removals done), every
     agent is kept, ``cmd`` is read only.
     Then for each kept agent outside the CVs the return-policy command and its time outside, then the
-    plant sub-steps and ``pos += vel * fdt``."""
+    plant sub-steps and ``pos += vel * fdt``.
+
+    ``kin``: the commands are the ``kinetic`` mode's, ``sim.kinetic_jit.kinetic_commands`` of every agent
+    with its CV given (at ``t_over_p`` = t / persistence and look-ahead ``lead_s``; the deviation state
+    ``epoch``, ``sign``, ``direction`` updated in place, the ``k_*`` and following arguments its tables)
+    written into ``cmd`` first; with ``assigned`` False the CVs are looked up into ``cv`` before (0 for the
+    agents removed, which fly junk)."""
     n = pos.shape[0]
     bs = BLOCK
     s_itv, s_beta, s_g, s_k0, s_k1, s_k2 = shared[0], shared[1], shared[2], shared[3], shared[4], shared[5]
@@ -53,9 +61,28 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
     n_exit = 0
     n_esc = 0
     n_out = 0
+    if kin:
+        if not assigned:  # sim.jit_kernels.fused_lookup and removal, the CVs into cv (0: removed, as below)
+            for i in range(n):
+                c = padded_cell(pos, i, origin, inv_l, hi, strides)
+                j = flat[c]
+                if pos[i, 0] >= x_outlet_m:
+                    n_exit += 1
+                    keep[i] = False
+                    j = 0
+                elif j < 0 and (out_s[i] > grace_s or near_flat[c] < 0):
+                    n_esc += 1
+                    keep[i] = False
+                    j = 0
+                else:
+                    keep[i] = True
+                cv[i] = j
+        kinetic_commands(pos, vel, ids, cv, True, t_over_p, lead_s, epoch, sign, direction, phase, k_origin, k_cell,
+                         k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
+                         map_to_ned, cmd)
     for start in range(0, n, bs):
         m = min(bs, n - start)
-        if assigned:
+        if assigned or kin:
             for jb in range(m):
                 i = start + jb
                 jv[jb] = cv[i]

@@ -169,7 +169,7 @@ class Swarm:
         c = self.config
         self._fused = FusedStep.make(self.lookup, self._centers_m, self._mean_speed, self._mean_ned, self._slot_ned,
                                      self._n_star, c.mode == "slot", self._co, c.dt_s, self.x_outlet_m, c.escape_grace_s,
-                                     c.return_gain_1_s, c.return_speed_fraction, MAP_TO_NED) \
+                                     c.return_gain_1_s, c.return_speed_fraction, MAP_TO_NED, self._kinetic) \
             if self._kernel is not None and c.fused else None
         self._alloc(1024)
         self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
