@@ -38,6 +38,7 @@ from fisc_ground.fields.time_blocks import DEFAULT_BLOCK_S, BlockAccumulator
 from fisc_agent.flight.safety_net import DuctAxis
 from fisc_agent.map.separation import map_separation
 from sim import report
+from sim.close_pairs import close_pairs_lister
 from sim.collisions import CollisionModel, CollisionParams
 from sim.plant.fit import plant_preset
 from sim.safety_net import SwarmSafetyNet
@@ -352,7 +353,7 @@ def simulate(config: RunConfig, cmap: CommandMap,
         reservoir = _inflow(config, cf, cmap, settings)
     acc = FieldAccumulator(cf.n_cv, cf.cell_size_m ** 3)
     blocks = BlockAccumulator(cf.n_cv, config.block_s)
-    approach = ApproachTracker(d_min_m)
+    approach = ApproachTracker(d_min_m, close_pairs_lister())  # numba's cell grid: the KD-tree's pairs
     mass = float(cmap.body.get("agent_mass_kg", 1.0))
     n_steps = max(1, int(round(config.duration / config.dt_s)))
     window = min(config.window, n_steps * config.dt_s)
