@@ -8,8 +8,8 @@ the same bit for bit (tests/sim/test_fused_step.py).  Agents work in blocks of `
 kernel does: the block's state is copied into small arrays that stay in L1 while the sub-steps loop
 over them, so the inner loop vectorises across agents.
 
-Agents flagged for removal are stepped too (their rows are junk afterwards): the caller compacts the
-rows with ``keep`` (``sim.kernels.compact_kernel``), which leaves the survivors exactly as the
+Agents flagged for removal are stepped too (their rows are junk afterwards): the kernel then compacts the
+rows with ``keep`` (``sim.jit_kernels.compact``), which leaves the survivors exactly as the
 reference's removal-then-step does, since no agent's step depends on another's.
 
 Imports numba: reach it through ``sim.fused_step.FusedStep.make`` (None without numba).
@@ -22,31 +22,32 @@ import math
 import numba
 import numpy as np
 
-from sim.jit_kernels import padded_cell, slot_of
+from sim.jit_kernels import compact, padded_cell, slot_of
 from sim.kinetic_jit import kinetic_commands
 from sim.plant.kernel import BLOCK
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
+def fused_step(n, pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
                centers, mean_speed, mean_ned, slot_ned, n_star, slot_mode, x_outlet_m, grace_s, dt_s, gain, frac,
                map_to_ned, shared, h, nsub, fdt, kin, t_over_p, lead_s, epoch, sign, direction, phase, k_origin,
                k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s):
-    """One swarm step of every agent in place; returns ``(n_exited, n_escaped, n_outside)``.
+    """One swarm step of every agent (the first ``n`` rows of the buffers ``pos`` ... ``phase``; ``cv`` and
+    ``keep`` have n) in place; returns ``(n_exited, n_escaped, n_outside, n_kept)``.
 
     ``assigned`` False: look up each agent's CV and its mean/slot command (held in the block, ``cv`` and
     ``cmd`` neither read nor written) and apply the outlet/escape removal rule (``keep`` out; removed agents
     are not counted outside).  ``assigned`` True: ``cv`` and ``cmd`` are given (the removals done), every
     agent is kept, ``cmd`` is read only.
     Then for each kept agent outside the CVs the return-policy command and its time outside, then the
-    plant sub-steps and ``pos += vel * fdt``.
+    plant sub-steps and ``pos += vel * fdt``; last the removed agents' rows are dropped (the rows of
+    ``Swarm._keep``: the survivors in the first ``n_kept``).
 
     ``kin``: the commands are the ``kinetic`` mode's, ``sim.kinetic_jit.kinetic_commands`` of every agent
     with its CV given (at ``t_over_p`` = t / persistence and look-ahead ``lead_s``; the deviation state
     ``epoch``, ``sign``, ``direction`` updated in place, the ``k_*`` and following arguments its tables)
     written into ``cmd`` first; with ``assigned`` False the CVs are looked up into ``cv`` before (0 for the
     agents removed, which fly junk)."""
-    n = pos.shape[0]
     bs = BLOCK
     s_itv, s_beta, s_g, s_k0, s_k1, s_k2 = shared[0], shared[1], shared[2], shared[3], shared[4], shared[5]
     s_ff, s_am, s_tt = shared[6], shared[7], shared[8]
@@ -77,9 +78,9 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
                 else:
                     keep[i] = True
                 cv[i] = j
-        kinetic_commands(pos, vel, ids, cv, True, t_over_p, lead_s, epoch, sign, direction, phase, k_origin, k_cell,
-                         k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
-                         map_to_ned, cmd)
+        kinetic_commands(pos[:n], vel[:n], ids[:n], cv, True, t_over_p, lead_s, epoch[:n], sign[:n], direction[:n],
+                         phase[:n], k_origin, k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes,
+                         spread_xyz, zone0, brake_s, map_to_ned, cmd[:n])
     for start in range(0, n, bs):
         m = min(bs, n - start)
         if assigned or kin:
@@ -184,4 +185,7 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
         for i in range(start, start + m):  # sim.jit_kernels.move (a loop of its own: it vectorises)
             for k in range(3):
                 pos[i, k] += vel[i, k] * fdt[k]
-    return n_exit, n_esc, n_out
+    m = n
+    if n_exit + n_esc:  # sim.jit_kernels.compact: the rows of Swarm._keep
+        m = compact(keep, (pos, vel, thr, sign, direction, cmd), (out_s, phase), (ids, epoch, cv))
+    return n_exit, n_esc, n_out, m

@@ -34,6 +34,7 @@ class FusedStep:
                  kinetic: KineticStep | None = None) -> None:
         self._kernel = kernel
         self._kinetic = kinetic
+        self._rows = None  # the swarm's row buffers (memo)
         nsub = substep_count(dt_s, co)
         h = dt_s / nsub
         _, shared = kernel_args(co, h)
@@ -70,12 +71,11 @@ class FusedStep:
         if not whole and n and not kin:
             swarm._select_commands(cv, swarm._cmd[:n], swarm.t_s, into_buffer=True)
         keep = np.empty(n, dtype=bool)
-        n_exit, n_esc, n_out = self(swarm, cv, keep, not whole)
+        n_exit, n_esc, n_out, swarm.n = self(swarm, cv, keep, not whole)
         c = swarm.counters
-        if n_exit or n_esc:
+        if n_exit or n_esc:  # the kernel dropped their rows (Swarm._keep)
             c.exited += n_exit
             c.escaped += n_esc
-            swarm._keep(keep, cv)
         c.steps += 1
         c.agent_steps += swarm.n
         c.returned += n_out
@@ -83,15 +83,18 @@ class FusedStep:
         swarm._cv = None
         swarm._cmd_ready = False
 
-    def __call__(self, swarm, cv: np.ndarray, keep: np.ndarray, assigned: bool) -> tuple[int, int, int]:
+    def __call__(self, swarm, cv: np.ndarray, keep: np.ndarray, assigned: bool) -> tuple[int, int, int, int]:
         """Step ``swarm``'s first ``n`` rows (position, velocity, thrust, time outside, command buffer, kinetic
-        state) in place; returns ``(n_exited, n_escaped, n_outside)``.  ``assigned``: ``cv`` holds the
+        state) in place and drop the removed agents' rows (as ``Swarm._keep``, ``cv`` too); returns
+        ``(n_exited, n_escaped, n_outside, n_kept)`` (``swarm.n`` is left to the caller).  ``assigned``: ``cv`` holds the
         agents' CVs (removals done) and, but in mode ``kinetic``, the command buffer their commands (read
         only); else the kernel looks them up itself and ``keep`` flags the agents that stay.  Mode ``kinetic``
         writes the commands into the buffer (and, not ``assigned``, the CVs into ``cv``)."""
-        n = swarm.n
         kin = self._kinetic
         t_over_p, lead_s = (float(swarm.t_s) / kin.persistence_s, kin.lookahead_s) if kin is not None else (0.0, 0.0)
-        return self._kernel(swarm._pos[:n], swarm._vel[:n], swarm._thr[:n], swarm._ids[:n], swarm._out[:n],
-                            swarm._cmd[:n], cv, keep, assigned, *self._tables, kin is not None, t_over_p, lead_s,
-                            swarm._epoch[:n], swarm._sign[:n], swarm._dir[:n], swarm._phase[:n], *self._kin_tables)
+        rows = self._rows
+        if rows is None or rows[0][0] is not swarm._pos:  # the swarm's buffers, until they grow
+            rows = self._rows = ((swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out, swarm._cmd),
+                                 (swarm._epoch, swarm._sign, swarm._dir, swarm._phase))
+        return self._kernel(swarm.n, *rows[0], cv, keep, assigned, *self._tables, kin is not None, t_over_p, lead_s,
+                            *rows[1], *self._kin_tables)

@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from sim.jit_kernels import slot_mix32
+from sim.jit_kernels import deviation_phases, slot_mix32, trim_thrust
 
 _TWO_PI = 2.0 * np.pi
 """``2.0 * np.pi`` as ``_unit_from_hash`` folds it."""
@@ -178,3 +178,32 @@ def admit_batch(inlet_cvs, counts, centers, cell, entry_x, interval_s, u, r, fir
                 m += 1
             idx += 1
     return m
+
+
+@numba.njit(cache=True, nogil=True)
+def enter_agents(new_pos, new_ids, t_over_p, origin, cell, hi, strides, offset, padded_cv, lower, upper, codes,
+                 spread_xyz, zone0, brake_s, map_to_ned, drag_k, g, accel_max, tan_tilt, n, pos, vel, thr, ids, out_s,
+                 epoch, sign, phase):
+    """Write agents ``new_ids`` at ``new_pos`` (k, 3) into the swarm's rows ``n .. n + k`` (``Swarm.add_agents``
+    of a kinetic swarm, its operations in their order): their deviation phase (``deviation_phases``), their
+    start velocity (``kinetic_commands`` at rest, without look-ahead, from a fresh deviation state, through
+    the map frame and back: ``sim.kinetic_step.KineticStep.start_velocity``), the trim thrust of it
+    (``trim_thrust``, fleet-wide coefficients), time outside 0 and a fresh deviation state."""
+    k = new_pos.shape[0]
+    ph = np.empty(k)
+    deviation_phases(new_ids, ph)
+    cmd = np.empty((k, 3))
+    kinetic_commands(new_pos, np.zeros((k, 3)), new_ids, np.empty(0, dtype=np.int64), False, t_over_p, 0.0,
+                     np.full(k, -1, dtype=np.int64), np.ones((k, 3)), np.zeros((k, 3)), ph, origin, cell, hi,
+                     strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned, cmd)
+    for i in range(k):
+        r = n + i
+        for c in range(3):
+            pos[r, c] = new_pos[i, c]
+            vel[r, c] = (cmd[i, c] * map_to_ned[c]) * map_to_ned[c]
+            sign[r, c] = 1.0
+        ids[r] = new_ids[i]
+        out_s[r] = 0.0
+        epoch[r] = -1
+        phase[r] = ph[i]
+    trim_thrust(vel[n:n + k], drag_k, g, accel_max, tan_tilt, thr[n:n + k])

@@ -59,6 +59,19 @@ class KineticStep:
         return cmd * _MAP_TO_NED
 
 
+    def enter(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float, co, swarm) -> None:
+        """Write new agents (``pos_m`` (k, 3) float64, ``ids`` (k,) int64, contiguous) into ``swarm``'s rows
+        ``n .. n + k`` (capacity there): the rows ``Swarm.add_agents`` writes, its start velocity from
+        ``start_velocity`` and the trim thrust of ``sim.entry.entry_thrust``, in one kernel call
+        (``sim.kinetic_jit.enter_agents``; ``co`` fleet-wide plant coefficients).  Does not change ``n``."""
+        from sim import kinetic_jit
+
+        kinetic_jit.enter_agents(pos_m, ids, float(t_s) / self.persistence_s, *self._tables,
+                                 co.drag_k[0], float(co.g[0]), float(co.accel_max[0]), float(co.tan_tilt[0]),
+                                 swarm.n, swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out, swarm._epoch,
+                                 swarm._sign, swarm._phase)
+
+
 def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
     """(k,) the x component of ``fisc_agent.map.kinetic.deviation_direction`` of agents ``ids`` at
     ``t_s``: one numba pass when numba is installed (the same bits), else the numpy function."""

@@ -270,10 +270,16 @@ class Swarm:
             ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         else:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            if ids.size != k or (k and (ids[0] < self._next_id or np.any(np.diff(ids) <= 0))):
+            if ids.size != k or (k and (ids[0] < self._next_id or bool((ids[1:] <= ids[:-1]).any()))):
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
+        if vel_map_m_s is None and self._kinetic is not None and self._co.rows == 1:
+            # numba: the rows below in one call (sim.kinetic_step.KineticStep.enter), the same bits
+            if self.n + k > self._pos.shape[0]:
+                self._alloc(max(2 * self._pos.shape[0], self.n + k))
+            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self)
+            return self._added(ids)
         phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
         if vel_map_m_s is None and self._kinetic is not None:
             vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
@@ -298,6 +304,11 @@ class Swarm:
         self._epoch[s] = -1
         self._sign[s] = 1.0
         self._phase[s] = phase
+        return self._added(ids)
+
+    def _added(self, ids: np.ndarray) -> np.ndarray:
+        """The bookkeeping of ``add_agents`` once the rows of ``ids`` are written after the first ``n``."""
+        k = ids.shape[0]
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
