@@ -28,12 +28,11 @@ from sim.plant.kernel import BLOCK
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def fused_step(n, pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
+def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
                centers, mean_speed, mean_ned, slot_ned, n_star, slot_mode, x_outlet_m, grace_s, dt_s, gain, frac,
                map_to_ned, shared, h, nsub, fdt, kin, t_over_p, lead_s, epoch, sign, direction, phase, k_origin,
                k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s):
-    """One swarm step of every agent (the first ``n`` rows of the buffers ``pos`` ... ``phase``; ``cv`` and
-    ``keep`` have n) in place; returns ``(n_exited, n_escaped, n_outside, n_kept)``.
+    """One swarm step of every agent in place; returns ``(n_exited, n_escaped, n_outside, n_kept)``.
 
     ``assigned`` False: look up each agent's CV and its mean/slot command (held in the block, ``cv`` and
     ``cmd`` neither read nor written) and apply the outlet/escape removal rule (``keep`` out; removed agents
@@ -48,6 +47,7 @@ def fused_step(n, pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, in
     ``epoch``, ``sign``, ``direction`` updated in place, the ``k_*`` and following arguments its tables)
     written into ``cmd`` first; with ``assigned`` False the CVs are looked up into ``cv`` before (0 for the
     agents removed, which fly junk)."""
+    n = pos.shape[0]
     bs = BLOCK
     s_itv, s_beta, s_g, s_k0, s_k1, s_k2 = shared[0], shared[1], shared[2], shared[3], shared[4], shared[5]
     s_ff, s_am, s_tt = shared[6], shared[7], shared[8]
@@ -78,9 +78,9 @@ def fused_step(n, pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, in
                 else:
                     keep[i] = True
                 cv[i] = j
-        kinetic_commands(pos[:n], vel[:n], ids[:n], cv, True, t_over_p, lead_s, epoch[:n], sign[:n], direction[:n],
-                         phase[:n], k_origin, k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes,
-                         spread_xyz, zone0, brake_s, map_to_ned, cmd[:n])
+        kinetic_commands(pos, vel, ids, cv, True, t_over_p, lead_s, epoch, sign, direction, phase, k_origin, k_cell,
+                         k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
+                         map_to_ned, cmd)
     for start in range(0, n, bs):
         m = min(bs, n - start)
         if assigned or kin:

@@ -34,7 +34,6 @@ class FusedStep:
                  kinetic: KineticStep | None = None) -> None:
         self._kernel = kernel
         self._kinetic = kinetic
-        self._rows = None  # the swarm's row buffers (memo)
         nsub = substep_count(dt_s, co)
         h = dt_s / nsub
         _, shared = kernel_args(co, h)
@@ -92,9 +91,7 @@ class FusedStep:
         writes the commands into the buffer (and, not ``assigned``, the CVs into ``cv``)."""
         kin = self._kinetic
         t_over_p, lead_s = (float(swarm.t_s) / kin.persistence_s, kin.lookahead_s) if kin is not None else (0.0, 0.0)
-        rows = self._rows
-        if rows is None or rows[0][0] is not swarm._pos:  # the swarm's buffers, until they grow
-            rows = self._rows = ((swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out, swarm._cmd),
-                                 (swarm._epoch, swarm._sign, swarm._dir, swarm._phase))
-        return self._kernel(swarm.n, *rows[0], cv, keep, assigned, *self._tables, kin is not None, t_over_p, lead_s,
-                            *rows[1], *self._kin_tables)
+        n = swarm.n
+        return self._kernel(swarm._pos[:n], swarm._vel[:n], swarm._thr[:n], swarm._ids[:n], swarm._out[:n],
+                            swarm._cmd[:n], cv, keep, assigned, *self._tables, kin is not None, t_over_p, lead_s,
+                            swarm._epoch[:n], swarm._sign[:n], swarm._dir[:n], swarm._phase[:n], *self._kin_tables)

@@ -196,14 +196,20 @@ def enter_agents(new_pos, new_ids, t_over_p, origin, cell, hi, strides, offset, 
     kinetic_commands(new_pos, np.zeros((k, 3)), new_ids, np.empty(0, dtype=np.int64), False, t_over_p, 0.0,
                      np.full(k, -1, dtype=np.int64), np.ones((k, 3)), np.zeros((k, 3)), ph, origin, cell, hi,
                      strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned, cmd)
+    v = np.empty((k, 3))
+    for i in range(k):
+        for c in range(3):
+            v[i, c] = (cmd[i, c] * map_to_ned[c]) * map_to_ned[c]
+    a = np.empty((k, 3))
+    trim_thrust(v, drag_k, g, accel_max, tan_tilt, a)  # contiguous (k, 3): the specialisation sim.entry calls
     for i in range(k):
         r = n + i
         for c in range(3):
             pos[r, c] = new_pos[i, c]
-            vel[r, c] = (cmd[i, c] * map_to_ned[c]) * map_to_ned[c]
+            vel[r, c] = v[i, c]
+            thr[r, c] = a[i, c]
             sign[r, c] = 1.0
         ids[r] = new_ids[i]
         out_s[r] = 0.0
         epoch[r] = -1
         phase[r] = ph[i]
-    trim_thrust(vel[n:n + k], drag_k, g, accel_max, tan_tilt, thr[n:n + k])
