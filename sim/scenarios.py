@@ -39,7 +39,7 @@ import numpy as np
 
 from fisc_agent.map.lookup import CommandField
 from sim.kernels import jit_kernels
-from sim.kinetic_step import admit_batch, deviation_x
+from sim.kinetic_step import BatchAdmission, deviation_x
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -167,6 +167,7 @@ class Reservoir:
         self._spread_m_s = None if field.spread_m_s is None else np.asarray(field.spread_m_s)
         self._carry = np.zeros(self.cvs.size)
         self._next_t = 0.0
+        self._admission = None  # numba: sim.kinetic_step.BatchAdmission of this reservoir (made at its first batch)
 
     @property
     def rate_per_s(self) -> float:
@@ -186,8 +187,10 @@ class Reservoir:
             k = int(counts.sum())
             u = rng.random((k, 3))
             r = rng.random(k) if k else np.zeros(0)
-            return admit_batch(self.cvs, counts, self.field, self.entry_cmd_m_s[:, 0], self.interval_s, u, r,
-                               first_id, float(t_s) / self.kinetic_persistence_s, self._entry_u_m_s, self._spread_m_s)
+            if self._admission is None:
+                self._admission = BatchAdmission(self.cvs, self.field, self.entry_cmd_m_s[:, 0], self.interval_s,
+                                                 self._entry_u_m_s, self._spread_m_s)
+            return self._admission(counts, u, r, first_id, float(t_s) / self.kinetic_persistence_s)
         pos, cv = self._batch(rng)
         return self.admit(pos, first_id, t_s, rng, cv)
 
