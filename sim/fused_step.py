@@ -59,39 +59,34 @@ class FusedStep:
             return None
         return cls(fused_step, *args, **kwargs)
 
-    def step(self, swarm) -> None:
-        """``swarm.step()`` (a :class:`sim.swarm.Swarm` without command filter or collider) through the kernel:
-        the counters, the clock and the state as its multi-pass step leaves them."""
+    def step(self, swarm, steps: int = 1) -> None:
+        """``swarm.step(steps)`` (a :class:`sim.swarm.Swarm` without command filter or collider) through the
+        kernel: the counters, the clock and the state as that many multi-pass steps leave them.  Several steps
+        are one kernel call where the whole step is the kernel's (modes ``mean``, ``slot`` without look-ahead
+        and ``kinetic``), else one call per step."""
         cfg = swarm.config
-        kin = self._kinetic is not None
-        whole = swarm._cv is None and (kin or (cfg.mode in ("mean", "slot") and cfg.lookahead_s == 0))
-        cv = swarm._cvbuf[:swarm.n] if whole else swarm.assign()
-        n = swarm.n
-        if not whole and n and not kin:
-            swarm._select_commands(cv, swarm._cmd[:n], swarm.t_s, into_buffer=True)
-        keep = np.empty(n, dtype=bool)
-        n_exit, n_esc, n_out, swarm.n = self(swarm, cv, keep, not whole)
-        c = swarm.counters
-        if n_exit or n_esc:  # the kernel dropped their rows (Swarm._keep)
-            c.exited += n_exit
-            c.escaped += n_esc
-        c.steps += 1
-        c.agent_steps += swarm.n
-        c.returned += n_out
-        swarm.t_s += cfg.dt_s
-        swarm._cv = None
-        swarm._cmd_ready = False
-
-    def __call__(self, swarm, cv: np.ndarray, keep: np.ndarray, assigned: bool) -> tuple[int, int, int, int]:
-        """Step ``swarm``'s first ``n`` rows (position, velocity, thrust, time outside, command buffer, kinetic
-        state) in place and drop the removed agents' rows (as ``Swarm._keep``, ``cv`` too); returns
-        ``(n_exited, n_escaped, n_outside, n_kept)`` (``swarm.n`` is left to the caller).  ``assigned``: ``cv`` holds the
-        agents' CVs (removals done) and, but in mode ``kinetic``, the command buffer their commands (read
-        only); else the kernel looks them up itself and ``keep`` flags the agents that stay.  Mode ``kinetic``
-        writes the commands into the buffer (and, not ``assigned``, the CVs into ``cv``)."""
         kin = self._kinetic
-        t_over_p, lead_s = (float(swarm.t_s) / kin.persistence_s, kin.lookahead_s) if kin is not None else (0.0, 0.0)
-        n = swarm.n
-        return self._kernel(swarm._pos[:n], swarm._vel[:n], swarm._thr[:n], swarm._ids[:n], swarm._out[:n],
-                            swarm._cmd[:n], cv, keep, assigned, *self._tables, kin is not None, t_over_p, lead_s,
-                            swarm._epoch[:n], swarm._sign[:n], swarm._dir[:n], swarm._phase[:n], *self._kin_tables)
+        one_call = kin is not None or (cfg.mode in ("mean", "slot") and cfg.lookahead_s == 0)
+        for _ in range(1 if one_call else steps):
+            whole = swarm._cv is None and one_call
+            cv = swarm._cvbuf[:swarm.n] if whole else swarm.assign()
+            n = swarm.n
+            if not whole and n and kin is None:
+                swarm._select_commands(cv, swarm._cmd[:n], swarm.t_s, into_buffer=True)
+            k = steps if one_call else 1
+            keep = np.empty(n, dtype=bool)
+            n_exit, n_esc, n_out, agent_steps, swarm.n = self._kernel(
+                swarm._pos[:n], swarm._vel[:n], swarm._thr[:n], swarm._ids[:n], swarm._out[:n], swarm._cmd[:n], cv,
+                keep, not whole, *self._tables, kin is not None, float(swarm.t_s),
+                1.0 if kin is None else kin.persistence_s, 0.0 if kin is None else kin.lookahead_s, swarm._epoch[:n],
+                swarm._sign[:n], swarm._dir[:n], swarm._phase[:n], *self._kin_tables, k)
+            c = swarm.counters
+            c.exited += n_exit  # the kernel dropped their rows (Swarm._keep)
+            c.escaped += n_esc
+            c.steps += k
+            c.agent_steps += agent_steps
+            c.returned += n_out
+            for _ in range(k):
+                swarm.t_s += cfg.dt_s
+            swarm._cv = None
+            swarm._cmd_ready = False

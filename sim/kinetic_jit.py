@@ -59,14 +59,14 @@ def _component(lcv, t, lo, hi, spread, dk, to_ned):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, frac, rows, vel_map):
-    """``CommandField.locate`` of every agent's point (``frac[0:3]``, ``rows[0]``) and look-ahead point
-    (``frac[3:6]``, ``rows[1]``, exact integers in floating point) and its map-frame velocity
+def _locate_all(n, pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, frac, rows, vel_map):
+    """``CommandField.locate`` of the first ``n`` agents' points (``frac[0:3]``, ``rows[0]``) and look-ahead
+    points (``frac[3:6]``, ``rows[1]``, exact integers in floating point) and their map-frame velocities
     ``vel_map`` (3, n): one pass per axis over structure-of-arrays buffers, which the compiler
     vectorises (the division and floor dominate)."""
     for k in range(3):
         o, h, s, mk = origin[k], hi[k], strides[k], map_to_ned[k]
-        for i in range(pos.shape[0]):
+        for i in range(n):
             x = pos[i, k]
             v = vel_ned[i, k] * mk
             vel_map[k, i] = v
@@ -93,11 +93,20 @@ def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, s
                      origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
                      zone0, brake_s, map_to_ned, cmd_out):
     """NED kinetic commands of every agent and its new deviation state (``sim.kernels``)."""
-    n = pos.shape[0]
+    kinetic_rows(pos.shape[0], pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
+                 origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
+                 map_to_ned, cmd_out)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def kinetic_rows(n, pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
+                 origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
+                 zone0, brake_s, map_to_ned, cmd_out):
+    """``kinetic_commands`` of the first ``n`` rows of the arrays (the agents of a swarm's buffers)."""
     fr = np.empty((6, n))
     rw = np.empty((2, n))
     vv = np.empty((3, n))
-    _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, fr, rw, vv)
+    _locate_all(n, pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, fr, rw, vv)
     m0, m1, m2 = map_to_ned[0], map_to_ned[1], map_to_ned[2]
     for i in range(n):
         f0, f1, f2 = fr[0, i], fr[1, i], fr[2, i]

@@ -128,11 +128,16 @@ def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float
     return float(n_agents) / total
 
 
+def is_due(next_t_s: float, t_s: float) -> bool:
+    """Whether ``periods_due(next_t_s, t_s, period)`` counts an event (1e-9 s early counts)."""
+    return next_t_s <= t_s + 1e-9
+
+
 def periods_due(next_t_s: float, t_s: float, period_s: float) -> tuple[int, float]:
     """How many events of a clock ticking every ``period_s``, next due at ``next_t_s``, are due by
     ``t_s`` (1e-9 s early counts), and when the one after them is due."""
     k = 0
-    while next_t_s <= t_s + 1e-9:
+    while is_due(next_t_s, t_s):
         next_t_s += period_s
         k += 1
     return k, next_t_s
@@ -234,6 +239,10 @@ class Reservoir:
         k, self._next_t = periods_due(self._next_t, t_s, self.interval_s)
         return k
 
+    def is_due(self, t_s: float) -> bool:
+        """Whether ``due(t_s)`` would be > 0 (the clock left as it is)."""
+        return is_due(self._next_t, t_s)
+
 
 class StaggeredInlet:
     """Case 2 with the agents' own admission (``fisc-sim run --staggered-admission``): one agent every
@@ -260,6 +269,10 @@ class StaggeredInlet:
         """Number of admissions due by time ``t_s`` (advances the internal clock)."""
         k, self._next_t = periods_due(self._next_t, t_s, self.period_s)
         return k
+
+    def is_due(self, t_s: float) -> bool:
+        """Whether ``due(t_s)`` would be > 0 (the clock left as it is)."""
+        return is_due(self._next_t, t_s)
 
     def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """One agent: its position (1, 3) on the inlet face and its id ``first_id`` (``t_s`` unused: the

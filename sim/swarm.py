@@ -375,10 +375,18 @@ class Swarm:
         self._cv = cv
         return cv
 
-    def step(self) -> None:
-        """One step of Algorithm 1 for every agent."""
+    def step(self, steps: int = 1) -> None:
+        """``steps`` steps of Algorithm 1 for every agent (no agents added in between)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps!r}")
         if self._fused is not None and self.command_filter is None and self.collider is None:
-            return self._fused.step(self)  # one kernel call, the bits of the passes below
+            return self._fused.step(self, steps)  # one kernel call, the bits of the passes below
+        for _ in range(steps - 1):
+            self._step()
+        self._step()
+
+    def _step(self) -> None:
+        """One step of Algorithm 1 for every agent (the multi-pass step)."""
         cv = self.assign()
         n = self.n
         self.counters.steps += 1
