@@ -4,11 +4,12 @@ and the fused kernel ``sim.fused_kernel.fused_step``.
 ``Swarm.step`` flies it when numba is installed and the step has no command filter and no collider (they
 act between the command and the plant, and between the plant and the move).  In modes ``mean``, ``slot``
 (without look-ahead) and ``kinetic``, with no assignment cached, one call does the whole step: CV lookup,
-command (``kinetic``: ``sim.kinetic_jit.kinetic_commands``, the kernel of ``sim.kinetic_step``, called
-from inside), removal flags, return policy, plant sub-steps and move; with an assignment cached by ``Swarm.assign`` (a sample
-of the fields), the call starts from it.  Otherwise (``interpolated``, ``mean`` / ``slot`` with
-look-ahead) the swarm assigns and fills the commands first, and one call does the return policy, the
-plant and the move.
+command (``kinetic``: ``sim.kinetic_jit.kinetic_rows``, the kernel of ``sim.kinetic_step``, called from
+inside), removal flags, return policy, plant sub-steps, move and the removed agents' compaction; with an
+assignment cached by ``Swarm.assign`` (a sample of the fields), the call starts from it; and
+``Swarm.step(m)`` flies m steps in that one call (``sim.run.simulate`` between two events).  Otherwise
+(``interpolated``, ``mean`` / ``slot`` with look-ahead) the swarm assigns and fills the commands first,
+and one call per step does the return policy, the plant and the move.
 
 The reference is the multi-pass step (``Swarm.step`` with ``fused=False``: the kernels of
 ``sim.kernels`` and the plant kernel); both give the same bits (tests/sim/test_fused_step.py).

@@ -146,8 +146,9 @@ class RunConfig:
     """CVs with fewer agent samples in the window are left out of the metrics."""
     separation_interval_s: float = 5.0
     """Interval between the closest-approach evaluations over the agents in the tunnel [s] (a multiple
-    of dt; each costs ~4-5 ms at 10^3 agents, most of it listing the ~10^4 pairs closer than d_min, so
-    every 5 s (61 evaluations of the 300 s run) keeps the main job within a few % of its time).
+    of dt; each costs ~1 ms at 10^3 agents, most of it listing the ~10^4 pairs closer than d_min (numba's
+    cell grid, ``sim.close_pairs``; twice that by the KD-tree), so every 5 s (61 evaluations of the 300 s
+    run) keeps the main job within a few % of its time).
     Near-misses are the pairs closer than the map's d_min at an evaluation that were not at the one before."""
     block_s: float = DEFAULT_BLOCK_S
     """Length of the time blocks of the bootstrap intervals [s] (``fisc_ground.fields.time_blocks``)."""
