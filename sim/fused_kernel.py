@@ -30,15 +30,16 @@ from sim.plant.kernel import BLOCK
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l, hi, strides, flat, near_flat,
                centers, mean_speed, mean_ned, slot_ned, n_star, slot_mode, x_outlet_m, grace_s, dt_s, gain, frac,
-               map_to_ned, shared, h, nsub, fdt, kin, t_s, persistence_s, lead_s, epoch, sign, direction, phase, k_origin,
-               k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, n_steps):
+               map_to_ned, shared, h, nsub, fdt, kin, t_s, persistence_s, lead_s, epoch, sign, direction, phase,
+               k_origin, k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
+               n_steps):
     """``n_steps`` swarm steps of every agent in place, from time ``t_s``; returns the sums over the steps of
     the agents exited, escaped, outside and stepped (alive after each step's removals), and the agents left.
 
-    Each step: ``assigned`` False (or a step after the first): look up each agent's CV and its mean/slot command (held in the block, ``cv`` and
-    ``cmd`` neither read nor written) and apply the outlet/escape removal rule (``keep`` out; removed agents
-    are not counted outside).  ``assigned`` True: ``cv`` and ``cmd`` are given (the removals done), every
-    agent is kept, ``cmd`` is read only (the first step only).
+    Each step: ``assigned`` False (or a step after the first): look up each agent's CV and its mean/slot
+    command (held in the block, ``cv`` and ``cmd`` neither read nor written) and apply the outlet/escape
+    removal rule (``keep`` out; removed agents are not counted outside).  ``assigned`` True (the first step
+    only): ``cv`` and ``cmd`` are given (the removals done), every agent is kept, ``cmd`` is read only.
     Then for each kept agent outside the CVs the return-policy command and its time outside, then the
     plant sub-steps and ``pos += vel * fdt``; last the removed agents' rows are dropped (the rows of
     ``Swarm._keep``: the survivors in the first ``n_kept``).

@@ -274,41 +274,31 @@ class Swarm:
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        if vel_map_m_s is None and self._kinetic is not None and self._co.rows == 1:
-            # numba: the rows below in one call (sim.kinetic_step.KineticStep.enter), the same bits
-            if self.n + k > self._pos.shape[0]:
-                self._alloc(max(2 * self._pos.shape[0], self.n + k))
-            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self)
-            return self._added(ids)
-        phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
-        if vel_map_m_s is None and self._kinetic is not None:
-            vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
-        elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
-            # start at the command of flight_command without look-ahead (kinetic: with its deviation)
-            st = self.config.flight_settings
-            cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
-                                       FlightSettings(st.mode, 0.0, st.persistence_s))
-            vel = np.nan_to_num(cmd)
-        elif vel_map_m_s is None:
-            vel = np.nan_to_num(self.commands_map(pos, ids))
-        else:
-            vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
         if self.n + k > self._pos.shape[0]:
             self._alloc(max(2 * self._pos.shape[0], self.n + k))
-        s = slice(self.n, self.n + k)
-        self._pos[s] = pos
-        self._vel[s] = vel * MAP_TO_NED
-        self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
-        self._ids[s] = ids
-        self._out[s] = 0.0
-        self._epoch[s] = -1
-        self._sign[s] = 1.0
-        self._phase[s] = phase
-        return self._added(ids)
-
-    def _added(self, ids: np.ndarray) -> np.ndarray:
-        """The bookkeeping of ``add_agents`` once the rows of ``ids`` are written after the first ``n``."""
-        k = ids.shape[0]
+        if vel_map_m_s is None and self._kinetic is not None:  # numba: the rows below in one call, the same bits
+            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self)
+        else:
+            phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
+            if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
+                # start at the command of flight_command without look-ahead (kinetic: with its deviation)
+                st = self.config.flight_settings
+                cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
+                                           FlightSettings(st.mode, 0.0, st.persistence_s))
+                vel = np.nan_to_num(cmd)
+            elif vel_map_m_s is None:
+                vel = np.nan_to_num(self.commands_map(pos, ids))
+            else:
+                vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
+            s = slice(self.n, self.n + k)
+            self._pos[s] = pos
+            self._vel[s] = vel * MAP_TO_NED
+            self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
+            self._ids[s] = ids
+            self._out[s] = 0.0
+            self._epoch[s] = -1
+            self._sign[s] = 1.0
+            self._phase[s] = phase
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
@@ -381,9 +371,8 @@ class Swarm:
             raise ValueError(f"steps must be >= 1, got {steps!r}")
         if self._fused is not None and self.command_filter is None and self.collider is None:
             return self._fused.step(self, steps)  # one kernel call, the bits of the passes below
-        for _ in range(steps - 1):
+        for _ in range(steps):
             self._step()
-        self._step()
 
     def _step(self) -> None:
         """One step of Algorithm 1 for every agent (the multi-pass step)."""
