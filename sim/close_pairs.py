@@ -44,9 +44,9 @@ def list_close_pairs(ids: np.ndarray, pos: np.ndarray, d_min_m: float) -> tuple[
         return np.zeros(0, dtype=np.uint64), none
     from sim.close_pairs_jit import close_pair_keys
 
-    keys, best, key, ok = close_pair_keys(np.ascontiguousarray(pos, dtype=np.float64),
-                                          np.ascontiguousarray(ids, dtype=np.int64), float(d_min_m),
-                                          MAX_CELLS_PER_AGENT * n + MAX_CELLS_BASE)
+    ids = np.ascontiguousarray(ids, dtype=np.int64)
+    keys, best, key, ok = close_pair_keys(np.ascontiguousarray(pos, dtype=np.float64), ids, np.argsort(ids),
+                                          float(d_min_m), MAX_CELLS_PER_AGENT * n + MAX_CELLS_BASE)
     if not ok:
         return None
     if not keys.size:

@@ -12,9 +12,10 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def close_pair_keys(pos, ids, d_min_m, max_cells):
+def close_pair_keys(pos, ids, by_id, d_min_m, max_cells):
     """``(keys, best d^2, best key, ok)``: the sorted keys ``min(id) << 32 | max(id)`` of the pairs strictly
-    closer than ``d_min_m`` (> 0) among ``pos`` (n >= 1, 3, finite) with ``ids`` (n,) distinct, and the
+    closer than ``d_min_m`` (> 0) among ``pos`` (n >= 1, 3, finite) with ``ids`` (n,) distinct (``by_id``:
+    their order, ``np.argsort(ids)``; sorted outside, numba's sort costs seconds to compile), and the
     closest of them (smallest ``(dx^2 + dy^2) + dz^2``, numpy's ``np.sum(d ** 2, axis=1)`` order; ties: the
     smallest key); ``ok`` False (nothing listed) when the agents' box needs more than ``max_cells`` cells.
 
@@ -53,9 +54,10 @@ def close_pair_keys(pos, ids, d_min_m, max_cells):
         start[c + 1] += 1
     for q in range(total):
         start[q + 1] += start[q]
-    by_id = np.argsort(ids)
     order = np.empty(n, dtype=np.int64)  # the agents cell by cell, each cell's in increasing id
-    fill_at = start[:-1].copy()
+    fill_at = np.empty(total, dtype=np.int64)
+    for q in range(total):
+        fill_at[q] = start[q]
     for t in range(n):
         i = by_id[t]
         order[fill_at[cell[i]]] = i
@@ -66,7 +68,9 @@ def close_pair_keys(pos, ids, d_min_m, max_cells):
     best = math.inf
     best_key = np.uint64(0)
     partners = np.empty(n, dtype=np.int64)
-    later = start[:-1].copy()  # per cell: its first agent of an id larger than the agent visited
+    later = np.empty(total, dtype=np.int64)  # per cell: its first agent of an id larger than the agent visited
+    for q in range(total):
+        later[q] = start[q]
     for t in range(n):
         i = by_id[t]
         a = ids[i]
@@ -101,9 +105,13 @@ def close_pair_keys(pos, ids, d_min_m, max_cells):
                         m += 1
         if count + m > keys.shape[0]:
             grown = np.empty(max(2 * keys.shape[0], count + m), dtype=np.uint64)
-            grown[:count] = keys[:count]
+            for u in range(count):  # loops, not slices: their shape checks cost seconds of compile
+                grown[u] = keys[u]
             keys = grown
         for u in range(m):
             keys[count] = (np.uint64(a) << np.uint64(32)) | np.uint64(partners[u])
             count += 1
-    return keys[:count].copy(), best, best_key, True
+    out = np.empty(count, dtype=np.uint64)
+    for u in range(count):
+        out[u] = keys[u]
+    return out, best, best_key, True

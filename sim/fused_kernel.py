@@ -50,7 +50,8 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
     with its CV given (at t / ``persistence_s`` and look-ahead ``lead_s``; the deviation state
     ``epoch``, ``sign``, ``direction`` updated in place, the ``k_*`` and following arguments its tables)
     written into ``cmd`` first; with ``assigned`` False the CVs are looked up into ``cv`` before (0 for the
-    agents removed, which fly junk)."""
+    agents removed, which fly junk).  (Flags handed on to other kernels are variables, never literals: numba
+    compiles a kernel anew for each literal.)"""
     n = pos.shape[0]
     bs = BLOCK
     s_itv, s_beta, s_g, s_k0, s_k1, s_k2 = shared[0], shared[1], shared[2], shared[3], shared[4], shared[5]
@@ -89,7 +90,7 @@ def fused_step(pos, vel, thr, ids, out_s, cmd, cv, keep, assigned, origin, inv_l
                     else:
                         keep[i] = True
                     cv[i] = j
-            kinetic_rows(n, pos, vel, ids, cv, True, t / persistence_s, lead_s, epoch, sign, direction, phase, k_origin,
+            kinetic_rows(n, pos, vel, ids, cv, kin, t / persistence_s, lead_s, epoch, sign, direction, phase, k_origin,
                          k_cell, k_hi, k_strides, k_offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
                          map_to_ned, cmd)
         for start in range(0, n, bs):

@@ -195,16 +195,17 @@ def enter_agents(new_pos, new_ids, t_over_p, origin, cell, hi, strides, offset, 
                  epoch, sign, phase):
     """Write agents ``new_ids`` at ``new_pos`` (k, 3) into the swarm's rows ``n .. n + k`` (``Swarm.add_agents``
     of a kinetic swarm, its operations in their order): their deviation phase (``deviation_phases``), their
-    start velocity (``kinetic_commands`` at rest, without look-ahead, from a fresh deviation state, through
+    start velocity (``kinetic_rows`` at rest, without look-ahead, from a fresh deviation state, through
     the map frame and back: ``sim.kinetic_step.KineticStep.start_velocity``), the trim thrust of it
     (``trim_thrust``, fleet-wide coefficients), time outside 0 and a fresh deviation state."""
     k = new_pos.shape[0]
     ph = np.empty(k)
     deviation_phases(new_ids, ph)
     cmd = np.empty((k, 3))
-    kinetic_commands(new_pos, np.zeros((k, 3)), new_ids, np.empty(0, dtype=np.int64), False, t_over_p, 0.0,
-                     np.full(k, -1, dtype=np.int64), np.ones((k, 3)), np.zeros((k, 3)), ph, origin, cell, hi,
-                     strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned, cmd)
+    no_cv = k < 0  # False, typed bool: a literal False would compile kinetic_rows once more
+    kinetic_rows(k, new_pos, np.zeros((k, 3)), new_ids, np.empty(0, dtype=np.int64), no_cv, t_over_p, 0.0,
+                 np.full(k, -1, dtype=np.int64), np.ones((k, 3)), np.zeros((k, 3)), ph, origin, cell, hi, strides,
+                 offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned, cmd)
     v = np.empty((k, 3))
     for i in range(k):
         for c in range(3):
