@@ -160,10 +160,14 @@ def compact(keep, rows3, rows1, rows_int):
 
 @numba.njit(cache=True, nogil=True)
 def cv_moment_sums(cv, vel_ned, map_to_ned, mass, ref, count, mass_kg, momentum, m_v2, m_dev2):
-    """Per-CV moment sums of one sample (``sim.moments.swarm_moments``), added into the zeroed outputs."""
+    """Per-CV moment sums of one sample (``sim.moments.swarm_moments``), added into the zeroed outputs;
+    returns ``(agents whose CV is out of [-1, n_cv), left out; whether every m_v2 sum is finite)``."""
+    n_cv = count.shape[0]
+    bad = 0
     for i in range(cv.shape[0]):
         j = cv[i]
-        if j < 0:
+        if j < 0 or j >= n_cv:
+            bad += j < -1 or j >= n_cv
             continue
         v0 = vel_ned[i, 0] * map_to_ned[0]
         v1 = vel_ned[i, 1] * map_to_ned[1]
@@ -179,6 +183,10 @@ def cv_moment_sums(cv, vel_ned, map_to_ned, mass, ref, count, mass_kg, momentum,
         d1 = v1 - ref[j, 1]
         d2 = v2 - ref[j, 2]
         m_dev2[j] += mass * ((d0 * d0 + d2 * d2) + d1 * d1)
+    finite = True
+    for j in range(n_cv):
+        finite &= math.isfinite(m_v2[j])
+    return bad, finite
 
 
 

@@ -14,7 +14,7 @@ import math
 import numba
 import numpy as np
 
-from sim.jit_kernels import slot_mix32
+from sim.jit_kernels import deviation_phases, slot_mix32, trim_thrust
 
 _TWO_PI = 2.0 * np.pi
 """``2.0 * np.pi`` as ``_unit_from_hash`` folds it."""
@@ -59,14 +59,14 @@ def _component(lcv, t, lo, hi, spread, dk, to_ned):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, frac, rows, vel_map):
-    """``CommandField.locate`` of every agent's point (``frac[0:3]``, ``rows[0]``) and look-ahead point
-    (``frac[3:6]``, ``rows[1]``, exact integers in floating point) and its map-frame velocity
+def _locate_all(n, pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, frac, rows, vel_map):
+    """``CommandField.locate`` of the first ``n`` agents' points (``frac[0:3]``, ``rows[0]``) and look-ahead
+    points (``frac[3:6]``, ``rows[1]``, exact integers in floating point) and their map-frame velocities
     ``vel_map`` (3, n): one pass per axis over structure-of-arrays buffers, which the compiler
     vectorises (the division and floor dominate)."""
     for k in range(3):
         o, h, s, mk = origin[k], hi[k], strides[k], map_to_ned[k]
-        for i in range(pos.shape[0]):
+        for i in range(n):
             x = pos[i, k]
             v = vel_ned[i, k] * mk
             vel_map[k, i] = v
@@ -93,11 +93,20 @@ def kinetic_commands(pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, s
                      origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
                      zone0, brake_s, map_to_ned, cmd_out):
     """NED kinetic commands of every agent and its new deviation state (``sim.kernels``)."""
-    n = pos.shape[0]
+    kinetic_rows(pos.shape[0], pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
+                 origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s,
+                 map_to_ned, cmd_out)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def kinetic_rows(n, pos, vel_ned, ids, cv, cv_given, t_over_p, lead_s, epoch, sign, direction, phase,
+                 origin, cell, hi, strides, offset, padded_cv, lower, upper, codes, spread_xyz,
+                 zone0, brake_s, map_to_ned, cmd_out):
+    """``kinetic_commands`` of the first ``n`` rows of the arrays (the agents of a swarm's buffers)."""
     fr = np.empty((6, n))
     rw = np.empty((2, n))
     vv = np.empty((3, n))
-    _locate_all(pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, fr, rw, vv)
+    _locate_all(n, pos, vel_ned, lead_s, origin, cell, hi, strides, offset, map_to_ned, fr, rw, vv)
     m0, m1, m2 = map_to_ned[0], map_to_ned[1], map_to_ned[2]
     for i in range(n):
         f0, f1, f2 = fr[0, i], fr[1, i], fr[2, i]
@@ -178,3 +187,39 @@ def admit_batch(inlet_cvs, counts, centers, cell, entry_x, interval_s, u, r, fir
                 m += 1
             idx += 1
     return m
+
+
+@numba.njit(cache=True, nogil=True)
+def enter_agents(new_pos, new_ids, t_over_p, origin, cell, hi, strides, offset, padded_cv, lower, upper, codes,
+                 spread_xyz, zone0, brake_s, map_to_ned, drag_k, g, accel_max, tan_tilt, n, pos, vel, thr, ids, out_s,
+                 epoch, sign, phase):
+    """Write agents ``new_ids`` at ``new_pos`` (k, 3) into the swarm's rows ``n .. n + k`` (``Swarm.add_agents``
+    of a kinetic swarm, its operations in their order): their deviation phase (``deviation_phases``), their
+    start velocity (``kinetic_rows`` at rest, without look-ahead, from a fresh deviation state, through
+    the map frame and back: ``sim.kinetic_step.KineticStep.start_velocity``), the trim thrust of it
+    (``trim_thrust``, fleet-wide coefficients), time outside 0 and a fresh deviation state."""
+    k = new_pos.shape[0]
+    ph = np.empty(k)
+    deviation_phases(new_ids, ph)
+    cmd = np.empty((k, 3))
+    no_cv = k < 0  # False, typed bool: a literal False would compile kinetic_rows once more
+    kinetic_rows(k, new_pos, np.zeros((k, 3)), new_ids, np.empty(0, dtype=np.int64), no_cv, t_over_p, 0.0,
+                 np.full(k, -1, dtype=np.int64), np.ones((k, 3)), np.zeros((k, 3)), ph, origin, cell, hi, strides,
+                 offset, padded_cv, lower, upper, codes, spread_xyz, zone0, brake_s, map_to_ned, cmd)
+    v = np.empty((k, 3))
+    for i in range(k):
+        for c in range(3):
+            v[i, c] = (cmd[i, c] * map_to_ned[c]) * map_to_ned[c]
+    a = np.empty((k, 3))
+    trim_thrust(v, drag_k, g, accel_max, tan_tilt, a)  # contiguous (k, 3): the specialisation sim.entry calls
+    for i in range(k):
+        r = n + i
+        for c in range(3):
+            pos[r, c] = new_pos[i, c]
+            vel[r, c] = v[i, c]
+            thr[r, c] = a[i, c]
+            sign[r, c] = 1.0
+        ids[r] = new_ids[i]
+        out_s[r] = 0.0
+        epoch[r] = -1
+        phase[r] = ph[i]

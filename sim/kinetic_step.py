@@ -59,6 +59,19 @@ class KineticStep:
         return cmd * _MAP_TO_NED
 
 
+    def enter(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float, co, swarm) -> None:
+        """Write new agents (``pos_m`` (k, 3) float64, ``ids`` (k,) int64, contiguous) into ``swarm``'s rows
+        ``n .. n + k`` (capacity there): the rows ``Swarm.add_agents`` writes, its start velocity from
+        ``start_velocity`` and the trim thrust of ``sim.entry.entry_thrust``, in one kernel call
+        (``sim.kinetic_jit.enter_agents``; ``co`` fleet-wide plant coefficients).  Does not change ``n``."""
+        from sim import kinetic_jit
+
+        kinetic_jit.enter_agents(pos_m, ids, float(t_s) / self.persistence_s, *self._tables,
+                                 co.drag_k[0], float(co.g[0]), float(co.accel_max[0]), float(co.tan_tilt[0]),
+                                 swarm.n, swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out, swarm._epoch,
+                                 swarm._sign, swarm._phase)
+
+
 def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
     """(k,) the x component of ``fisc_agent.map.kinetic.deviation_direction`` of agents ``ids`` at
     ``t_s``: one numba pass when numba is installed (the same bits), else the numpy function."""
@@ -79,16 +92,33 @@ def admit_batch(inlet_cvs: np.ndarray, counts: np.ndarray, field: CommandField, 
     ``counts[q]`` candidates in inlet CV ``inlet_cvs[q]`` at the uniform draws ``u`` (k, 3) (``Reservoir._batch``),
     candidate k id ``first_id + k``, admitted when ``r[k] < kinetic_admission`` of its deviation at
     ``t_over_p`` = t / persistence (``Reservoir.admit``).  Returns the admitted positions (m, 3) and ids (m,)."""
-    from sim import kinetic_jit
+    return BatchAdmission(inlet_cvs, field, entry_x_m_s, interval_s, entry_u_m_s, spread_m_s)(
+        counts, u, r, first_id, t_over_p)
 
-    k = u.shape[0]
-    if not (u.shape == (k, 3) and r.shape == (k,) and int(np.sum(counts)) == k and counts.shape == inlet_cvs.shape):
-        raise ValueError(f"admit_batch: {int(np.sum(counts))} candidates need u ({k}, 3) and r ({k},), got "
-                         f"{u.shape} and {r.shape}")  # the kernel trusts its sizes
-    pos, ids = np.empty((k, 3)), np.empty(k, dtype=np.int64)
-    m = kinetic_jit.admit_batch(np.ascontiguousarray(inlet_cvs, dtype=np.int64), counts,
-                                np.ascontiguousarray(field.centers_m, dtype=np.float64), float(field.cell_size_m),
-                                np.ascontiguousarray(entry_x_m_s, dtype=np.float64), float(interval_s), u, r,
-                                np.int64(first_id), float(t_over_p), np.ascontiguousarray(entry_u_m_s, dtype=np.float64),
-                                np.ascontiguousarray(spread_m_s, dtype=np.float64), pos, ids)
-    return pos[:m], ids[:m]
+
+class BatchAdmission:
+    """``admit_batch`` of one reservoir: its tables made contiguous once (a reservoir admits a batch every
+    few steps, and the conversions cost more than the kernel)."""
+
+    def __init__(self, inlet_cvs: np.ndarray, field: CommandField, entry_x_m_s: np.ndarray, interval_s: float,
+                 entry_u_m_s: np.ndarray, spread_m_s: np.ndarray) -> None:
+        from sim import kinetic_jit
+
+        self._kernel = kinetic_jit.admit_batch
+        self._cvs = np.ascontiguousarray(inlet_cvs, dtype=np.int64)
+        self._tables = (np.ascontiguousarray(field.centers_m, dtype=np.float64), float(field.cell_size_m),
+                        np.ascontiguousarray(entry_x_m_s, dtype=np.float64), float(interval_s))
+        self._entry = (np.ascontiguousarray(entry_u_m_s, dtype=np.float64),
+                       np.ascontiguousarray(spread_m_s, dtype=np.float64))
+
+    def __call__(self, counts: np.ndarray, u: np.ndarray, r: np.ndarray, first_id: int,
+                 t_over_p: float) -> tuple[np.ndarray, np.ndarray]:
+        """``admit_batch`` of ``counts`` (int64, one per inlet CV) candidates drawn at ``u``, ``r``."""
+        k = u.shape[0]
+        if not (u.shape == (k, 3) and r.shape == (k,) and counts.shape == self._cvs.shape and int(counts.sum()) == k):
+            raise ValueError(f"admit_batch: {int(np.sum(counts))} candidates need u ({k}, 3) and r ({k},), got "
+                             f"{u.shape} and {r.shape}")  # the kernel trusts its sizes
+        pos, ids = np.empty((k, 3)), np.empty(k, dtype=np.int64)
+        m = self._kernel(self._cvs, counts, *self._tables, u, r, np.int64(first_id), float(t_over_p), *self._entry,
+                         pos, ids)
+        return pos[:m], ids[:m]

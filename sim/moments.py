@@ -35,13 +35,13 @@ def swarm_moments(cv: np.ndarray, vel_ned_m_s: np.ndarray, map_to_ned: np.ndarra
     vel = np.ascontiguousarray(vel_ned_m_s, dtype=float)
     if vel.shape != (cv.shape[0], 3):
         raise ValueError(f"velocities must be ({cv.shape[0]}, 3), got shape {vel.shape}")
-    if cv.size and (cv.max() >= n_cv or cv.min() < -1):
-        raise ValueError(f"cv_ids must be in [-1, n_cv = {n_cv}), got {int(cv.min())}..{int(cv.max())}")
     count, mass_sum, m_v2, m_dev2 = (np.zeros(n_cv) for _ in range(4))
     momentum = np.zeros((n_cv, 3))
-    jk.cv_moment_sums(cv, vel, np.ascontiguousarray(map_to_ned, dtype=float), mass, ref, count, mass_sum, momentum,
-                      m_v2, m_dev2)
-    if not np.isfinite(m_v2).all():
+    bad, finite = jk.cv_moment_sums(cv, vel, np.ascontiguousarray(map_to_ned, dtype=float), mass, ref, count, mass_sum,
+                                    momentum, m_v2, m_dev2)  # the checks of cv_moments in the same pass
+    if bad:
+        raise ValueError(f"cv_ids must be in [-1, n_cv = {n_cv}), got {int(cv.min())}..{int(cv.max())}")
+    if not finite:
         raise ValueError("velocities of agents inside the map must be finite")
     return CVMoments(count=count, mass_kg=mass_sum, momentum_kg_m_s=momentum, m_v2_kg_m2_s2=m_v2,
                      m_dev2_kg_m2_s2=m_dev2)

@@ -39,7 +39,7 @@ import numpy as np
 
 from fisc_agent.map.lookup import CommandField
 from sim.kernels import jit_kernels
-from sim.kinetic_step import admit_batch, deviation_x
+from sim.kinetic_step import BatchAdmission, deviation_x
 
 
 def seeded_cvs(field: CommandField, x_axial_m: float = np.inf) -> np.ndarray:
@@ -128,11 +128,16 @@ def scale_for_agents(field: CommandField, n_agents: int | None, x_axial_m: float
     return float(n_agents) / total
 
 
+def is_due(next_t_s: float, t_s: float) -> bool:
+    """Whether ``periods_due(next_t_s, t_s, period)`` counts an event (1e-9 s early counts)."""
+    return next_t_s <= t_s + 1e-9
+
+
 def periods_due(next_t_s: float, t_s: float, period_s: float) -> tuple[int, float]:
     """How many events of a clock ticking every ``period_s``, next due at ``next_t_s``, are due by
     ``t_s`` (1e-9 s early counts), and when the one after them is due."""
     k = 0
-    while next_t_s <= t_s + 1e-9:
+    while is_due(next_t_s, t_s):
         next_t_s += period_s
         k += 1
     return k, next_t_s
@@ -167,6 +172,7 @@ class Reservoir:
         self._spread_m_s = None if field.spread_m_s is None else np.asarray(field.spread_m_s)
         self._carry = np.zeros(self.cvs.size)
         self._next_t = 0.0
+        self._admission = None  # numba: sim.kinetic_step.BatchAdmission of this reservoir (made at its first batch)
 
     @property
     def rate_per_s(self) -> float:
@@ -186,8 +192,10 @@ class Reservoir:
             k = int(counts.sum())
             u = rng.random((k, 3))
             r = rng.random(k) if k else np.zeros(0)
-            return admit_batch(self.cvs, counts, self.field, self.entry_cmd_m_s[:, 0], self.interval_s, u, r,
-                               first_id, float(t_s) / self.kinetic_persistence_s, self._entry_u_m_s, self._spread_m_s)
+            if self._admission is None:
+                self._admission = BatchAdmission(self.cvs, self.field, self.entry_cmd_m_s[:, 0], self.interval_s,
+                                                 self._entry_u_m_s, self._spread_m_s)
+            return self._admission(counts, u, r, first_id, float(t_s) / self.kinetic_persistence_s)
         pos, cv = self._batch(rng)
         return self.admit(pos, first_id, t_s, rng, cv)
 
@@ -231,6 +239,10 @@ class Reservoir:
         k, self._next_t = periods_due(self._next_t, t_s, self.interval_s)
         return k
 
+    def is_due(self, t_s: float) -> bool:
+        """Whether ``due(t_s)`` would be > 0 (the clock left as it is)."""
+        return is_due(self._next_t, t_s)
+
 
 class StaggeredInlet:
     """Case 2 with the agents' own admission (``fisc-sim run --staggered-admission``): one agent every
@@ -257,6 +269,10 @@ class StaggeredInlet:
         """Number of admissions due by time ``t_s`` (advances the internal clock)."""
         k, self._next_t = periods_due(self._next_t, t_s, self.period_s)
         return k
+
+    def is_due(self, t_s: float) -> bool:
+        """Whether ``due(t_s)`` would be > 0 (the clock left as it is)."""
+        return is_due(self._next_t, t_s)
 
     def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """One agent: its position (1, 3) on the inlet face and its id ``first_id`` (``t_s`` unused: the

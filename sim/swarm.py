@@ -169,7 +169,7 @@ class Swarm:
         c = self.config
         self._fused = FusedStep.make(self.lookup, self._centers_m, self._mean_speed, self._mean_ned, self._slot_ned,
                                      self._n_star, c.mode == "slot", self._co, c.dt_s, self.x_outlet_m, c.escape_grace_s,
-                                     c.return_gain_1_s, c.return_speed_fraction, MAP_TO_NED) \
+                                     c.return_gain_1_s, c.return_speed_fraction, MAP_TO_NED, self._kinetic) \
             if self._kernel is not None and c.fused else None
         self._alloc(1024)
         self._cv: np.ndarray | None = None  # assignment of the current positions (cached)
@@ -270,34 +270,35 @@ class Swarm:
             ids = np.arange(self._next_id, self._next_id + k, dtype=np.int64)
         else:
             ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-            if ids.size != k or (k and (ids[0] < self._next_id or np.any(np.diff(ids) <= 0))):
+            if ids.size != k or (k and (ids[0] < self._next_id or bool((ids[1:] <= ids[:-1]).any()))):
                 raise ValueError(f"ids must be {k} strictly increasing ids from {self._next_id} on")
         if k == 0:
             return ids
-        phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
-        if vel_map_m_s is None and self._kinetic is not None:
-            vel = self._kinetic.start_velocity(pos, ids, self.t_s, phase)
-        elif vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
-            # start at the command of flight_command without look-ahead (kinetic: with its deviation)
-            st = self.config.flight_settings
-            cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
-                                       FlightSettings(st.mode, 0.0, st.persistence_s))
-            vel = np.nan_to_num(cmd)
-        elif vel_map_m_s is None:
-            vel = np.nan_to_num(self.commands_map(pos, ids))
-        else:
-            vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
         if self.n + k > self._pos.shape[0]:
             self._alloc(max(2 * self._pos.shape[0], self.n + k))
-        s = slice(self.n, self.n + k)
-        self._pos[s] = pos
-        self._vel[s] = vel * MAP_TO_NED
-        self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
-        self._ids[s] = ids
-        self._out[s] = 0.0
-        self._epoch[s] = -1
-        self._sign[s] = 1.0
-        self._phase[s] = phase
+        if vel_map_m_s is None and self._kinetic is not None:  # numba: the rows below in one call, the same bits
+            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self)
+        else:
+            phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
+            if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
+                # start at the command of flight_command without look-ahead (kinetic: with its deviation)
+                st = self.config.flight_settings
+                cmd, _, _ = flight_command(self.field, pos, np.zeros_like(pos), ids, self.t_s,
+                                           FlightSettings(st.mode, 0.0, st.persistence_s))
+                vel = np.nan_to_num(cmd)
+            elif vel_map_m_s is None:
+                vel = np.nan_to_num(self.commands_map(pos, ids))
+            else:
+                vel = np.asarray(vel_map_m_s, dtype=float).reshape(k, 3)
+            s = slice(self.n, self.n + k)
+            self._pos[s] = pos
+            self._vel[s] = vel * MAP_TO_NED
+            self._thr[s] = entry_thrust(self._vel[s], self._co)  # trim_thrust_accel's bits
+            self._ids[s] = ids
+            self._out[s] = 0.0
+            self._epoch[s] = -1
+            self._sign[s] = 1.0
+            self._phase[s] = phase
         self.n += k
         self._next_id = int(ids[-1]) + 1
         self.counters.injected += k
@@ -364,10 +365,17 @@ class Swarm:
         self._cv = cv
         return cv
 
-    def step(self) -> None:
-        """One step of Algorithm 1 for every agent."""
+    def step(self, steps: int = 1) -> None:
+        """``steps`` steps of Algorithm 1 for every agent (no agents added in between)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps!r}")
         if self._fused is not None and self.command_filter is None and self.collider is None:
-            return self._fused.step(self)  # one kernel call, the bits of the passes below
+            return self._fused.step(self, steps)  # one kernel call, the bits of the passes below
+        for _ in range(steps):
+            self._step()
+
+    def _step(self) -> None:
+        """One step of Algorithm 1 for every agent (the multi-pass step)."""
         cv = self.assign()
         n = self.n
         self.counters.steps += 1

@@ -15,6 +15,7 @@ belong to at that step.  Vehicle ids must be distinct at one step, integers in 0
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from typing import Any
@@ -177,10 +178,15 @@ class ApproachTracker:
     """Closest approach and near-miss encounters over a sequence of time steps (``add`` one step at a time,
     in time order).  State: the best pair so far and the set of pairs closer than d_min at the last step."""
 
-    def __init__(self, d_min_m: float) -> None:
+    def __init__(self, d_min_m: float, close_pairs: Callable | None = None) -> None:
+        """``close_pairs``: an optional faster lister of the pairs closer than d_min, ``(ids, pos, d_min_m) ->
+        (keys, closest) | None`` with the finite rows; it must give what ``_close_pairs`` gives (the sorted
+        keys of the pairs strictly closer, the closest of them; ``sim.close_pairs.list_close_pairs``);
+        None from it, or no lister: the KD-tree."""
         if not (math.isfinite(d_min_m) and d_min_m >= 0):
             raise ValueError(f"d_min must be a finite number >= 0 m, is {d_min_m!r}")
         self.d_min_m = float(d_min_m)
+        self._lister = close_pairs
         self._best = ClosestPair(math.inf, -1, -1)
         self._best_t = math.nan
         self._close = np.zeros(0, dtype=np.uint64)
@@ -194,10 +200,14 @@ class ApproachTracker:
         if ids.size < 2:
             self._close = np.zeros(0, dtype=np.uint64)
             return ClosestPair(math.inf, -1, -1)
-        tree = _kdtree(pos)
-        close, step = _close_pairs(ids, pos, tree, self.d_min_m)  # the closest pair, when closer than d_min
+        listed = None if self._lister is None else self._lister(ids, pos, self.d_min_m)
+        tree = None
+        if listed is None:
+            tree = _kdtree(pos)
+            listed = _close_pairs(ids, pos, tree, self.d_min_m)
+        close, step = listed  # the closest pair, when closer than d_min
         if not close.size:
-            step = _nearest(ids, pos, tree)
+            step = _nearest(ids, pos, _kdtree(pos) if tree is None else tree)
         if step.distance_m < self._best.distance_m:
             self._best, self._best_t = step, float(t_s)
         self.near_misses += int(close.size - _count_in(close, self._close))

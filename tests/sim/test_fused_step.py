@@ -132,3 +132,30 @@ def test_fused_step_under_the_thrust_limit(maps, speed_m_s):
     a.add_agents(pts, vel_map_m_s=vel)
     b.add_agents(pts, vel_map_m_s=vel)
     fly(a, b, field, 40)
+
+
+@pytest.mark.parametrize("preset,mode", [("paper", None), ("default", None), ("default", "slot"),
+                                         ("default", "interpolated")])
+def test_several_steps_in_one_call_are_the_steps_one_by_one(maps, preset, mode):
+    """``Swarm.step(m)`` (one kernel call looping over m steps where the kernel does the whole step; one call
+    per step otherwise) leaves the state and counters of m calls of ``step()``, whether or not an assignment
+    is cached before (``sim.run.simulate`` flies the steps between two events so)."""
+    cmap = maps[preset]
+    st = RunConfig(preset=preset, mode=mode).flight_settings(cmap)
+    field = CommandField.from_map(cmap)
+    cfg = SwarmConfig(mode=st.mode, lookahead_s=st.lookahead_s, persistence_s=st.persistence_s)
+    a, b = Swarm(field, PlantParams(), cfg), Swarm(field, PlantParams(), cfg)
+    rng = np.random.default_rng(2)
+    for k, m in enumerate([1, 3, 16, 2, 7, 1, 5, 16, 16, 4] * 8):
+        pts = seed_positions(field, rng, n_agents=300 if k == 0 else 20)
+        a.add_agents(pts)
+        b.add_agents(pts)
+        if k % 3 == 0:
+            np.testing.assert_array_equal(a.assign(), b.assign())
+        a.step(m)
+        for _ in range(m):
+            b.step()
+        assert_same(a, b, k)
+    assert a.counters.exited > 0 and a.counters.returned > 0
+    with pytest.raises(ValueError):
+        a.step(0)
