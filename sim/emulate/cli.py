@@ -55,6 +55,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--entry-radius-fraction", type=float, default=EmulateConfig.entry_radius_fraction, metavar="F",
                    help="agents' entry points spread over this fraction of the inlet radius (1: every inlet CV, as "
                         "fisc-sim run injects; fisc-agent's default 0.6 keeps a real duct's wall clear)")
+    p.add_argument("--staggered-admission", action="store_true",
+                   help="agents admit themselves from the map's admission budget (each in its entry window, "
+                        "fisc-agent's default --entry-stagger auto), first passes and laps alike, as a real fleet "
+                        "does; default: launches at the paper's source rate, as fisc-sim run's reservoir")
+    p.add_argument("--start-spacing", type=float, default=EmulateConfig.start_spacing_m, metavar="M",
+                   help="spacing of the ground start grid [m] (with --staggered-admission the joins wait for "
+                        "their windows above it; default %(default)s)")
     p.add_argument("--geofence", choices=("return", "hold"), default="return",
                    help="agents leaving the CVs sideways: return (fly back to the nearest CV, as fisc-sim run's "
                         "return policy) or hold")
@@ -102,6 +109,7 @@ def config_from_args(args: argparse.Namespace):
     return EmulateConfig(out_dir=args.output, map=args.map, agents=args.agents, duration_s=args.duration,
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
                          geofence=args.geofence, tracking=not args.open_loop, safety_net=args.safety_net,
+                         staggered_admission=args.staggered_admission, start_spacing_m=args.start_spacing,
                          entry_radius_fraction=args.entry_radius_fraction,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,

@@ -54,6 +54,12 @@ class EmulateConfig:
     """The agents fly the separation safety net (``fisc_agent.flight.safety_net``), hearing each other over
     Zenoh (needs ``swarm``), as ``fisc-agent --swarm`` does by default on a real vehicle.  False: the paper's
     law alone, as ``fisc-sim run`` flies by default, so the two compare like for like."""
+    staggered_admission: bool = False
+    """The agents admit themselves into the tunnel from the map's admission budget (each in its entry window,
+    ``AgentConfig.entry_stagger_s`` None: the map's admission period), as ``fisc-agent`` does by default on a
+    real vehicle, first passes and laps alike.  False: ``entry_stagger_s`` 0, the launches staggered at the
+    paper's source rate (``sim.emulate.plan``), as ``fisc-sim run``'s reservoir injects, so the two compare;
+    at eight vehicles that rate (one per 2.8 s) is above the default map's budget (one per 4.2 s)."""
     entry_radius_fraction: float = 1.0
     """Fraction of the inlet radius the agents' entry points spread over (``AgentConfig.entry_radius_fraction``;
     a real deployment keeps 0.6 clear of the duct's wall).  1: evenly over every inlet CV, as ``fisc-sim
@@ -81,7 +87,9 @@ class EmulateConfig:
     min_samples: int = 10
     """CVs with fewer agent samples in the window are left out of the metrics."""
     start_spacing_m: float = 1.0
-    """Spacing of the ground start grid [m]."""
+    """Spacing of the ground start grid [m] (with ``staggered_admission`` the joins also wait for their
+    windows above their launch points, this far apart: a real fleet's spacing, e.g. the 3 m of the
+    real-swarm tests' SITL, keeps them clear of d_min)."""
     start_gap_m: float = 3.0
     """Distance of the first start row upstream of the staging plane [m]."""
     launch_overhead_s: float | None = None

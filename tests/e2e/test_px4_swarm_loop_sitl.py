@@ -35,6 +35,7 @@ import time
 import numpy as np
 import pytest
 
+from fisc_agent.config import AgentConfig
 from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.reference.builtin import load_builtin
 
@@ -52,6 +53,8 @@ MIN_SEPARATION_M = 0.5
 MIN_PROFILE_R_DENSITY = 0.9
 MIN_PROFILE_R_PRESSURE = 0.7
 PREDICTION_TOLERANCE = 0.1
+FLEET_SPACING_M = 3.0
+"""The SITL fleet's start spacing (``SITL_SPACING_M``), the emulated fleet's too (``--start-spacing``)."""
 
 
 def flowing_excursion_m(truth, track: Track, wall) -> float:
@@ -80,7 +83,7 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
     def states() -> list[str]:
         return latest_states(logs)
 
-    with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=3.0) as run:
+    with Px4Sitl(shared_path("sitl", "px4"), d, N, spacing_m=FLEET_SPACING_M) as run:
         procs = Processes(d / "logs")
         try:
             procs.start("publisher", ground("publish", g.served, "--swarm", SWARM, "--zenoh-config", g.hub))
@@ -112,7 +115,7 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
     laps = [sum(1 for a, b in zip(t.states, t.states[1:]) if a == "FLOW" and b != "FLOW") for t in tracks]
     ok(run_cli(ground("replay", mcap, "-o", d / "replay", "--min-samples", 3, "--no-figures"), timeout_s=300))
     real = json.loads((d / "replay" / "metrics.json").read_text())
-    # the prediction: the emulator with the same fleet, policy, net and duration, its workers meeting on
+    # the prediction: the emulator with the same fleet, admission, policy, net and duration, its workers meeting on
     # their own lab port (the lab default: no config file); averaged over the whole flight, as the monitor's
     # recording is (emulate's default window is its last 60 s: a fifth of the passes, another figure)
     monkeypatch.setenv("FISC_ZENOH_PORT", str(free_tcp_port()))
@@ -120,6 +123,10 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                                   "--exit-policy", "loop", "--duration", LOOP_S, "--average-window", LOOP_S,
                                   "--swarm", "loopem",
                                   "--trusted-key", g.ground_pub, "--safety-net",
+                                  # the fleet's own admission, start spacing and entry points (fisc-agent's
+                                  # defaults), not emulate's source-rate launches from a 1 m grid
+                                  "--staggered-admission", "--start-spacing", FLEET_SPACING_M,
+                                  "--entry-radius-fraction", AgentConfig.entry_radius_fraction,
                                   "--no-compare", "--no-figures", "-o", d / "emulate", "-q"], timeout_s=LOOP_S + 300))
     predicted = json.loads((d / "emulate" / "metrics.json").read_text())
     report = {"min_separation_m": sep, "excursion_m": excursions, "laps": laps,

@@ -109,6 +109,10 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
 
     assert agent.safety_net is None
     assert agent_config(_AgentJob(**job, tracking=True, safety_net=True), 3, 14999).safety_net == SafetyNetConfig()
+    # entries at emulate's source-rate launches by default; the map's admission budget, as fisc-agent's own
+    # default (--entry-stagger auto), only when asked for
+    assert agent.entry_stagger_s == 0.0
+    assert agent_config(_AgentJob(**job, tracking=True, staggered_admission=True), 3, 14999).entry_stagger_s is None
 
 
 def test_the_emulated_safety_net_needs_a_swarm_to_hear_the_others():
@@ -271,6 +275,10 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
     assert (cfg.agents, cfg.duration_s, cfg.mode, cfg.personality, cfg.compare, cfg.out_dir, cfg.mcap, cfg.tracking,
             cfg.entry_radius_fraction, cfg.flight_logs) == (7, 12.0, "slot", "ardupilot", False, str(tmp_path),
                                                             "f.mcap", False, 0.8, "logs")
+    assert (cfg.staggered_admission, cfg.start_spacing_m) == (False, EmulateConfig.start_spacing_m)
+    cfg = emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "8", "--staggered-admission",
+                                                          "--start-spacing", "3", "-o", str(tmp_path)]))
+    assert (cfg.staggered_admission, cfg.start_spacing_m) == (True, 3.0)
 
 
 @pytest.mark.slow
