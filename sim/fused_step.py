@@ -44,7 +44,7 @@ class FusedStep:
                         float(dt_s), float(return_gain_1_s), float(return_speed_fraction), map_to_ned, shared,
                         float(h), int(nsub), map_to_ned * dt_s)
         # the kinetic mode's tables (but its map_to_ned, the same); other modes: placeholders of their types
-        self._kin_tables = kinetic._tables[:-1] if kinetic is not None else \
+        self._kin_tables = kinetic.tables[:-1] if kinetic is not None else \
             (np.zeros(3), 1.0, np.zeros(3), np.zeros(3), 0.0, np.zeros(1, dtype=np.int64), np.zeros((1, 3)),
              np.zeros((1, 3)), np.zeros((1, 3), dtype=np.int64), np.zeros((1, 3)), 0.0, 0.0)
 

@@ -27,9 +27,10 @@ class KineticStep:
         self.lookahead_s = float(lookahead_s)
         hi, strides, offset = field._padded_rows
         lower, upper = field._cell_faces
-        self._tables = (np.asarray(field.origin_m, dtype=float), float(field.cell_size_m), hi, strides, offset,
+        self.tables = (np.asarray(field.origin_m, dtype=float), float(field.cell_size_m), hi, strides, offset,
                         field._padded_cv, lower, upper, field.kinetic_codes, field._spread_xyz, WALL_ZONE,
                         BRAKE_S, _MAP_TO_NED)
+        """The map's tables the kinetic kernels take after the agents' rows (the fused step passes them too)."""
 
     @classmethod
     def make(cls, field: CommandField, persistence_s: float, lookahead_s: float) -> "KineticStep | None":
@@ -44,7 +45,7 @@ class KineticStep:
         look-up point has no CV) and update their deviation state (``epoch``, ``sign``, ``direction``)
         in place, as ``flight_command`` with the look-ahead."""
         self._kernel(pos_m, vel_ned_m_s, ids, cv, True, float(t_s) / self.persistence_s, self.lookahead_s,
-                     epoch, sign, direction, phase, *self._tables, cmd_ned)
+                     epoch, sign, direction, phase, *self.tables, cmd_ned)
 
     def start_velocity(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float,
                        phase: np.ndarray | None = None) -> np.ndarray:
@@ -55,21 +56,20 @@ class KineticStep:
         cmd = np.empty((k, 3))
         self._kernel(pos_m, np.zeros((k, 3)), ids, np.empty(0, dtype=np.int64), False,
                      float(t_s) / self.persistence_s, 0.0, np.full(k, -1, dtype=np.int64), np.ones((k, 3)),
-                     np.zeros((k, 3)), deviation_phase(ids) if phase is None else phase, *self._tables, cmd)
+                     np.zeros((k, 3)), deviation_phase(ids) if phase is None else phase, *self.tables, cmd)
         return cmd * _MAP_TO_NED
 
-
-    def enter(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float, co, swarm) -> None:
-        """Write new agents (``pos_m`` (k, 3) float64, ``ids`` (k,) int64, contiguous) into ``swarm``'s rows
-        ``n .. n + k`` (capacity there): the rows ``Swarm.add_agents`` writes, its start velocity from
-        ``start_velocity`` and the trim thrust of ``sim.entry.entry_thrust``, in one kernel call
-        (``sim.kinetic_jit.enter_agents``; ``co`` fleet-wide plant coefficients).  Does not change ``n``."""
+    def enter(self, pos_m: np.ndarray, ids: np.ndarray, t_s: float, co, n: int, rows: tuple) -> None:
+        """Write new agents (``pos_m`` (k, 3) float64, ``ids`` (k,) int64, contiguous) into a swarm's row
+        buffers ``rows`` = (pos, vel, thr, ids, out_s, epoch, sign, phase) at ``n .. n + k`` (capacity there):
+        the rows ``Swarm.add_agents`` writes, its start velocity from ``start_velocity`` and the trim thrust of
+        ``sim.entry.entry_thrust``, in one kernel call (``sim.kinetic_jit.enter_agents``; ``co`` fleet-wide
+        plant coefficients)."""
         from sim import kinetic_jit
 
-        kinetic_jit.enter_agents(pos_m, ids, float(t_s) / self.persistence_s, *self._tables,
+        kinetic_jit.enter_agents(pos_m, ids, float(t_s) / self.persistence_s, *self.tables,
                                  co.drag_k[0], float(co.g[0]), float(co.accel_max[0]), float(co.tan_tilt[0]),
-                                 swarm.n, swarm._pos, swarm._vel, swarm._thr, swarm._ids, swarm._out, swarm._epoch,
-                                 swarm._sign, swarm._phase)
+                                 n, *rows)
 
 
 def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray:
@@ -85,20 +85,10 @@ def deviation_x(ids: np.ndarray, t_s: float, persistence_s: float) -> np.ndarray
     return out
 
 
-def admit_batch(inlet_cvs: np.ndarray, counts: np.ndarray, field: CommandField, entry_x_m_s: np.ndarray,
-                interval_s: float, u: np.ndarray, r: np.ndarray, first_id: int, t_over_p: float,
-                entry_u_m_s: np.ndarray, spread_m_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A kinetic reservoir's batch in one numba pass (``sim.kinetic_jit.admit_batch``; numba must be installed):
-    ``counts[q]`` candidates in inlet CV ``inlet_cvs[q]`` at the uniform draws ``u`` (k, 3) (``Reservoir._batch``),
-    candidate k id ``first_id + k``, admitted when ``r[k] < kinetic_admission`` of its deviation at
-    ``t_over_p`` = t / persistence (``Reservoir.admit``).  Returns the admitted positions (m, 3) and ids (m,)."""
-    return BatchAdmission(inlet_cvs, field, entry_x_m_s, interval_s, entry_u_m_s, spread_m_s)(
-        counts, u, r, first_id, t_over_p)
-
-
 class BatchAdmission:
-    """``admit_batch`` of one reservoir: its tables made contiguous once (a reservoir admits a batch every
-    few steps, and the conversions cost more than the kernel)."""
+    """A kinetic reservoir's batches in one numba pass each (``sim.kinetic_jit.admit_batch``; numba must be
+    installed), its tables made contiguous once (a reservoir admits a batch every few steps, and the
+    conversions cost more than the kernel)."""
 
     def __init__(self, inlet_cvs: np.ndarray, field: CommandField, entry_x_m_s: np.ndarray, interval_s: float,
                  entry_u_m_s: np.ndarray, spread_m_s: np.ndarray) -> None:
@@ -113,7 +103,10 @@ class BatchAdmission:
 
     def __call__(self, counts: np.ndarray, u: np.ndarray, r: np.ndarray, first_id: int,
                  t_over_p: float) -> tuple[np.ndarray, np.ndarray]:
-        """``admit_batch`` of ``counts`` (int64, one per inlet CV) candidates drawn at ``u``, ``r``."""
+        """``counts[q]`` (int64) candidates in inlet CV ``inlet_cvs[q]`` at the uniform draws ``u`` (k, 3)
+        (``Reservoir._batch``), candidate k id ``first_id + k``, admitted when ``r[k] < kinetic_admission`` of
+        its deviation at ``t_over_p`` = t / persistence (``Reservoir.admit``).  Returns the admitted positions
+        (m, 3) and ids (m,)."""
         k = u.shape[0]
         if not (u.shape == (k, 3) and r.shape == (k,) and counts.shape == self._cvs.shape and int(counts.sum()) == k):
             raise ValueError(f"admit_batch: {int(np.sum(counts))} candidates need u ({k}, 3) and r ({k},), got "

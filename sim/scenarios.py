@@ -186,7 +186,7 @@ class Reservoir:
 
     def entering(self, rng: np.random.Generator, first_id: int, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """One batch after admission: positions (k, 3) and ids (``batch`` then ``admit``; a kinetic reservoir
-        with numba: both in one pass, ``sim.kinetic_step.admit_batch``, the same draws and bits)."""
+        with numba: both in one pass, ``sim.kinetic_step.BatchAdmission``, the same draws and bits)."""
         if self.kinetic_persistence_s is not None and jit_kernels() is not None:
             counts = self._counts()
             k = int(counts.sum())

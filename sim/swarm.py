@@ -277,7 +277,9 @@ class Swarm:
         if self.n + k > self._pos.shape[0]:
             self._alloc(max(2 * self._pos.shape[0], self.n + k))
         if vel_map_m_s is None and self._kinetic is not None:  # numba: the rows below in one call, the same bits
-            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self)
+            self._kinetic.enter(np.ascontiguousarray(pos), np.ascontiguousarray(ids), self.t_s, self._co, self.n,
+                                (self._pos, self._vel, self._thr, self._ids, self._out, self._epoch, self._sign,
+                                 self._phase))
         else:
             phase = entry_phase(ids)  # numba when installed: deviation_phase's bits
             if vel_map_m_s is None and self.config.mode not in ("mean", "slot"):
