@@ -19,8 +19,8 @@ from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, appr
                                        speed_for_arrival)
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
-from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, EntrySchedule, ScheduleSource, entry_schedule,
-                                      entry_slot_open)
+from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
+                                      ScheduleSource, entry_schedule, entry_slot_open)
 from fisc_agent.flight.point_command import PointCommand, point_command
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.separation import Separation
@@ -29,18 +29,6 @@ from fisc_agent.map.wall import rejoin_point
 log = logging.getLogger("fisc_agent.flight.mission")
 _NO_BUDGET = Separation()
 """A map's separation before the map is known (no budget)."""
-
-
-JOIN_LEG_ALLOWANCE_S = 1.0
-"""Added to each leg's time in the join's lead (``Navigator.plan_join``): a vehicle leaves early enough
-to arrive when due even with a lag, and the arrival governor (``_join_speed``) slows it to arrive on
-time; arriving late cannot be made up.  Without it, a stock PX4 (lag 0.9 s) 17 m from the inlet
-arrived 2.3 s late at 1.5 x the join speed, 0.6 s after the next vehicle's entry (0.29 m apart)."""
-
-
-MAX_LEAD_LEARNT_S = 20.0
-"""Most a join's lead grows by what late arrivals taught it (each of ``Navigator.lead_learnt_s`` and
-``Navigator.leg_lead_s``) [s]."""
 
 
 EXIT_CORNER_RADIUS_M = 1.0

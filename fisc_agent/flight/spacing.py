@@ -130,6 +130,14 @@ ENTRY_TIMING_TOLERANCE_S = 1.0
 and the 1 s per-leg allowance: up to about 1 s early, then it waits; a stock PX4 with lag 0.9 s).  The
 map's admission budget keeps consecutive entries d_min apart despite it (``separation_budget``): with
 windows of d_min / ((1 - ENTRY_OPEN_FRACTION) u_in) alone, six real PX4 came within 0.29-0.39 m."""
+JOIN_LEG_ALLOWANCE_S = 1.0
+"""Added to each leg's time in the join's lead (``Navigator.plan_join``): a vehicle leaves early enough
+to arrive when due even with a lag, and the arrival governor (``Navigator._join_speed``) slows it to arrive on
+time; arriving late cannot be made up.  Without it, a stock PX4 (lag 0.9 s) 17 m from the inlet
+arrived 2.3 s late at 1.5 x the join speed, 0.6 s after the next vehicle's entry (0.29 m apart)."""
+MAX_LEAD_LEARNT_S = 20.0
+"""Most a join's lead grows by what late arrivals taught it (each of ``Navigator.lead_learnt_s`` and
+``Navigator.leg_lead_s``) [s]."""
 
 
 def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:

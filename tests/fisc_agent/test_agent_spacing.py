@@ -11,11 +11,11 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
                                        entry_point, entry_points, exit_waypoints, hold_point, hold_points,
                                        distance, speed_for_arrival)
-from fisc_agent.flight.spacing import (ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M,
+from fisc_agent.flight.spacing import (ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M, JOIN_LEG_ALLOWANCE_S,
                                        VOGEL_64_MIN_SPACING, check_min_distance, entry_slot_open, hold_altitude_m,
                                        hold_sites, lattice_hold_points,
                                        min_pairwise_distance_m)
-from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, JOIN_LEG_ALLOWANCE_S, Navigator
+from fisc_agent.flight.navigation import EXIT_SETTLE_SPEED_M_S, Navigator
 from fisc_agent.map.lookup import CommandField
 
 
