@@ -32,9 +32,9 @@ from fisc_agent.config import AgentConfig, ExitPolicy
 from fisc_agent.flight.authority import AuthorityCause, FleetAction, ModeWatch, fleet_action
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, goto_velocity
 from fisc_agent.flight.failsafe import GeofenceVerdict, Handover, PositionHealth, geofence, link_ok, position_health
-from fisc_agent.flight.mission_types import (AUTO_RESUMING, FLYING, HOLD_KEEP_SPEED_M_S, JUMP_HOLD_GRACE_S, Authority,
-                                             Cause, FleetOrder, HoldCause, HoldOutput, MissionCommand, MissionOutput,
-                                             Reason, State, Transition, VehicleStatus)
+from fisc_agent.flight.mission_types import (AUTO_RESUMING, BACK_TO_STREAMLINE, FLYING, HOLD_KEEP_SPEED_M_S,
+                                             JUMP_HOLD_GRACE_S, Authority, Cause, FleetOrder, HoldCause, HoldOutput,
+                                             MissionCommand, MissionOutput, Reason, State, Transition, VehicleStatus)
 from fisc_agent.flight.navigation import Navigator
 from fisc_agent.flight.readiness import arming_blockers, battery_low
 from fisc_agent.flight.state_file import AgentState
@@ -160,9 +160,9 @@ class Mission:
         self.transitions.append(Transition(t, self.state, dst, reason))
         log.info("mission %s -> %s (%s)", self.state.value, dst.value, reason)
         if dst == State.FLOW and self.state != State.FLOW:
-            self.nav.identify()
-            if self._last_pos is not None:
-                self.nav.tracker.reset(self._last_pos, t)  # a new parcel where the vehicle (re-)enters the flow
+            self.nav.enter_flow(t, self._last_pos, back_to_streamline=reason.cause in BACK_TO_STREAMLINE)
+        elif self.state == State.FLOW and dst in (State.JOIN, State.EXIT):
+            self.nav.tracker.clear()  # the pass is over: its streamline ends at the outlet
         if dst == State.DONE and self.authority in (Authority.COMMAND, Authority.HANDS_OFF):
             self._set_authority(Authority.RELEASED, AuthorityCause.FLIGHT_OVER)
         self.state, self.reason, self._t_state = dst, reason, t
@@ -346,7 +346,7 @@ class Mission:
             want_mode = ModeClass.OFFBOARD
             verdict = geofence(cv, pos[0], self.geom.x_outlet_m, cfg.geofence)
             if verdict == GeofenceVerdict.INSIDE:
-                vel = nav.flow_velocity(t, pos, s.vel_m_s, cv)
+                vel = nav.flow_velocity(t, pos, s.vel_m_s, cv, flown=seen == ModeClass.OFFBOARD)
             elif verdict == GeofenceVerdict.EXIT:
                 vel = self._passed_outlet(t, pos, s)
             elif verdict == GeofenceVerdict.RETURN:

@@ -112,6 +112,8 @@ to be trusted).  Zero velocity alone is held on the autopilot's velocity *estima
 drift with its bias: a stock PX4 (SIH) in a fleet hold drifted 0.6 m up and 0.6 m sideways in the 2 s
 before its own hold mode (its EKF reporting 0 m/s while its position moved at 0.3-0.4 m/s), then out of
 the duct (``tests/faults/test_px4_kills.py``, seed 7, 2026-12-05)."""
+
+
 HOLD_KEEP_SPEED_M_S = 0.5
 """Fastest a held vehicle is brought back to the spot where its hold began (``KEEPING_SPOT``) [m/s]."""
 HoldOutput = tuple[Vec | None, ModeClass | None, bool | None, float | None]
@@ -145,6 +147,16 @@ class Cause(str, Enum):
     FLEET_LAND_DISARMED = "fleet land while disarmed"
     FLEET_RESUME = "fleet resume"
     POSITION_BACK = "position fix back"
+
+
+BACK_TO_STREAMLINE = frozenset({Cause.FLEET_RESUME, Cause.POSITION_BACK, Cause.BACK_IN_MAP})
+"""Returns to FLOW that keep the pass's streamline (``ParcelTracker.resume``): the vehicle flies back onto it
+instead of taking a new one where a hold or a geofence return left it.  A hold's drift is the autopilot's, not
+the design's: on stock PX4 SIH a fleet hold in the throat drifted 0.3 m outwards (its own hold mode wanders
+about 0.7 m), and a new parcel there would have carried that offset to the outlet, 0.23 m from the wall by
+PX4's estimate and 0.24 m beyond it by SIH's ground truth (``tests/faults/test_px4_kills.py``, 2026-12-06).
+A takeover (``Cause.TAKING_OVER``) and a new pass start a parcel at the vehicle; a position jump has cleared
+the parcel (its hold's ``POSITION_BACK`` then starts one too)."""
 
 
 class Reason(str):

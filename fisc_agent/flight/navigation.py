@@ -453,10 +453,23 @@ class Navigator:
         """The map's command at a point in the tracked mode (None outside the map's CVs)."""
         return self._point_cmd(x, y, z)
 
-    def flow_velocity(self, t: float, pos: Vec, vel: Vec | None, cv: int) -> Vec | None:
+    def enter_flow(self, t: float, pos: Vec | None, back_to_streamline: bool) -> None:
+        """Entering FLOW: identify the response (once), then keep the pass's streamline
+        (``ParcelTracker.resume``, ``mission_types.BACK_TO_STREAMLINE``) or start a new parcel at ``pos``."""
+        self.identify()
+        if back_to_streamline:
+            self.tracker.resume(t)
+        elif pos is not None:
+            self.tracker.reset(pos, t)
+
+    def flow_velocity(self, t: float, pos: Vec, vel: Vec | None, cv: int, flown: bool = True) -> Vec | None:
         """The FLOW setpoint: the simulator's command function open loop (tracking gain 0), else the
-        tracked parcel's (with the kinetic deviation when flying ``--mode kinetic``)."""
+        tracked parcel's (with the kinetic deviation when flying ``--mode kinetic``).  ``flown`` False: the
+        autopilot does not fly the setpoints yet (PX4 took 2.7 s to leave its hold mode after a resume), so its
+        drift meanwhile is not the tracking's to integrate."""
         cfg = self.cfg
+        if not flown:
+            self.tracker.resume(t)
         if cfg.tracking.gain_1_s == 0.0:
             return self.sfield.flight(pos, vel, cfg.agent_id, t, cfg.mode, self.lookahead_s(), cv)
         deviation = self._deviation_fn(t, vel) if self.kinetic else None

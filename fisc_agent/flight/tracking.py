@@ -199,6 +199,14 @@ class ParcelTracker:
         """A new parcel at the vehicle (entering the map, resuming after a hold)."""
         self.parcel_m, self._t_s, self._v_last = pos_m, t_s, None
 
+    def resume(self, t_s: float) -> None:
+        """Keep the parcel (its streamline) after an interruption that ends at ``t_s``: the next ``step``
+        slides it abreast of the vehicle again and pulls the vehicle back onto that streamline; the time of
+        the interruption is not integrated (a parcel left more than ``resync_distance_m`` along the stream
+        starts again at the vehicle, as always).  Without a parcel, the next ``step`` starts one."""
+        if self.parcel_m is not None:
+            self._t_s = t_s
+
     def clear(self) -> None:
         """Forget the parcel; the next ``step`` starts a new one at the vehicle."""
         self.parcel_m, self._t_s, self._v_last = None, None, None

@@ -907,3 +907,62 @@ def test_by_default_agents_enter_in_their_windows_of_the_maps_admission_budget()
     assert phases[3] - phases[2] == pytest.approx(period, abs=0.5)
     cfg, m, v = make(sf, agent_id=2, lookahead_auto=False, entry_stagger_s=0.0)
     assert m.nav.schedule.stagger_s == 0.0 and m.nav.schedule.source is ScheduleSource.GIVEN
+
+
+def _held_and_moved(sfield, dy_m):
+    """A vehicle flowing on the tunnel's axis, held by the fleet, then moved ``dy_m`` across the stream (the
+    autopilot's own hold drifting), still in a CV: (cfg, mission, vehicle, the parcel before the hold)."""
+    cfg, m, v = make(sfield)
+    _fly_to_flow(m, v, cfg)
+    before = m.tracker.parcel_m
+    m.command("hold")
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + cfg.hold_grace_s + 1)
+    v.pos[1] += dy_m
+    assert sfield.cv_of(*v.pos) >= 0
+    return cfg, m, v, before
+
+
+def test_a_fleet_resume_flies_back_onto_the_streamline_it_held_on(sfield):
+    cfg, m, v, before = _held_and_moved(sfield, 0.4)
+    integral = m.tracker.integral_m_s
+    m.command("resume")
+    outs = run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 1)
+    assert m.reason.cause == Cause.FLEET_RESUME
+    assert m.tracker.parcel_m[1:] == pytest.approx(before[1:], abs=0.01)       # the streamline, not the drift
+    assert outs[-1].velocity_m_s[1] < -0.4 * cfg.tracking.gain_1_s + 0.05     # pulled back across the stream
+    assert abs(m.tracker.integral_m_s[1] - integral[1]) < 0.05                # the hold's time not integrated
+    off = []
+    run(m, v, cfg, lambda m, v, o: m.state != State.FLOW, max_s=v.t + 5,
+        hook=lambda m, v, o: off.append(v.pos[1] - before[1]))
+    assert min(off) < 0.1                            # most of the way back before the (short) tunnel's outlet
+
+
+def test_the_tracking_integrates_nothing_until_the_autopilot_flies_the_setpoints_again(sfield):
+    # PX4 took 2.7 s to leave its hold mode after a resume (tests/faults, 2026-12-06): the cross-stream
+    # offset meanwhile wound the integral up, and the vehicle then overshot its streamline by 0.75 m
+    cfg, m, v, before = _held_and_moved(sfield, 0.4)
+    integral = m.tracker.integral_m_s
+    m.command("resume")
+    assert v.mode == "hold"
+    for _ in range(40):                              # 2 s still in the autopilot's hold mode, drifting on
+        out = step(m, v.status())
+        v.t += DT
+        v.pos[1] += 0.002
+    assert m.state == State.FLOW and m.authority == Authority.COMMAND and out.want_mode == "offboard"
+    assert m.tracker.integral_m_s == integral
+    run_for(m, v, cfg, 2 * DT)                       # in offboard: it integrates again
+    assert m.tracker.integral_m_s[1] < integral[1]
+
+
+def test_a_takeover_and_a_new_pass_start_a_new_streamline(sfield):
+    cfg, m, v, before = _held_and_moved(sfield, 0.4)
+    v.mode = "other"                                 # a pilot takes the vehicle during the hold ...
+    run(m, v, cfg, lambda m, v, o: m.hands_off, max_s=v.t + 2)
+    m.command(FleetOrder(MissionCommand.RESUME, addressed=True))   # ... and gives it back where it is
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW, max_s=v.t + 2)
+    assert m.reason.cause == Cause.TAKING_OVER
+    assert m.tracker.parcel_m[1] == pytest.approx(v.pos[1], abs=0.05) and abs(m.tracker.parcel_m[1] - before[1]) > 0.3
+    cfg, m, v = make(sfield, exit_policy="loop")
+    _fly_to_flow(m, v, cfg)
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN)
+    assert m.tracker.parcel_m is None                # the pass is over: the next one starts its own

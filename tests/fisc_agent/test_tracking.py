@@ -146,3 +146,20 @@ def test_a_kinetic_deviation_moves_the_parcel_across_the_stream_and_is_flown_as_
         pos = (pos[0] + 0.05 * v[0], pos[1] + 0.05 * v[1], pos[2])
     assert pos[1] > 0.3 and tr.parcel_m[1] > pos[1]               # the deviation is flown, not cancelled
     assert tr.step(t + 0.05, pos, uniform) == pytest.approx((2.0, tr.parcel_m[1] - pos[1], 0.0))  # none: field only
+
+
+def test_resume_keeps_the_streamline_and_does_not_integrate_the_interruption():
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.5, bias_time_constant_s=0.0)
+    tr = ParcelTracker(cfg)
+    tr.reset((1.0, 0.0, 0.0), 0.0)
+    tr.step(0.05, (1.0, 0.0, 0.0), uniform)
+    tr.resume(10.05)                                              # a 10 s hold that left the vehicle 0.4 m off
+    v = tr.step(10.10, (1.2, 0.4, 0.0), uniform)
+    assert tr.parcel_m == pytest.approx((1.2, 0.0, 0.0))          # abreast again, on the old streamline
+    assert tr.integral_m_s[1] == pytest.approx(-0.5 * 0.05 * 0.4)  # one tick's worth, not the hold's 10 s
+    assert v == pytest.approx((2.0, -0.4 + tr.integral_m_s[1], 0.0))
+    tr.clear()
+    tr.resume(20.0)                                               # nothing to keep: the next step starts one
+    assert tr.parcel_m is None
+    tr.step(20.05, (2.0, 0.4, 0.0), uniform)
+    assert tr.parcel_m == pytest.approx((2.0, 0.4, 0.0))
