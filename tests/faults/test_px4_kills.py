@@ -49,10 +49,11 @@ flight       (the killed agent's, the killed PX4's) no agent holds in a failsafe
              agents hold ~2 s for PX4's estimator reset during take-off, "position jump"), and no
              surviving PX4 logs a failsafe; no vehicle leaves the duct: in its pass a vehicle flown
              by its agent goes at most 0.3 m beyond the wall by its agent's view (PX4's estimate)
-             and 0.45 m by SIH's ground truth (``sitl_kit.TRUTH_EXCURSION_M``; the ULog on the
-             agents' wall clock, ``sitl_kit.truth_on_wall_clock``), the killed agent's, in the 5 s
-             of PX4's failsafe stop, at most PX4's own stopping distance (0.45 m,
-             ``sitl_kit.FAILSAFE_EXCURSION_M``); the killed PX4's vehicle is judged up to its kill
+             and that plus PX4's estimate error by SIH's ground truth (1.55 m,
+             ``sitl_kit.TRUTH_EXCURSION_M``; the ULog on the agents' wall clock,
+             ``sitl_kit.truth_on_wall_clock``), the killed agent's, in the 5 s of PX4's failsafe
+             stop, at most PX4's own stopping distance (0.45 m, ``sitl_kit.FAILSAFE_EXCURSION_M``)
+             plus that error; the killed PX4's vehicle is judged up to its kill
 ==========  =====================================================================================
 
 Not judged, printed: the killed vehicle after its stop, agent-less in PX4's Hold.  PX4 holds a
@@ -88,7 +89,8 @@ from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, heard_throughout
                        lab_port_holder_loses_no_link, lab_port_holder_silence_is_alarmed,
                        monitor_restart_hears_everyone, nothing_stale_alarmed, stale_alarm_names)
 from ..e2e.conftest import Proc, poll
-from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, TRUTH_EXCURSION_M, Px4Sitl, SitlRun,
+from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, PX4_SIH_ESTIMATE_ERROR_M,
+                            TRUTH_EXCURSION_M, Px4Sitl, SitlRun,
                             Track, px4_pid, px4_ulog, truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic,
                             view_excursion_m)
 
@@ -316,5 +318,6 @@ def test_the_whole_flight_one_map_no_stray_failsafe_nobody_leaves_the_duct(fligh
     assert all(math.isnan(e) or e < MAX_EXCURSION_M for e in view.values()), view
     for i, (flown, stop) in excursion.items():
         assert math.isnan(flown) or flown < TRUTH_EXCURSION_M, f"vehicle {i} left the duct by {flown:.2f} m"
-        assert math.isnan(stop) or stop < FAILSAFE_EXCURSION_M, f"vehicle {i} stopped {stop:.2f} m beyond the wall"
+        assert math.isnan(stop) or stop < FAILSAFE_EXCURSION_M + PX4_SIH_ESTIMATE_ERROR_M, \
+            f"vehicle {i} stopped {stop:.2f} m beyond the wall"
     assert not all(math.isnan(e[0]) for e in excursion.values()), "no vehicle entered the duct: nothing judged"

@@ -23,8 +23,8 @@ happen (``outcomes``: the same as for the emulated fleet, plus the autopilots' v
 - the fleet does not notice: each agent keeps its map and counts its telemetry through the outage,
   none holds in a failsafe, every agent process still runs, no PX4 logs a failsafe (ULog), and no
   vehicle goes more than 0.3 m beyond the wall by its agent's view (PX4's estimate,
-  ``sitl_kit.MAX_EXCURSION_M``), nor more than 0.45 m by SIH's ground truth, the estimator's error
-  added (``sitl_kit.TRUTH_EXCURSION_M``).
+  ``sitl_kit.MAX_EXCURSION_M``), nor more than that plus the estimator's error by SIH's ground truth
+  (1.55 m, ``sitl_kit.TRUTH_EXCURSION_M``).
 """
 
 from __future__ import annotations
