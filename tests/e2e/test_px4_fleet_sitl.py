@@ -13,7 +13,9 @@ windows above their own launch points, fly ``LAPS`` passes (``--exit-policy loop
 flies back over the tunnel and waits above its launch point again, ``control.lap_return_waypoints``)
 and then hold after the outlet each at its own point (``control.hold_point``), reached over the
 others (``control.exit_waypoints``).  Every uninterrupted pass must score a ground-truth velocity
-nRMSE of at most ``MAX_VELOCITY_NRMSE``.  The agents' safety nets (``--safety-net on``, the default)
+nRMSE of at most ``MAX_VELOCITY_NRMSE`` and stay within ``sitl_kit.MAX_EXCURSION_M`` (0.3 m) of the wall by
+PX4's estimate, as the ground station sees it (``sitl_kit.TRUTH_EXCURSION_M`` by the truth: the estimator's
+error added).  The agents' safety nets (``--safety-net on``, the default)
 must hear each other on Zenoh.  ``FISC_SITL_FLEET`` sets the fleet size (default 3; six, issue
 37's fleet, came within 1.38, 1.76 and 0.21 m in three runs: see below),
 ``FISC_SITL_FLEET_LAPS`` the passes (default 1).
@@ -35,8 +37,8 @@ from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, latest_states, Px4Sitl, Track, ground, ok, px4_ulog, signed_map_on_zenoh,
-                       truth_on_wall_clock, truth_pass, ulog_summary)
+from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, TRUTH_EXCURSION_M, latest_states, Px4Sitl, Track, ground, ok,
+                       px4_ulog, signed_map_on_zenoh, truth_on_wall_clock, truth_pass, ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -165,7 +167,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
               "crossing_s": [s.crossing_time_s for s in scores], "truth": [s.as_dict() for s in truth_scores]}
     print(json.dumps(report, default=str))
     for i, (s, tr) in enumerate(zip(scores, truth_scores)):
-        assert s.max_excursion_m < 0.3 and tr.max_excursion_m < 0.3, (i, s, tr)
+        assert s.max_excursion_m < MAX_EXCURSION_M and tr.max_excursion_m < TRUTH_EXCURSION_M, (i, s, tr)
         assert FLEET_HOLD or (s.crossed and not s.held), (i, s)
         assert s.n_samples > 50, (i, s)
         if not s.held:   # a pass the fleet hold did not interrupt
