@@ -112,8 +112,6 @@ to be trusted).  Zero velocity alone is held on the autopilot's velocity *estima
 drift with its bias: a stock PX4 (SIH) in a fleet hold drifted 0.6 m up and 0.6 m sideways in the 2 s
 before its own hold mode (its EKF reporting 0 m/s while its position moved at 0.3-0.4 m/s), then out of
 the duct (``tests/faults/test_px4_kills.py``, seed 7, 2026-12-05)."""
-
-
 HOLD_KEEP_SPEED_M_S = 0.5
 """Fastest a held vehicle is brought back to the spot where its hold began (``KEEPING_SPOT``) [m/s]."""
 HoldOutput = tuple[Vec | None, ModeClass | None, bool | None, float | None]

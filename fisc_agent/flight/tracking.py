@@ -145,7 +145,8 @@ position's rate is, as without a receiver's velocity."""
 
 
 class ParcelTracker:
-    """One agent's streamline parcel.  ``reset`` where the vehicle enters the map, then ``step``."""
+    """One agent's streamline parcel.  ``reset`` where the vehicle enters the map, then ``step``; ``resume``
+    after an interruption (a hold, a geofence return) to fly back onto the same streamline."""
 
     def __init__(self, cfg: TrackingConfig, x_outlet_m: float = math.inf) -> None:
         self.cfg = cfg
@@ -196,7 +197,7 @@ class ParcelTracker:
         self.bias_m_s = saturate((b0 + kh * (d0 - b0), b1 + kh * (d1 - b1), b2 + k * (d2 - b2)), self.cfg.max_bias_m_s)
 
     def reset(self, pos_m: Vec, t_s: float) -> None:
-        """A new parcel at the vehicle (entering the map, resuming after a hold)."""
+        """A new parcel at the vehicle (entering the map, a takeover)."""
         self.parcel_m, self._t_s, self._v_last = pos_m, t_s, None
 
     def resume(self, t_s: float) -> None:
