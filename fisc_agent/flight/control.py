@@ -381,7 +381,13 @@ def join_waypoints(pos: Vec, entry: Vec, geom: MapGeometry, staging_m: float = 1
     return wps
 
 
-def lap_return_waypoints(pos: Vec, wait_at: Vec, geom: MapGeometry, margin_m: float = 1.0) -> list[Vec]:
+OVERFLY_M = 1.5
+"""Least height of an exit's transit above the hold spots it passes over [m]: d_min (0.92 m by default)
+plus the vertical wander of a held PX4 (SIH ground truth against its estimate: up to 0.4 m)."""
+
+
+def lap_return_waypoints(pos: Vec, wait_at: Vec, geom: MapGeometry, margin_m: float = 1.0,
+                         staging_m: float = 1.5) -> list[Vec]:
     """Waypoints of a lap's return from past the outlet ``pos`` to ``wait_at``, the point above the
     vehicle's launch point where its first join waited (exit policy ``loop`` with staggered entry).
 
@@ -390,15 +396,24 @@ def lap_return_waypoints(pos: Vec, wait_at: Vec, geom: MapGeometry, margin_m: fl
     other agents wait above their own launch points, below that height: the only leg that comes down
     to them is the last, which descends above this vehicle's own launch point.  (Back below the tunnel
     instead, as ``join_waypoints`` routes, a return at the waiting height would fly through them.)
-    Returns ``[..., wait_at]``."""
+
+    A vehicle launched under the tunnel or its entry corridor (the bounding box grown by ``margin_m``,
+    upstream to ``margin_m`` before the staging plane ``staging_m`` before the inlet) does not come down
+    there, through the corridor where the others enter: it comes down ``OVERFLY_M`` further upstream and
+    flies the last leg level, at ``wait_at``'s height.  (Eight stock PX4 SITL, 2026-12-07: vehicle 0,
+    launched under the inlet, came down through it as vehicle 7 crossed it, 0.25 m apart by SIH's ground
+    truth.)  Returns ``[..., wait_at]``."""
     z_top = geom.hi_m[2] + margin_m
     x, y, _ = pos
-    return [(x, y, z_top), (wait_at[0], y, z_top), (wait_at[0], wait_at[1], z_top), wait_at]
-
-
-OVERFLY_M = 1.5
-"""Least height of an exit's transit above the hold spots it passes over [m]: d_min (0.92 m by default)
-plus the vertical wander of a held PX4 (SIH ground truth against its estimate: up to 0.4 m)."""
+    x_down = wait_at[0]
+    x_corridor = geom.x_inlet_m - staging_m - margin_m
+    if (x_corridor <= wait_at[0] <= geom.hi_m[0] + margin_m
+            and geom.lo_m[1] - margin_m <= wait_at[1] <= geom.hi_m[1] + margin_m):
+        x_down = x_corridor - OVERFLY_M
+    wps = [(x, y, z_top), (x_down, y, z_top), (x_down, wait_at[1], z_top)]
+    if x_down != wait_at[0]:
+        wps.append((x_down, wait_at[1], wait_at[2]))
+    return wps + [wait_at]
 
 
 def exit_waypoints(pos: Vec, spot: Vec, geom: MapGeometry, clearance_m: float, pitch_m: float,

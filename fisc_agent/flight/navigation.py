@@ -192,7 +192,7 @@ class Navigator:
                 wait_at = pos
             elif home is not None:
                 wait_at = (home[0], home[1], home[2] + cfg.takeoff_alt_m)
-                route = lap_return_waypoints(pos, wait_at, self.geom, cfg.keepout_margin_m)[:-1]
+                route = lap_return_waypoints(pos, wait_at, self.geom, cfg.keepout_margin_m, cfg.staging_m)[:-1]
         self._plan_join_via(pos, route, wait_at)
 
     def _plan_join_via(self, pos: Vec, route: list[Vec], wait_at: Vec | None) -> None:

@@ -176,6 +176,46 @@ def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_w
         assert np.linalg.norm(seg - other, axis=1).min() >= 3.0 - 1e-9
 
 
+@pytest.mark.parametrize("wait_xy", [(0.0, 0.0), (3.0, -1.0), ("corridor", 0.5), ("outlet", 0.0)])
+def test_a_return_to_a_wait_point_under_the_tunnel_comes_down_upstream_of_the_entry_corridor(field, wait_xy):
+    """Launched under the inlet (PX4 SITL's instance 0 is), a vehicle coming down above its wait point would
+    descend through the corridor where the others enter: it comes down upstream of it and flies in level."""
+    from fisc_agent.flight.control import OVERFLY_M, lap_return_waypoints
+
+    g = MapGeometry.from_field(field)
+    margin, staging = 0.5, 1.5
+    x_corridor = g.x_inlet_m - staging - margin
+    wx = {"corridor": x_corridor, "outlet": g.hi_m[0] + margin}.get(wait_xy[0], wait_xy[0])
+    wait_at = (wx, wait_xy[1], g.lo_m[2] - 5.0)
+    wps = lap_return_waypoints((g.x_outlet_m + 0.2, 0.3, -0.2), wait_at, g, margin_m=margin, staging_m=staging)
+    assert wps[-1] == wait_at and len(wps) == 5
+    down_x = x_corridor - OVERFLY_M
+    assert wps[-3] == (down_x, wait_at[1], g.hi_m[2] + margin)          # above a point upstream of the corridor
+    assert wps[-2] == (down_x, wait_at[1], wait_at[2])                  # straight down there
+    # no leg enters the corridor: the tunnel's box grown by the margin, extended upstream to x_corridor
+    lo = np.array([x_corridor, g.lo_m[1] - margin, g.lo_m[2] - margin])
+    hi = np.array([g.hi_m[0] + margin, g.hi_m[1] + margin, g.hi_m[2] + margin])
+    path = [wps[0]] + wps[1:]
+    for a, b in zip(path[:-1], path[1:]):
+        s = np.linspace(0.0, 1.0, 2001)[:, None]
+        seg = np.asarray(a) + s * (np.asarray(b) - np.asarray(a))
+        inside = np.all((seg > lo + 1e-9) & (seg < hi - 1e-9), axis=1)
+        assert not inside.any(), (a, b)
+
+
+@pytest.mark.parametrize("dx, dy", [(-1e-6, 0.0), (0.0, 1e-6)])
+def test_a_wait_point_just_outside_the_corridor_is_reached_straight_down(field, dx, dy):
+    from fisc_agent.flight.control import lap_return_waypoints
+
+    g = MapGeometry.from_field(field)
+    margin, staging = 0.5, 1.5
+    x = g.x_inlet_m - staging - margin + dx
+    y = (g.hi_m[1] + margin + dy) if dy else 0.0
+    wait_at = (x, y, g.lo_m[2] - 5.0)
+    wps = lap_return_waypoints((g.x_outlet_m + 0.2, 0.0, 0.0), wait_at, g, margin_m=margin, staging_m=staging)
+    assert len(wps) == 4 and wps[-2][:2] == wait_at[:2]
+
+
 @pytest.mark.parametrize("dist", [0.2, 0.8, 1.9, 6.0])
 def test_approach_time_is_the_time_goto_velocity_takes(dist):
     from fisc_agent.flight.control import approach_time_s
