@@ -133,10 +133,17 @@ class FleetView:
     wide in ~4 min at the current rate`` (empty until there are two time blocks)."""
 
 
+SAMPLE_PERIOD_S = 0.2
+"""Default fleet sampling period [s]: the agents' telemetry period (``fisc-agent --telemetry-rate`` 5 Hz).  A
+longer one drops positions: at 0.5 s a vehicle crossing a 0.5 m slice of the throat in 0.3 s was sampled
+once or not at all, and eight stock PX4 looping 300 s scored profile density r 0.81 / 0.87 where the same
+recordings give 0.87 / 0.94 at 0.2 s (and the same at 0.1 s; 2026-12-07)."""
+
+
 class TelemetryAggregator:
     """Newest telemetry per agent plus time-averaged swarm fields over the map's CVs."""
 
-    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = 0.5, stale_after_s: float = 3.0,
+    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = SAMPLE_PERIOD_S, stale_after_s: float = 3.0,
                  roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS,
                  low_battery_pct: float = LOW_BATTERY_PCT) -> None:
         if not sample_period_s > 0 or not stale_after_s > 0:

@@ -26,7 +26,7 @@ from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.map.codec import CommandMap
 from fisc_ground.monitor import foxglove_scene as fs
 from fisc_ground.fields.field_report import json_safe
-from fisc_ground.monitor.aggregator import DEFAULT_MAX_AGENTS, FleetView, TelemetryAggregator
+from fisc_ground.monitor.aggregator import DEFAULT_MAX_AGENTS, SAMPLE_PERIOD_S, FleetView, TelemetryAggregator
 from fisc_ground.monitor.alarms import LOW_BATTERY_PCT
 
 #: Uncompressed size of an MCAP chunk [bytes]: a log cut short by a crash loses at most its last chunk.
@@ -41,7 +41,7 @@ class FlightLogError(ValueError):
 class LogSettings:
     """Aggregator settings written at the start of a flight log (``/fisc/settings``); replay uses them."""
 
-    sample_period_s: float = 0.5
+    sample_period_s: float = SAMPLE_PERIOD_S
     """Fleet sampling period of the field average [s of receive time]."""
     stale_after_s: float = 3.0
     """Agents not heard for this long leave the fleet sample [s]."""

@@ -127,6 +127,7 @@ def add_parsers(subparsers: Any) -> None:
     """Register publish, cmd, status, monitor, replay and router on ``fisc-ground``'s subparsers."""
     from fisc_ground.zenoh.fleet import run_cmd, run_status
     from fisc_ground.monitor.alarms import LOW_BATTERY_PCT
+    from fisc_ground.monitor.aggregator import SAMPLE_PERIOD_S
     from fisc_ground.monitor.run import DEFAULT_MAX_AGENTS, run_monitor
     from fisc_ground.monitor.recording import run_replay
     from fisc_ground.zenoh.router import add_parser as add_router_parser
@@ -225,8 +226,9 @@ def add_parsers(subparsers: Any) -> None:
                    help="serve the swarm in 3-D on a Foxglove WebSocket on 127.0.0.1 (default port 8765; 0: a free "
                         "port; layout: docs/foxglove_layout.json)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds (default: run)")
-    p.add_argument("--sample-period", type=float, default=0.5, metavar="S",
-                   help="fleet sampling period of the field average (default 0.5 s)")
+    p.add_argument("--sample-period", type=float, default=SAMPLE_PERIOD_S, metavar="S",
+                   help=f"fleet sampling period of the field average (default {SAMPLE_PERIOD_S:g} s: the agents' "
+                        "telemetry period)")
     p.add_argument("--stale-after", type=float, default=3.0, metavar="S",
                    help="an agent not heard for S seconds is stale (default 3)")
     p.add_argument("--low-battery", type=float, default=LOW_BATTERY_PCT, metavar="PCT",

@@ -7,6 +7,7 @@ import json
 import time
 
 import numpy as np
+import pytest
 
 from fisc_agent.zenoh import telemetry_codec as tc
 from fisc_agent.map.codec import decode_map
@@ -38,6 +39,17 @@ def synthetic_stream(n_agents=30, seconds=5.0, rate_hz=10.0, seed=0):
             pos = (rng.uniform(0, 6), rng.uniform(-1, 1), rng.uniform(-1, 1))
             times.append(t), ids.append(a), payloads.append(telemetry(a, t, pos, rng.normal(3, 0.3, 3)))
     return np.array(times), np.array(ids), payloads
+
+
+def test_the_monitor_samples_the_fleet_at_the_agents_telemetry_period():
+    """A longer fleet sampling period drops positions (a vehicle crosses a throat slice in 0.3 s)."""
+    from fisc_agent.cli import build_parser
+    from fisc_ground.monitor.aggregator import SAMPLE_PERIOD_S, TelemetryAggregator
+    from fisc_ground.monitor.flight_log import LogSettings
+
+    rate_hz = build_parser().parse_args(["--mavlink", "udpin:0.0.0.0:14540", "--id", "0"]).telemetry_rate
+    assert SAMPLE_PERIOD_S == pytest.approx(1.0 / rate_hz)
+    assert TelemetryAggregator().sample_period_s == LogSettings().sample_period_s == SAMPLE_PERIOD_S
 
 
 def test_aggregator_is_independent_of_batching(make_map):
