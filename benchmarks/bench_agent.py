@@ -91,6 +91,9 @@ class BenchLink:
     def latest_gnss_velocity(self):
         return None
 
+    def latest_thrust_accel(self):
+        return None
+
     def latest_position(self):
         """Back and forth along 14 m of the tunnel (a continuous track: a wrap-around would be a jump the
         agent's position gate refuses, and the agent would hold instead of flying)."""
@@ -105,6 +108,9 @@ class BenchLink:
         self.nbytes = len(pack_velocity_setpoint(self.mav, int(self.clock() * 1000) & 0xFFFFFFFF, 1, 1,
                                                  MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, vn, ve, vd))
         self.sent_t.append(self.clock())
+
+    def send_velocity_accel_ned(self, vn, ve, vd, an, ae, ad):
+        self.send_velocity_ned(vn, ve, vd)  # BenchLink reports no attitude: never called
 
     def use_adapter(self, adapter):
         pass

@@ -20,6 +20,7 @@ from fisc_agent.flight.frames import GeodeticAnchor, parse_floats
 from fisc_agent.map.lookup import COMMAND_MODES
 from fisc_agent.map.codec import MapError, load_map
 from fisc_agent.common.names import prefix_arg, swarm_name_arg
+from fisc_agent.flight.drag import DragConfig
 from fisc_agent.flight.safety_net import SafetyNetConfig
 from fisc_agent.flight.tracking import TrackingConfig
 
@@ -118,6 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --feedforward-gain auto: learn the vehicle's steady velocity gain again through the "
                         "pass, forgetting over this time, and set the feed-forward gain from it [s]; off: keep the "
                         "gain identified before the pass")
+    t.add_argument("--drag-feedforward", choices=("on", "off"), default="on",
+                   help="PX4: identify the vehicle's drag in flight from its attitude and send the thrust it takes "
+                        "with each velocity setpoint as acceleration feed-forward, switched on once the vehicle is "
+                        "slow (fisc_agent.flight.drag; docs/deployment.md); off: velocity-only setpoints")
     p.add_argument("--safety-net", choices=("on", "off"), default="on",
                    help="separation safety net: with --swarm, hear the neighbours' telemetry; closing too fast on "
                         "one, slow down, and inside the map's d_min of one, push apart (fisc_agent.flight.safety_net); "
@@ -196,7 +201,8 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
         exit_policy=a.exit_policy, laps=a.laps, exit_clearance_m=a.exit_clearance, exit_spacing_m=a.exit_spacing,
         entry_stagger_s=a.entry_stagger, entry_slots=a.entry_slots,
         entry_radius_fraction=a.entry_radius_fraction, geofence=a.geofence, stale_timeout_s=a.stale_timeout,
-        wall_margin_m=a.wall_margin, safety_net=SafetyNetConfig() if a.safety_net == "on" else None,
+        wall_margin_m=a.wall_margin, drag=DragConfig(feedforward=a.drag_feedforward == "on" and not paper),
+        safety_net=SafetyNetConfig() if a.safety_net == "on" else None,
         hold_grace_s=a.hold_grace, link_timeout_s=a.link_timeout, source_system=a.source_system, go=a.go,
         target_system=a.target_system, min_battery_pct=a.min_battery, low_battery_action=a.low_battery_action,
         takeoff_timeout_s=a.takeoff_timeout, max_start_distance_m=a.max_start_distance,

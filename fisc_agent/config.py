@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 from enum import StrEnum
 
+from fisc_agent.flight.drag import DragConfig
 from fisc_agent.flight.failsafe import GeofencePolicy
 from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform, GeodeticAnchor
 from fisc_agent.map.lookup import COMMAND_MODES
@@ -68,6 +69,9 @@ class AgentConfig:
     tracking: TrackingConfig = TrackingConfig()
     """Streamline tracking: cross-stream feedback on the agent's own streamline (``fisc_agent.flight.tracking``);
     ``gain_1_s = 0`` flies the simulator's command function open loop."""
+    drag: DragConfig = DragConfig()
+    """The vehicle's drag identified in flight from its attitude and fed forward with each velocity setpoint
+    (``fisc_agent.flight.drag``; PX4 only)."""
     safety_net: SafetyNetConfig | None = SafetyNetConfig()
     """The separation safety net (``fisc_agent.flight.safety_net``): with a Zenoh link the agent hears
     its neighbours' telemetry; closing on one faster than reaches the map's d_min (more for a stale

@@ -22,6 +22,7 @@ from typing import Callable
 
 from fisc_agent.mavlink.adapters import Adapter, Commander, ModeClass, adapter_for
 from fisc_agent.config import AgentConfig
+from fisc_agent.flight.drag import DragFeedForward
 from fisc_agent.flight.control import ZERO, ScalarField, Vec, check_map, clamp_velocity, max_command_speed
 from fisc_agent.mavlink.link import PositionSample, VehicleLink
 from fisc_agent.map.lookup import CommandField
@@ -30,7 +31,7 @@ from fisc_agent.flight.mission import (FLYING, Mission, MissionCommand, MissionO
                                 VehicleStatus)
 from fisc_agent.flight.mission_types import FleetOrder
 from fisc_agent.flight.tick import NET_STATES, AgentSnapshot, TickRecord, failsafe_active, outside_map
-from fisc_agent.flight.tracking import GNSS_FRESH_S
+from fisc_agent.flight.tracking import GNSS_FRESH_S, saturate
 from fisc_agent.flight.safety_net import DuctAxis, NeighbourSource, NetAction, keep_apart
 from fisc_agent.flight.readiness import health_problems
 from fisc_agent.flight.state_file import AgentState, default_state_path, load_state, save_state
@@ -81,6 +82,8 @@ class Runner:
         self._last_sp: Vec = ZERO
         self._last_sp_t = 0.0
         self._stream_start: float | None = None
+        self.drag = DragFeedForward(cfg.drag)
+        """The vehicle's drag identified in flight and fed forward (``fisc_agent.flight.drag``)."""
         self._last_hb_sent = -math.inf
         self._link_was_ok = False
         self.position_gate = PositionGate(PositionGateConfig.for_speed_clamp(cfg.max_speed_m_s))
@@ -274,6 +277,19 @@ class Runner:
             except Exception as exc:  # noqa: BLE001 - the link itself may be what failed
                 self.rlog.event("tick:hold-send", logging.ERROR, "zero setpoint not sent: %s", exc)
 
+    def _observe_drag(self, now: float, sample: PositionSample | None) -> None:
+        """Feed the drag's identification while the vehicle flies: the thrust's horizontal acceleration (its
+        attitude) and the estimate's horizontal velocity (in time with the attitude: the GNSS receiver's lagged
+        it by up to 0.5 m/s in PX4 SIH's turns and read a drag of 0.5-0.8 /s for SIH's 1.0 /s; the estimate's
+        slowly varying bias goes mostly into the fit's constant)."""
+        thrust, est = self.link.latest_thrust_accel(), self.drag.estimator
+        if (thrust is None or sample is None or now - thrust.t_s > est.cfg.fresh_s
+                or now - sample.t_s > self.cfg.stale_timeout_s or not self.link.armed
+                or self.mission.state not in FLYING):
+            est.gap()
+        else:
+            est.observe(now, sample.vel_ned_m_s[:2], thrust.acc_ne_m_s2)
+
     def _save_state(self) -> None:
         """Write the state file when what it holds changed."""
         if not self.state_path:
@@ -330,6 +346,7 @@ class Runner:
         if gnss is not None and now - gnss.t_s <= GNSS_FRESH_S:
             gx, gy, _ = tf.vel_ned_to_map_xyz(gnss.vel_ne_m_s[0], gnss.vel_ne_m_s[1], 0.0)
             gnss_xy = (gx, gy)
+        self._observe_drag(now, sample)
         link_ok = hb_age <= self.cfg.link_timeout_s
         if link_ok != self._link_was_ok:
             (log.info if link_ok else log.warning)("autopilot link %s", "up" if link_ok else "LOST")
@@ -356,7 +373,17 @@ class Runner:
                 dt = min(now - self._last_sp_t, 2.0 * self.cfg.period_s)
             wanted = net.velocity_m_s if net is not None else out.velocity_m_s
             sp = clamp_velocity(wanted, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
-            link.send_velocity_ned(*tf.vel_map_to_ned_xyz(*sp))
+            ned = tf.vel_map_to_ned_xyz(*sp)
+            c, switched_on = self.drag.drag_1_s(ned[:2], self.adapter.name if self.adapter else None)
+            if switched_on:  # the loop with the feed-forward lags less: identify its response again
+                log.info("drag identified in flight: %.2f /s (%d windows); fed forward with every setpoint from now "
+                         "on", c, self.drag.estimator.windows)
+                self.mission.nav.identify_again()
+            if c is None:
+                link.send_velocity_ned(*ned)
+            else:  # the thrust the drag at this velocity takes, fed forward (PX4 adds it to its PID's output)
+                an, ae = saturate((c * ned[0], c * ned[1], 0.0), self.cfg.max_accel_m_s2)[:2]
+                link.send_velocity_accel_ned(ned[0], ned[1], ned[2], an, ae, 0.0)
             self._last_sp, self._last_sp_t = sp, now
             if vel is not None and pos_age <= self.cfg.stale_timeout_s and mode == out.want_mode:
                 # only while the autopilot flies our setpoints: after a fleet resume PX4 streams them

@@ -153,6 +153,12 @@ class Navigator:
             self._logged_feedforward = ff
             log.info("velocity gain learnt in the pass: %.2f -> feed-forward gain %.2f", g, ff)
 
+    def identify_again(self) -> None:
+        """Identify the response anew from the next take-off or join (the loop changed: the drag's feed-forward
+        came on, ``fisc_agent.flight.drag``); until then the look-ahead given, or the map's."""
+        self.response, self.online_gain, self._identify_tried, self.recorder = None, None, False, ResponseRecorder()
+        self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self.lookahead_s())
+
     def identify(self) -> None:
         """Fit the velocity response once (``lookahead_auto``): the tracker's look-ahead, and its feed-forward
         gain with ``feedforward_auto``."""

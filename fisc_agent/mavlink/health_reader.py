@@ -2,7 +2,7 @@
 
 ``HealthReader.on_message`` reads HEARTBEAT.system_status, SYS_STATUS and BATTERY_STATUS (battery %),
 EXTENDED_SYS_STATE (landed state), ESTIMATOR_STATUS (PX4) / EKF_STATUS_REPORT (ArduPilot), ODOMETRY
-(PX4 reset_counter), SYSTEM_TIME (GNSS UNIX time, autopilot reboots) and HOME_POSITION, and answers
+(PX4 reset_counter; its attitude is the link's, for the drag), SYSTEM_TIME (GNSS UNIX time, autopilot reboots) and HOME_POSITION, and answers
 what changed that the link must act on (a reboot: re-request the streams; a position reset or an
 estimator verdict: tell the integrity monitor).
 
@@ -37,7 +37,8 @@ from fisc_agent.flight.health import (VehicleHealth, battery_pct_of, estimator_h
 Vec = tuple[float, float, float]
 
 ODOMETRY_RATE_HZ = 10.0
-"""ODOMETRY is asked for its reset counter only (230 bytes a message: not at the position rate on a radio)."""
+"""ODOMETRY is asked for its reset counter and its attitude (the drag's identification, ``fisc_agent.flight.drag``;
+230 bytes a message: not at the position rate on a radio)."""
 RESET_COUNTER_MODULO = 256
 """ODOMETRY.reset_counter is a uint8: it wraps from 255 to 0."""
 

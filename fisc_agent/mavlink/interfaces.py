@@ -39,6 +39,17 @@ class GnssVelocity:
     """(north, east) velocity over ground [m/s]."""
 
 
+@dataclass(frozen=True)
+class ThrustAccel:
+    """The horizontal acceleration the vehicle's thrust asks for, from its reported attitude
+    (``fisc_agent.flight.drag.thrust_accel_ne``)."""
+
+    t_s: float
+    """Local monotonic receive time [s]."""
+    acc_ne_m_s2: tuple[float, float]
+    """(north, east) [m/s^2]."""
+
+
 @runtime_checkable
 class PositionSource(Protocol):
     """Where the runner reads the vehicle's position from."""
@@ -48,12 +59,19 @@ class PositionSource(Protocol):
     def latest_gnss_velocity(self) -> GnssVelocity | None:
         """The GNSS receiver's newest velocity with a 3D fix, or None (none yet, or a source without it)."""
 
+    def latest_thrust_accel(self) -> ThrustAccel | None:
+        """The thrust's horizontal acceleration from the newest attitude, or None (none yet, or a source
+        without it)."""
+
 
 @runtime_checkable
 class SetpointSink(Protocol):
     """Where the runner streams its velocity setpoints to."""
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         """Send one velocity-only setpoint in MAV_FRAME_LOCAL_NED [m/s]."""
+
+    def send_velocity_accel_ned(self, vn: float, ve: float, vd: float, an: float, ae: float, ad: float) -> None:
+        """Send one velocity setpoint [m/s] with its acceleration feed-forward [m/s^2], MAV_FRAME_LOCAL_NED."""
 
 
 class VehicleLink(PositionSource, SetpointSink, VehicleCommands, Protocol):

@@ -42,26 +42,20 @@ from typing import Callable
 
 from pymavlink.dialects.v20.ardupilotmega import (MAV_AUTOPILOT_INVALID, MAV_CMD_SET_MESSAGE_INTERVAL,
                                                   MAV_FRAME_LOCAL_NED, MAV_RESULT_ACCEPTED, MAV_STATE_ACTIVE,
-                                                  MAV_TYPE_ONBOARD_CONTROLLER,
-                                                  POSITION_TARGET_TYPEMASK_AX_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_AY_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_AZ_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_X_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_Y_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_YAW_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE,
-                                                  POSITION_TARGET_TYPEMASK_Z_IGNORE)
+                                                  MAV_TYPE_ONBOARD_CONTROLLER)
 
 from fisc_agent.mavlink.adapters import (Adapter, CommandLong, CommandResult, ModeClass, arm_command,
                                          autopilot_from_heartbeat, command_result, is_armed)
 from fisc_agent.mavlink.endpoints import Endpoint, parse_endpoint
 from fisc_agent.mavlink.fast_codec import fast_decoder
 from fisc_agent.mavlink.gnss import gnss_velocity
-from fisc_agent.mavlink.interfaces import GnssVelocity, PositionSample, PositionSource, SetpointSink, VehicleLink
+from fisc_agent.mavlink.interfaces import (GnssVelocity, PositionSample, PositionSource, SetpointSink, ThrustAccel,
+                                           VehicleLink)
+from fisc_agent.flight.drag import thrust_accel_ne
 from fisc_agent.flight.frames import GeodeticAnchor
 from fisc_agent.mavlink.framing import NON_VEHICLE_TYPES, AutopilotTracker, HeartbeatVerdict, parse_datagram
 from fisc_agent.mavlink.health_reader import HealthReader, stream_requests
-from fisc_agent.mavlink.setpoint_codec import send_velocity_setpoint
+from fisc_agent.mavlink.setpoint_codec import TYPEMASK_VELOCITY_ACCEL, TYPEMASK_VELOCITY_ONLY, send_velocity_setpoint
 from fisc_agent.mavlink.transport import MavutilStreamTransport, TcpClientTransport, UdpTransport
 from fisc_agent.flight.health import VehicleHealth
 from fisc_agent.flight.integrity import IntegrityConfig, IntegrityMonitor, IntegrityVerdict
@@ -69,16 +63,10 @@ from fisc_agent.flight.position_gate import PositionGate, PositionGateConfig
 from fisc_agent.common.ratelimit import RateLimitedLog
 
 __all__ = ["MavlinkLink", "PositionSample", "PositionSource", "SetpointSink", "VehicleLink", "UdpTransport",
-           "TYPEMASK_VELOCITY_ONLY"]
+           "TYPEMASK_VELOCITY_ONLY", "TYPEMASK_VELOCITY_ACCEL"]
 
 log = logging.getLogger(__name__)
 
-#: SET_POSITION_TARGET_LOCAL_NED type mask: use vx, vy, vz only; ignore position,
-#: acceleration, yaw and yaw rate (= 3527).
-TYPEMASK_VELOCITY_ONLY = (POSITION_TARGET_TYPEMASK_X_IGNORE | POSITION_TARGET_TYPEMASK_Y_IGNORE
-                          | POSITION_TARGET_TYPEMASK_Z_IGNORE | POSITION_TARGET_TYPEMASK_AX_IGNORE
-                          | POSITION_TARGET_TYPEMASK_AY_IGNORE | POSITION_TARGET_TYPEMASK_AZ_IGNORE
-                          | POSITION_TARGET_TYPEMASK_YAW_IGNORE | POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE)
 MAX_MESSAGES_PER_POLL = 2000
 POLL_BUDGET_S = 0.01
 """At most this long per ``poll`` (a flood of datagrams must not stretch a control tick)."""
@@ -155,6 +143,7 @@ class MavlinkLink:
         self.heartbeats = 0
         self._position: PositionSample | None = None
         self._gnss: GnssVelocity | None = None
+        self._thrust: ThrustAccel | None = None
         self._acks: list[tuple[int, int]] = []
         self._sent_commands: dict[int, float] = {}
         self.status_texts: list[str] = []
@@ -300,6 +289,11 @@ class MavlinkLink:
             self._gnss = gnss_velocity(msg, self.clock()) or self._gnss
         elif mtype == "COMMAND_ACK":
             self._on_ack(msg)
+        elif mtype == "ODOMETRY":  # PX4: its attitude (the drag's identification), then its reset counter
+            acc = thrust_accel_ne(tuple(msg.q))
+            if acc is not None:
+                self._thrust = ThrustAccel(self.clock(), acc)
+            self._on_health(msg)
         elif mtype == "STATUSTEXT":
             text = str(msg.text).rstrip("\x00")
             self.status_texts.append(text)
@@ -412,6 +406,10 @@ class MavlinkLink:
         """The GNSS receiver's newest velocity with a 3D fix (GPS_RAW_INT), or None."""
         return self._gnss
 
+    def latest_thrust_accel(self) -> ThrustAccel | None:
+        """The thrust's horizontal acceleration from the newest attitude (PX4's ODOMETRY), or None."""
+        return self._thrust
+
     def pop_results(self) -> list[CommandResult]:
         """The COMMAND_ACKs received since the last call, as ``CommandResult``s."""
         acks, self._acks = self._acks, []
@@ -428,17 +426,17 @@ class MavlinkLink:
         """The autopilot flavour (PX4 or ArduPilot) that encodes intents and decodes modes."""
         self.adapter = adapter
 
-    def velocity_setpoint_message(self, vn: float, ve: float, vd: float):
-        """The SET_POSITION_TARGET_LOCAL_NED message for a velocity-only setpoint."""
-        boot_ms = int(self.clock() * 1000) & 0xFFFFFFFF
-        return self.mav.set_position_target_local_ned_encode(
-            boot_ms, self.target_system or 1, self.target_component, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY,
-            0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
-
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
-        """Send one velocity-only SET_POSITION_TARGET_LOCAL_NED [m/s] (``velocity_setpoint_message``'s bytes)."""
+        """Send one velocity-only SET_POSITION_TARGET_LOCAL_NED [m/s] (``setpoint_codec``)."""
         send_velocity_setpoint(self.mav, int(self.clock() * 1000) & 0xFFFFFFFF, self.target_system or 1,
                                self.target_component, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, vn, ve, vd)
+        self.setpoints_sent += 1
+
+    def send_velocity_accel_ned(self, vn: float, ve: float, vd: float, an: float, ae: float, ad: float) -> None:
+        """Send one SET_POSITION_TARGET_LOCAL_NED with velocity [m/s] and acceleration feed-forward [m/s^2]."""
+        send_velocity_setpoint(self.mav, int(self.clock() * 1000) & 0xFFFFFFFF, self.target_system or 1,
+                               self.target_component, MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ACCEL, vn, ve, vd,
+                               an, ae, ad)
         self.setpoints_sent += 1
 
     # ---- intents (adapters.VehicleCommands) as COMMAND_LONGs --------------------------------

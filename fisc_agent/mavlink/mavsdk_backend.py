@@ -330,6 +330,15 @@ class MavsdkLink:
         ``gps_info``, asked for at ``GNSS_RATE_HZ``), or None."""
         return self._gnss
 
+    def latest_thrust_accel(self) -> None:
+        """None: this backend does not read the attitude, so the agent identifies no drag through it (its
+        velocity setpoints carry no acceleration feed-forward; ``fisc_agent.flight.drag``)."""
+        return None
+
+    def send_velocity_accel_ned(self, vn: float, ve: float, vd: float, an: float, ae: float, ad: float) -> None:
+        """The velocity only (MAVSDK's velocity setpoint has no acceleration): ``send_velocity_ned``."""
+        self.send_velocity_ned(vn, ve, vd)
+
     def send_velocity_ned(self, vn: float, ve: float, vd: float) -> None:
         """Send one velocity setpoint through MAVSDK's offboard plugin [m/s], yaw held (never raises)."""
         self._last_setpoint_s = self.clock()

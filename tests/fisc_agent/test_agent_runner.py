@@ -8,6 +8,8 @@ import pytest
 from agent_testkit import RecordingVehicle, tunnel_map_bytes
 from fisc_agent.mavlink.adapters import ModeClass
 from fisc_agent.config import AgentConfig
+from fisc_agent.flight.drag import DragConfig
+from fisc_agent.mavlink.interfaces import ThrustAccel
 from fisc_agent.mavlink.link import PositionSample, PositionSource, SetpointSink
 from fisc_agent.map.codec import MapError, decode_map
 from fisc_agent.flight.mission import HoldCause, State
@@ -41,6 +43,8 @@ class MemoryLink(RecordingVehicle):
         self.pos = list(pos_ned)
         self.vel = [0.0, 0.0, 0.0]
         self.setpoints = []          # (t, vn, ve, vd)
+        self.accels = []             # (an, ae, ad) of each setpoint, None for a velocity-only one
+        self.thrust = None           # the ThrustAccel latest_thrust_accel gives
         self.heartbeats_sent = 0
         self.closed = False
         self.freeze_position = False
@@ -77,11 +81,19 @@ class MemoryLink(RecordingVehicle):
     def latest_gnss_velocity(self):
         return self.gnss
 
+    def latest_thrust_accel(self):
+        return self.thrust
+
     def latest_position(self):
         return self._fix
 
     def send_velocity_ned(self, vn, ve, vd):
         self.setpoints.append((self.clock(), vn, ve, vd))
+        self.accels.append(None)
+
+    def send_velocity_accel_ned(self, vn, ve, vd, an, ae, ad):
+        self.setpoints.append((self.clock(), vn, ve, vd))
+        self.accels.append((an, ae, ad))
 
     @property
     def mode(self):
@@ -491,3 +503,78 @@ def test_a_fresh_gnss_velocity_reaches_the_mission_in_the_map_frame(age_s, used)
         assert seen[-1] == pytest.approx((1.2, -0.3))         # east is map +x, north map -y
     else:
         assert seen[-1] is None                               # older than GNSS_FRESH_S: the position's rate
+
+
+class DragLink(MemoryLink):
+    """A vehicle with a linear drag ``c`` whose attitude (as PX4's ODOMETRY gives it) leans with the thrust
+    it takes: its acceleration plus ``c v``, plus an attitude estimate's tilt bias."""
+
+    drag_1_s = 0.8
+    tilt_bias_ne = (0.3, -0.1)
+
+    def poll(self):
+        v0, t0 = list(self.vel), self._t
+        n = super().poll()
+        now = self.clock()
+        dt = now - t0
+        a = [(v - u) / dt if dt > 0 else 0.0 for v, u in zip(self.vel, v0)]
+        c, b = self.drag_1_s, self.tilt_bias_ne
+        self.thrust = ThrustAccel(now, (a[0] + c * self.vel[0] + b[0], a[1] + c * self.vel[1] + b[1]))
+        return n
+
+    def takeoff(self, alt_m):
+        """ArduPilot's take-off command: the vehicle is at the height at once."""
+        super().takeoff(alt_m)
+        self.pos[2] = -alt_m
+
+
+def _accel_setpoints(link):
+    return [(sp, a) for sp, a in zip(link.setpoints, link.accels) if a is not None]
+
+
+def test_px4_the_drag_identified_is_fed_forward_once_the_vehicle_is_slow():
+    cfg, clock, link, r = make(DragLink, exit_policy="loop", origin_ned_m=(-6.0, 0.0, -3.0))
+    tick_until(r, clock, lambda: r.drag.estimator.drag_1_s is not None, max_s=120.0)
+    assert r.drag.estimator.drag_1_s == pytest.approx(DragLink.drag_1_s, rel=0.1)
+    tick_until(r, clock, lambda: bool(_accel_setpoints(link)), max_s=120.0)
+    first_sp, _ = _accel_setpoints(link)[0]
+    assert math.hypot(first_sp[1], first_sp[2]) <= cfg.drag.switch_on_speed_m_s  # switched on slow, not at speed
+    laps = r.mission.laps
+    tick_until(r, clock, lambda: r.mission.laps >= laps + 2, max_s=120.0)
+    c = r.drag.estimator.drag_1_s
+    flown = _accel_setpoints(link)
+    assert len(flown) > 100 and all(a is not None for a in link.accels[-len(flown):])  # on for good
+    for (_, vn, ve, _), (an, ae, ad) in flown:  # the drag's thrust at each setpoint, horizontal only
+        assert an == pytest.approx(c * vn, abs=0.05) and ae == pytest.approx(c * ve, abs=0.05) and ad == 0.0
+    assert max(math.hypot(a[0], a[1]) for _, a in flown) > 0.5
+
+
+def test_the_feedforward_switched_off_or_an_ardupilot_sends_velocity_only():
+    for kw in (dict(drag=DragConfig(feedforward=False)), dict(autopilot="ardupilot")):
+        cfg, clock, link, r = make(DragLink, exit_policy="loop", origin_ned_m=(-6.0, 0.0, -3.0), **kw)
+        if kw.get("autopilot"):
+            link.autopilot = "ardupilot"
+        tick_until(r, clock, lambda: r.mission.laps >= 6, max_s=300.0)
+        assert r.drag.estimator.drag_1_s == pytest.approx(DragLink.drag_1_s, rel=0.1), kw  # identified all the same
+        assert len(link.setpoints) > 500 and not _accel_setpoints(link), kw
+
+
+def test_a_vehicle_without_attitude_flies_velocity_only():
+    cfg, clock, link, r = make(exit_policy="loop", origin_ned_m=(-6.0, 0.0, -3.0))
+    tick_until(r, clock, lambda: r.mission.laps >= 6, max_s=300.0)
+    assert r.drag.estimator.windows == 0 and len(link.setpoints) > 500 and not _accel_setpoints(link)
+
+
+def test_the_feedforward_is_bounded_by_the_acceleration_clamp():
+    class DraggyLink(DragLink):
+        drag_1_s = 2.0
+
+    cfg, clock, link, r = make(DraggyLink, exit_policy="loop", origin_ned_m=(-6.0, 0.0, -3.0), max_accel_m_s2=2.0)
+    tick_until(r, clock, lambda: bool(_accel_setpoints(link)), max_s=240.0)
+    laps = r.mission.laps
+    tick_until(r, clock, lambda: r.mission.laps >= laps + 2, max_s=120.0)
+    flown = _accel_setpoints(link)
+    sizes = [math.hypot(a[0], a[1]) for _, a in flown]
+    assert max(sizes) == pytest.approx(cfg.max_accel_m_s2)  # reached (2 /s x 2.5 m/s) and bounded
+    for (_, vn, ve, _), (an, ae, _) in flown:  # along the setpoint
+        assert an * ve == pytest.approx(ae * vn, abs=1e-9)

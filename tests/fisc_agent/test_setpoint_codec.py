@@ -13,6 +13,7 @@ import pytest  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from fisc_agent.mavlink.link import MAV_FRAME_LOCAL_NED, TYPEMASK_VELOCITY_ONLY, MavlinkLink  # noqa: E402
+from fisc_agent.mavlink.setpoint_codec import TYPEMASK_VELOCITY_ACCEL  # noqa: E402
 from fisc_agent.mavlink.setpoint_codec import pack_velocity_setpoint, send_velocity_setpoint  # noqa: E402
 
 
@@ -81,6 +82,13 @@ def test_a_signing_link_is_left_to_pymavlink():
     assert ours.written == ref.written and len(ours.written[0]) > 13 + 12
 
 
+def _pymavlink_setpoint(link, mask, v, a=(0.0, 0.0, 0.0)) -> bytes:
+    """pymavlink's own bytes of the setpoint ``link`` sends next."""
+    boot_ms = int(link.clock() * 1000) & 0xFFFFFFFF
+    return link.mav.set_position_target_local_ned_encode(boot_ms, 1, link.target_component, MAV_FRAME_LOCAL_NED, mask,
+                                                         0.0, 0.0, 0.0, *v, *a, 0.0, 0.0).pack(link.mav)
+
+
 def test_the_link_sends_the_messages_bytes_over_udp():
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
@@ -88,10 +96,17 @@ def test_the_link_sends_the_messages_bytes_over_udp():
     clock = [1234.5678]
     link = MavlinkLink(f"udpout:127.0.0.1:{rx.getsockname()[1]}", source_system=9, clock=lambda: clock[0])
     try:
-        want = link.velocity_setpoint_message(1.5, -0.5, 0.125).pack(link.mav)
+        want = _pymavlink_setpoint(link, TYPEMASK_VELOCITY_ONLY, (1.5, -0.5, 0.125))
         link.send_velocity_ned(1.5, -0.5, 0.125)
         got, _ = rx.recvfrom(512)
         assert got == want and link.setpoints_sent == 1 and link.mav.seq == 1
+        # with the drag's acceleration feed-forward: velocity and acceleration used (type mask 3079)
+        want = _pymavlink_setpoint(link, TYPEMASK_VELOCITY_ACCEL, (1.5, -0.5, 0.125), (0.75, -0.25, 0.0))
+        link.send_velocity_accel_ned(1.5, -0.5, 0.125, 0.75, -0.25, 0.0)
+        got, _ = rx.recvfrom(512)
+        assert got == want and link.setpoints_sent == 2 and TYPEMASK_VELOCITY_ACCEL == 3079
+        msg = mavlink.MAVLink(None).decode(bytearray(got))
+        assert (msg.afx, msg.afy, msg.afz, msg.type_mask) == (0.75, -0.25, 0.0, 3079)
     finally:
         link.close()
         rx.close()

@@ -66,6 +66,9 @@ class PlantLink(bench_agent.BenchLink):
     def latest_gnss_velocity(self):
         return None
 
+    def latest_thrust_accel(self):
+        return None
+
     def latest_position(self):
         now = self.clock()
         dt = now - self.t_last

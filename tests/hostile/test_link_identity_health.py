@@ -283,3 +283,24 @@ def test_discard_backlog_drops_what_queued_up_unread(link_factory, vehicles):
     assert link.heartbeats == seen and not link.armed   # none of the armed heartbeats was read
     v.send(link, v.heartbeat(base_mode=1 | 128))
     assert link.heartbeats == seen + 1 and link.armed
+
+
+def test_odometrys_attitude_gives_the_thrusts_horizontal_acceleration(link_factory, vehicles, clock):
+    """PX4's ODOMETRY carries the attitude: 10 degrees nose down reads as g tan(10 deg) north; a quaternion
+    that is no rotation (all zero: PX4 without an attitude yet) leaves the last one in place."""
+    import math
+
+    link, ap = link_factory(), vehicles(1)
+    assert link.latest_thrust_accel() is None
+    a = math.radians(10.0)
+    pitched = mavlink.MAVLink_odometry_message(1, 1, 1, 0, 0, 0, [math.cos(a / 2), 0, -math.sin(a / 2), 0], 0, 0, 0, 0,
+                                               0, 0, [0] * 21, [0] * 21, 0, 0, 0)
+    ap.send(link, ap.heartbeat(), pitched)
+    got = link.latest_thrust_accel()
+    assert got is not None and got.t_s == clock.t
+    assert got.acc_ne_m_s2[0] == pytest.approx(9.80665 * math.tan(a), rel=1e-6)
+    assert got.acc_ne_m_s2[1] == pytest.approx(0.0, abs=1e-6)
+    clock.t += 1.0
+    zero = mavlink.MAVLink_odometry_message(1, 1, 1, 0, 0, 0, [0, 0, 0, 0], 0, 0, 0, 0, 0, 0, [0] * 21, [0] * 21, 0, 0, 0)
+    ap.send(link, zero)
+    assert link.latest_thrust_accel() is got

@@ -37,7 +37,7 @@ AGENT = {
     "--climb-speed": "AgentConfig.climb_speed_m_s", "--takeoff-alt": "AgentConfig.takeoff_alt_m",
     "--exit-policy": "AgentConfig.exit_policy", "--laps": "AgentConfig.laps",
     "--exit-clearance": "AgentConfig.exit_clearance_m", "--exit-spacing": "AgentConfig.exit_spacing_m", "--geofence": "AgentConfig.geofence",
-    "--wall-margin": "AgentConfig.wall_margin_m",
+    "--wall-margin": "AgentConfig.wall_margin_m", "--drag-feedforward": "DragConfig.feedforward",
     "--stale-timeout": "AgentConfig.stale_timeout_s", "--hold-grace": "AgentConfig.hold_grace_s",
     "--link-timeout": "AgentConfig.link_timeout_s", "--source-system": "AgentConfig.source_system",
     "--go": "AgentConfig.go", "--target-system": "AgentConfig.target_system",
@@ -145,12 +145,13 @@ def documented_fields(cls) -> set[str]:
 
 def _classes():
     from fisc_agent.config import AgentConfig
+    from fisc_agent.flight.drag import DragConfig
     from fisc_agent.flight.tracking import TrackingConfig
     from fisc_ground.maps.build import FitConfig
     from sim.emulate import EmulateConfig
     from sim.run import RunConfig
 
-    return {c.__name__: c for c in (AgentConfig, TrackingConfig, FitConfig, EmulateConfig, RunConfig)}
+    return {c.__name__: c for c in (AgentConfig, TrackingConfig, DragConfig, FitConfig, EmulateConfig, RunConfig)}
 
 
 def _parsers():
