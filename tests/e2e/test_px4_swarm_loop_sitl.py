@@ -22,6 +22,11 @@ late-entry rule (``Navigator._late_at_staging``); with it and its learnt lead 1.
 (joins late at their staging points give their windows up) and density r 0.43, pressure r 0.13; with
 the net's pass rule, the crossing rule and a join sure to be late turning back on its way (seventh run):
 1.41 m, largest excursion 0.19 m, 3-5 laps each, density r 0.57, pressure r 0.20 (0.73 the run before).
+2026-12-07, with the drag's acceleration feed-forward (``fisc_agent.flight.drag``): density r 0.87 and 0.81,
+pressure r 0.40 and 0.82 (0.94 / 0.87 and 0.39 / 0.87 with the monitor's fleet sampled at 0.2 s, its default
+since); closest approach 0.25 m (a lap's return came down through the inlet, since routed upstream of it) and
+1.18 m; the emulator, which flies no feed-forward, predicted density r 0.63 and 0.70.  A third run, with the
+return rerouted and the 0.2 s default: density r 0.87, pressure r 0.81, closest approach 0.70 m (predicted 0.75 / 0.80).
 
 It takes about 12 minutes on two cores (the flight, then the emulation), so it is marked ``long``:
 the default run (`.ci/run`) leaves it out (``-m "not long"`` in pyproject's addopts); run it with
