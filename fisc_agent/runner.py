@@ -374,7 +374,7 @@ class Runner:
             wanted = net.velocity_m_s if net is not None else out.velocity_m_s
             sp = clamp_velocity(wanted, v_prev, dt, self.cfg.max_speed_m_s, self.cfg.max_accel_m_s2)
             ned = tf.vel_map_to_ned_xyz(*sp)
-            c, switched_on = self.drag.drag_1_s(ned[:2], self.adapter.name if self.adapter else None)
+            c, switched_on = self.drag.for_setpoint(ned[:2], self.adapter.name if self.adapter else None)
             if switched_on:  # the loop with the feed-forward lags less: identify its response again
                 log.info("drag identified in flight: %.2f /s (%d windows); fed forward with every setpoint from now "
                          "on", c, self.drag.estimator.windows)

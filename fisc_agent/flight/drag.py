@@ -18,9 +18,8 @@ ODOMETRY), and what the vehicle does not gain of it is drag::
 The windows' averages keep the attitude's vibration and the velocity's noise out.  The constant ``b``
 takes what is not drag of the vehicle's own speed: a steady wind (``c (v - w)``) and the attitude
 estimate's tilt bias (stock PX4 SIH: 2 degrees, 0.37 m/s^2 along the flight; without ``b`` it read a drag
-of 1.2-1.3 /s where SIH's ground truth gives 1.00).  The estimate
-is used only between ``min_drag_1_s`` and ``max_drag_1_s``; below (an emulator that reports no tilt) there
-is nothing to feed forward.
+of 1.2-1.3 /s where SIH's ground truth gives 1.00).  The estimate is used only between ``min_drag_1_s``
+and ``max_drag_1_s``; below (an emulator that reports no tilt) there is nothing to feed forward.
 """
 
 from __future__ import annotations
@@ -201,7 +200,7 @@ class DragFeedForward:
         self.on = False
         """The feed-forward has come on."""
 
-    def drag_1_s(self, sp_ne_m_s: tuple[float, float], autopilot: str | None) -> tuple[float | None, bool]:
+    def for_setpoint(self, sp_ne_m_s: tuple[float, float], autopilot: str | None) -> tuple[float | None, bool]:
         """(The drag to feed forward with this setpoint [1/s] or None, whether it came on just now).  Only
         identified, asked for, and for a PX4: ArduPilot's guided mode reads a setpoint's acceleration as its
         velocity target's rate, not as a force."""

@@ -2,9 +2,9 @@
 
 ``HealthReader.on_message`` reads HEARTBEAT.system_status, SYS_STATUS and BATTERY_STATUS (battery %),
 EXTENDED_SYS_STATE (landed state), ESTIMATOR_STATUS (PX4) / EKF_STATUS_REPORT (ArduPilot), ODOMETRY
-(PX4 reset_counter; its attitude is the link's, for the drag), SYSTEM_TIME (GNSS UNIX time, autopilot reboots) and HOME_POSITION, and answers
-what changed that the link must act on (a reboot: re-request the streams; a position reset or an
-estimator verdict: tell the integrity monitor).
+(PX4 reset_counter; its attitude is the link's, for the drag), SYSTEM_TIME (GNSS UNIX time, autopilot
+reboots) and HOME_POSITION, and answers what changed that the link must act on (a reboot: re-request the
+streams; a position reset or an estimator verdict: tell the integrity monitor).
 
 ``stream_requests`` is what the link asks the autopilot to stream (MAV_CMD_SET_MESSAGE_INTERVAL).
 Measured on the SITL builds in ``../shared/sitl`` (API link, udp 14540):

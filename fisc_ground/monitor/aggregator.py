@@ -143,8 +143,8 @@ recordings give 0.87 / 0.94 at 0.2 s (and the same at 0.1 s; 2026-12-07)."""
 class TelemetryAggregator:
     """Newest telemetry per agent plus time-averaged swarm fields over the map's CVs."""
 
-    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = SAMPLE_PERIOD_S, stale_after_s: float = 3.0,
-                 roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS,
+    def __init__(self, cmap: CommandMap | None = None, sample_period_s: float = SAMPLE_PERIOD_S,
+                 stale_after_s: float = 3.0, roster: AgentRoster | None = None, max_agents: int = DEFAULT_MAX_AGENTS,
                  low_battery_pct: float = LOW_BATTERY_PCT) -> None:
         if not sample_period_s > 0 or not stale_after_s > 0:
             raise ValueError("sample_period_s and stale_after_s must be > 0")

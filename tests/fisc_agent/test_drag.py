@@ -195,15 +195,15 @@ def _identified(cfg: DragConfig = DragConfig()) -> DragFeedForward:
 def test_the_feedforward_comes_on_only_at_a_slow_setpoint_and_stays_on():
     ff = _identified()
     s = ff.cfg.switch_on_speed_m_s
-    assert ff.drag_1_s((s + 1e-6, 0.0), "px4") == (None, False) and not ff.on      # just too fast
-    c, now = ff.drag_1_s((0.0, s), "px4")                                          # at the bound: on
+    assert ff.for_setpoint((s + 1e-6, 0.0), "px4") == (None, False) and not ff.on      # just too fast
+    c, now = ff.for_setpoint((0.0, s), "px4")                                          # at the bound: on
     assert c == ff.estimator.drag_1_s and now and ff.on
-    assert ff.drag_1_s((2.0, 1.0), "px4") == (c, False)                            # and it stays on at speed
+    assert ff.for_setpoint((2.0, 1.0), "px4") == (c, False)                            # and it stays on at speed
 
 
 def test_no_feedforward_before_the_drag_is_identified_for_ardupilot_or_when_off():
     ff = DragFeedForward()
-    assert ff.drag_1_s((0.0, 0.0), "px4") == (None, False)
-    assert _identified().drag_1_s((0.0, 0.0), "ardupilot") == (None, False)
-    assert _identified().drag_1_s((0.0, 0.0), None) == (None, False)
-    assert _identified(DragConfig(feedforward=False)).drag_1_s((0.0, 0.0), "px4") == (None, False)
+    assert ff.for_setpoint((0.0, 0.0), "px4") == (None, False)
+    assert _identified().for_setpoint((0.0, 0.0), "ardupilot") == (None, False)
+    assert _identified().for_setpoint((0.0, 0.0), None) == (None, False)
+    assert _identified(DragConfig(feedforward=False)).for_setpoint((0.0, 0.0), "px4") == (None, False)
