@@ -428,7 +428,7 @@ class AutopilotEmulator:
         veh.step(now)
         self._fly_setpoint(m, now, resolve_local_setpoint(
             m.coordinate_frame, m.type_mask, (m.x, m.y, m.z), (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
-            tuple(veh.pos.tolist()), veh.yaw,
+            tuple(veh.pos.tolist()), veh.yaw, (m.afx, m.afy, m.afz),  # type: ignore[attr-defined]
         ))  # fmt: skip
 
     def _on_set_position_target_global_int(self, msg: object, now: float) -> None:
@@ -436,7 +436,7 @@ class AutopilotEmulator:
         veh.step(now)
         self._fly_setpoint(m, now, resolve_global_setpoint(
             m.coordinate_frame, m.type_mask, m.lat_int, m.lon_int, m.alt, (m.vx, m.vy, m.vz), m.yaw, m.yaw_rate,  # type: ignore[attr-defined]
-            self.anchor, float(veh.home[2]), tuple(veh.pos.tolist()), veh.yaw,
+            self.anchor, float(veh.home[2]), tuple(veh.pos.tolist()), veh.yaw, (m.afx, m.afy, m.afz),  # type: ignore[attr-defined]
         ))  # fmt: skip
 
     def _fly_setpoint(self, msg: object, now: float, sp: Setpoint | None) -> None:

@@ -1,8 +1,8 @@
 """SET_POSITION_TARGET_* fields -> a :class:`~sim.autopilot.vehicle_types.Setpoint` in local NED (pure).
 
 ``type_mask`` bits set = ignore (pymavlink's ``POSITION_TARGET_TYPEMASK_*``: position X/Y/Z,
-velocity VX/VY/VZ, YAW, YAW_RATE); acceleration/force fields are not flown (an axis with neither
-position nor velocity holds zero velocity).
+velocity VX/VY/VZ, acceleration AX/AY/AZ, YAW, YAW_RATE); an acceleration is kept unless FORCE_SET
+says the fields are a force (not flown).  An axis with neither position nor velocity holds zero velocity.
 """
 
 from __future__ import annotations
@@ -24,6 +24,11 @@ _VEL_BITS = (
     mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE, mavlink.POSITION_TARGET_TYPEMASK_VY_IGNORE,
     mavlink.POSITION_TARGET_TYPEMASK_VZ_IGNORE,
 )  # fmt: skip
+_ACC_BITS = (
+    mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE, mavlink.POSITION_TARGET_TYPEMASK_AY_IGNORE,
+    mavlink.POSITION_TARGET_TYPEMASK_AZ_IGNORE,
+)  # fmt: skip
+_FORCE_SET = mavlink.POSITION_TARGET_TYPEMASK_FORCE_SET
 _YAW_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE
 _YAW_RATE_IGNORE = mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 
@@ -50,30 +55,33 @@ def resolve_local_setpoint(
     yaw_rate: float,
     current_ned_m: tuple[float, float, float],
     current_yaw_rad: float,
+    accel: tuple[float, float, float] = (math.nan, math.nan, math.nan),
 ) -> Setpoint | None:
     """SET_POSITION_TARGET_LOCAL_NED fields -> :class:`Setpoint` in local NED (None: frame unsupported).
 
     Frames: LOCAL_NED; LOCAL_OFFSET_NED (position relative to the vehicle); BODY_NED (position as
-    LOCAL_NED, velocity rotated by the heading); BODY_OFFSET_NED / BODY_FRD (position offset and
-    velocity both rotated by the heading, offset relative to the vehicle).
+    LOCAL_NED, velocity and acceleration rotated by the heading); BODY_OFFSET_NED / BODY_FRD (position
+    offset, velocity and acceleration rotated by the heading, offset relative to the vehicle).
+    ``accel``: the afx/afy/afz fields (dropped when FORCE_SET marks them a force).
     """
     pos = _axes(position, type_mask, _POS_BITS)
     vel = _axes(velocity, type_mask, _VEL_BITS)
+    acc = [math.nan] * 3 if type_mask & _FORCE_SET else _axes(accel, type_mask, _ACC_BITS)
     if frame == mavlink.MAV_FRAME_LOCAL_NED:
         pass
     elif frame == mavlink.MAV_FRAME_LOCAL_OFFSET_NED:
         pos = [c + p for c, p in zip(current_ned_m, pos)]
     elif frame == mavlink.MAV_FRAME_BODY_NED:
-        vel = _rotate_yaw(vel, current_yaw_rad)
+        vel, acc = _rotate_yaw(vel, current_yaw_rad), _rotate_yaw(acc, current_yaw_rad)
     elif frame in (mavlink.MAV_FRAME_BODY_OFFSET_NED, mavlink.MAV_FRAME_BODY_FRD):
         rp = _rotate_yaw(pos, current_yaw_rad)
         pos = [c + p for c, p in zip(current_ned_m, rp)]
-        vel = _rotate_yaw(vel, current_yaw_rad)
+        vel, acc = _rotate_yaw(vel, current_yaw_rad), _rotate_yaw(acc, current_yaw_rad)
     else:
         return None
     y = float(yaw) if not (type_mask & _YAW_IGNORE) and math.isfinite(yaw) else math.nan
     yr = float(yaw_rate) if not (type_mask & _YAW_RATE_IGNORE) and math.isfinite(yaw_rate) else math.nan
-    return Setpoint(tuple(pos), tuple(vel), y, yr)  # type: ignore[arg-type]
+    return Setpoint(tuple(pos), tuple(vel), y, yr, tuple(acc))  # type: ignore[arg-type]
 
 
 def resolve_global_setpoint(
@@ -89,6 +97,7 @@ def resolve_global_setpoint(
     home_down_m: float,
     current_ned_m: tuple[float, float, float],
     current_yaw_rad: float,
+    accel: tuple[float, float, float] = (math.nan, math.nan, math.nan),
 ) -> Setpoint | None:
     """SET_POSITION_TARGET_GLOBAL_INT fields -> :class:`Setpoint` in local NED (None: frame unsupported).
 
@@ -101,7 +110,7 @@ def resolve_global_setpoint(
         alt_m = alt_m + anchor.alt_m - home_down_m
     ned = anchor.geodetic_to_ned(lat_int * 1e-7, lon_int * 1e-7, alt_m)
     return resolve_local_setpoint(
-        mavlink.MAV_FRAME_LOCAL_NED, type_mask, ned, velocity, yaw, yaw_rate, current_ned_m, current_yaw_rad
+        mavlink.MAV_FRAME_LOCAL_NED, type_mask, ned, velocity, yaw, yaw_rate, current_ned_m, current_yaw_rad, accel
     )
 
 

@@ -15,6 +15,7 @@ from typing import Callable
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from fisc_agent.flight.frames import GeodeticAnchor
+from sim.autopilot.attitude import euler_to_quaternion, ned_to_body
 from sim.autopilot.personalities import Personality
 from sim.autopilot.vehicle_types import VehicleState
 
@@ -104,6 +105,8 @@ class TelemetryBuilder:
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.global_position_int,
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.autopilot_version,
         }
+        if personality.name == "px4":  # ArduPilot refuses ODOMETRY (fisc_agent.mavlink.health_reader)
+            self.builders[mavlink.MAVLINK_MSG_ID_ODOMETRY] = self.odometry
         """Message id -> builder, for every message the emulator can send on request or stream."""
         self.payloads: dict[int, tuple[bytes, Callable[[VehicleState], bytes]]] = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: (bytes((mavlink.MAVLink_heartbeat_message.crc_extra,)),
@@ -180,6 +183,17 @@ class TelemetryBuilder:
     def attitude(self, st: VehicleState) -> object:
         """ATTITUDE: roll/pitch from the realised thrust, heading, yaw rate."""
         return self._mav.attitude_encode(self._boot_ms(st), st.roll_rad, st.pitch_rad, st.yaw_rad, 0.0, 0.0, st.yaw_rate_rad_s)
+
+    def odometry(self, st: VehicleState) -> object:
+        """ODOMETRY as PX4 streams it: position in local NED, attitude (roll/pitch from the realised thrust),
+        velocity and body rates in body FRD, no covariances, estimator resets never (counter 0)."""
+        q = euler_to_quaternion(st.roll_rad, st.pitch_rad, st.yaw_rad)
+        unknown = [math.nan] + [0.0] * 20
+        return self._mav.odometry_encode(
+            int(st.t_s * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *st.position_ned_m, q,
+            *ned_to_body(st.velocity_ned_m_s, q), 0.0, 0.0, st.yaw_rate_rad_s, unknown, unknown, 0,
+            mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100,
+        )  # fmt: skip
 
     def local_position_ned(self, st: VehicleState) -> object:
         """LOCAL_POSITION_NED: position and velocity in the EKF frame."""

@@ -36,20 +36,11 @@ from typing import Callable
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim.autopilot.attitude import attitude_from_thrust
 from sim.autopilot.personalities import FlightMode, Personality
 from sim.autopilot.rules import FailsafeAction, PersonalityRules
-from sim.autopilot.vehicle_types import (
-    ACCEPTED,
-    NAN3,
-    FAILED,
-    TEMPORARILY_REJECTED,
-    UNSUPPORTED,
-    Outcome,
-    Setpoint,
-    StatusEvent,
-    VehicleConfig,
-    VehicleState,
-)
+from sim.autopilot.vehicle_types import (ACCEPTED, FAILED, NAN3, TEMPORARILY_REJECTED, UNSUPPORTED, Outcome,
+                                         Setpoint, StatusEvent, VehicleConfig, VehicleState)
 from sim.plant.model import PlantParams, VelocityPlant
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
@@ -85,6 +76,7 @@ class Vehicle:
         self.params: dict[str, float] = personality.default_params(sysid)
         self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
         self._fixed_step = self._plant.fixed_step(self.config.physics_dt_s)
+        self._tau_v_s = 1.0 / float(self._plant.coefficients.inv_tau_v[0])
         self._px4 = personality.name == "px4"
         self._rules = PersonalityRules(self._px4, self.params)
         self.t_s = float(t0_s)
@@ -367,6 +359,14 @@ class Vehicle:
             cmd[2] = self._rules.land_speed_m_s()
         return cmd
 
+    def _with_accel_feedforward(self, cmd: list[float]) -> list[float]:
+        """PX4 OFFBOARD adds a setpoint's acceleration to its velocity loop's output: the plant's shaping
+        ``(v_cmd - v) / tau_v`` takes it as ``tau_v a`` more command (ArduPilot: not flown)."""
+        sp = self._setpoint
+        if sp is None or not self._px4 or self.mode != FlightMode.OFFBOARD:
+            return cmd
+        return [c + self._tau_v_s * a if math.isfinite(a) else c for c, a in zip(cmd, sp.accel_ned_m_s2)]
+
     def _limit(self, cmd: list[float]) -> list[float]:
         """Clamp a 3-float command in place to the horizontal / climb / descent limits."""
         xy_max, up_max, dn_max = self._rules.command_limits_m_s()
@@ -394,8 +394,9 @@ class Vehicle:
                 self._ground_contact(falling=True)
             self._update_yaw(dt)
             return
-        cmd_row = np.array([self._limit(self._velocity_command())])  # (1, 3), as the plant takes it
-        cmd = self.cmd = cmd_row[0]
+        cmd = self._limit(self._velocity_command())
+        self.cmd = np.array(cmd)
+        cmd_row = np.array([self._with_accel_feedforward(cmd)])  # (1, 3), as the plant takes it
         if self.landed:
             if cmd[2] < -1e-6:  # commanded to climb: lift off from rest
                 self.landed = False
@@ -458,12 +459,7 @@ class Vehicle:
         """(roll, pitch) [rad] from the direction of the realised thrust."""
         if not self.armed or self.landed:
             return 0.0, 0.0
-        a = self._plant.thrust_accel[0].tolist()
-        cy, sy = math.cos(self.yaw), math.sin(self.yaw)
-        fwd = cy * a[0] + sy * a[1]
-        right = -sy * a[0] + cy * a[1]
-        up = max(-a[2], 1e-6)
-        return math.atan2(right, up), math.atan2(-fwd, up)
+        return attitude_from_thrust(tuple(self._plant.thrust_accel[0].tolist()), self.yaw)
 
     def _landed_state(self) -> int:
         if self.landed or (not self.armed and self.pos[2] >= 0.0):

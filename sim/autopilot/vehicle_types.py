@@ -57,6 +57,10 @@ class Setpoint:
     """Target heading [rad] (NaN: keep)."""
     yaw_rate_rad_s: float = math.nan
     """Target yaw rate [rad/s] (NaN: none); used only when ``yaw_rad`` is NaN."""
+    accel_ned_m_s2: tuple[float, float, float] = NAN3
+    """Acceleration feed-forward [m/s^2] NED (NaN per axis: none).  The PX4 personality adds it to its
+    velocity loop's output (PX4's ``PositionControl``: ``_acc_sp`` plus the PID's); ArduPilot's guided mode
+    reads it as the rate of its velocity target, which the emulator does not fly."""
 
     @property
     def has_velocity(self) -> bool:

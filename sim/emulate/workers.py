@@ -388,6 +388,8 @@ def _agent_worker(conn, job: _AgentJob) -> None:
                 "agent_id": int(job.agent_ids[i]), "launch_s": float(first_tick[i]), "state": m.state.value,
                 "reason": m.reason, "laps": int(m.laps), "ticks": int(r.ticks),
                 "setpoints_sent": int(getattr(r.link, "setpoints_sent", 0)),
+                # the drag the agent identified in flight and whether it feeds it forward (fisc_agent.flight.drag)
+                "drag_1_s": r.drag.estimator.drag_1_s, "drag_fed_forward": r.drag.on,
                 "transitions": [(float(tr.t_s - t0), tr.src.value, tr.dst.value, tr.reason) for tr in m.transitions],
             })
             r.link.close()

@@ -291,6 +291,8 @@ def test_emulate_end_to_end_agents_take_off_join_and_flow_through_cvs(tmp_path):
     # the mission went through the Case 2 entry: ground -> arm -> takeoff -> join -> flow
     flown = [a for a in res.swarm.agents if any(dst == "FLOW" for _, _, dst, _ in a["transitions"])]
     assert flown, [a["transitions"] for a in res.swarm.agents]
+    # each agent reports the drag it identified (none yet in 22 s: 20 windows and a spread of speeds needed)
+    assert all(a["drag_1_s"] is None and a["drag_fed_forward"] is False for a in res.swarm.agents), res.swarm.agents
     states = iter(dst for _, _, dst, _ in flown[0]["transitions"])
     assert all(s in states for s in ("ARM", "TAKEOFF", "JOIN", "FLOW")), flown[0]["transitions"]  # in this order
     # each agent wrote its own flight log (fisc-agent --flight-log's CSV): the flown one has FLOW ticks

@@ -7,10 +7,12 @@ import time
 
 import pytest
 from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as ML2
 
 from autopilot_testkit import POS_ONLY_MASK, POS_VEL_MASK, Client
 
 from ...ports import free_tcp_port
+from fisc_agent.flight.drag import thrust_accel_ne
 from fisc_agent.flight.frames import GeodeticAnchor
 from sim.autopilot.server import AutopilotEmulator
 from sim.autopilot.setpoints import resolve_local_setpoint
@@ -73,6 +75,26 @@ def test_setpoint_type_mask_and_frames():
     sp = resolve_local_setpoint(ML.MAV_FRAME_BODY_OFFSET_NED, POS_ONLY_MASK, (2, 0, 0), (0, 0, 0), 0, 0, (1, 1, -1), math.pi)
     assert sp.position_ned_m == pytest.approx((-1, 1, -1))
     assert resolve_local_setpoint(ML.MAV_FRAME_GLOBAL, vel_only, (0, 0, 0), (1, 0, 0), 0, 0, (0, 0, 0), 0) is None
+
+
+def test_setpoint_acceleration_kept_by_its_mask_bits_and_dropped_as_a_force():
+    vel_acc = 0b0000_1100_0000_0111  # 3079: the agent's velocity with the drag's acceleration (PX4)
+    sp = resolve_local_setpoint(ML.MAV_FRAME_LOCAL_NED, vel_acc, (9, 9, 9), (1, 2, 0), 0, 0, (0, 0, 0), 0, (0.5, -0.25, 0))
+    assert sp.velocity_ned_m_s == (1, 2, 0) and sp.accel_ned_m_s2 == (0.5, -0.25, 0)
+    ay_ignored = vel_acc | ML.POSITION_TARGET_TYPEMASK_AY_IGNORE
+    sp = resolve_local_setpoint(ML.MAV_FRAME_LOCAL_NED, ay_ignored, (9, 9, 9), (1, 2, 0), 0, 0, (0, 0, 0), 0, (0.5, -0.25, 0))
+    assert sp.accel_ned_m_s2[0] == 0.5 and math.isnan(sp.accel_ned_m_s2[1]) and sp.accel_ned_m_s2[2] == 0
+    as_force = vel_acc | ML.POSITION_TARGET_TYPEMASK_FORCE_SET
+    sp = resolve_local_setpoint(ML.MAV_FRAME_LOCAL_NED, as_force, (9, 9, 9), (1, 2, 0), 0, 0, (0, 0, 0), 0, (0.5, -0.25, 0))
+    assert all(math.isnan(a) for a in sp.accel_ned_m_s2) and sp.velocity_ned_m_s == (1, 2, 0)
+    sp = resolve_local_setpoint(ML.MAV_FRAME_LOCAL_NED, 0b0000_1101_1100_0111, (9, 9, 9), (1, 2, 0), 0, 0, (0, 0, 0), 0,
+                                (0.5, -0.25, 0))  # the velocity-only mask
+    assert all(math.isnan(a) for a in sp.accel_ned_m_s2)
+    sp = resolve_local_setpoint(ML.MAV_FRAME_BODY_NED, vel_acc, (0, 0, 0), (1, 0, 0), 0, 0, (0, 0, 0), math.pi / 2, (0.5, 0, 0))
+    assert sp.accel_ned_m_s2 == pytest.approx((0, 0.5, 0))  # forward while facing east, as the velocity
+    nan = (math.nan, math.nan, math.nan)
+    sp = resolve_local_setpoint(ML.MAV_FRAME_LOCAL_NED, vel_acc, (9, 9, 9), (1, 2, 0), 0, 0, (0, 0, 0), 0, nan)
+    assert all(math.isnan(a) for a in sp.accel_ned_m_s2)  # NaN fields: none, whatever the mask
 
 
 # ---------------------------------------------------------------- PX4 over UDP
@@ -224,6 +246,42 @@ def test_requests_version_intervals_missions_timesync(make_emulator, connect):
     assert c.wait("MISSION_COUNT").count == 0
     c.mav.timesync_send(0, 12345)
     assert c.wait("TIMESYNC", lambda m: m.ts1 == 12345).tc1 > 0
+
+
+def _mavlink2(c: Client) -> Client:
+    """The client reading MAVLink 2's own messages (ODOMETRY: id 331), not mavutil's MAVLink 1 default."""
+    c.conn.mav = c.mav = ML2.MAVLink(c.conn, srcSystem=255, srcComponent=190)
+    return c
+
+
+def test_px4_streams_odometry_on_request_with_the_attitude_of_its_thrust(make_emulator, connect):
+    em = make_emulator(personality="px4")
+    c = _mavlink2(connect(em))
+    c.wait("HEARTBEAT")
+    assert c.arm().result == ML.MAV_RESULT_ACCEPTED
+    climb = c.streamer(0.0, 0.0, -2.0)
+    c.run_for(0.5, climb)
+    assert c.set_mode_px4(6, tick=climb).result == ML.MAV_RESULT_ACCEPTED
+    c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4_OFFBOARD, tick=climb)
+    c.run_for(0.7, climb)
+    assert c.command(ML.MAV_CMD_SET_MESSAGE_INTERVAL, ML2.MAVLINK_MSG_ID_ODOMETRY, 50_000).result == 0
+    level = c.wait("ODOMETRY", tick=climb)
+    assert thrust_accel_ne(tuple(level.q)) == pytest.approx((0.0, 0.0), abs=0.05)
+    east = c.streamer(0.0, 2.0, 0.0)
+    c.run_for(0.3, east)  # accelerating east: the thrust leans east, a roll to the right at heading north
+    od = c.wait("ODOMETRY", tick=east)
+    assert (od.frame_id, od.child_frame_id, od.reset_counter) == (ML.MAV_FRAME_LOCAL_NED, ML2.MAV_FRAME_BODY_FRD, 0)
+    assert sum(x * x for x in od.q) == pytest.approx(1.0, abs=1e-6)
+    acc = thrust_accel_ne(tuple(od.q))
+    assert acc is not None and acc[1] > 0.5 and abs(acc[0]) < 0.1
+    assert od.vy > 0.1 and abs(od.vx) < 0.1  # body FRD: right is east at heading north
+    assert od.time_usec > 0 and math.isnan(od.pose_covariance[0])
+
+
+def test_ardupilot_refuses_odometry_as_the_real_one_does(make_emulator, connect):
+    c = _mavlink2(connect(make_emulator(personality="ardupilot")))
+    c.wait("HEARTBEAT")
+    assert c.command(ML.MAV_CMD_SET_MESSAGE_INTERVAL, ML2.MAVLINK_MSG_ID_ODOMETRY, 100_000).result != 0
 
 
 def test_packet_loss_is_observable(make_emulator, connect):

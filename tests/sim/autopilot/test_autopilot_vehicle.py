@@ -10,6 +10,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import ARDUPILOT, PX4, FlightMode
 from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
+from sim.plant.fit import plant_preset
 from sim.plant.model import VelocityPlant
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
@@ -321,3 +322,34 @@ def test_time_must_not_go_backwards():
     v.step(1.0)
     with pytest.raises(ValueError, match="backwards"):
         v.step(0.5)
+
+
+def _steady_north(personality, accel_n_m_s2: float, seconds: float = 25.0) -> Vehicle:
+    """A vehicle on the stock PX4 SIH plant (quadratic drag, no feed-forward of its own) flying 1.5 m/s north
+    in OFFBOARD / GUIDED with ``accel_n_m_s2`` as the setpoint's acceleration."""
+    v = Vehicle(personality, VehicleConfig(start_ned_m=(0.0, 0.0, -5.0), plant_params=plant_preset("px4-sih")))
+    c = Clock(v)
+    sp = Setpoint(velocity_ned_m_s=(1.5, 0.0, 0.0), accel_ned_m_s2=(accel_n_m_s2, 0.0, 0.0))
+    c.run(0.5, sp)
+    assert v.set_mode(FlightMode.OFFBOARD if personality is PX4 else FlightMode.GUIDED, c.t).ok
+    c.run(seconds, sp)
+    return v
+
+
+def test_px4_adds_the_setpoints_acceleration_to_its_velocity_loop():
+    """Analytic: the plant's shaping ``(v_cmd - v) / tau_v + a - k v^2 = 0`` holds ``v = v_cmd`` when the setpoint
+    carries the drag's acceleration ``a = k v_cmd^2``, and settles short of it without."""
+    k = 1.225 * 0.39 / 2.0  # rho S / 2m of the px4-sih preset (Cd 1, 1 kg)
+    fed = _steady_north(PX4, k * 1.5**2)
+    unfed = _steady_north(PX4, 0.0)
+    assert fed.vel[0] == pytest.approx(1.5, abs=1e-3)
+    assert unfed.vel[0] < 1.5 - 0.2
+    assert fed.snapshot().velocity_command_ned_m_s == pytest.approx((1.5, 0.0, 0.0))  # the velocity, not the sum
+    over = _steady_north(PX4, 2.0 * k * 1.5**2)  # twice the drag: it overshoots (sign and scale of the term)
+    assert over.vel[0] > 1.5 + 0.1
+
+
+def test_ardupilot_guided_does_not_fly_the_acceleration_field():
+    fed = _steady_north(ARDUPILOT, 0.5)
+    unfed = _steady_north(ARDUPILOT, 0.0)
+    assert fed.vel[0] == pytest.approx(unfed.vel[0], abs=1e-12)
