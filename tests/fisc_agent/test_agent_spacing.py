@@ -361,6 +361,27 @@ def test_an_arrival_more_than_the_tolerance_early_takes_its_earliness_off_the_le
     assert nav.lead_learnt_s == pytest.approx(learnt_after, abs=1e-9)
 
 
+def test_the_final_leg_flies_along_x_at_the_inlets_crawl_wherever_on_it(maps):
+    """From its staging point S to the inlet plane a join flies the flow's own speed along x, not a
+    proportional approach: that one commanded 1.5 m/s at S and reached the plane still fast (eight stock PX4,
+    2026-12-07: 0.70 m/s in the inlet's first 0.25 m against a setpoint of 0.42), the inlet slice then read
+    0.7 of its neighbour's density.  Sideways it still closes on the entry point; the velocity estimate's bias
+    comes off both."""
+    nav, s_pt, due = _cleared_join(maps)
+    entry = nav.waypoints[-1]
+    crawl = nav._crawl_m_s()
+    for frac in (0.0, 0.5, 0.95):  # at S, half way, just short of the plane
+        pos = tuple(a + frac * (b - a) for a, b in zip(s_pt, entry))
+        vel = nav.join_step(pos, -1, due)
+        assert vel[0] == pytest.approx(crawl, abs=1e-12) and vel[1:] == pytest.approx((0.0, 0.0), abs=1e-9)
+    off = (entry[0] - 0.5, entry[1] + 0.4, entry[2] - 0.2)  # off the line: sideways back to it
+    vel = nav.join_step(off, -1, due)
+    assert vel[0] == pytest.approx(crawl) and vel[1] < 0 < vel[2]
+    nav.tracker.bias_m_s = (0.1, -0.05, 0.0)
+    vel = nav.join_step(pos, -1, due)
+    assert vel[0] == pytest.approx(crawl - 0.1) and vel[1] == pytest.approx(0.05)
+
+
 def test_a_join_not_across_the_inlet_by_its_crossing_due_time_gives_its_window_up(maps):
     """Held back on its final leg (the net behind a jam at the inlet), a vehicle on time at its staging
     point would still cross beside the next one: past its crossing due time plus the tolerance it turns
