@@ -42,6 +42,7 @@ from sim.autopilot.rules import FailsafeAction, PersonalityRules
 from sim.autopilot.vehicle_types import (ACCEPTED, FAILED, NAN3, TEMPORARILY_REJECTED, UNSUPPORTED, Outcome,
                                          Setpoint, StatusEvent, VehicleConfig, VehicleState)
 from sim.plant.model import PlantParams, VelocityPlant
+from sim.plant.px4_loop import Px4LoopPlant
 
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
@@ -74,9 +75,10 @@ class Vehicle:
         if self.config.physics_dt_s <= 0:
             raise ValueError(f"physics_dt_s must be > 0, got {self.config.physics_dt_s}")
         self.params: dict[str, float] = personality.default_params(sysid)
-        self._plant = (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
+        self._loop = None if self.config.px4_loop is None else Px4LoopPlant(self.config.px4_loop)
+        self._plant = self._loop or (plant_factory or (lambda p: VelocityPlant(p, 1)))(self.config.plant_params)
         self._fixed_step = self._plant.fixed_step(self.config.physics_dt_s)
-        self._tau_v_s = 1.0 / float(self._plant.coefficients.inv_tau_v[0])
+        self._tau_v_s = 0.0 if self._loop else 1.0 / float(self._plant.coefficients.inv_tau_v[0])
         self._px4 = personality.name == "px4"
         self._rules = PersonalityRules(self._px4, self.params)
         self.t_s = float(t0_s)
@@ -360,12 +362,15 @@ class Vehicle:
         return cmd
 
     def _with_accel_feedforward(self, cmd: list[float]) -> list[float]:
-        """PX4 OFFBOARD adds a setpoint's acceleration to its velocity loop's output: the plant's shaping
-        ``(v_cmd - v) / tau_v`` takes it as ``tau_v a`` more command (ArduPilot: not flown)."""
+        """PX4 OFFBOARD adds a setpoint's acceleration to its velocity loop's output: the PX4 loop model takes it
+        as such, the plant's shaping ``(v_cmd - v) / tau_v`` as ``tau_v a`` more command (ArduPilot: not flown)."""
         sp = self._setpoint
-        if sp is None or not self._px4 or self.mode != FlightMode.OFFBOARD:
+        on = sp is not None and self._px4 and self.mode == FlightMode.OFFBOARD
+        acc = [a if on and math.isfinite(a) else 0.0 for a in (sp.accel_ned_m_s2 if on else NAN3)]
+        if self._loop is not None:
+            self._loop.accel_ff_ned_m_s2 = acc
             return cmd
-        return [c + self._tau_v_s * a if math.isfinite(a) else c for c, a in zip(cmd, sp.accel_ned_m_s2)]
+        return [c + self._tau_v_s * a for c, a in zip(cmd, acc)] if on else cmd
 
     def _limit(self, cmd: list[float]) -> list[float]:
         """Clamp a 3-float command in place to the horizontal / climb / descent limits."""

@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.personalities import FlightMode
 from sim.plant.model import PlantParams
+from sim.plant.px4_loop import Px4LoopParams
 
 __all__ = [
     "ACCEPTED", "DENIED", "FAILED", "TEMPORARILY_REJECTED", "UNSUPPORTED",
@@ -102,6 +103,9 @@ class VehicleConfig:
     """RTL starts descending within this horizontal distance of home [m]."""
     plant_params: PlantParams = field(default_factory=PlantParams)
     """Parameters of the velocity plant (paper nominal quadrotor)."""
+    px4_loop: Px4LoopParams | None = None
+    """Fly stock PX4's velocity loop on SIH's quadrotor (:mod:`sim.plant.px4_loop`) instead of the velocity
+    plant ``plant_params`` (the emulator's ``--plant px4-sih-loop``); None: the velocity plant."""
 
 
 @dataclass(frozen=True)

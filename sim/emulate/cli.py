@@ -17,8 +17,7 @@ from fisc_agent.common.cli_common import EXIT_OK, EXIT_USAGE, add_output_arg, si
 from fisc_agent.config import EXIT_POLICIES
 from fisc_agent.map.lookup import COMMAND_MODES
 from fisc_agent.common.names import prefix_arg, swarm_name_arg
-from sim.emulate.config import EmulateConfig
-from sim.plant.fit import PLANT_PRESETS
+from sim.emulate.config import PLANTS, EmulateConfig
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -44,9 +43,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--preset", choices=("default", "paper"), default="default",
                    help="paper: the paper's schema-1 map flown with Algorithm 1 (mean, no look-ahead)")
     p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="personality of the emulators")
-    p.add_argument("--plant", choices=tuple(PLANT_PRESETS), default="paper",
+    p.add_argument("--plant", choices=PLANTS, default="paper",
                    help="vehicle model inside the emulators: the paper's quadrotor, or px4-sih (fitted to real PX4 "
-                        "SITL flights with stock parameters; px4-sih-tuned: a tuned velocity loop; sim.plant.fit)")
+                        "SITL flights with stock parameters; px4-sih-tuned: a tuned velocity loop; sim.plant.fit), "
+                        "or px4-sih-loop (stock PX4's velocity PID on SIH's linear drag, which flies the agents' drag "
+                        "feed-forward as PX4 does; sim.plant.px4_loop; --autopilot px4)")
     p.add_argument("--exit-policy", choices=EXIT_POLICIES, default="loop",
                    help="after the outlet: loop (fly back to the inlet), hold or land")
     p.add_argument("--open-loop", action="store_true",

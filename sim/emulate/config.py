@@ -10,8 +10,12 @@ from dataclasses import dataclass
 
 from fisc_agent.config import EXIT_POLICIES, GEOFENCE_POLICIES
 from fisc_agent.map.lookup import COMMAND_MODES
+from sim.plant.fit import PLANT_PRESETS
+from sim.plant.px4_loop import PX4_LOOP_PLANT
 
 PERSONALITIES = ("px4", "ardupilot")
+PLANTS = (*PLANT_PRESETS, PX4_LOOP_PLANT)
+"""The emulators' vehicle models (``--plant``): the velocity plant's presets and stock PX4's loop."""
 MAP_FILE_NAME = "map.fiscmap"
 #: Worker start-up (spawned interpreters import numpy/pymavlink; the agents decode the map).
 STARTUP_TIMEOUT_S = 120.0
@@ -76,7 +80,8 @@ class EmulateConfig:
     physics_dt_s: float = 0.02
     """Physics step of the emulated vehicles [s] (the emulator's default; 0.05 = the simulator's dt)."""
     plant: str = "paper"
-    """Vehicle model inside the emulators: a named ``sim.plant.fit.PLANT_PRESETS`` entry."""
+    """Vehicle model inside the emulators: a named ``sim.plant.fit.PLANT_PRESETS`` entry, or ``px4-sih-loop``
+    (stock PX4's velocity loop on SIH's quadrotor, ``sim.plant.px4_loop``; PX4 personality only)."""
     telemetry: str = "full"
     """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
     and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""
@@ -151,6 +156,9 @@ class EmulateConfig:
              f"lookahead_s must be finite and >= 0, got {self.lookahead_s!r}")
         need(self.preset in ("default", "paper"), f"preset {self.preset!r}: choose default or paper")
         need(self.personality in PERSONALITIES, f"personality {self.personality!r}: choose px4 or ardupilot")
+        need(self.plant in PLANTS, f"plant {self.plant!r}: choose one of {', '.join(PLANTS)}")
+        need(self.plant != PX4_LOOP_PLANT or self.personality == "px4",
+             f"plant {PX4_LOOP_PLANT} is PX4's velocity loop: it needs the px4 personality")
         need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
         need(isinstance(self.reference_seeds, int) and self.reference_seeds >= 1,
              f"reference_seeds must be >= 1, is {self.reference_seeds!r}")

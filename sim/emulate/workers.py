@@ -167,8 +167,11 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
 
         _raise_fd_limit()
         from sim.plant.fit import plant_preset
+        from sim.plant.px4_loop import PX4_LOOP_PLANT, Px4LoopParams
 
-        vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s, plant_params=plant_preset(job.plant))
+        loop = job.plant == PX4_LOOP_PLANT  # stock PX4's loop flies the vehicle, not the velocity plant
+        vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s, plant_params=plant_preset("paper" if loop else job.plant),
+                             px4_loop=Px4LoopParams() if loop else None)
         emus = [AutopilotEmulator("udpin:127.0.0.1:0", job.personality, start, sysid=1 + aid % 250,
                                   rate_position_hz=job.position_rate_hz, vehicle_config=vcfg)
                 for aid, start in zip(job.agent_ids, job.start_ned_m)]

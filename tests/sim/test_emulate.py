@@ -81,6 +81,11 @@ def test_config_rejects_bad_values():
         EmulateConfig(entry_radius_fraction=0.0)
     with pytest.raises(ValueError, match="reference_seeds"):
         EmulateConfig(reference_seeds=0)
+    with pytest.raises(ValueError, match="plant 'px4'"):
+        EmulateConfig(plant="px4")
+    with pytest.raises(ValueError, match="px4-sih-loop is PX4's velocity loop"):
+        EmulateConfig(plant="px4-sih-loop", personality="ardupilot")
+    assert EmulateConfig(plant="px4-sih-loop").plant == "px4-sih-loop"
     # agents fly the map's settings by default; the paper preset pins Algorithm 1
     s = EmulateConfig().agent_settings()
     assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().geofence == "return"

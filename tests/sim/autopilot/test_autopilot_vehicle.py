@@ -12,6 +12,7 @@ from sim.autopilot.personalities import ARDUPILOT, PX4, FlightMode
 from sim.autopilot.vehicle import Setpoint, Vehicle, VehicleConfig
 from sim.plant.fit import plant_preset
 from sim.plant.model import VelocityPlant
+from sim.plant.px4_loop import Px4LoopParams
 
 ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
 REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
@@ -353,3 +354,25 @@ def test_ardupilot_guided_does_not_fly_the_acceleration_field():
     fed = _steady_north(ARDUPILOT, 0.5)
     unfed = _steady_north(ARDUPILOT, 0.0)
     assert fed.vel[0] == pytest.approx(unfed.vel[0], abs=1e-12)
+
+
+def test_the_px4_loop_model_takes_off_flies_offboard_and_lands_as_the_plant_does():
+    """``VehicleConfig.px4_loop``: the same rules (take-off, OFFBOARD, land, the ground) over stock PX4's loop."""
+    v = Vehicle(PX4, VehicleConfig(px4_loop=Px4LoopParams()))
+    c = Clock(v)
+    assert v.arm(c.t).ok and v.takeoff(c.t, altitude_m=math.nan).ok
+    c.run(6.0)
+    s = v.snapshot()
+    assert s.mode == FlightMode.LOITER and s.position_ned_m[2] == pytest.approx(-2.5, abs=0.2)
+    c.run(0.5, vel(1.0, 0, 0))
+    assert v.set_mode(FlightMode.OFFBOARD, c.t).ok
+    c.run(30.0, vel(1.0, 0, 0))
+    s = v.snapshot()
+    assert s.velocity_ned_m_s == pytest.approx((1.0, 0.0, 0.0), abs=0.02)  # the integrator holds SIH's drag
+    assert s.pitch_rad == pytest.approx(-math.atan(1.0 / 9.81), abs=0.01)  # tilted against it: c v / g
+    assert v.land(c.t).ok
+    c.run(8.0)
+    s = v.snapshot()
+    assert s.position_ned_m[2] == 0.0 and s.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+    c.run(2.1)  # COM_DISARM_LAND = 2 s
+    assert not v.snapshot().armed
