@@ -20,7 +20,7 @@ from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, appr
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
-                                      ScheduleSource, entry_schedule, entry_slot_open)
+                                      ScheduleSource, entry_schedule, entry_slot_open, final_leg_speed_m_s)
 from fisc_agent.flight.point_command import PointCommand, point_command
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.separation import Separation
@@ -345,11 +345,11 @@ class Navigator:
         if (self.wp_index == last and self.staging_due_s is not None
                 and wall_time_s < self._final_leg_due_s()):
             return self.goto(pos, self.waypoints[last - 1], cfg.join_speed_m_s)   # early at S: wait until due
-        vel = self.goto(pos, self.waypoints[self.wp_index], self._join_speed(pos, wall_time_s))
-        if self.wp_index == last:  # final leg: along x at the flow's own speed, whatever the distance left (a
-            # proportional approach reached the plane still fast: 0.70 m/s for a 0.42 setpoint, eight stock PX4)
+        vel = self.goto(pos, self.waypoints[self.wp_index], speed := self._join_speed(pos, wall_time_s))
+        if self.wp_index == last:  # final leg: across the inlet plane at the flow's own speed (final_leg_speed_m_s)
             self.identify()
-            vel = (self.unbiased((self._crawl_m_s(), 0.0, 0.0))[0], vel[1], vel[2])
+            vx = final_leg_speed_m_s(self.geom.x_inlet_m - pos[0], self._crawl_m_s(), self.lookahead_s(), speed)
+            vel = (self.unbiased((vx, 0.0, 0.0))[0], vel[1], vel[2])
         return vel
 
     def _top_join_speed_m_s(self) -> float:

@@ -139,6 +139,26 @@ MAX_LEAD_LEARNT_S = 20.0
 """Most a join's lead grows by what late arrivals taught it (each of ``Navigator.lead_learnt_s`` and
 ``Navigator.leg_lead_s``) [s]."""
 
+FINAL_LEG_MIN_BRAKE_M = 0.5
+"""Least distance before the inlet plane from which a join's final leg flies the crawl (one 0.5 m slice) [m]."""
+
+
+def final_leg_speed_m_s(to_plane_m: float, crawl_m_s: float, lag_s: float, cap_m_s: float,
+                        gain_1_s: float = 1.0) -> float:
+    """A join's speed along x on its final leg, ``to_plane_m`` before the inlet plane: the crawl ``crawl_m_s``
+    (the flow's own speed at the entry point) from ``brake = max(FINAL_LEG_MIN_BRAKE_M, 2 lag_s crawl)`` before
+    the plane on (two of the vehicle's lags at the crawl: a first-order lag's excess speed falls to 14 %), and
+    before that a proportional approach to that point on top of the crawl, within ``cap_m_s``.
+
+    The proportional approach all the way to the entry point crossed the plane still fast (eight stock PX4,
+    2026-12-07: 0.70 m/s in the inlet's first 0.25 m for a 0.42 setpoint; the inlet slice read 0.7 of its
+    neighbour's density).  The crawl all the way from the staging point crossed it at 0.43 for 0.44 but was slow
+    to get there: a stock PX4 early in its flight, its integrator still catching up, took 6 s for 1.6 m and was
+    past its crossing's due time (``Navigator._late_across``); it turned back towards the next vehicle coming
+    down to its staging point (0.50 m apart by SIH's ground truth)."""
+    brake_m = max(FINAL_LEG_MIN_BRAKE_M, 2.0 * lag_s * crawl_m_s)
+    return max(crawl_m_s, min(cap_m_s, crawl_m_s + gain_1_s * (to_plane_m - brake_m)))
+
 
 def entry_slot_open(wall_time_s: float, agent_id: int, stagger_s: float, slots: int) -> bool:
     """May agent ``agent_id`` cross the inlet now?  Decentralised staggered entry on a shared clock.

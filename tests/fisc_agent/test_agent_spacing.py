@@ -11,7 +11,7 @@ from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
                                        entry_point, entry_points, exit_waypoints, hold_point, hold_points,
                                        distance, speed_for_arrival)
-from fisc_agent.flight.spacing import (ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M, JOIN_LEG_ALLOWANCE_S,
+from fisc_agent.flight.spacing import (final_leg_speed_m_s, ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M, JOIN_LEG_ALLOWANCE_S,
                                        VOGEL_64_MIN_SPACING, check_min_distance, entry_slot_open, hold_altitude_m,
                                        hold_sites, lattice_hold_points,
                                        min_pairwise_distance_m)
@@ -361,25 +361,36 @@ def test_an_arrival_more_than_the_tolerance_early_takes_its_earliness_off_the_le
     assert nav.lead_learnt_s == pytest.approx(learnt_after, abs=1e-9)
 
 
-def test_the_final_leg_flies_along_x_at_the_inlets_crawl_wherever_on_it(maps):
-    """From its staging point S to the inlet plane a join flies the flow's own speed along x, not a
-    proportional approach: that one commanded 1.5 m/s at S and reached the plane still fast (eight stock PX4,
-    2026-12-07: 0.70 m/s in the inlet's first 0.25 m against a setpoint of 0.42), the inlet slice then read
-    0.7 of its neighbour's density.  Sideways it still closes on the entry point; the velocity estimate's bias
-    comes off both."""
+@pytest.mark.parametrize("to_plane, lag, cap, want", [
+    (0.5, 0.0, 2.0, 0.44),                 # at the least braking distance: the crawl
+    (0.5 + 1e-9, 0.0, 2.0, 0.44 + 1e-9),   # just before it: the approach on top of the crawl
+    (0.3, 0.0, 2.0, 0.44),                 # inside it, and past the plane: the crawl
+    (-0.2, 0.0, 2.0, 0.44),
+    (1.5, 0.0, 2.0, 1.44),                 # at the staging point (1.5 m out): 1 m/s on top of the crawl
+    (1.5, 0.0, 1.0, 1.0),                  # within the governor's cap
+    (1.5, 0.0, 0.3, 0.44),                 # a cap below the crawl: the crawl
+    (1.5, 0.9, 2.0, 0.44 + 1.5 - 2 * 0.9 * 0.44),  # a stock PX4's lag: brakes two lags at the crawl out
+    (2 * 0.9 * 0.44, 0.9, 2.0, 0.44),
+])
+def test_the_final_leg_approaches_the_inlet_plane_and_crosses_it_at_the_crawl(to_plane, lag, cap, want):
+    assert final_leg_speed_m_s(to_plane, 0.44, lag, cap) == pytest.approx(want, abs=1e-12)
+
+
+def test_a_join_on_its_final_leg_flies_final_leg_speed_along_x_and_closes_on_its_entry_point_sideways(maps):
     nav, s_pt, due = _cleared_join(maps)
     entry = nav.waypoints[-1]
-    crawl = nav._crawl_m_s()
-    for frac in (0.0, 0.5, 0.95):  # at S, half way, just short of the plane
+    crawl, lag = nav._crawl_m_s(), nav.lookahead_s()
+    for frac in (0.0, 0.5, 0.95):  # at S, half way, just short of the entry point
         pos = tuple(a + frac * (b - a) for a, b in zip(s_pt, entry))
         vel = nav.join_step(pos, -1, due)
-        assert vel[0] == pytest.approx(crawl, abs=1e-12) and vel[1:] == pytest.approx((0.0, 0.0), abs=1e-9)
-    off = (entry[0] - 0.5, entry[1] + 0.4, entry[2] - 0.2)  # off the line: sideways back to it
+        want = final_leg_speed_m_s(nav.geom.x_inlet_m - pos[0], crawl, lag, nav._join_speed(pos, due))
+        assert vel[0] == pytest.approx(want, abs=1e-12) and vel[1:] == pytest.approx((0.0, 0.0), abs=1e-9)
+    off = (entry[0] - 0.3, entry[1] + 0.4, entry[2] - 0.2)  # off the line: sideways back to it
+    vel0 = nav.join_step(off, -1, due)
+    assert vel0[0] == pytest.approx(crawl) and vel0[1] < 0 < vel0[2]
+    nav.tracker.bias_m_s = (0.1, -0.05, 0.0)  # the velocity estimate's bias comes off both
     vel = nav.join_step(off, -1, due)
-    assert vel[0] == pytest.approx(crawl) and vel[1] < 0 < vel[2]
-    nav.tracker.bias_m_s = (0.1, -0.05, 0.0)
-    vel = nav.join_step(pos, -1, due)
-    assert vel[0] == pytest.approx(crawl - 0.1) and vel[1] == pytest.approx(0.05)
+    assert vel[0] == pytest.approx(crawl - 0.1) and vel[1] == pytest.approx(vel0[1] + 0.05)
 
 
 def test_a_join_not_across_the_inlet_by_its_crossing_due_time_gives_its_window_up(maps):
