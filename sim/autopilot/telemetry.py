@@ -105,9 +105,9 @@ class TelemetryBuilder:
             mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self.global_position_int,
             mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.autopilot_version,
         }
+        """Message id -> builder, for every message the emulator can send on request or stream."""
         if personality.name == "px4":  # ArduPilot refuses ODOMETRY (fisc_agent.mavlink.health_reader)
             self.builders[mavlink.MAVLINK_MSG_ID_ODOMETRY] = self.odometry
-        """Message id -> builder, for every message the emulator can send on request or stream."""
         self.payloads: dict[int, tuple[bytes, Callable[[VehicleState], bytes]]] = {
             mavlink.MAVLINK_MSG_ID_HEARTBEAT: (bytes((mavlink.MAVLink_heartbeat_message.crc_extra,)),
                                                self.heartbeat_payload),

@@ -6,10 +6,10 @@ vehicle with a fake clock exactly as the MAVLink server drives it with ``time.mo
 
 Physics: a point mass in local NED.  The realised velocity comes from the paper's
 :class:`sim.plant.model.VelocityPlant` (velocity command in, velocity out, speed/tilt/thrust limits
-inside the plant); position integrates velocity.  Flat ground at ``D = 0``: the vehicle cannot
-go below it; while on the ground and not commanded to climb it sits still (landed).  A vehicle
-disarmed in the air falls.  Fixed physics step (``VehicleConfig.physics_dt_s``, zero-order hold
-of the command over it).
+inside the plant), or from stock PX4's velocity loop (``VehicleConfig.px4_loop``); position integrates
+velocity.  Flat ground at ``D = 0``: the vehicle cannot go below it; while on the ground and not
+commanded to climb it sits still (landed).  A vehicle disarmed in the air falls.  Fixed physics step
+(``VehicleConfig.physics_dt_s``, zero-order hold of the command over it).
 
 Rules (see docs/autopilot_emulator.md for the full list):
 
@@ -366,7 +366,7 @@ class Vehicle:
         as such, the plant's shaping ``(v_cmd - v) / tau_v`` as ``tau_v a`` more command (ArduPilot: not flown)."""
         sp = self._setpoint
         on = sp is not None and self._px4 and self.mode == FlightMode.OFFBOARD
-        acc = [a if on and math.isfinite(a) else 0.0 for a in (sp.accel_ned_m_s2 if on else NAN3)]
+        acc = [a if math.isfinite(a) else 0.0 for a in (sp.accel_ned_m_s2 if on else NAN3)]
         if self._loop is not None:
             self._loop.accel_ff_ned_m_s2 = acc
             return cmd
