@@ -366,11 +366,13 @@ class Vehicle:
         as such, the plant's shaping ``(v_cmd - v) / tau_v`` as ``tau_v a`` more command (ArduPilot: not flown)."""
         sp = self._setpoint
         on = sp is not None and self._px4 and self.mode == FlightMode.OFFBOARD
+        if not on and self._loop is None:
+            return cmd  # every physics step of a velocity plant without it: nothing to build
         acc = [a if math.isfinite(a) else 0.0 for a in (sp.accel_ned_m_s2 if on else NAN3)]
         if self._loop is not None:
             self._loop.accel_ff_ned_m_s2 = acc
             return cmd
-        return [c + self._tau_v_s * a for c, a in zip(cmd, acc)] if on else cmd
+        return [c + self._tau_v_s * a for c, a in zip(cmd, acc)]
 
     def _limit(self, cmd: list[float]) -> list[float]:
         """Clamp a 3-float command in place to the horizontal / climb / descent limits."""

@@ -86,6 +86,9 @@ class Px4LoopPlant:
         """The setpoint's acceleration, added to the PID's output (PX4's ``_acc_sp``); set before each step."""
         self._integ = [0.0, 0.0, 0.0]
         self._dv = [0.0, 0.0, 0.0]
+        self._gains = ((params.p_xy_1_s, params.i_xy_1_s2, params.d_xy), (params.p_xy_1_s, params.i_xy_1_s2, params.d_xy),
+                       (params.p_z_1_s, params.i_z_1_s2, 0.0))  # (P, I, D) of north, east, down
+        self._tan_tilt = math.tan(math.radians(params.tilt_max_deg))
         self.reset()
 
     def reset(self, velocity_ned_m_s: np.ndarray | None = None, thrust_accel_ned_m_s2: np.ndarray | None = None) -> None:
@@ -110,9 +113,8 @@ class Px4LoopPlant:
         nsub = max(1, math.ceil(dt_s / p.max_substep_s - 1e-9))
         h = dt_s / nsub
         beta = h / (p.tau_thrust_s + h)
-        gains = ((p.p_xy_1_s, p.i_xy_1_s2, p.d_xy), (p.p_xy_1_s, p.i_xy_1_s2, p.d_xy), (p.p_z_1_s, p.i_z_1_s2, 0.0))
+        gains, tan_tilt = self._gains, self._tan_tilt
         lim, c, g = p.integrator_limit_m_s2, p.drag_1_s, p.g_m_s2
-        tan_tilt = math.tan(math.radians(p.tilt_max_deg))
         v, a, integ, dv = self.velocity[0].tolist(), self.thrust_accel[0].tolist(), self._integ, self._dv
         for _ in range(nsub):
             acc = [0.0, 0.0, 0.0]
