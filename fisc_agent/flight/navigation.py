@@ -21,7 +21,7 @@ from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
                                       ScheduleSource, entry_schedule, entry_slot_open, final_leg_speed_m_s)
-from fisc_agent.flight.point_command import PointCommand, point_command
+from fisc_agent.flight.point_command import PointCommand, point_command, tracked_mode
 from fisc_agent.flight.tracking import ParcelTracker
 from fisc_agent.map.separation import Separation
 from fisc_agent.map.wall import rejoin_point
@@ -103,8 +103,7 @@ class Navigator:
         mode = sfield.settings(self.cfg.mode).mode
         # kinetic under streamline tracking: the parcel follows the staggered field and carries the
         # agent's deviation (ParcelTracker.step), when the mode was asked for explicitly
-        self.tracked_mode = "staggered" if mode == "kinetic" else mode
-        self.kinetic = mode == "kinetic" and self.cfg.mode == "kinetic"
+        self.tracked_mode, self.kinetic = tracked_mode(mode, self.cfg.mode)
         self._point_cmd = point_command(sfield, self.tracked_mode, self.cfg.agent_id)
         if mode == "kinetic" and not self.kinetic and self.cfg.tracking.gain_1_s > 0.0:
             log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "

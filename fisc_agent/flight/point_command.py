@@ -24,6 +24,15 @@ PointCommand = Callable[[float, float, float], "Vec | None"]
 """Map-frame command at a point, None outside the map's CVs."""
 
 
+def tracked_mode(resolved_mode: str, explicit_mode: str | None) -> tuple[str, bool]:
+    """(the field a streamline-tracking agent samples, whether it flies the kinetic deviations) for the
+    command mode it resolved (``ScalarField.settings``) and the mode it was given (None: the map's
+    recommendation).  ``kinetic`` is flown on the ``staggered`` field, its deviations carried by the
+    parcel only when asked for explicitly (a real duct's wall: ``AgentConfig.wall_margin_m``)."""
+    kinetic = resolved_mode == "kinetic"
+    return ("staggered" if kinetic else resolved_mode), kinetic and explicit_mode == "kinetic"
+
+
 def point_command(sfield: ScalarField, mode: str, agent_id: int) -> PointCommand:
     """The command of agent ``agent_id`` in ``mode`` (a point mode or ``staggered``) at a map-frame point."""
     if mode == "staggered":

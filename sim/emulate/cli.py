@@ -56,6 +56,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--entry-radius-fraction", type=float, default=EmulateConfig.entry_radius_fraction, metavar="F",
                    help="agents' entry points spread over this fraction of the inlet radius (1: every inlet CV, as "
                         "fisc-sim run injects; fisc-agent's default 0.6 keeps a real duct's wall clear)")
+    p.add_argument("--fleet-mode", action="store_true",
+                   help="agents resolve the map's recommended mode as fisc-agent does on a real fleet (a recommended "
+                        "kinetic flown on the staggered field, without its deviations); default: the recommendation "
+                        "is given to them explicitly, so they fly its deviations as fisc-sim run's agents do")
     p.add_argument("--staggered-admission", action="store_true",
                    help="agents admit themselves from the map's admission budget (each in its entry window, "
                         "fisc-agent's default --entry-stagger auto), first passes and laps alike, as a real fleet "
@@ -111,6 +115,7 @@ def config_from_args(args: argparse.Namespace):
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
                          geofence=args.geofence, tracking=not args.open_loop, safety_net=args.safety_net,
                          staggered_admission=args.staggered_admission, start_spacing_m=args.start_spacing,
+                         fleet_mode=args.fleet_mode,
                          entry_radius_fraction=args.entry_radius_fraction,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,

@@ -58,6 +58,13 @@ class EmulateConfig:
     """The agents fly the separation safety net (``fisc_agent.flight.safety_net``), hearing each other over
     Zenoh (needs ``swarm``), as ``fisc-agent --swarm`` does by default on a real vehicle.  False: the paper's
     law alone, as ``fisc-sim run`` flies by default, so the two compare like for like."""
+    fleet_mode: bool = False
+    """The agents resolve the map's recommended mode themselves, as ``fisc-agent`` does on a real fleet: under
+    streamline tracking a recommended ``kinetic`` is flown on the ``staggered`` field, without its deviations
+    (``fisc_agent.flight.point_command.tracked_mode``).  False: the recommendation is given to them
+    explicitly, so that they fly its deviations, as ``fisc-sim run``'s agents do.  A prediction of a real
+    fleet's flight needs True (an eight-PX4 loop flew the staggered field near the axis, parcels 0.22 m from
+    it; its emulation with the deviations put them 0.78 m out and 200 times across the CVs' side)."""
     staggered_admission: bool = False
     """The agents admit themselves into the tunnel from the map's admission budget (each in its entry window,
     ``AgentConfig.entry_stagger_s`` None: the map's admission period), as ``fisc-agent`` does by default on a
@@ -187,9 +194,10 @@ class EmulateConfig:
         recommended mode, given to the agents explicitly when no mode is set, so that they fly a
         ``kinetic`` recommendation's deviations (under streamline tracking on the tracking parcel) as
         ``fisc-sim run``'s agents do (emulated ducts have no physical wall; a real, tracking agent
-        flies that recommendation as ``staggered`` unless told)."""
+        flies that recommendation as ``staggered`` unless told), and not given with ``fleet_mode``."""
         paper = self.preset == "paper"
-        mode = self.mode if self.mode is not None else ("mean" if paper else recommended_mode)
+        mode = self.mode if self.mode is not None else (
+            "mean" if paper else None if self.fleet_mode else recommended_mode)
         return SimpleNamespace(mode=mode,
                                lookahead_s=self.lookahead_s if self.lookahead_s is not None or not paper else 0.0)
 

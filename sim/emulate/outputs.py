@@ -13,7 +13,8 @@ from typing import Any, Callable
 import numpy as np
 
 from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
-from fisc_agent.map.lookup import CommandField
+from fisc_agent.flight.point_command import tracked_mode
+from fisc_agent.map.lookup import CommandField, map_flight_settings
 from fisc_agent.map.codec import CommandMap
 from fisc_agent.map.separation import map_separation
 from sim.emulate.analysis import (compare_fields, emulated_approach, emulated_statistics, entry_statistics,
@@ -50,12 +51,17 @@ class EmulateResult:
     """Written outputs by name."""
 
 
-def _run_config(config: EmulateConfig, map_path: Path):
+def _run_config(config: EmulateConfig, map_path: Path, cmap: CommandMap):
+    """The ``fisc-sim run`` settings of the emulation's report and reference run: its mode is the one the
+    agents fly (with ``fleet_mode``, a recommended ``kinetic`` flown on the staggered field)."""
     from sim.run import RunConfig
 
+    mode = config.mode
+    if mode is None and config.fleet_mode and config.preset != "paper" and config.tracking:
+        mode = tracked_mode(map_flight_settings(cmap).mode, None)[0]
     return RunConfig(map=str(map_path), scenario="reservoir", agents=config.agents, duration_s=config.duration_s,
                      average_window_s=config.average_window_s, sample_interval_s=config.sample_interval_s,
-                     mode=config.mode, lookahead_s=config.lookahead_s, preset=config.preset,
+                     mode=mode, lookahead_s=config.lookahead_s, preset=config.preset,
                      seed=config.seed, dt_s=1.0 / config.rate_hz, min_samples=config.min_samples,
                      figures=config.figures, out_dir=config.out_dir)
 
@@ -142,7 +148,7 @@ def run(config: EmulateConfig, progress: Callable[[float], None] | None = None) 
     counters, alive = swarm_counters(swarm.agents, cv[-1], n_steps, sum(a["ticks"] for a in swarm.agents))
     entries = entry_statistics(swarm.agents, plan)
     first_entry = entries["first_entry_s"] if entries["first_entry_s"] is not None else float(plan.arrival_time_s[0])
-    rcfg = _run_config(config, map_path)
+    rcfg = _run_config(config, map_path, cmap)
     t_win = swarm.sample_t_s[window] if window.size else np.array([0.0, 0.0])
     settings = rcfg.flight_settings(cmap)
     stats = emulated_statistics(swarm, cmap, transform, window, cv, target_cmd, config.min_samples, rcfg.block_s)

@@ -163,3 +163,16 @@ def test_resume_keeps_the_streamline_and_does_not_integrate_the_interruption():
     assert tr.parcel_m is None
     tr.step(20.05, (2.0, 0.4, 0.0), uniform)
     assert tr.parcel_m == pytest.approx((2.0, 0.4, 0.0))
+
+
+@pytest.mark.parametrize("resolved, explicit, expected", [
+    ("kinetic", None, ("staggered", False)),  # the map's recommendation: the staggered field, no deviations
+    ("kinetic", "kinetic", ("staggered", True)),  # asked for: the deviations ride on the parcel
+    ("staggered", "staggered", ("staggered", False)),
+    ("slot", None, ("slot", False)),
+    ("mean", "mean", ("mean", False)),
+])
+def test_a_tracking_agent_flies_kinetic_deviations_only_when_asked_for(resolved, explicit, expected):
+    from fisc_agent.flight.point_command import tracked_mode
+
+    assert tracked_mode(resolved, explicit) == expected

@@ -93,6 +93,24 @@ def test_config_rejects_bad_values():
     assert (s.mode, s.lookahead_s) == ("mean", 0.0)
 
 
+def test_fleet_mode_lets_the_agents_resolve_the_recommended_mode_as_on_a_real_fleet(tmp_path, cmap):
+    from fisc_agent.map.lookup import map_flight_settings
+    from sim.emulate.outputs import _run_config
+
+    assert map_flight_settings(cmap).mode == "kinetic"  # the default map recommends kinetic
+    # the recommendation given explicitly (its deviations flown, as fisc-sim run), unless fleet_mode
+    assert EmulateConfig().agent_settings("kinetic").mode == "kinetic"
+    assert EmulateConfig(fleet_mode=True).agent_settings("kinetic").mode is None
+    assert EmulateConfig(fleet_mode=True, mode="slot").agent_settings("kinetic").mode == "slot"
+    assert EmulateConfig(fleet_mode=True, preset="paper").agent_settings("kinetic").mode == "mean"
+    # the report and the reference run name the field the agents fly
+    m = tmp_path / "m.fiscmap"
+    assert _run_config(EmulateConfig(fleet_mode=True), m, cmap).mode == "staggered"
+    assert _run_config(EmulateConfig(), m, cmap).mode is None
+    assert _run_config(EmulateConfig(fleet_mode=True, tracking=False), m, cmap).mode is None  # open loop: kinetic
+    assert _run_config(EmulateConfig(fleet_mode=True, mode="slot"), m, cmap).mode == "slot"
+
+
 def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
     from fisc_agent.flight.tracking import TrackingConfig
     from sim.emulate.workers import _AgentJob, agent_config
@@ -282,8 +300,9 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
                                                             "f.mcap", False, 0.8, "logs")
     assert (cfg.staggered_admission, cfg.start_spacing_m) == (False, EmulateConfig.start_spacing_m)
     cfg = emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "8", "--staggered-admission",
-                                                          "--start-spacing", "3", "-o", str(tmp_path)]))
-    assert (cfg.staggered_admission, cfg.start_spacing_m) == (True, 3.0)
+                                                          "--start-spacing", "3", "--fleet-mode", "-o", str(tmp_path)]))
+    assert (cfg.staggered_admission, cfg.start_spacing_m, cfg.fleet_mode) == (True, 3.0, True)
+    assert emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "2", "-o", str(tmp_path)])).fleet_mode is False
 
 
 @pytest.mark.slow
