@@ -153,7 +153,8 @@ class TelemetryBuilder:
         return self._mav.system_time_encode(int(self._wall() * 1e6), self._boot_ms(st))
 
     def gps_raw_int(self, st: VehicleState) -> object:
-        """GPS_RAW_INT: a 3D fix at the vehicle's position (no fix during a dropout)."""
+        """GPS_RAW_INT: a 3D fix at the vehicle's true position and velocity (the receiver's, not the estimate's;
+        no fix during a dropout)."""
         ok = st.position_valid
         lat, lon, alt = self._anchor.ned_to_geodetic(*st.position_ned_m)
         vn, ve, _ = st.velocity_ned_m_s
@@ -174,9 +175,9 @@ class TelemetryBuilder:
 
     def vfr_hud(self, st: VehicleState) -> object:
         """VFR_HUD: ground speed, heading, throttle, altitude AMSL, climb rate."""
-        vn, ve, vd = st.velocity_ned_m_s
+        vn, ve, vd = st.reported_velocity_ned_m_s
         gs = math.hypot(vn, ve)
-        alt = self._anchor.alt_m - st.position_ned_m[2]
+        alt = self._anchor.alt_m - st.reported_position_ned_m[2]
         throttle = 50 if (st.armed and st.in_air) else 0
         return self._mav.vfr_hud_encode(gs, gs, int(math.degrees(st.yaw_rad) % 360), throttle, alt, -vd)
 
@@ -190,24 +191,26 @@ class TelemetryBuilder:
         q = euler_to_quaternion(st.roll_rad, st.pitch_rad, st.yaw_rad)
         unknown = [math.nan] + [0.0] * 20
         return self._mav.odometry_encode(
-            int(st.t_s * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *st.position_ned_m, q,
-            *ned_to_body(st.velocity_ned_m_s, q), 0.0, 0.0, st.yaw_rate_rad_s, unknown, unknown, 0,
+            int(st.t_s * 1e6), mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_BODY_FRD, *st.reported_position_ned_m, q,
+            *ned_to_body(st.reported_velocity_ned_m_s, q), 0.0, 0.0, st.yaw_rate_rad_s, unknown, unknown, 0,
             mavlink.MAV_ESTIMATOR_TYPE_AUTOPILOT, 100,
         )  # fmt: skip
 
     def local_position_ned(self, st: VehicleState) -> object:
-        """LOCAL_POSITION_NED: position and velocity in the EKF frame."""
-        return self._mav.local_position_ned_encode(self._boot_ms(st), *st.position_ned_m, *st.velocity_ned_m_s)
+        """LOCAL_POSITION_NED: the estimated position and velocity in the EKF frame."""
+        return self._mav.local_position_ned_encode(self._boot_ms(st), *st.reported_position_ned_m,
+                                                   *st.reported_velocity_ned_m_s)
 
     def local_position_ned_payload(self, st: VehicleState) -> bytes:
         """The wire-order payload of ``local_position_ned(st)``."""
-        return _LOCAL_POSITION_PAYLOAD((self._boot_ms(st), *st.position_ned_m, *st.velocity_ned_m_s))
+        return _LOCAL_POSITION_PAYLOAD((self._boot_ms(st), *st.reported_position_ned_m, *st.reported_velocity_ned_m_s))
 
     def global_position_int(self, st: VehicleState) -> object:
         """GLOBAL_POSITION_INT: WGS-84 position (1e-7 deg, mm AMSL), height above home, velocity."""
-        lat, lon, alt = self._anchor.ned_to_geodetic(*st.position_ned_m)
-        rel = st.home_ned_m[2] - st.position_ned_m[2]
-        vn, ve, vd = st.velocity_ned_m_s
+        pos = st.reported_position_ned_m
+        lat, lon, alt = self._anchor.ned_to_geodetic(*pos)
+        rel = st.home_ned_m[2] - pos[2]
+        vn, ve, vd = st.reported_velocity_ned_m_s
         hdg = int(round(math.degrees(st.yaw_rad) % 360.0 * 100)) % 36000
         return self._mav.global_position_int_encode(
             self._boot_ms(st), _e7(lat), _e7(lon), _mm(alt), _mm(rel), _i16(vn * 100), _i16(ve * 100), _i16(vd * 100), hdg,

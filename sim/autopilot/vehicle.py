@@ -9,7 +9,9 @@ Physics: a point mass in local NED.  The realised velocity comes from the paper'
 inside the plant), or from stock PX4's velocity loop (``VehicleConfig.px4_loop``); position integrates
 velocity.  Flat ground at ``D = 0``: the vehicle cannot go below it; while on the ground and not
 commanded to climb it sits still (landed).  A vehicle disarmed in the air falls.  Fixed physics step
-(``VehicleConfig.physics_dt_s``, zero-order hold of the command over it).
+(``VehicleConfig.physics_dt_s``, zero-order hold of the command over it).  With an estimate error
+(``VehicleConfig.estimate_error``) the velocity loop holds the estimate at the command and the snapshot
+carries the estimate beside the truth.
 
 Rules (see docs/autopilot_emulator.md for the full list):
 
@@ -22,9 +24,7 @@ Rules (see docs/autopilot_emulator.md for the full list):
 * LAND descends and disarms on the ground; auto-disarm after landing / when armed but never
   taken off; GCS heartbeat-loss failsafe (PX4 ``NAV_DLL_ACT``, ArduPilot ``FS_GCS_ENABLE``).
 
-Many vehicles: each :class:`Vehicle` owns a 1-agent plant; the state is a handful of small
-arrays and scalars, so a future batched stepper can gather them into one (N, 3)
-:class:`~sim.plant.model.VelocityPlant` without changing the rules.
+Many vehicles: each :class:`Vehicle` owns a 1-agent plant (a batched stepper could gather them).
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim.autopilot.attitude import attitude_from_thrust
+from sim.autopilot.estimate_error import EstimateError
 from sim.autopilot.personalities import FlightMode, Personality
 from sim.autopilot.rules import FailsafeAction, PersonalityRules
 from sim.autopilot.vehicle_types import (ACCEPTED, FAILED, NAN3, TEMPORARILY_REJECTED, UNSUPPORTED, Outcome,
@@ -47,10 +48,8 @@ from sim.plant.px4_loop import Px4LoopPlant
 __all__ = ["Outcome", "Setpoint", "VehicleConfig", "VehicleState", "Vehicle", "StatusEvent"]
 
 _log = logging.getLogger(__name__)
-
-# modes in which a vehicle may be armed (PX4 and ArduPilot refuse LAND/RTL; BRAKE is not armable)
-_NOT_ARMABLE = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.BRAKE})
-
+_NOT_ARMABLE = frozenset({FlightMode.LAND, FlightMode.RTL, FlightMode.BRAKE})  # PX4 and ArduPilot refuse LAND/RTL
+_EXTERNAL = frozenset({FlightMode.OFFBOARD, FlightMode.GUIDED})  # the modes flying external setpoints
 PlantFactory = Callable[[PlantParams], VelocityPlant]
 
 
@@ -80,6 +79,7 @@ class Vehicle:
         self._fixed_step = self._plant.fixed_step(self.config.physics_dt_s)
         self._tau_v_s = 0.0 if self._loop else 1.0 / float(self._plant.coefficients.inv_tau_v[0])
         self._px4 = personality.name == "px4"
+        self._est = None if self.config.estimate_error is None else EstimateError(self.config.estimate_error)
         self._rules = PersonalityRules(self._px4, self.params)
         self.t_s = float(t0_s)
         self.pos = start.copy()
@@ -109,7 +109,6 @@ class Vehicle:
             self.mode = personality.hold_mode
             self._plant.reset()
 
-    # ------------------------------------------------------------------ parameters / events
     def set_param(self, name: str, value: float) -> bool:
         """Set a known parameter (returns False for unknown names; system ids are read-only)."""
         if name not in self.params:
@@ -127,13 +126,6 @@ class Vehicle:
         self._events.append(StatusEvent(self.t_s, severity, text))
         _log.info("vehicle t=%.2f: %s", self.t_s, text)
 
-    @property
-    def _is_px4(self) -> bool:
-        return self._px4
-
-    def _reject(self) -> int:
-        return self._rules.reject_code
-
     # ------------------------------------------------------------------ commands
     def set_position_valid(self, valid: bool, t_s: float) -> None:
         """Mark the position estimate (un)available (arming needs it)."""
@@ -147,15 +139,15 @@ class Vehicle:
             return Outcome(ACCEPTED)
         if not force:
             if not self.position_valid:
-                return Outcome(self._reject(), "Arming denied: no position estimate")
+                return Outcome(self._rules.reject_code, "Arming denied: no position estimate")
             if self.mode in _NOT_ARMABLE:
-                return Outcome(self._reject(), f"Arming denied: not armable in {self.mode_name}")
-            if self.mode.needs_pilot and self._is_px4:
+                return Outcome(self._rules.reject_code, f"Arming denied: not armable in {self.mode_name}")
+            if self.mode.needs_pilot and self._px4:
                 # (ArduPilot arms in pilot modes as SITL does with its idle simulated RC: the
                 # vehicle then just sits / holds; PX4 never reaches them without RC)
-                return Outcome(self._reject(), f"Arming denied: {self.mode_name} needs RC")
+                return Outcome(self._rules.reject_code, f"Arming denied: {self.mode_name} needs RC")
             if not self.landed:
-                return Outcome(self._reject(), "Arming denied: not landed")
+                return Outcome(self._rules.reject_code, "Arming denied: not landed")
         self.armed = True
         self._ever_airborne = not self.landed
         self._landed_since = self.t_s
@@ -171,7 +163,7 @@ class Vehicle:
         if not self.armed:
             return Outcome(ACCEPTED)
         if not self.landed and not force:
-            return Outcome(self._reject(), "Disarming denied: not landed")
+            return Outcome(self._rules.reject_code, "Disarming denied: not landed")
         self._disarm("Disarmed")
         return Outcome(ACCEPTED)
 
@@ -192,14 +184,14 @@ class Vehicle:
             return Outcome(UNSUPPORTED, f"Mode {mode.value} not supported")
         if mode == self.mode:
             return Outcome(ACCEPTED)
-        if self._is_px4:
+        if self._px4:
             if mode.needs_pilot:
                 return Outcome(TEMPORARILY_REJECTED, "Mode change denied: no RC")
             if mode == FlightMode.OFFBOARD and not self._offboard_stream_ok():
                 return Outcome(TEMPORARILY_REJECTED, "Offboard denied: no setpoint stream")
         if mode in (FlightMode.OFFBOARD, FlightMode.GUIDED, FlightMode.TAKEOFF, FlightMode.LOITER,
                     FlightMode.RTL, FlightMode.MISSION, FlightMode.POSCTL) and not self.position_valid:
-            return Outcome(self._reject(), "Mode change denied: no position estimate")
+            return Outcome(self._rules.reject_code, "Mode change denied: no position estimate")
         self._enter_mode(mode)
         return Outcome(ACCEPTED)
 
@@ -223,8 +215,8 @@ class Vehicle:
         if altitude_m is not None and not (math.isfinite(altitude_m) and altitude_m > 0):
             altitude_m = None
         if not self.armed:
-            return Outcome(self._reject(), "Takeoff denied: disarmed")
-        if self._is_px4:
+            return Outcome(self._rules.reject_code, "Takeoff denied: disarmed")
+        if self._px4:
             if not self.position_valid:
                 return Outcome(TEMPORARILY_REJECTED, "Takeoff denied: no position estimate")
             self._enter_mode(FlightMode.TAKEOFF, altitude_m)
@@ -318,7 +310,7 @@ class Vehicle:
                 else:
                     self._event("Takeoff complete")
             return [0.0, 0.0, up]
-        if mode in (FlightMode.OFFBOARD, FlightMode.GUIDED):
+        if mode in _EXTERNAL:
             sp = self._setpoint
             if sp is None:
                 return [0.0, 0.0, 0.0]
@@ -404,6 +396,10 @@ class Vehicle:
         cmd = self._limit(self._velocity_command())
         self.cmd = np.array(cmd)
         cmd_row = np.array([self._with_accel_feedforward(cmd)])  # (1, 3), as the plant takes it
+        if self._est is not None:  # under external setpoints its velocity loop holds the estimate, v + e, at them
+            self._est.step(dt)
+            if self.mode in _EXTERNAL:
+                cmd_row -= self._est.velocity_ned_m_s
         if self.landed:
             if cmd[2] < -1e-6:  # commanded to climb: lift off from rest
                 self.landed = False
@@ -433,9 +429,9 @@ class Vehicle:
             self._landed_since = self.t_s
             self._plant.reset()
             self._event("Landing detected")
-            if self.armed and self.mode == FlightMode.LAND and not self._is_px4:
+            if self.armed and self.mode == FlightMode.LAND and not self._px4:
                 self._disarm("Disarmed: landed")  # ArduPilot LAND disarms on touchdown
-            elif self.armed and self.mode == FlightMode.RTL and not self._is_px4:
+            elif self.armed and self.mode == FlightMode.RTL and not self._px4:
                 self._disarm("Disarmed: landed")
         else:  # commanded to climb but the plant still sinks: rest on the ground
             self.vel[2] = min(self.vel[2], 0.0)
@@ -451,7 +447,7 @@ class Vehicle:
     def _update_yaw(self, dt: float) -> None:
         sp = self._setpoint
         rate = 0.0
-        if self.armed and not self.landed and sp is not None and self.mode in (FlightMode.OFFBOARD, FlightMode.GUIDED):
+        if self.armed and not self.landed and sp is not None and self.mode in _EXTERNAL:
             max_r = self.config.yaw_rate_max_rad_s
             if math.isfinite(sp.yaw_rad):
                 err = (sp.yaw_rad - self.yaw + math.pi) % (2 * math.pi) - math.pi
@@ -480,13 +476,14 @@ class Vehicle:
     def snapshot(self) -> VehicleState:
         """Immutable copy of the current state."""
         roll, pitch = self._attitude()
+        pos, vel, e = self.pos.tolist(), self.vel.tolist(), self._est
         return VehicleState(
             t_s=self.t_s,
             armed=self.armed,
             mode=self.mode,
             custom_mode=self.personality.custom_mode(self.mode),
-            position_ned_m=tuple(self.pos.tolist()),
-            velocity_ned_m_s=tuple(self.vel.tolist()),
+            position_ned_m=tuple(pos),
+            velocity_ned_m_s=tuple(vel),
             roll_rad=roll,
             pitch_rad=pitch,
             yaw_rad=self.yaw,
@@ -496,5 +493,7 @@ class Vehicle:
             position_valid=self.position_valid,
             last_setpoint_t_s=self._setpoint_t,
             velocity_command_ned_m_s=tuple(self.cmd.tolist()),
+            estimate_position_ned_m=None if e is None else tuple(p + d for p, d in zip(pos, e.position_ned_m)),
+            estimate_velocity_ned_m_s=None if e is None else tuple(v + d for v, d in zip(vel, e.velocity_ned_m_s)),
         )
 

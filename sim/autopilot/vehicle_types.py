@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim.autopilot.estimate_error import EstimateErrorParams
 from sim.autopilot.personalities import FlightMode
 from sim.plant.model import PlantParams
 from sim.plant.px4_loop import Px4LoopParams
@@ -106,6 +107,10 @@ class VehicleConfig:
     px4_loop: Px4LoopParams | None = None
     """Fly stock PX4's velocity loop on SIH's quadrotor (:mod:`sim.plant.px4_loop`) instead of the velocity
     plant ``plant_params`` (the emulator's ``--plant px4-sih-loop``); None: the velocity plant."""
+    estimate_error: EstimateErrorParams | None = None
+    """The error of the autopilot's state estimate (:mod:`sim.autopilot.estimate_error`): its velocity loop holds
+    the estimate at the command and it reports the estimate, its GNSS receiver (GPS_RAW_INT) the truth; None:
+    the estimate is the truth."""
 
 
 @dataclass(frozen=True)
@@ -142,6 +147,20 @@ class VehicleState:
     """Time of the last external setpoint [s] (-inf if none)."""
     velocity_command_ned_m_s: tuple[float, float, float]
     """Velocity command given to the plant in the last physics step [m/s]."""
+    estimate_position_ned_m: tuple[float, float, float] | None = None
+    """The autopilot's position estimate [m] local NED; None: the truth (``VehicleConfig.estimate_error``)."""
+    estimate_velocity_ned_m_s: tuple[float, float, float] | None = None
+    """The autopilot's velocity estimate [m/s] NED; None: the truth."""
+
+    @property
+    def reported_position_ned_m(self) -> tuple[float, float, float]:
+        """The position the autopilot reports: its estimate."""
+        return self.position_ned_m if self.estimate_position_ned_m is None else self.estimate_position_ned_m
+
+    @property
+    def reported_velocity_ned_m_s(self) -> tuple[float, float, float]:
+        """The velocity the autopilot reports: its estimate."""
+        return self.velocity_ned_m_s if self.estimate_velocity_ned_m_s is None else self.estimate_velocity_ned_m_s
 
     @property
     def in_air(self) -> bool:

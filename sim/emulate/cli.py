@@ -74,6 +74,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--average-window", type=float, default=EmulateConfig.average_window_s,
                    help="time-average the fields over the last S seconds, as fisc-sim run "
                         f"(default {EmulateConfig.average_window_s:g})")
+    p.add_argument("--estimate-error", action="store_true",
+                   help="the emulated autopilots fly and report a state estimate that strays from the truth as stock "
+                        "PX4's on SIH does (velocity 0.14/0.30/0.17 m/s N/E/D, ~3-4 s correlation; their GNSS "
+                        "receivers report the truth); fields and profile then come from what they report, as a "
+                        "ground station sees a real fleet")
     p.add_argument("--telemetry", choices=("full", "lean"), default="full",
                    help="full: the autopilots' default streams; lean: agents switch all but HEARTBEAT and "
                         "LOCAL_POSITION_NED off")
@@ -99,8 +104,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "commands (required with --swarm)")
     add_output_arg(p, aliases=("--out",), required=True, help="output directory")
     p.add_argument("--mcap", default=None, metavar="FILE",
-                   help="also write the flight as a Foxglove/MCAP flight log (the emulators' true states as "
-                        "telemetry, the channels of fisc-ground monitor --record)")
+                   help="also write the flight as a Foxglove/MCAP flight log (the states the emulators report, the truth "
+                        "unless --estimate-error, as telemetry: the channels of fisc-ground monitor --record)")
     p.add_argument("--flight-logs", default=None, metavar="DIR",
                    help="write each agent's own flight log to DIR/agent_<id>.csv (the CSV of fisc-agent "
                         "--flight-log: state, reported position/velocity, setpoint, CV, tracking parcel per tick)")
@@ -115,7 +120,7 @@ def config_from_args(args: argparse.Namespace):
                          mode=args.mode, lookahead_s=args.lookahead, preset=args.preset, personality=args.autopilot, exit_policy=args.exit_policy,
                          geofence=args.geofence, tracking=not args.open_loop, safety_net=args.safety_net,
                          staggered_admission=args.staggered_admission, start_spacing_m=args.start_spacing,
-                         fleet_mode=args.fleet_mode,
+                         fleet_mode=args.fleet_mode, estimate_error=args.estimate_error,
                          entry_radius_fraction=args.entry_radius_fraction,
                          rate_hz=args.rate, average_window_s=args.average_window, telemetry=args.telemetry,
                          physics_rate_hz=args.physics_rate, physics_dt_s=args.physics_dt, plant=args.plant,

@@ -89,6 +89,12 @@ class EmulateConfig:
     plant: str = "paper"
     """Vehicle model inside the emulators: a named ``sim.plant.fit.PLANT_PRESETS`` entry, or ``px4-sih-loop``
     (stock PX4's velocity loop on SIH's quadrotor, ``sim.plant.px4_loop``; PX4 personality only)."""
+    estimate_error: bool = False
+    """Each emulated autopilot's state estimate strays from the truth as stock PX4's on SIH does
+    (``sim.autopilot.estimate_error.PX4_SIH_ESTIMATE_ERROR``, seeded by ``seed`` and the vehicle's id): it flies
+    and reports the estimate, its GNSS receiver the truth.  The fields, profile and closest approach are then
+    taken from what the autopilots report, as a ground station sees a real fleet (the monitor scores the
+    agents' published estimates).  False: the estimate is the truth."""
     telemetry: str = "full"
     """``full``: the autopilots' default streams; ``lean``: the agents switch every stream but HEARTBEAT
     and LOCAL_POSITION_NED off (MAV_CMD_SET_MESSAGE_INTERVAL), as a companion on a busy link would."""
@@ -166,6 +172,8 @@ class EmulateConfig:
         need(self.plant in PLANTS, f"plant {self.plant!r}: choose one of {', '.join(PLANTS)}")
         need(self.plant != PX4_LOOP_PLANT or self.personality == "px4",
              f"plant {PX4_LOOP_PLANT} is PX4's velocity loop: it needs the px4 personality")
+        need(not self.estimate_error or self.personality == "px4",
+             "estimate_error is stock PX4's, measured on SIH: it needs the px4 personality")
         need(self.exit_policy in EXIT_POLICIES, f"exit_policy {self.exit_policy!r}: choose one of {EXIT_POLICIES}")
         need(isinstance(self.reference_seeds, int) and self.reference_seeds >= 1,
              f"reference_seeds must be >= 1, is {self.reference_seeds!r}")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -13,6 +13,7 @@ import numpy as np
 
 from fisc_agent.map.lookup import map_flight_settings
 from fisc_agent.map.codec import load_map
+from sim.autopilot.estimate_error import PX4_SIH_ESTIMATE_ERROR
 from sim.emulate.config import STARTUP_TIMEOUT_S, EmulateConfig
 from sim.emulate.plan import LaunchPlan
 from sim.emulate.workers import _AgentJob, _EmulatorJob, _agent_worker, _emulator_worker
@@ -45,9 +46,10 @@ class SwarmRun:
     sample_t_s: np.ndarray
     """(K,) sample times since launch [s] (first emulator process's clock)."""
     pos_ned_m: np.ndarray
-    """(K, N, 3) true positions, local NED [m]."""
+    """(K, N, 3) positions as the autopilots report them (the truth unless ``EmulateConfig.estimate_error``),
+    local NED [m]."""
     vel_ned_m_s: np.ndarray
-    """(K, N, 3) true velocities, NED [m/s]."""
+    """(K, N, 3) velocities as the autopilots report them, NED [m/s]."""
     agents: list[dict]
     """Per-agent mission outcome (state, laps, transitions with times since launch)."""
     emulator_timing: list[dict]
@@ -83,7 +85,8 @@ def fly_swarm(map_path: Path, plan: LaunchPlan, config: EmulateConfig,
             job = _EmulatorJob(tuple(int(i) for i in part), tuple(tuple(map(float, p)) for p in plan.start_ned_m[part]),
                                tuple(float(t) for t in plan.start_time_s[part]), config.personality,
                                config.physics_rate_hz, config.physics_dt_s, config.plant, config.position_rate_hz,
-                               config.sample_interval_s, config.worker_log_level)
+                               config.sample_interval_s, config.worker_log_level,
+                               replace(PX4_SIH_ESTIMATE_ERROR, seed=config.seed) if config.estimate_error else None)
             p = ctx.Process(target=_emulator_worker, args=(child, job), name="fisc-emulators", daemon=True)
             p.start()
             child.close()

@@ -73,8 +73,11 @@ def _emulation_section(res: EmulateResult) -> str:
         f"{cfg.agents} {cfg.personality} autopilot emulators and {cfg.agents} fisc-agent runners talking MAVLink 2 "
         f"over loopback UDP, {cfg.duration_s:.0f} s of real time, exit policy `{cfg.exit_policy}`, "
         f"{cfg.rate_hz:.0f} Hz setpoints, emulators served at {cfg.physics_rate_hz:.0f} Hz (physics step "
-        f"{cfg.physics_dt_s} s), {cfg.telemetry} telemetry.  "
-        "Fields come from the emulators' true vehicle states (map frame, default deployment transform).", "",
+        f"{cfg.physics_dt_s} s), {cfg.telemetry} telemetry.  " +
+        ("Fields come from the states the emulated autopilots report: their estimates, which stray from the truth "
+         "as stock PX4's on SIH do (`--estimate-error`), as a ground station sees a real fleet"
+         if cfg.estimate_error else "Fields come from the emulators' true vehicle states") +
+        " (map frame, default deployment transform).", "",
         f"* inlet arrivals: {en['vehicles_entered']} of {cfg.agents} vehicles entered "
         f"({en['entries_total']} entries in all); planned rate {en['planned_rate_per_s']:.2f}/s "
         f"(eq. source_rate, population-scaled: {en['source_rate_per_s']:.2f}/s), realised "

@@ -10,7 +10,7 @@ import os
 import resource
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -43,6 +43,8 @@ class _EmulatorJob:
     position_rate_hz: float
     sample_interval_s: float
     log_level: str
+    estimate_error: object = None
+    """``sim.autopilot.estimate_error.EstimateErrorParams`` of every vehicle (seeded per id), or None."""
 
 
 @dataclass(frozen=True)
@@ -172,8 +174,11 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
         loop = job.plant == PX4_LOOP_PLANT  # stock PX4's loop flies the vehicle, not the velocity plant
         vcfg = VehicleConfig(physics_dt_s=job.physics_dt_s, plant_params=plant_preset("paper" if loop else job.plant),
                              px4_loop=Px4LoopParams() if loop else None)
+        err = job.estimate_error
         emus = [AutopilotEmulator("udpin:127.0.0.1:0", job.personality, start, sysid=1 + aid % 250,
-                                  rate_position_hz=job.position_rate_hz, vehicle_config=vcfg)
+                                  rate_position_hz=job.position_rate_hz,
+                                  vehicle_config=vcfg if err is None else replace(
+                                      vcfg, estimate_error=replace(err, seed=err.seed + aid)))
                 for aid, start in zip(job.agent_ids, job.start_ned_m)]
         order = np.argsort(np.asarray(job.start_time_s), kind="stable")
         emus = [emus[j] for j in order]  # by launch time (the parent puts the columns back in id order)
@@ -234,8 +239,8 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
             while k_next < n_samples and now >= t0 + k_next * job.sample_interval_s:
                 for j, e in enumerate(emus):
                     st = e.state
-                    pos[k_next, j] = st.position_ned_m
-                    vel[k_next, j] = st.velocity_ned_m_s
+                    pos[k_next, j] = st.reported_position_ned_m
+                    vel[k_next, j] = st.reported_velocity_ned_m_s
                 sample_t[k_next] = now - t0
                 k_next += 1
             if now >= next_probe:  # setpoint rate over the last second, vehicles flying offboard throughout
@@ -255,8 +260,8 @@ def _emulator_worker(conn, job: _EmulatorJob) -> None:
             for e in emus:
                 e.poll()
             for j, e in enumerate(emus):
-                pos[k_next:, j] = e.state.position_ned_m
-                vel[k_next:, j] = e.state.velocity_ned_m_s
+                pos[k_next:, j] = e.state.reported_position_ned_m
+                vel[k_next:, j] = e.state.reported_velocity_ned_m_s
             sample_t[k_next:] = time.monotonic() - t0
         stats = {"rx": int(sum(e.stats["rx"] for e in emus)), "tx": int(sum(e.stats["tx"] for e in emus))}
         for e in emus:

@@ -13,8 +13,9 @@ The flight: ``FISC_SITL_SWARM`` vehicles (default 8), stock parameters, the agen
   density and pressure Pearson r printed with their 95 % intervals, and at least ``MIN_PROFILE_R_DENSITY``
   / ``MIN_PROFILE_R_PRESSURE`` (issue 37 asks 0.9 / 0.7);
 - ``fisc-sim emulate --plant px4-sih-loop`` (stock PX4's velocity loop on SIH's linear drag, which flies the
-  agents' drag feed-forward as PX4 does) with the same fleet, exit policy, safety net and duration gives each
-  profile figure within ``PREDICTION_TOLERANCE`` of the real one.
+  agents' drag feed-forward as PX4 does) with the same fleet, exit policy, safety net and duration, the agents'
+  own mode resolution (``--fleet-mode``) and PX4's estimate error (``--estimate-error``), gives each profile
+  figure within ``PREDICTION_TOLERANCE`` of the real one.
 
 Measured 2026-12-05 (one run): closest approach 0.61 m, largest excursion 0.30 m, 3-4 laps each, but
 the profile's density r 0.41 and pressure r -0.49 (the emulator: 0.45 and 0.54), so the profile and
@@ -147,6 +148,9 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                                   # (fisc-agent's defaults: the staggered field, no kinetic deviations), not
                                   # emulate's source-rate launches from a 1 m grid flying fisc-sim run's deviations
                                   "--staggered-admission", "--start-spacing", FLEET_SPACING_M, "--fleet-mode",
+                                  # PX4's estimate strays as on SIH, and the profile is what the vehicles
+                                  # report, as the monitor scores the agents' published estimates
+                                  "--estimate-error",
                                   "--entry-radius-fraction", AgentConfig.entry_radius_fraction,
                                   "--no-compare", "--no-figures", "-o", d / "emulate", "-q"], timeout_s=LOOP_S + 300))
     predicted = json.loads((d / "emulate" / "metrics.json").read_text())

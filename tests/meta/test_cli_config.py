@@ -74,7 +74,7 @@ EMULATE = {
     "--autopilot": "EmulateConfig.personality", "--plant": "EmulateConfig.plant",
     "--exit-policy": "EmulateConfig.exit_policy", "--geofence": "EmulateConfig.geofence", "--rate": "EmulateConfig.rate_hz",
     "--open-loop": "EmulateConfig.tracking", "--safety-net": "EmulateConfig.safety_net", "--entry-radius-fraction": "EmulateConfig.entry_radius_fraction",
-    "--staggered-admission": "EmulateConfig.staggered_admission", "--fleet-mode": "EmulateConfig.fleet_mode", "--start-spacing": "EmulateConfig.start_spacing_m",
+    "--staggered-admission": "EmulateConfig.staggered_admission", "--fleet-mode": "EmulateConfig.fleet_mode", "--estimate-error": "EmulateConfig.estimate_error", "--start-spacing": "EmulateConfig.start_spacing_m",
     "--reference-seeds": "EmulateConfig.reference_seeds",
     "--average-window": "EmulateConfig.average_window_s", "--telemetry": "EmulateConfig.telemetry",
     "--physics-rate": "EmulateConfig.physics_rate_hz", "--physics-dt": "EmulateConfig.physics_dt_s",

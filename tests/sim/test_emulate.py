@@ -86,6 +86,9 @@ def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="px4-sih-loop is PX4's velocity loop"):
         EmulateConfig(plant="px4-sih-loop", personality="ardupilot")
     assert EmulateConfig(plant="px4-sih-loop").plant == "px4-sih-loop"
+    with pytest.raises(ValueError, match="estimate_error is stock PX4's"):
+        EmulateConfig(estimate_error=True, personality="ardupilot")
+    assert EmulateConfig(estimate_error=True).estimate_error is True
     # agents fly the map's settings by default; the paper preset pins Algorithm 1
     s = EmulateConfig().agent_settings()
     assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().geofence == "return"
@@ -300,8 +303,9 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
                                                             "f.mcap", False, 0.8, "logs")
     assert (cfg.staggered_admission, cfg.start_spacing_m) == (False, EmulateConfig.start_spacing_m)
     cfg = emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "8", "--staggered-admission",
-                                                          "--start-spacing", "3", "--fleet-mode", "-o", str(tmp_path)]))
-    assert (cfg.staggered_admission, cfg.start_spacing_m, cfg.fleet_mode) == (True, 3.0, True)
+                                                          "--start-spacing", "3", "--fleet-mode", "--estimate-error",
+                                                          "-o", str(tmp_path)]))
+    assert (cfg.staggered_admission, cfg.start_spacing_m, cfg.fleet_mode, cfg.estimate_error) == (True, 3.0, True, True)
     assert emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "2", "-o", str(tmp_path)])).fleet_mode is False
 
 
