@@ -57,9 +57,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="agents' entry points spread over this fraction of the inlet radius (1: every inlet CV, as "
                         "fisc-sim run injects; fisc-agent's default 0.6 keeps a real duct's wall clear)")
     p.add_argument("--fleet-mode", action="store_true",
-                   help="agents resolve the map's recommended mode as fisc-agent does on a real fleet (a recommended "
-                        "kinetic flown on the staggered field, without its deviations); default: the recommendation "
-                        "is given to them explicitly, so they fly its deviations as fisc-sim run's agents do")
+                   help="agents fly as fisc-agent does on a real fleet: they resolve the map's recommended mode "
+                        "themselves (a recommended kinetic flown on the staggered field, without its deviations) and "
+                        "turn an explicit --mode kinetic's deviations within fisc-agent's wall margin; default: the "
+                        "recommendation is given to them explicitly and its deviations reflect at the CV staircase, "
+                        "as fisc-sim run's agents do")
     p.add_argument("--staggered-admission", action="store_true",
                    help="agents admit themselves from the map's admission budget (each in its entry window, "
                         "fisc-agent's default --entry-stagger auto), first passes and laps alike, as a real fleet "

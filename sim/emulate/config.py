@@ -61,8 +61,10 @@ class EmulateConfig:
     fleet_mode: bool = False
     """The agents resolve the map's recommended mode themselves, as ``fisc-agent`` does on a real fleet: under
     streamline tracking a recommended ``kinetic`` is flown on the ``staggered`` field, without its deviations
-    (``fisc_agent.flight.point_command.tracked_mode``).  False: the recommendation is given to them
-    explicitly, so that they fly its deviations, as ``fisc-sim run``'s agents do.  A prediction of a real
+    (``fisc_agent.flight.point_command.tracked_mode``), and a ``--mode kinetic`` given turns its deviations
+    within fisc-agent's margin of the map's real wall (``AgentConfig.wall_margin_m``).  False: the
+    recommendation is given to them explicitly, so that they fly its deviations, reflected at the CV staircase
+    as ``fisc-sim run``'s agents do.  A prediction of a real
     fleet's flight needs True (an eight-PX4 loop flew the staggered field near the axis, parcels 0.22 m from
     it; its emulation with the deviations put them 0.78 m out and 200 times across the CVs' side)."""
     staggered_admission: bool = False

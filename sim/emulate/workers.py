@@ -66,6 +66,7 @@ class _AgentJob:
     entry_radius_fraction: float
     safety_net: bool = False
     staggered_admission: bool = False
+    fleet_mode: bool = False
     swarm: str | None = None
     zenoh_config: str | None = None
     zenoh_prefix: str = "fisc"
@@ -309,7 +310,8 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
     streamline tracking only when ``job.tracking`` (else gain 0: the agent flies
     ``fisc_agent.map.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies).  The
     emulated duct has no physical wall: kinetic deviations reflect at the CV staircase, as in ``fisc-sim
-    run`` (``wall_margin_m`` None), so the two compare; the launches are staggered at the paper's
+    run`` (``wall_margin_m`` None), so the two compare, unless ``job.fleet_mode`` (fisc-agent's own margin
+    of the map's real wall, as on a real fleet); the launches are staggered at the paper's
     source rate (``sim.emulate.plan``), and the agents admit themselves from the map's admission budget
     only with ``job.staggered_admission`` (else ``entry_stagger_s`` 0); the safety net only with
     ``job.safety_net``."""
@@ -320,7 +322,8 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
     return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path, go=True, state_file=None,
                        autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
                        exit_policy=job.exit_policy, geofence=job.geofence,
-                       entry_radius_fraction=job.entry_radius_fraction, wall_margin_m=None,
+                       entry_radius_fraction=job.entry_radius_fraction,
+                       wall_margin_m=AgentConfig.wall_margin_m if job.fleet_mode else None,
                        entry_stagger_s=None if job.staggered_admission else 0.0,
                        tracking=TrackingConfig() if job.tracking else TrackingConfig(gain_1_s=0.0),
                        safety_net=SafetyNetConfig() if job.safety_net else None)

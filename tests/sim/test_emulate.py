@@ -139,6 +139,13 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
     # default (--entry-stagger auto), only when asked for
     assert agent.entry_stagger_s == 0.0
     assert agent_config(_AgentJob(**job, tracking=True, staggered_admission=True), 3, 14999).entry_stagger_s is None
+    # kinetic deviations reflect at the CV staircase (fisc-sim run's agents), but at fisc-agent's own margin of
+    # the map's real wall on a fleet
+    from fisc_agent.config import AgentConfig
+
+    assert agent.wall_margin_m is None
+    fleet = agent_config(_AgentJob(**job, tracking=True, fleet_mode=True), 3, 14999)
+    assert fleet.wall_margin_m == AgentConfig.wall_margin_m and fleet.wall_margin_m is not None
 
 
 def test_the_emulated_safety_net_needs_a_swarm_to_hear_the_others():
