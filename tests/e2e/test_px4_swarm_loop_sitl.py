@@ -79,7 +79,8 @@ FLEET_SPACING_M = 3.0
 
 
 def flowing_excursion_m(truth, track: Track, wall) -> float:
-    """Largest distance outside the wall [m] of the true positions while the agent's log says FLOW
+    """Largest distance outside the wall [m] of the true positions (``truth``: ``wall_s`` and map-frame
+    ``pos_m``; the track itself for the agent's estimated ones) while the agent's log says FLOW
     (``sitl_kit.flowing_at``)."""
     flowing = flowing_at(track, truth.wall_s)
     x, r = truth.pos_m[flowing, 0], np.hypot(truth.pos_m[flowing, 1], truth.pos_m[flowing, 2])
@@ -155,6 +156,8 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                                   "--no-compare", "--no-figures", "-o", d / "emulate", "-q"], timeout_s=LOOP_S + 300))
     predicted = json.loads((d / "emulate" / "metrics.json").read_text())
     report = {"min_separation_m": sep, "excursion_m": excursions, "laps": laps,
+              # the same by the agents' own (PX4's estimated) positions: the truth's excess over it is PX4's error
+              "excursion_estimate_m": [flowing_excursion_m(t, t, wall) for t in tracks],
               "safety_net": [safety_net_view(p) for p in logs],
               "real": {"profile": profile(real), "samples_per_cv": real.get("samples_per_cv"),
                        "closest_approach_m": real.get("closest_approach_m")},
