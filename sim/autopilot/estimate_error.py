@@ -7,8 +7,7 @@ SIH's ground truth in the ULogs of eight stock PX4 looping the duct for 320 s (2
 ``vehicle_local_position`` against ``vehicle_local_position_groundtruth`` while airborne), the velocity error
 had standard deviations (north, east, down) of 0.13-0.15, 0.28-0.31 and 0.16-0.18 m/s with 1/e correlation
 times of 3.0-4.9 s (down 3.6-5.1 s), the position error 0.10-0.11, 0.20-0.21 and 0.29-0.35 m with 3.3-4.1 s
-(down 5.5-7.0 s); the two correlate only weakly (0.3-0.6 between the velocity error and the position error's
-rate).  The errors are smooth: the position error's rate (over 0.5 s) had a spread of only 0.06, 0.09 and
+(down 5.5-7.0 s); the velocity error correlates by 0.3-0.6 with the position error's rate.  The errors are smooth: the position error's rate (over 0.5 s) had a spread of only 0.06, 0.09 and
 0.10 m/s.  Each axis is modelled as an independent critically damped second-order Gauss-Markov process (an
 Ornstein-Uhlenbeck process through a first-order lag of the same time constant ``T``), with that spread and
 1/e correlation time (``T`` = the time / 2.146); its rate's spread is ``sd / T`` (0.06, 0.12, 0.11 m/s for
