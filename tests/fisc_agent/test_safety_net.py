@@ -331,3 +331,18 @@ def test_head_on_the_pass_rule_changes_nothing(seed):
         assert act.velocity_m_s[0] == pytest.approx(min(v, (d - D) / horizon), abs=1e-12)
         cut += act.active
     assert 20 < cut < 180   # both sides of the limit were drawn
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known defect (2026-12-07, CI run of tests/faults/test_kills.py): the closing "
+                   "cuts of several neighbours ahead are summed from the same command, so a queue reverses the "
+                   "vehicle (two ahead: backwards; eight: (-11, -3, -6) m/s before the runner's clamp) and a "
+                   "climbing join flew backwards down into the ground; to be fixed in keep_apart and "
+                   "keep_apart_pairs together")
+@pytest.mark.parametrize("k", [2, 4, 8])
+def test_a_queue_ahead_stops_the_vehicle_and_never_reverses_it(k):
+    v = np.array([2.95, 0.35, 1.54])  # a join climbing forward
+    d = v / np.linalg.norm(v)
+    pos = np.array([d * (2.6 + 0.05 * i) + np.array([0.0, 0.1 * i, 0.0]) for i in range(k)])
+    out = keep_apart((0.0, 0.0, 0.0), tuple(v), 100, NeighbourReports(np.arange(k), pos, np.zeros((k, 3)), np.zeros(k)),
+                     0.92, SafetyNetConfig())
+    assert float(np.dot(out.velocity_m_s, d)) >= -0.1, out.velocity_m_s
