@@ -12,12 +12,15 @@ import time
 import traceback
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from fisc_agent.map.codec import load_map
 from pymavlink.dialects.v20.common import MAV_CMD_SET_MESSAGE_INTERVAL
+
+if TYPE_CHECKING:
+    from sim.autopilot.estimate_error import EstimateErrorParams
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +46,8 @@ class _EmulatorJob:
     position_rate_hz: float
     sample_interval_s: float
     log_level: str
-    estimate_error: object = None
-    """``sim.autopilot.estimate_error.EstimateErrorParams`` of every vehicle (seeded per id), or None."""
+    estimate_error: EstimateErrorParams | None = None
+    """The estimate error of every vehicle (seeded per id), or None: the truth."""
 
 
 @dataclass(frozen=True)
