@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fisc_agent.flight.safety_net import (COINCIDENT_M, DuctAxis, SafetyNetConfig, effective_horizon_s,
+from fisc_agent.flight.safety_net import (COINCIDENT_M, LIMIT_TOL_M_S, DuctAxis, SafetyNetConfig, effective_horizon_s,
                                           keep_apart_pairs)
 
 #: Map frame <-> NED of the default deployment (``sim.swarm.MAP_TO_NED``; its own inverse).
@@ -148,7 +148,7 @@ class SwarmSafetyNet:
                      np.ascontiguousarray(cmd_m_s, dtype=float), np.ascontiguousarray(ids, dtype=np.int64), pairs,
                      self.d_min_m, self.horizon_s, float(cfg.pass_margin_m), float(cfg.push_gain_1_s),
                      float(cfg.max_push_m_s),
-                     COINCIDENT_M, duct, out)
+                     COINCIDENT_M, LIMIT_TOL_M_S, duct, out)
         return out, pairs.shape[0]
 
     def apply(self, pos_m: np.ndarray, vel_ned_m_s: np.ndarray, cmd_ned_m_s: np.ndarray, ids: np.ndarray) -> None:

@@ -36,9 +36,20 @@ Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep
   Head-on it changes nothing: where the closing limit acts, the vehicle would be inside the radius
   within the horizon.
 - **Push apart**, only inside the radius: ``push_gain_1_s (r_j - d) n``.
-- The corrections of all neighbours are summed (each from the command as the mission gave it), then
-  the total push is capped at ``max_push_m_s``.  Two neighbours on the same side correct twice (more
-  braking, never less); two on opposite sides cancel (the vehicle between them holds).
+- **One neighbour at a time, nearest first** (``sequential_cuts``).  Each closing limit is a half-space
+  of commands (speed towards that neighbour at most what it allows); the cuts are applied one after
+  the other, each to the command as the cuts before it left it, in order of the gap to the keep-out
+  radius (then the neighbour's id).  A single cut only slows a vehicle towards its neighbour, but cuts
+  in turn can swing a command round (two neighbours 30 degrees above and below the path turn 2 m/s
+  ahead into 0.5 m/s back and down), so the result then loses any component against the mission's
+  command, and is scaled down until it meets every limit again (a later cut can break an earlier one).
+  Every limit allows hovering, so the result is never faster than the command, never turned back
+  against it, and never closes faster than any limit allows: a queue ahead stops a vehicle, it does
+  not reverse it; moving away is the push's job.  (Summing the cuts, each from the mission's command, braked k
+  times for k neighbours in a line: two ahead commanded a climbing join backwards, eight at
+  (-11, -3, -6) m/s, and in a CI run of the kill lab a join flew backwards down into the ground.)
+- The pushes of all neighbours are summed and capped at ``max_push_m_s``; two on opposite sides
+  cancel (the vehicle between them holds).
 - Two reports at the same point get ``n`` along +x for the smaller id and -x for the larger, so the
   pair always separates.
 - **Never through the wall.**  Over the duct's length (``DuctAxis``) the net's correction loses any
@@ -68,6 +79,9 @@ from fisc_agent.flight.control import Vec
 
 COINCIDENT_M = 1e-6
 """Two positions closer than this are taken as coincident (the direction is chosen by id)."""
+LIMIT_TOL_M_S = 1e-9
+"""A closing speed this little over its limit after the cuts is rounding, not a broken limit [m/s] (a cut
+lands its command on the limit to within ~1e-16; scaling for that would stop the vehicle)."""
 
 
 @dataclass(frozen=True)
@@ -211,18 +225,31 @@ def closest_approach_m(rel_m: np.ndarray, rel_vel_m_s: np.ndarray, horizon_s: fl
     return np.sqrt(np.einsum("ij,ij->i", at, at))
 
 
-def _corrections(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_nb_m_s: np.ndarray,
-                 radius_m: np.ndarray, fresh: np.ndarray, cfg: SafetyNetConfig, horizon_s: float
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per pair: the closing cut and the push, each (m, 3) [m/s], and whether the pair acts (m,).
-    ``rel_m``: own position minus the neighbour's; ``tie_sign``: +1 / -1, the x direction of ``n``
-    for coincident positions."""
+@dataclass(frozen=True)
+class _PairTerms:
+    """What each pair (vehicle, neighbour) contributes to the net, (m,) or (m, 3) per pair."""
+
+    unit: np.ndarray
+    """(m, 3) ``n``: the unit vector from the neighbour to the vehicle."""
+    allowed_m_s: np.ndarray
+    """(m,) the speed towards the neighbour the pair allows [m/s] (inf: no limit)."""
+    limits: np.ndarray
+    """(m,) bool: the closing limit applies (the pair is not passing)."""
+    gap_m: np.ndarray
+    """(m,) distance minus keep-out radius [m] (negative: inside)."""
+    push_m_s: np.ndarray
+    """(m, 3) the push apart [m/s] (zero outside the radius)."""
+
+
+def _pair_terms(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_nb_m_s: np.ndarray,
+                radius_m: np.ndarray, fresh: np.ndarray, cfg: SafetyNetConfig, horizon_s: float) -> _PairTerms:
+    """Per pair: ``rel_m`` own position minus the neighbour's, ``v_m_s`` the vehicle's command (for the
+    pass rule), ``tie_sign`` +1 / -1 the x direction of ``n`` for coincident positions."""
     dist = np.linalg.norm(rel_m, axis=1)
     n = np.zeros_like(rel_m)
     apart = dist > COINCIDENT_M
     n[apart] = rel_m[apart] / dist[apart, None]
     n[~apart, 0] = tie_sign[~apart]
-    closing = -np.einsum("ij,ij->i", v_m_s, n)
     v_nb = np.where(fresh[:, None], v_nb_m_s, 0.0)
     allowed = np.maximum(0.0, -np.einsum("ij,ij->i", v_nb, n))
     gap = dist - radius_m
@@ -231,10 +258,41 @@ def _corrections(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_n
     else:
         allowed = np.where(gap >= 0, np.inf, allowed)
     passing = closest_approach_m(rel_m, v_m_s - v_nb, horizon_s) >= radius_m + cfg.pass_margin_m
-    excess = np.where(passing, 0.0, np.maximum(0.0, closing - allowed))
-    inside = gap < 0
     push = (cfg.push_gain_1_s * np.maximum(0.0, -gap))[:, None] * n
-    return excess[:, None] * n, push, inside | (excess > 0)
+    return _PairTerms(n, allowed, ~passing, gap, push)
+
+
+def _not_back(w_m_s: np.ndarray, command_m_s: np.ndarray) -> np.ndarray:
+    """Each row of ``w_m_s`` (n, 3) less its component against the same row of ``command_m_s``."""
+    vv = np.einsum("ij,ij->i", command_m_s, command_m_s)
+    back = np.minimum(0.0, np.einsum("ij,ij->i", w_m_s, command_m_s)) / np.where(vv > 0.0, vv, 1.0)
+    return w_m_s - back[:, None] * command_m_s
+
+
+def sequential_cuts(command_m_s: np.ndarray, me: np.ndarray, neighbour_id: np.ndarray, unit: np.ndarray,
+                    allowed_m_s: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
+    """The commands ``command_m_s`` (n, 3) after the closing limits of pairs (``me`` (p,) the vehicle's
+    row, ``neighbour_id`` (p,), ``unit`` (p, 3) ``n``, ``allowed_m_s`` (p,), ``gap_m`` (p,)), applied one
+    neighbour at a time per vehicle, nearest gap first (ties by the neighbour's id), each to the command
+    as the cuts before it left it; then each loses any component against its command and is scaled
+    down to meet all its limits (module docstring).  Vectorised across vehicles: round r applies every vehicle's r-th cut."""
+    w = np.array(command_m_s, dtype=float)
+    if me.size == 0:
+        return w
+    order = np.lexsort((neighbour_id, gap_m, me))
+    first = np.r_[True, me[order][1:] != me[order][:-1]]
+    rank = np.arange(order.size) - np.maximum.accumulate(np.where(first, np.arange(order.size), 0))
+    for r in range(int(rank.max()) + 1):
+        k = order[rank == r]
+        rows = me[k]
+        excess = np.maximum(0.0, -np.einsum("ij,ij->i", w[rows], unit[k]) - allowed_m_s[k])
+        w[rows] += excess[:, None] * unit[k]
+    w = _not_back(w, np.asarray(command_m_s, dtype=float))
+    closing = -np.einsum("ij,ij->i", w[me], unit)
+    over = closing > allowed_m_s + LIMIT_TOL_M_S
+    scale = np.ones(w.shape[0])
+    np.minimum.at(scale, me[over], allowed_m_s[over] / closing[over])
+    return w * scale[:, None]
 
 
 def _cap(push_m_s: np.ndarray, max_m_s: float) -> np.ndarray:
@@ -260,14 +318,27 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     nearest = float(dist[kept].min()) if kept.any() else math.inf
     if not near.any():
         return NetAction(velocity_m_s, (), nearest)
-    kept = near
-    ids = np.asarray(reports.ids)[kept]
-    cut, push, acts = _corrections(rel[kept], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
-                                   reports.velocity_m_s[kept], radius[kept], np.asarray(reports.age_s)[kept] <= cfg.fresh_s,
-                                   cfg, horizon)
+    ids = np.asarray(reports.ids)[near]
+    t = _pair_terms(rel[near], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
+                    reports.velocity_m_s[near], radius[near], np.asarray(reports.age_s)[near] <= cfg.fresh_s, cfg,
+                    horizon)
+    # the oracle of ``sequential_cuts``: one neighbour at a time, nearest gap first
+    w = v.copy()
+    acts = t.gap_m < 0
+    for j in np.lexsort((ids, t.gap_m)):
+        excess = -float(w @ t.unit[j]) - float(t.allowed_m_s[j])
+        if t.limits[j] and excess > 0:
+            w = w + excess * t.unit[j]
+            acts[j] = True
+    w = _not_back(w[None, :], v[None, :])[0]
+    closing = -(t.unit @ w)
+    over = t.limits & (closing > t.allowed_m_s + LIMIT_TOL_M_S)
+    if over.any():
+        w = w * float(np.min(t.allowed_m_s[over] / closing[over]))
+        acts |= over
     if not acts.any():
         return NetAction(velocity_m_s, (), nearest)
-    correction = cut.sum(axis=0) + _cap(push.sum(axis=0), cfg.max_push_m_s)
+    correction = (w - v) + _cap(t.push_m_s.sum(axis=0), cfg.max_push_m_s)
     out = v + no_outward(np.asarray(position_m, dtype=float)[None, :], correction[None, :], duct)[0]
     return NetAction((float(out[0]), float(out[1]), float(out[2])), tuple(int(i) for i in ids[acts]), nearest)
 
@@ -288,11 +359,11 @@ def keep_apart_pairs(position_m: np.ndarray, velocity_m_s: np.ndarray, command_m
     # both directions: (i hears j) and (j hears i)
     me = np.concatenate([pairs[:, 0], pairs[:, 1]])
     nb = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    cut, push, _ = _corrections(position_m[me] - position_m[nb], np.where(ids[me] < ids[nb], 1.0, -1.0), cmd[me],
-                                velocity_m_s[nb], np.full(me.size, float(d_min_m)), np.ones(me.size, dtype=bool), cfg,
-                                effective_horizon_s(cfg, lag_s))
-    correction = np.zeros_like(cmd)
-    np.add.at(correction, me, cut)
+    t = _pair_terms(position_m[me] - position_m[nb], np.where(ids[me] < ids[nb], 1.0, -1.0), cmd[me],
+                    velocity_m_s[nb], np.full(me.size, float(d_min_m)), np.ones(me.size, dtype=bool), cfg,
+                    effective_horizon_s(cfg, lag_s))
+    lim = t.limits
+    cut = sequential_cuts(cmd, me[lim], np.asarray(ids)[nb[lim]], t.unit[lim], t.allowed_m_s[lim], t.gap_m[lim])
     total_push = np.zeros_like(cmd)
-    np.add.at(total_push, me, push)
-    return cmd + no_outward(position_m, correction + _cap(total_push, cfg.max_push_m_s), duct)
+    np.add.at(total_push, me, t.push_m_s)
+    return cmd + no_outward(position_m, (cut - cmd) + _cap(total_push, cfg.max_push_m_s), duct)
