@@ -30,6 +30,7 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
     lim_unit = np.empty((m2, 3))
     lim_allowed = np.empty(m2)
     lim_gap = np.empty(m2)
+    lim_breaks = np.empty(m2, dtype=np.bool_)
     n_lim = 0
     nv = np.zeros(3)
     for p in range(pairs.shape[0]):
@@ -70,6 +71,8 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
                 c = pos[me, k] - pos[nb, k] + (cmd[me, k] - vel[nb, k]) * t
                 c2 += c * c
             if math.sqrt(c2) < d_min_m + pass_margin_m:
+                closing = -(cmd[me, 0] * nv[0] + cmd[me, 1] * nv[1] + cmd[me, 2] * nv[2])
+                lim_breaks[n_lim] = closing > allowed
                 lim_me[n_lim] = me
                 lim_id[n_lim] = ids[nb]
                 lim_gap[n_lim] = gap
@@ -77,22 +80,34 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
                 for k in range(3):
                     lim_unit[n_lim, k] = nv[k]
                 n_lim += 1
-    # the limits one neighbour at a time per vehicle, nearest gap first (ties by id): a stable sort
-    # by id, then gap, then vehicle
-    order = np.argsort(lim_id[:n_lim], kind="mergesort")
-    order = order[np.argsort(lim_gap[:n_lim][order], kind="mergesort")]
-    order = order[np.argsort(lim_me[:n_lim][order], kind="mergesort")]
     for i in range(n):
         for k in range(3):
             out[i, k] = cmd[i, k]  # the command as the cuts leave it
-    for q in range(n_lim):
-        j = order[q]
-        me = lim_me[j]
-        excess = -(out[me, 0] * lim_unit[j, 0] + out[me, 1] * lim_unit[j, 1] + out[me, 2] * lim_unit[j, 2]) \
-            - lim_allowed[j]
-        if excess > 0.0:
-            for k in range(3):
-                out[me, k] += excess * lim_unit[j, k]
+    # the limits the command breaks, one at a time per vehicle, nearest gap first (ties by id): bucketed by
+    # vehicle, then a stable sort of each vehicle's by id and then by gap
+    start = np.zeros(n + 1, dtype=np.int64)
+    for j in range(n_lim):
+        if lim_breaks[j]:
+            start[lim_me[j] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:n].copy()
+    seq = np.empty(start[n], dtype=np.int64)
+    for j in range(n_lim):
+        if lim_breaks[j]:
+            seq[fill[lim_me[j]]] = j
+            fill[lim_me[j]] += 1
+    for i in range(n):
+        mine = seq[start[i]:start[i + 1]]
+        if mine.size > 1:
+            mine = mine[np.argsort(lim_id[mine], kind="mergesort")]
+            mine = mine[np.argsort(lim_gap[mine], kind="mergesort")]
+        for j in mine:
+            excess = -(out[i, 0] * lim_unit[j, 0] + out[i, 1] * lim_unit[j, 1] + out[i, 2] * lim_unit[j, 2]) \
+                - lim_allowed[j]
+            if excess > 0.0:
+                for k in range(3):
+                    out[i, k] += excess * lim_unit[j, k]
     for i in range(n):  # no component against the command
         vv = cmd[i, 0] ** 2 + cmd[i, 1] ** 2 + cmd[i, 2] ** 2
         back = min(0.0, out[i, 0] * cmd[i, 0] + out[i, 1] * cmd[i, 1] + out[i, 2] * cmd[i, 2]) / (vv if vv > 0.0 else 1.0)

@@ -36,18 +36,18 @@ Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep
   Head-on it changes nothing: where the closing limit acts, the vehicle would be inside the radius
   within the horizon.
 - **Push apart**, only inside the radius: ``push_gain_1_s (r_j - d) n``.
-- **One neighbour at a time, nearest first** (``sequential_cuts``).  Each closing limit is a half-space
-  of commands (speed towards that neighbour at most what it allows); the cuts are applied one after
-  the other, each to the command as the cuts before it left it, in order of the gap to the keep-out
-  radius (then the neighbour's id).  A single cut only slows a vehicle towards its neighbour, but cuts
-  in turn can swing a command round (two neighbours 30 degrees above and below the path turn 2 m/s
-  ahead into 0.5 m/s back and down), so the result then loses any component against the mission's
-  command, and is scaled down until it meets every limit again (a later cut can break an earlier one).
-  Every limit allows hovering, so the result is never faster than the command, never turned back
-  against it, and never closes faster than any limit allows: a queue ahead stops a vehicle, it does
-  not reverse it; moving away is the push's job.  (Summing the cuts, each from the mission's command, braked k
-  times for k neighbours in a line: two ahead commanded a climbing join backwards, eight at
-  (-11, -3, -6) m/s, and in a CI run of the kill lab a join flew backwards down into the ground.)
+- **One neighbour at a time, nearest first** (``sequential_cuts``).  Each closing limit is a half-space of
+  commands (speed towards that neighbour at most what it allows); the limits the command breaks are
+  applied one after the other, each to the command as the cuts before it left it, in order of the gap to
+  the keep-out radius (then the neighbour's id).  A single cut only slows a vehicle towards its neighbour,
+  but cuts in turn can swing a command round (two neighbours 30 degrees above and below the path turn 2
+  m/s ahead into 0.5 m/s back and down), so the result then loses any component against the mission's
+  command, and is scaled down until it meets every limit again (a cut can break a limit the command met).
+  Every limit allows hovering, so the result is never faster than the command, never turned back against
+  it, and never closes faster than any limit allows: a queue ahead stops a vehicle, it does not reverse
+  it; moving away is the push's job.  (Summing the cuts, each from the mission's command, braked k times
+  for k neighbours in a line: two ahead commanded a climbing join backwards, eight at (-11, -3, -6) m/s,
+  and in a CI run of the kill lab a join flew backwards down into the ground.)
 - The pushes of all neighbours are summed and capped at ``max_push_m_s``; two on opposite sides
   cancel (the vehicle between them holds).
 - Two reports at the same point get ``n`` along +x for the smaller id and -x for the larger, so the
@@ -272,14 +272,17 @@ def _not_back(w_m_s: np.ndarray, command_m_s: np.ndarray) -> np.ndarray:
 def sequential_cuts(command_m_s: np.ndarray, me: np.ndarray, neighbour_id: np.ndarray, unit: np.ndarray,
                     allowed_m_s: np.ndarray, gap_m: np.ndarray) -> np.ndarray:
     """The commands ``command_m_s`` (n, 3) after the closing limits of pairs (``me`` (p,) the vehicle's
-    row, ``neighbour_id`` (p,), ``unit`` (p, 3) ``n``, ``allowed_m_s`` (p,), ``gap_m`` (p,)), applied one
-    neighbour at a time per vehicle, nearest gap first (ties by the neighbour's id), each to the command
-    as the cuts before it left it; then each loses any component against its command and is scaled
-    down to meet all its limits (module docstring).  Vectorised across vehicles: round r applies every vehicle's r-th cut."""
-    w = np.array(command_m_s, dtype=float)
-    if me.size == 0:
+    row, ``neighbour_id`` (p,), ``unit`` (p, 3) ``n``, ``allowed_m_s`` (p,), ``gap_m`` (p,)): the limits
+    the command breaks are applied one at a time per vehicle, nearest gap first (ties by the neighbour's
+    id), each to the command as the cuts before it left it; then each command loses any component
+    against the mission's and is scaled down to meet all its limits (module docstring).  Vectorised
+    across vehicles: round r applies every vehicle's r-th cut."""
+    cmd = np.asarray(command_m_s, dtype=float)
+    w = cmd.copy()
+    breaks = np.flatnonzero(-np.einsum("ij,ij->i", cmd[me], unit) > allowed_m_s)
+    if breaks.size == 0:
         return w
-    order = np.lexsort((neighbour_id, gap_m, me))
+    order = breaks[np.lexsort((neighbour_id[breaks], gap_m[breaks], me[breaks]))]
     first = np.r_[True, me[order][1:] != me[order][:-1]]
     rank = np.arange(order.size) - np.maximum.accumulate(np.where(first, np.arange(order.size), 0))
     for r in range(int(rank.max()) + 1):
@@ -287,7 +290,7 @@ def sequential_cuts(command_m_s: np.ndarray, me: np.ndarray, neighbour_id: np.nd
         rows = me[k]
         excess = np.maximum(0.0, -np.einsum("ij,ij->i", w[rows], unit[k]) - allowed_m_s[k])
         w[rows] += excess[:, None] * unit[k]
-    w = _not_back(w, np.asarray(command_m_s, dtype=float))
+    w = _not_back(w, cmd)
     closing = -np.einsum("ij,ij->i", w[me], unit)
     over = closing > allowed_m_s + LIMIT_TOL_M_S
     scale = np.ones(w.shape[0])
@@ -325,9 +328,10 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     # the oracle of ``sequential_cuts``: one neighbour at a time, nearest gap first
     w = v.copy()
     acts = t.gap_m < 0
+    breaks = t.limits & (-(t.unit @ v) > t.allowed_m_s)
     for j in np.lexsort((ids, t.gap_m)):
         excess = -float(w @ t.unit[j]) - float(t.allowed_m_s[j])
-        if t.limits[j] and excess > 0:
+        if breaks[j] and excess > 0:
             w = w + excess * t.unit[j]
             acts[j] = True
     w = _not_back(w[None, :], v[None, :])[0]
