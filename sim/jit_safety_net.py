@@ -14,6 +14,10 @@ import numba
 import numpy as np
 
 
+_INSERTION_MAX = 24
+"""A vehicle's broken limits are sorted by insertion up to this many, by two stable sorts beyond."""
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_m, push_gain_1_s, max_push_m_s,
                      coincident_m, limit_tol_m_s, duct, out):
@@ -84,7 +88,7 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
         for k in range(3):
             out[i, k] = cmd[i, k]  # the command as the cuts leave it
     # the limits the command breaks, one at a time per vehicle, nearest gap first (ties by id): bucketed by
-    # vehicle, then a stable sort of each vehicle's by id and then by gap
+    # vehicle, then each vehicle's sorted
     start = np.zeros(n + 1, dtype=np.int64)
     for j in range(n_lim):
         if lim_breaks[j]:
@@ -98,10 +102,19 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
             seq[fill[lim_me[j]]] = j
             fill[lim_me[j]] += 1
     for i in range(n):
-        mine = seq[start[i]:start[i + 1]]
-        if mine.size > 1:
+        mine = seq[start[i]:start[i + 1]]  # a view: sorted in place by (gap, id)
+        if mine.size > _INSERTION_MAX:  # a jam: two stable sorts
             mine = mine[np.argsort(lim_id[mine], kind="mergesort")]
             mine = mine[np.argsort(lim_gap[mine], kind="mergesort")]
+        else:  # a few: by insertion
+            for a in range(1, mine.size):
+                j = mine[a]
+                b = a - 1
+                while b >= 0 and (lim_gap[mine[b]] > lim_gap[j]
+                                  or (lim_gap[mine[b]] == lim_gap[j] and lim_id[mine[b]] > lim_id[j])):
+                    mine[b + 1] = mine[b]
+                    b -= 1
+                mine[b + 1] = j
         for j in mine:
             excess = -(out[i, 0] * lim_unit[j, 0] + out[i, 1] * lim_unit[j, 1] + out[i, 2] * lim_unit[j, 2]) \
                 - lim_allowed[j]

@@ -66,6 +66,28 @@ def test_with_a_lag_and_a_duct_both_backends_are_keep_apart_pairs(backend, seed)
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("n, box_m", [(12, 0.5), (80, 0.5)])
+def test_in_a_jam_both_backends_order_every_broken_limit_as_keep_apart_pairs(backend, n, box_m):
+    # all inside d_min of each other, commands towards the crowd's centre: every vehicle breaks the limits of
+    # most of its neighbours (a few, sorted by insertion in the numba twin; dozens, by two stable sorts)
+    rng = np.random.default_rng(n)
+    pos = rng.uniform(-box_m / 2, box_m / 2, (n, 3))
+    cmd = -pos * 3.0 + rng.normal(0.0, 0.2, (n, 3))
+    vel = np.zeros((n, 3))
+    ids = rng.permutation(5 * n)[:n].astype(np.int64)
+    expect = keep_apart_pairs(pos, vel, cmd, ids, all_pairs(n), D)
+    rel = pos[:, None, :] - pos[None, :, :]
+    dist = np.linalg.norm(rel, axis=2)
+    np.fill_diagonal(dist, np.inf)
+    assert dist.max(where=np.isfinite(dist), initial=0.0) < D  # inside d_min: no closing allowed
+    broken = np.sum(-np.einsum("ik,ijk->ij", cmd, rel / dist[:, :, None]) > 0, axis=1)
+    assert broken.max() > (24 if n > 24 else 2)  # the sort paths are exercised
+    got = SwarmSafetyNet(D, backend=backend).filtered_map(pos, vel, cmd, ids)
+    np.testing.assert_allclose(got, expect, rtol=0, atol=1e-12)
+    assert np.all(np.einsum("ij,ij->i", got, cmd) >= -CFG.max_push_m_s * np.linalg.norm(cmd, axis=1) - 1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 def test_coincident_agents_are_separated_by_id_as_the_agents_net_does(backend):
     pos = np.zeros((2, 3))
     cmd = np.zeros((2, 3))
