@@ -28,7 +28,7 @@ def one(pos, vel=(0.0, 0.0, 0.0), age=0.0, agent_id=7) -> NeighbourReports:
 
 def test_no_neighbour_leaves_the_command_alone():
     act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.2, 0.0), 1, NeighbourReports.empty(), D)
-    assert act.velocity_m_s == (1.0, 0.2, 0.0) and not act.active and act.nearest_m == math.inf
+    assert act.velocity_m_s == (1.0, 0.2, 0.0) and act.acting == () and act.nearest_m == math.inf
 
 
 @pytest.mark.parametrize("gap, inside", [(D + EPS, False), (D, False), (D - 1e-6, True), (0.3, True)])
@@ -398,6 +398,7 @@ def test_two_neighbours_ahead_either_side_stop_the_vehicle_without_reversing_it(
     act = keep_apart((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), 1, reports, D, CFG)
     push = 2 * CFG.push_gain_1_s * 0.5 * c
     assert act.velocity_m_s == pytest.approx((-min(push, CFG.max_push_m_s), 0.0, 0.0), abs=1e-12)
+    assert act.acting == (2, 3)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -455,3 +456,123 @@ def test_inside_d_min_a_cut_keeps_the_sideways_part_however_it_rounds(seed):
         slide = v - (v @ u) * u
         push = -min(CFG.push_gain_1_s * (D - 0.5), CFG.max_push_m_s) * u
         assert act.velocity_m_s == pytest.approx(tuple(slide + push), abs=1e-12)
+
+
+# ---- boundaries the mutation run (tools/mutation.sh safety_net) found untested -------------------------
+def test_no_neighbour_in_reach_acts_on_nothing_and_still_reports_the_nearest():
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.0, 5.0, 0.0)), D)
+    assert act.acting == () and act.velocity_m_s == (1.0, 0.0, 0.0) and act.nearest_m == pytest.approx(5.0)
+    passing = keep_apart((-2.0, 1.6, 0.0), (2.0, 0.0, 0.0), 1, one((0.0, 0.0, 0.0)), 1.0)
+    assert passing.acting == () and passing.nearest_m == pytest.approx(math.hypot(2.0, 1.6))
+
+
+@pytest.mark.parametrize("command", [(0.0, 0.0, 0.0), (0.0, 1.0, 0.0)])
+def test_exactly_at_d_min_a_vehicle_not_closing_is_not_acted_on(command):
+    act = keep_apart((0.0, 0.0, 0.0), command, 1, one((1.0, 0.0, 0.0)), 1.0)
+    assert act.acting == () and act.velocity_m_s == command
+
+
+def test_a_report_exactly_fresh_s_old_still_counts_as_moving_away():
+    # 0.5 m ahead moving away at 0.6 m/s, age exactly fresh_s: extrapolated to 0.8 m, radius d_min, and its
+    # speed away is allowed; the push adds (D - 0.8) backwards
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.5, 0.0, 0.0), vel=(0.6, 0.0, 0.0), age=CFG.fresh_s), D)
+    assert act.velocity_m_s == pytest.approx((0.6 - (D - 0.8), 0.0, 0.0), abs=1e-12)
+
+
+def test_a_command_swung_round_by_two_cuts_loses_only_its_backward_part():
+    # 0.8 m/s along x (|v|^2 = 1 would hide a missing division); the nearer neighbour (inside d_min) turns it
+    # along its own limit, the farther one (above) turns it back; the result loses its backward part and is
+    # scaled down to meet both limits again, keeping the direction it had
+    v = np.array([0.8, 0.0, 0.0])
+    pos = np.array([[0.7, 0.0, -0.2], [0.7, -0.2, 0.7]])
+    act = keep_apart((0.0, 0.0, 0.0), tuple(v), 1, NeighbourReports(np.array([2, 3]), pos, np.zeros((2, 3)), np.zeros(2)),
+                     D, CFG)
+    d = np.linalg.norm(pos, axis=1)
+    units = -pos / d[:, None]
+    allowed = np.maximum(0.0, d - D) / CFG.horizon_s
+    w = v.copy()
+    for n, a in zip(units, allowed):  # nearest gap first
+        w = w + max(0.0, -(w @ n) - a) * n
+    assert w @ v < 0  # the cuts swung it back
+    w = w - (w @ v) / (v @ v) * v
+    closing = -(units @ w)
+    scale = min(1.0, *(allowed[closing > allowed] / closing[closing > allowed]))
+    assert 0.5 < scale < 1.0
+    push = CFG.push_gain_1_s * (D - d[0]) * units[0]
+    assert act.velocity_m_s == pytest.approx(tuple(scale * w + push), abs=1e-12)
+    assert act.acting == (2, 3)
+
+
+def test_settings_with_forget_equal_to_fresh_are_accepted():
+    assert SafetyNetConfig(fresh_s=1.0, forget_s=1.0).forget_s == 1.0
+
+
+def test_no_neighbours_heard_is_an_empty_table_of_the_right_shapes():
+    e = NeighbourReports.empty()
+    assert len(e) == 0 and e.ids.dtype == np.int64
+    assert e.position_m.shape == (0, 3) and e.velocity_m_s.shape == (0, 3) and e.age_s.shape == (0,)
+
+
+def test_an_infinite_lag_is_ignored():
+    assert effective_horizon_s(CFG, math.inf) == CFG.horizon_s
+
+
+def test_the_wall_rule_about_an_axis_off_centre_in_z():
+    # axis at (y, z) = (0, 1); the vehicle at (0.5, 1.5): 45 degrees up and out.  The push from a neighbour
+    # ahead and below has an outward part along (0, 1, 1) / sqrt 2, removed; the rest kept
+    duct = DuctAxis(0.0, 10.0, (0.0, 1.0))
+    act = keep_apart((5.0, 0.5, 1.5), (0.0, 0.0, 0.0), 1, one((5.3, 0.5, 1.2)), D, duct=duct)
+    d = math.hypot(0.3, 0.3)
+    push = (D - d) / d * np.array([-0.3, 0.0, 0.3])
+    u = np.array([0.0, 1.0, 1.0]) / math.sqrt(2.0)
+    assert act.velocity_m_s == pytest.approx(tuple(push - max(0.0, push @ u) * u), abs=1e-12)
+
+
+@pytest.mark.parametrize("d, cut", [(1.5, False), (1.0, False), (0.99, True)])
+def test_the_swarm_form_with_no_horizon_acts_only_inside_d_min(d, cut):
+    # keep_apart_pairs checks every pair it is given (no reach filter): outside or at d_min nothing is allowed
+    # to change, inside no closing survives
+    cfg = SafetyNetConfig(horizon_s=0.0)
+    pos = np.array([[0.0, 0.0, 0.0], [d, 0.0, 0.0]])
+    cmd = np.array([[3.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    out = keep_apart_pairs(pos, np.zeros((2, 3)), cmd, np.array([1, 2]), np.array([[0, 1]]), 1.0, cfg)
+    if cut:
+        assert out[0] == pytest.approx((-cfg.push_gain_1_s * (1.0 - d), 0.0, 0.0))
+    else:
+        assert np.array_equal(out, cmd)
+
+
+@pytest.mark.parametrize("gap, untouched", [(0.0, True), (-0.01, False)])
+def test_with_no_horizon_the_net_acts_only_inside_d_min(gap, untouched):
+    cfg = SafetyNetConfig(horizon_s=0.0)
+    act = keep_apart((0.0, 0.0, 0.0), (3.0, 0.0, 0.0), 1, one((1.0 + gap, 0.0, 0.0)), 1.0, cfg)
+    if untouched:
+        assert act.velocity_m_s == (3.0, 0.0, 0.0)
+    else:
+        assert act.velocity_m_s == pytest.approx((-cfg.push_gain_1_s * 0.01, 0.0, 0.0))
+
+
+def test_a_horizon_shorter_than_a_second_limits_closing_to_gap_over_it():
+    cfg = SafetyNetConfig(horizon_s=0.5)
+    act = keep_apart((0.0, 0.0, 0.0), (3.0, 0.0, 0.0), 1, one((1.3, 0.0, 0.0)), 1.0, cfg)
+    assert act.velocity_m_s == pytest.approx((0.3 / 0.5, 0.0, 0.0))
+
+
+def test_a_pass_that_comes_close_only_after_the_horizon_is_left_alone():
+    # 3 m/s along x, 5 m behind a still neighbour and 1.38 m across: within the 1.5 s horizon it gets no nearer
+    # than 1.47 m (>= d_min + pass margin 1.42 m); its straight line would pass at 1.38 m only later.  Closing at
+    # 2.89 m/s against 2.84 m/s allowed: the horizon alone keeps it from being braked
+    act = keep_apart((-5.0, 1.38, 0.0), (3.0, 0.0, 0.0), 1, one((0.0, 0.0, 0.0)), D)
+    assert not act.active and act.velocity_m_s == (3.0, 0.0, 0.0)
+
+
+def test_the_swarm_form_with_one_pair_and_its_default_lag():
+    pos = np.array([[0.0, 0.0, 0.0], [2.5, 0.0, 0.0]])
+    cmd = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    out = keep_apart_pairs(pos, np.zeros((2, 3)), cmd, np.array([1, 2]), np.array([[0, 1]]), D)
+    lone = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((2.5, 0.0, 0.0)), D, lag_s=0.5)
+    assert lone.active  # with a lag the horizon (2 s) brakes it: the default lag is none
+    assert out[0] == pytest.approx(cmd[0]) and out[1] == pytest.approx(cmd[1])
+    close = keep_apart_pairs(pos * 0.3, np.zeros((2, 3)), cmd, np.array([1, 2]), np.array([[0, 1]]), D)
+    assert close[0] == pytest.approx(keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.75, 0.0, 0.0), agent_id=2),
+                                                D).velocity_m_s)
