@@ -5,6 +5,8 @@ prediction beside it.
 The flight: ``FISC_SITL_SWARM`` vehicles (default 8), stock parameters, the agents' default flags
 (admission windows from the map's budget, the safety net, the map's recommended mode) with
 ``--exit-policy loop --laps 0``, for ``FISC_SITL_LOOP_S`` seconds (default 300) from the first entry.
+``FISC_SITL_LOOP_MODE`` (unset: the defaults) gives the agents and the prediction an explicit ``--mode``, e.g.
+``kinetic`` to fly the map's designed velocity spread.
 ``fisc-ground monitor --record`` writes the MCAP; ``fisc-ground replay`` scores it.  Checked:
 
 - closest approach by the ground truth >= ``MIN_SEPARATION_M`` over the whole flight;
@@ -79,6 +81,8 @@ pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.long, pytest.mark.
 
 N = int(os.environ.get("FISC_SITL_SWARM", "8"))
 LOOP_S = float(os.environ.get("FISC_SITL_LOOP_S", "300"))
+MODE = os.environ.get("FISC_SITL_LOOP_MODE", "")
+"""An explicit ``--mode`` for the agents and the prediction (empty: the agents' defaults)."""
 SWARM = "loop"
 MIN_SEPARATION_M = 0.5
 MIN_PROFILE_R_DENSITY = 0.9
@@ -123,7 +127,8 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                 procs.start(f"agent{i}", cli("fisc-agent") + ["--go",
                     "--swarm", SWARM, "--zenoh-config", g.member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
-                    "--geodetic-anchor", MAP_ANCHOR, "--exit-policy", "loop", "--laps", 0, "--flight-log", logs[i]])
+                    "--geodetic-anchor", MAP_ANCHOR, "--exit-policy", "loop", "--laps", 0, "--flight-log", logs[i]]
+                    + (["--mode", MODE] if MODE else []))
             assert poll(lambda: any(s == "FLOW" for s in states()), 240.0, 0.5), procs.report()
             # the monitor records LOOP_S from the first entry and closes its MCAP itself
             monitor = procs.start("monitor", ground("monitor", "--swarm", SWARM, "--zenoh-config", g.member,
@@ -163,7 +168,8 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                                   # report, as the monitor scores the agents' published estimates
                                   "--estimate-error",
                                   "--entry-radius-fraction", AgentConfig.entry_radius_fraction,
-                                  "--no-compare", "--no-figures", "-o", d / "emulate", "-q"], timeout_s=LOOP_S + 300))
+                                  "--no-compare", "--no-figures", "-o", d / "emulate", "-q"]
+                       + (["--mode", MODE] if MODE else []), timeout_s=LOOP_S + 300))
     predicted = json.loads((d / "emulate" / "metrics.json").read_text())
     report = {"min_separation_m": sep, "excursion_m": excursions, "laps": laps,
               # the same by the agents' own (PX4's estimated) positions: the truth's excess over it is PX4's error
