@@ -69,9 +69,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--start-spacing", type=float, default=EmulateConfig.start_spacing_m, metavar="M",
                    help="spacing of the ground start grid [m] (with --staggered-admission the joins wait for "
                         "their windows above it; default %(default)s)")
-    p.add_argument("--geofence", choices=("return", "hold"), default="return",
-                   help="agents leaving the CVs sideways: return (fly back to the nearest CV, as fisc-sim run's "
-                        "return policy) or hold")
+    p.add_argument("--geofence", choices=("return", "hold"), default=None,
+                   help="agents leaving the CVs: return (fly back to the nearest CV, as fisc-sim run's return policy) "
+                        "or hold; default: fisc-agent's (hold) with --fleet-mode, else return")
     p.add_argument("--rate", type=float, default=20.0, help="agent setpoint rate [Hz]")
     p.add_argument("--average-window", type=float, default=EmulateConfig.average_window_s,
                    help="time-average the fields over the last S seconds, as fisc-sim run "

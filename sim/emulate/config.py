@@ -77,9 +77,11 @@ class EmulateConfig:
     """Fraction of the inlet radius the agents' entry points spread over (``AgentConfig.entry_radius_fraction``;
     a real deployment keeps 0.6 clear of the duct's wall).  1: evenly over every inlet CV, as ``fisc-sim
     run``'s reservoir injects; at 0.6 the outer inlet CVs are seldom entered (docs/emulation.md)."""
-    geofence: str = "return"
-    """Agents leaving the CVs sideways: ``return`` (fly back to the nearest CV, as the simulator's return
-    policy; the kinetic mode's deviations reach the staircase walls) or ``hold``."""
+    geofence: str | None = None
+    """Agents leaving the CVs (sideways, or upstream through the inlet): ``return`` (fly back to the nearest CV,
+    as the simulator's return policy; the kinetic mode's deviations reach the staircase walls) or ``hold``.
+    None: fisc-agent's own default (``hold``, ``AgentConfig.geofence``) with ``fleet_mode``, else ``return``
+    (``agent_geofence``)."""
     rate_hz: float = 20.0
     """Agent setpoint (control loop) rate [Hz]."""
     position_rate_hz: float = 20.0
@@ -181,7 +183,8 @@ class EmulateConfig:
              f"reference_seeds must be >= 1, is {self.reference_seeds!r}")
         need(0.0 < self.entry_radius_fraction <= 1.0,
              f"entry_radius_fraction must be in (0, 1], is {self.entry_radius_fraction!r}")
-        need(self.geofence in GEOFENCE_POLICIES, f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
+        need(self.geofence is None or self.geofence in GEOFENCE_POLICIES,
+             f"geofence {self.geofence!r}: choose one of {GEOFENCE_POLICIES}")
         need(self.telemetry in TELEMETRY, f"telemetry {self.telemetry!r}: choose one of {', '.join(TELEMETRY)}")
         for name in ("rate_hz", "position_rate_hz", "physics_rate_hz", "physics_dt_s", "average_window_s",
                      "sample_interval_s", "start_spacing_m"):
@@ -210,6 +213,15 @@ class EmulateConfig:
             "mean" if paper else None if self.fleet_mode else recommended_mode)
         return SimpleNamespace(mode=mode,
                                lookahead_s=self.lookahead_s if self.lookahead_s is not None or not paper else 0.0)
+
+    def agent_geofence(self) -> str:
+        """The geofence policy the agents fly: ``geofence`` if given, else fisc-agent's default with
+        ``fleet_mode`` (a real fleet holds a vehicle that leaves the map) and ``return`` without it."""
+        if self.geofence is not None:
+            return self.geofence
+        from fisc_agent.config import AgentConfig
+
+        return AgentConfig.geofence.value if self.fleet_mode else "return"
 
     def workers(self) -> tuple[int, int]:
         """(emulator processes, agent processes) actually used.  Automatic: one emulator process

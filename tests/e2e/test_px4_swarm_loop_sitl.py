@@ -6,7 +6,8 @@ The flight: ``FISC_SITL_SWARM`` vehicles (default 8), stock parameters, the agen
 (admission windows from the map's budget, the safety net, the map's recommended mode) with
 ``--exit-policy loop --laps 0``, for ``FISC_SITL_LOOP_S`` seconds (default 300) from the first entry.
 ``FISC_SITL_LOOP_MODE`` (unset: the defaults) gives the agents and the prediction an explicit ``--mode``, e.g.
-``kinetic`` to fly the map's designed velocity spread.
+``kinetic`` to fly the map's designed velocity spread, and ``FISC_SITL_LOOP_GEOFENCE`` an explicit ``--geofence``
+(``return``: a vehicle that leaves the map rejoins the nearest CV instead of holding).
 ``fisc-ground monitor --record`` writes the MCAP; ``fisc-ground replay`` scores it.  Checked:
 
 - closest approach by the ground truth >= ``MIN_SEPARATION_M`` over the whole flight;
@@ -83,6 +84,8 @@ N = int(os.environ.get("FISC_SITL_SWARM", "8"))
 LOOP_S = float(os.environ.get("FISC_SITL_LOOP_S", "300"))
 MODE = os.environ.get("FISC_SITL_LOOP_MODE", "")
 """An explicit ``--mode`` for the agents and the prediction (empty: the agents' defaults)."""
+GEOFENCE = os.environ.get("FISC_SITL_LOOP_GEOFENCE", "")
+"""An explicit ``--geofence`` for the agents and the prediction (empty: the agents' default, hold)."""
 SWARM = "loop"
 MIN_SEPARATION_M = 0.5
 MIN_PROFILE_R_DENSITY = 0.9
@@ -128,7 +131,7 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                     "--swarm", SWARM, "--zenoh-config", g.member, "--trusted-key", g.ground_pub,
                     "--mavlink", f"udpin:0.0.0.0:{14540 + i}", "--id", i, "--autopilot", "px4",
                     "--geodetic-anchor", MAP_ANCHOR, "--exit-policy", "loop", "--laps", 0, "--flight-log", logs[i]]
-                    + (["--mode", MODE] if MODE else []))
+                    + (["--mode", MODE] if MODE else []) + (["--geofence", GEOFENCE] if GEOFENCE else []))
             assert poll(lambda: any(s == "FLOW" for s in states()), 240.0, 0.5), procs.report()
             # the monitor records LOOP_S from the first entry and closes its MCAP itself
             monitor = procs.start("monitor", ground("monitor", "--swarm", SWARM, "--zenoh-config", g.member,
@@ -169,7 +172,8 @@ def test_eight_stock_px4_loop_with_the_monitor_recording_and_the_emulator_predic
                                   "--estimate-error",
                                   "--entry-radius-fraction", AgentConfig.entry_radius_fraction,
                                   "--no-compare", "--no-figures", "-o", d / "emulate", "-q"]
-                       + (["--mode", MODE] if MODE else []), timeout_s=LOOP_S + 300))
+                       + (["--mode", MODE] if MODE else []) + (["--geofence", GEOFENCE] if GEOFENCE else []),
+                       timeout_s=LOOP_S + 300))
     predicted = json.loads((d / "emulate" / "metrics.json").read_text())
     report = {"min_separation_m": sep, "excursion_m": excursions, "laps": laps,
               # the same by the agents' own (PX4's estimated) positions: the truth's excess over it is PX4's error

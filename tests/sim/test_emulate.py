@@ -91,7 +91,7 @@ def test_config_rejects_bad_values():
     assert EmulateConfig(estimate_error=True).estimate_error is True
     # agents fly the map's settings by default; the paper preset pins Algorithm 1
     s = EmulateConfig().agent_settings()
-    assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().geofence == "return"
+    assert (s.mode, s.lookahead_s) == (None, None) and EmulateConfig().agent_geofence() == "return"
     s = EmulateConfig(preset="paper").agent_settings()
     assert (s.mode, s.lookahead_s) == ("mean", 0.0)
 
@@ -314,6 +314,23 @@ def test_cli_parser_maps_options_to_the_config(tmp_path):
                                                           "-o", str(tmp_path)]))
     assert (cfg.staggered_admission, cfg.start_spacing_m, cfg.fleet_mode, cfg.estimate_error) == (True, 3.0, True, True)
     assert emulate_cli.config_from_args(parser.parse_args(["emulate", "--agents", "2", "-o", str(tmp_path)])).fleet_mode is False
+
+
+@pytest.mark.parametrize("fleet_mode, given, flown", [(False, None, "return"), (True, None, "hold"),
+                                                      (True, "return", "return"), (False, "hold", "hold")])
+def test_the_geofence_is_fisc_agents_own_in_fleet_mode_unless_given(tmp_path, fleet_mode, given, flown):
+    # a real fleet's agents hold a vehicle that leaves the map (AgentConfig.geofence); the prediction of such a
+    # fleet must too, while fisc-sim run's comparison returns it, as the simulator's return policy does
+    from fisc_agent.config import AgentConfig
+    from sim.emulate import cli as emulate_cli
+
+    assert AgentConfig.geofence.value == "hold"
+    assert EmulateConfig(fleet_mode=fleet_mode, geofence=given).agent_geofence() == flown
+    parser = argparse.ArgumentParser()
+    emulate_cli.add_parser(parser.add_subparsers(dest="command"))
+    argv = ["emulate", "--agents", "2", "-o", str(tmp_path)] + (["--fleet-mode"] if fleet_mode else []) + (
+        ["--geofence", given] if given else [])
+    assert emulate_cli.config_from_args(parser.parse_args(argv)).agent_geofence() == flown
 
 
 @pytest.mark.slow
