@@ -325,21 +325,23 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     t = _pair_terms(rel[near], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
                     reports.velocity_m_s[near], radius[near], np.asarray(reports.age_s)[near] <= cfg.fresh_s, cfg,
                     horizon)
-    # the oracle of ``sequential_cuts``: one neighbour at a time, nearest gap first
+    # the oracle of ``sequential_cuts``: the limits the command breaks one at a time, nearest gap first
     w = v.copy()
     acts = t.gap_m < 0
     breaks = t.limits & (-(t.unit @ v) > t.allowed_m_s)
-    for j in np.lexsort((ids, t.gap_m)):
-        excess = -float(w @ t.unit[j]) - float(t.allowed_m_s[j])
-        if breaks[j] and excess > 0:
-            w = w + excess * t.unit[j]
-            acts[j] = True
-    w = _not_back(w[None, :], v[None, :])[0]
-    closing = -(t.unit @ w)
-    over = t.limits & (closing > t.allowed_m_s + LIMIT_TOL_M_S)
-    if over.any():
-        w = w * float(np.min(t.allowed_m_s[over] / closing[over]))
-        acts |= over
+    if breaks.any():  # else no cut: the command meets every limit as it is
+        order = np.lexsort((ids, t.gap_m))
+        for j in order[breaks[order]]:
+            excess = -float(w @ t.unit[j]) - float(t.allowed_m_s[j])
+            if excess > 0:
+                w = w + excess * t.unit[j]
+                acts[j] = True
+        w = _not_back(w[None, :], v[None, :])[0]
+        closing = -(t.unit @ w)
+        over = t.limits & (closing > t.allowed_m_s + LIMIT_TOL_M_S)
+        if over.any():
+            w = w * float(np.min(t.allowed_m_s[over] / closing[over]))
+            acts |= over
     if not acts.any():
         return NetAction(velocity_m_s, (), nearest)
     correction = (w - v) + _cap(t.push_m_s.sum(axis=0), cfg.max_push_m_s)

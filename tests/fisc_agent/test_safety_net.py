@@ -576,3 +576,12 @@ def test_the_swarm_form_with_one_pair_and_its_default_lag():
     close = keep_apart_pairs(pos * 0.3, np.zeros((2, 3)), cmd, np.array([1, 2]), np.array([[0, 1]]), D)
     assert close[0] == pytest.approx(keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((0.75, 0.0, 0.0), agent_id=2),
                                                 D).velocity_m_s)
+
+
+def test_the_swarm_form_leaves_a_hovering_vehicle_hovering_while_its_neighbour_is_braked():
+    # vehicle 0 hovers (a zero command: nothing to turn back against), vehicle 1 closes on it from 2 m
+    pos = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    cmd = np.array([[0.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    out = keep_apart_pairs(pos, cmd, cmd, np.array([1, 2]), np.array([[0, 1]]), D)
+    assert np.array_equal(out[0], (0.0, 0.0, 0.0))
+    assert out[1] == pytest.approx((-(2.0 - D) / CFG.horizon_s, 0.0, 0.0))
