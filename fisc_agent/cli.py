@@ -22,7 +22,7 @@ from fisc_agent.map.codec import MapError, load_map
 from fisc_agent.common.names import prefix_arg, swarm_name_arg
 from fisc_agent.flight.drag import DragConfig
 from fisc_agent.flight.safety_net import SafetyNetConfig
-from fisc_agent.flight.tracking import TrackingConfig
+from fisc_agent.flight.tracking import KineticAxes, TrackingConfig
 
 log = logging.getLogger("fisc_agent")
 
@@ -119,6 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --feedforward-gain auto: learn the vehicle's steady velocity gain again through the "
                         "pass, forgetting over this time, and set the feed-forward gain from it [s]; off: keep the "
                         "gain identified before the pass")
+    t.add_argument("--kinetic-axes", choices=[k.value for k in KineticAxes], default=TrackingConfig.kinetic_axes.value,
+                   help="--mode kinetic: fly the deviation across the stream only, at its full magnitude (the fitted "
+                        "velocity spread without slowing a vehicle along the stream), or isotropic as fisc-sim run's "
+                        "agents do (default %(default)s)")
     t.add_argument("--drag-feedforward", choices=("on", "off"), default="on",
                    help="PX4: identify the vehicle's drag in flight from its attitude and send the thrust it takes "
                         "with each velocity setpoint as acceleration feed-forward, switched on once the vehicle is "
@@ -194,7 +198,7 @@ def config_from_args(a: argparse.Namespace) -> AgentConfig:
                                 max_correction_m_s=a.track_max_correction,
                                 feedforward_gain=1.0 if paper or a.feedforward_gain == "auto" else a.feedforward_gain,
                                 feedforward_auto=a.feedforward_gain == "auto" and not paper,
-                                online_gain_time_s=a.online_gain_time),
+                                online_gain_time_s=a.online_gain_time, kinetic_axes=a.kinetic_axes),
         origin_ned_m=parse_floats(a.origin, 3, "--origin N,E,D"), yaw_deg=a.yaw, geodetic_anchor=anchor,
         max_speed_m_s=a.max_speed, max_accel_m_s2=a.max_accel, join_speed_m_s=a.join_speed,
         return_speed_m_s=a.return_speed, climb_speed_m_s=a.climb_speed, takeoff_alt_m=a.takeoff_alt,

@@ -44,6 +44,7 @@ health         | fisc_agent/flight/health.py        | tests/fisc_agent/test_vehi
 readiness      | fisc_agent/flight/readiness.py     | tests/fisc_agent/test_authority.py tests/fisc_agent/test_vehicle_health.py
 mission        | fisc_agent/flight/mission.py       | tests/fisc_agent/test_agent_mission.py tests/fisc_agent/test_authority.py tests/fisc_agent/test_mission_reasons.py
 safety_net     | fisc_agent/flight/safety_net.py     | tests/fisc_agent/test_safety_net.py
+cross_stream   | fisc_agent/flight/tracking.py       | tests/fisc_agent/test_tracking.py | fisc_agent.flight.tracking.x_cross_stream*
 "
 
 field() { echo "$1" | cut -d'|' -f"$2" -s | xargs; }

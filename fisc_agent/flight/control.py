@@ -30,6 +30,7 @@ from fisc_agent.map.lookup import (
 from fisc_agent.map.codec import MapError, MapErrorKind
 from fisc_agent.map.separation import Separation
 from fisc_agent.map.wall import DuctWall, reflect_at_wall
+from fisc_agent.flight.tracking import cross_stream
 from fisc_agent.flight.spacing import ENTRY_POINTS, HOLD_FLOOR_MARGIN_M, hold_altitude_m, lattice_hold_points
 
 Vec = tuple[float, float, float]
@@ -107,14 +108,18 @@ class ScalarField:
         return (float(cmd[0, 0]), float(cmd[0, 1]), float(cmd[0, 2]))
 
     def deviation(self, pos: Vec, vel: Vec | None, agent_id: int, t_s: float,
-                  wall_margin_m: float | None = None) -> Vec:
+                  wall_margin_m: float | None = None, stream: Vec | None = None) -> Vec:
         """This vehicle's ``kinetic`` deviation at ``pos`` [m/s]: the CV's fitted spread times the
         persistent, wall-reflected direction of ``fisc_agent.map.kinetic.kinetic_deviation`` (the
         simulator's rule; its state is kept here, shared with ``flight``).  Zero outside the CVs or
         on a map without a fitted spread.  Streamline tracking adds it to its parcel
         (``fisc_agent.flight.tracking.ParcelTracker.step``).  ``wall_margin_m`` given and the map carrying
         the duct's real wall: the outward radial part is mirrored within that margin of it
-        (``fisc_agent.map.wall.reflect_at_wall``)."""
+        (``fisc_agent.map.wall.reflect_at_wall``).  ``stream`` given (the field's unit direction at ``pos``,
+        ``KineticAxes.CROSS_STREAM``): the deviation is turned across it at its full magnitude
+        (``fisc_agent.flight.tracking.cross_stream``) before that mirror, which then sees the turned
+        deviation: turned after it, a mostly upstream deviation beside a diverging wall (whose stream tilts
+        outward) became a full-speed outward one and took a real PX4 out of the map."""
         cv = self.cv_of(*pos)
         spread = self.field.spread_m_s
         if cv < 0 or spread is None:
@@ -124,6 +129,8 @@ class ScalarField:
         d, self._dev_state = kinetic_deviation(
             self.field, point, np.array([agent_id]), t_s, self.settings().persistence_s, st,
             None if vel is None else np.array([vel], dtype=float))
+        if stream is not None:
+            d = np.array([cross_stream((float(d[0, 0]), float(d[0, 1]), float(d[0, 2])), stream)])
         if wall_margin_m is not None and self.wall is not None:
             # the fixed margin onboard: the duct-adapted one (``effective_margin_m`` with the map's d_min,
             # 0.46 m at the throat) took one real PX4 0.43 m beyond the wall by SIH's ground truth (PX4's

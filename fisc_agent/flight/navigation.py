@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-from typing import Callable
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
@@ -22,7 +21,7 @@ from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResp
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
                                       ScheduleSource, entry_schedule, entry_slot_open, final_leg_speed_m_s)
 from fisc_agent.flight.point_command import PointCommand, point_command, tracked_mode
-from fisc_agent.flight.tracking import ParcelTracker
+from fisc_agent.flight.tracking import DeviationFn, KineticAxes, ParcelTracker
 from fisc_agent.map.separation import Separation
 from fisc_agent.map.wall import rejoin_point
 
@@ -485,10 +484,11 @@ class Navigator:
             out = self.field_command(*pos)
         return out
 
-    def _deviation_fn(self, t: float, vel: Vec | None) -> Callable[[Vec], Vec]:
-        """The ``kinetic`` deviation at time ``t`` as a function of the parcel's position (for
-        ``ParcelTracker.step``; the vehicle's velocity sets the wall-reflection zone)."""
-        return lambda p: self.sfield.deviation(p, vel, self.cfg.agent_id, t, self.cfg.wall_margin_m)
+    def _deviation_fn(self, t: float, vel: Vec | None) -> DeviationFn:
+        """The ``kinetic`` deviation at time ``t`` for ``ParcelTracker.step`` (the vehicle's velocity sets the
+        wall-reflection zone; the field's direction turns it with ``TrackingConfig.kinetic_axes`` cross-stream)."""
+        cross = self.cfg.tracking.kinetic_axes is KineticAxes.CROSS_STREAM
+        return lambda p, s: self.sfield.deviation(p, vel, self.cfg.agent_id, t, self.cfg.wall_margin_m, s if cross else None)
 
     def lookahead_s(self) -> float:
         """Look-ahead in use: identified in flight (``lookahead_auto``), else given, else the map's."""

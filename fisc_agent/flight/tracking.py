@@ -44,6 +44,7 @@ Algorithm 1 with the ``mean`` mode and no look-ahead).
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -51,10 +52,24 @@ from typing import Callable
 Vec = tuple[float, float, float]
 FieldFn = Callable[[float, float, float], "Vec | None"]
 """Map-frame command at a point (the selected command mode), None outside the map's CVs."""
-DeviationFn = Callable[[Vec], Vec]
-"""The ``kinetic`` mode's deviation of this agent at a map-frame point [m/s] (zero outside the CVs)."""
+DeviationFn = Callable[[Vec, Vec], Vec]
+"""The ``kinetic`` mode's deviation of this agent at a map-frame point, given the field's unit direction
+there [m/s] (zero outside the CVs; ``ScalarField.deviation``)."""
 
 ZERO: Vec = (0.0, 0.0, 0.0)
+
+
+class KineticAxes(str, enum.Enum):
+    """Along which axes a streamline-tracking agent flies its ``kinetic`` deviation (``TrackingConfig.kinetic_axes``)."""
+
+    CROSS_STREAM = "cross-stream"
+    """Across the stream only, at the deviation's full magnitude (``cross_stream``): the swarm's velocity
+    spread, and so the pressure analogue, is the fitted one, while every vehicle crosses each slice at the
+    field's speed, so its transit time, and so the swarm's density, is the staggered field's."""
+    ISOTROPIC = "isotropic"
+    """The deviation as drawn, uniform on the sphere (``fisc-sim run``'s agents): its along-stream part
+    slows some vehicles where the spread exceeds the field's speed (inlet and outlet: spread 0.55 m/s,
+    speed 0.43 m/s), which linger there or turn upstream and leave the map through the inlet."""
 
 
 @dataclass(frozen=True)
@@ -104,6 +119,11 @@ class TrackingConfig:
     """With ``feedforward_auto``: forgetting time of the steady velocity gain learnt again through the
     pass (``identify.OnlineGain``), which then sets ``feedforward_gain`` [s]; 0: off (the gain
     identified before the pass is kept)."""
+    kinetic_axes: KineticAxes = KineticAxes.CROSS_STREAM
+    """How the ``kinetic`` deviation is flown (``--kinetic-axes``).  Emulated, eight vehicles looping 300 s
+    beside a real fleet (``fisc-sim emulate --plant px4-sih-loop --fleet-mode --estimate-error --mode kinetic``,
+    2026-12-07): across the stream, profile density r 0.96, pressure r 0.81, closest approach 1.00 m;
+    isotropic, 0.76, 0.86 and 0.50 m (docs/emulation.md)."""
 
     def __post_init__(self) -> None:
         for name in ("gain_1_s", "integral_gain_1_s2", "max_correction_m_s", "max_integral_m_s", "lookahead_s",
@@ -117,6 +137,28 @@ class TrackingConfig:
                 raise ValueError(f"tracking: {name} must be finite and > 0, is {v!r}")
         if not (math.isfinite(self.feedforward_gain) and 0.5 <= self.feedforward_gain <= 2.0):
             raise ValueError(f"tracking: feedforward_gain must be in [0.5, 2], is {self.feedforward_gain!r}")
+        try:
+            object.__setattr__(self, "kinetic_axes", KineticAxes(self.kinetic_axes))
+        except ValueError:
+            raise ValueError(f"tracking: kinetic_axes must be one of {[k.value for k in KineticAxes]}, "
+                             f"is {self.kinetic_axes!r}") from None
+
+
+def cross_stream(dev: Vec, t: Vec) -> Vec:
+    """The deviation ``dev`` turned across the stream of unit direction ``t``: its along-stream part
+    removed and the rest scaled back to ``|dev|`` (``KineticAxes.CROSS_STREAM``).  A deviation whose
+    cross-stream part is at most 1e-9 m/s gives zero; ``t`` zero (no field direction) leaves
+    ``dev`` as it is.  Each magnitude is kept, so the swarm's mean squared deviation, the fitted spread,
+    is too; a direction uniform on the sphere becomes uniform on the circle across ``t``."""
+    d0, d1, d2 = dev
+    t0, t1, t2 = t
+    a = d0 * t0 + d1 * t1 + d2 * t2
+    c0, c1, c2 = d0 - a * t0, d1 - a * t1, d2 - a * t2
+    cn = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    if cn <= 1e-9:
+        return ZERO
+    k = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) / cn
+    return (c0 * k, c1 * k, c2 * k)
 
 
 def _unit(a: Vec) -> Vec:
@@ -257,8 +299,8 @@ class ParcelTracker:
     def step(self, t_s: float, pos_m: Vec, field: FieldFn, deviation: DeviationFn | None = None) -> Vec | None:
         """Move the parcel abreast of the vehicle and return the velocity command (map frame).
 
-        ``deviation`` (the ``kinetic`` mode): the agent's persistent deviation at a point
-        (``ScalarField.deviation``).  The parcel then is a kinetic particle: its cross-stream part
+        ``deviation`` (the ``kinetic`` mode): the agent's persistent deviation at a point, given the
+        field's direction there (``ScalarField.deviation``).  The parcel then is a kinetic particle: its cross-stream part
         moves the parcel across the stream (so the vehicle's position feedback pulls towards a
         deviated parcel instead of cancelling the deviation), and the whole deviation is added to the
         feed-forward; along the stream it is flown open loop, like the field.
@@ -293,7 +335,7 @@ class ParcelTracker:
         v_ff = self._ahead(p, v, field)
         l0 = l1 = l2 = 0.0
         if deviation is not None:
-            dev = deviation(p)
+            dev = deviation(p, (t0, t1, t2))
             a = dev[0] * t0 + dev[1] * t1 + dev[2] * t2
             c0, c1, c2 = dev[0] - a * t0, dev[1] - a * t1, dev[2] - a * t2
             if dt > 0.0:

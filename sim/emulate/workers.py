@@ -314,13 +314,14 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
     ``fisc_agent.map.lookup.flight_command`` at its position, the function ``fisc-sim run`` flies).  The
     emulated duct has no physical wall: kinetic deviations reflect at the CV staircase, as in ``fisc-sim
     run`` (``wall_margin_m`` None), so the two compare, unless ``job.fleet_mode`` (fisc-agent's own margin
-    of the map's real wall, as on a real fleet); the launches are staggered at the paper's
+    of the map's real wall, as on a real fleet, and its ``kinetic_axes``: across the stream; without it the deviations
+    are isotropic, as ``fisc-sim run``'s); the launches are staggered at the paper's
     source rate (``sim.emulate.plan``), and the agents admit themselves from the map's admission budget
     only with ``job.staggered_admission`` (else ``entry_stagger_s`` 0); the safety net only with
     ``job.safety_net``."""
     from fisc_agent.config import AgentConfig
     from fisc_agent.flight.safety_net import SafetyNetConfig
-    from fisc_agent.flight.tracking import TrackingConfig
+    from fisc_agent.flight.tracking import KineticAxes, TrackingConfig
 
     return AgentConfig(mavlink_url=f"udpout:127.0.0.1:{port}", agent_id=agent_id, map_path=job.map_path, go=True, state_file=None,
                        autopilot=job.personality, mode=job.mode, lookahead_s=job.lookahead_s, rate_hz=job.rate_hz,
@@ -328,7 +329,9 @@ def agent_config(job: _AgentJob, agent_id: int, port: int):
                        entry_radius_fraction=job.entry_radius_fraction,
                        wall_margin_m=AgentConfig.wall_margin_m if job.fleet_mode else None,
                        entry_stagger_s=None if job.staggered_admission else 0.0,
-                       tracking=TrackingConfig() if job.tracking else TrackingConfig(gain_1_s=0.0),
+                       tracking=TrackingConfig(kinetic_axes=TrackingConfig.kinetic_axes if job.fleet_mode
+                                               else KineticAxes.ISOTROPIC) if job.tracking
+                       else TrackingConfig(gain_1_s=0.0),
                        safety_net=SafetyNetConfig() if job.safety_net else None)
 
 

@@ -14,7 +14,7 @@ import pytest
 from agent_testkit import EmulatorProbe, tunnel_map_bytes
 from sim.autopilot import server
 from fisc_agent.cli import build_parser, config_from_args, main
-from fisc_agent.flight.tracking import TrackingConfig
+from fisc_agent.flight.tracking import KineticAxes, TrackingConfig
 from fisc_agent.config import AgentConfig
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -70,6 +70,17 @@ def test_the_feedforward_gain_is_1_by_default_a_number_or_auto(capsys):
     with pytest.raises(SystemExit) as exc:
         build_parser().parse_args(base + ["--feedforward-gain", "more"])
     assert exc.value.code == 2 and "--feedforward-gain: expected gain or 'auto', got 'more'" in capsys.readouterr().err
+
+
+def test_the_kinetic_axes_default_to_cross_stream_and_isotropic_is_an_option(capsys):
+    base = ["--map", "m.fiscmap", "--mavlink", "udp://:14540", "--id", "7", "--mode", "kinetic"]
+    t = config_from_args(build_parser().parse_args(base)).tracking
+    assert t.kinetic_axes is KineticAxes.CROSS_STREAM is TrackingConfig.kinetic_axes
+    t = config_from_args(build_parser().parse_args(base + ["--kinetic-axes", "isotropic"])).tracking
+    assert t.kinetic_axes is KineticAxes.ISOTROPIC
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(base + ["--kinetic-axes", "radial"])
+    assert exc.value.code == 2 and "--kinetic-axes: invalid choice: 'radial'" in capsys.readouterr().err
 
 
 def test_the_wall_margin_defaults_to_the_config_and_off_reflects_at_the_staircase_only(capsys):

@@ -91,7 +91,7 @@ def test_an_outward_deviation_fills_the_section_yet_stays_inside_the_wall():
         tracker = ParcelTracker(TrackingConfig(lookahead_s=0.5), x_outlet_m=15.0)
         pos, dt, throat_r, worst = (1.0, 0.0, 0.0), 0.05, 0.0, -math.inf
 
-        def outward(p):
+        def outward(p, stream):
             r = math.hypot(p[1], p[2])
             d = np.array([[0.0, 0.4 * p[1] / r, 0.4 * p[2] / r]]) if r > 0 else np.array([[0.0, 0.4, 0.0]])
             return tuple(float(v) for v in reflect_at_wall(np.array([p]), d, wall, 0.8, d_min)[0])

@@ -15,7 +15,9 @@ earlier host).  The flights:
 - ``plant-<mode>``: a vehicle that flies the agent's setpoints (first-order velocity lag, no noise)
   from the inlet with exit policy ``loop``: FLOW, past the outlet, JOIN back to the inlet, FLOW again, in
   the map's recommended mode (``staggered`` under tracking) and in ``slot``, ``mean``, ``interpolated``
-  and explicit ``kinetic``.
+  and explicit ``kinetic``: ``plant-kinetic`` with the deviations isotropic (``KineticAxes.ISOTROPIC``, the
+  only way before 2026-12-07, recorded then), ``plant-kinetic-cross-stream`` turned across the stream (the
+  default since, its record added then).
 
 Regenerate the golden file (only for an intended change of behaviour) with
 ``python tests/fisc_agent/test_step_outputs_unchanged.py --write``.
@@ -38,6 +40,7 @@ import bench_agent  # noqa: E402
 
 from fisc_agent.config import AgentConfig, ExitPolicy  # noqa: E402
 from fisc_agent.flight.mission_types import FleetOrder, MissionCommand  # noqa: E402
+from fisc_agent.flight.tracking import KineticAxes, TrackingConfig  # noqa: E402
 from fisc_agent.mavlink.interfaces import PositionSample  # noqa: E402
 from fisc_agent.runner import Runner  # noqa: E402
 
@@ -48,7 +51,7 @@ TOL = 1e-11
 """Tolerance of a tick's float sum (``_float_sum``): a last-bit difference of 20 floats moves it by < 1e-13; a
 change of 1e-9 in a float near 1 by 2.5e-10 (in one near 10, 8e-12: the sum squashes large floats)."""
 DT_S = 0.05
-PLANT_MODES = ("recommended", "slot", "mean", "interpolated", "kinetic")
+PLANT_MODES = ("recommended", "slot", "mean", "interpolated", "kinetic", "kinetic-cross-stream")
 
 
 class PlantLink(bench_agent.BenchLink):
@@ -94,8 +97,11 @@ def _fly(name: str, ticks: int) -> list[str]:
         link = bench_agent.BenchLink(clock)
     else:
         mode = name.removeprefix("plant-")
+        axes = KineticAxes.CROSS_STREAM if mode.endswith("-cross-stream") else KineticAxes.ISOTROPIC
+        mode = mode.removesuffix("-cross-stream")
         cfg = AgentConfig(mavlink_url="udpin:0.0.0.0:14540", agent_id=3, state_file=None,
-                          mode=None if mode == "recommended" else mode, exit_policy=ExitPolicy.LOOP)
+                          mode=None if mode == "recommended" else mode, exit_policy=ExitPolicy.LOOP,
+                          tracking=TrackingConfig(kinetic_axes=axes))
         link = PlantLink(clock, (0.5, 0.1, -10.0))
     sent: list = []
     inner_send = link.send_velocity_ned

@@ -2,9 +2,10 @@
 
 import math
 
+import numpy as np
 import pytest
 
-from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
+from fisc_agent.flight.tracking import KineticAxes, ParcelTracker, TrackingConfig, cross_stream
 
 
 def uniform(x, y, z):
@@ -111,7 +112,7 @@ def test_the_integral_does_not_learn_while_kinetic_deviations_are_flown():
     for tr in (kinetic, plain):
         tr.reset((1.0, 0.0, 0.0), 0.0)
     for k in range(1, 41):  # a vehicle 0.2 m off its parcel for 2 s
-        kinetic.step(0.05 * k, (1.0, 0.2, 0.0), uniform, lambda p: (0.0, 0.0, 0.3))
+        kinetic.step(0.05 * k, (1.0, 0.2, 0.0), uniform, lambda p, t: (0.0, 0.0, 0.3))
         plain.step(0.05 * k, (1.0, 0.2, 0.0), uniform)
     assert kinetic.integral_m_s == (0.0, 0.0, 0.0)
     assert plain.integral_m_s[1] < -0.1
@@ -124,6 +125,40 @@ def test_config_rejects_nonsense():
         TrackingConfig(feedforward_gain=math.nan)
     with pytest.raises(ValueError, match="resync_distance_m"):
         TrackingConfig(resync_distance_m=0.0)
+    with pytest.raises(ValueError, match=r"kinetic_axes must be one of \['cross-stream', 'isotropic'\], is 'radial'"):
+        TrackingConfig(kinetic_axes="radial")
+    assert TrackingConfig(kinetic_axes="isotropic").kinetic_axes is KineticAxes.ISOTROPIC
+    assert TrackingConfig().kinetic_axes is KineticAxes.CROSS_STREAM
+
+
+@pytest.mark.parametrize("dev, t, expected", [
+    ((0.0, 0.4, 0.0), (1.0, 0.0, 0.0), (0.0, 0.4, 0.0)),           # across already: unchanged
+    ((0.3, 0.4, 0.0), (1.0, 0.0, 0.0), (0.0, 0.5, 0.0)),           # along part removed, |dev| 0.5 kept
+    ((-0.3, 0.0, -0.4), (1.0, 0.0, 0.0), (0.0, 0.0, -0.5)),        # upstream and down: down at full speed
+    ((0.3, 0.4, 0.0), (0.0, 1.0, 0.0), (0.5, 0.0, 0.0)),           # the stream along y
+    ((0.0, 0.3, 0.4), (0.0, 0.0, 1.0), (0.0, 0.5, 0.0)),           # the stream along z
+    ((0.6, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)),           # all along the stream: none across
+    ((-0.6, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)),          # all against it: none either
+    ((0.6, 2e-9, 0.0), (1.0, 0.0, 0.0), (0.0, 0.6, 0.0)),          # just above the 1e-9 m/s floor: full speed
+    ((0.6, 1e-9, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)),          # at it: none
+    ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)),           # no deviation
+    ((0.3, 0.4, 0.0), (0.0, 0.0, 0.0), (0.3, 0.4, 0.0)),           # no field direction: as drawn
+])
+def test_cross_stream_removes_the_along_stream_part_and_keeps_the_magnitude(dev, t, expected):
+    assert cross_stream(dev, t) == pytest.approx(expected, abs=1e-12)
+
+
+def test_cross_stream_keeps_the_mean_squared_deviation_of_directions_uniform_on_the_sphere():
+    """The fitted spread is the rms of the deviation: turned across a stream it stays, and it is shared
+    equally by the two cross-stream axes (uniform on the circle)."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(20000, 3))
+    d *= 0.5 / np.linalg.norm(d, axis=1, keepdims=True)
+    t = (0.6, 0.8, 0.0)
+    out = np.array([cross_stream(tuple(v), t) for v in d])
+    assert np.mean((out ** 2).sum(axis=1)) == pytest.approx(0.25, rel=1e-9)
+    assert abs(out @ np.array(t)).max() < 1e-12
+    assert np.mean(out[:, 2] ** 2) == pytest.approx(0.125, rel=0.03)
 
 
 def test_a_kinetic_deviation_moves_the_parcel_across_the_stream_and_is_flown_as_feedforward():
@@ -135,17 +170,39 @@ def test_a_kinetic_deviation_moves_the_parcel_across_the_stream_and_is_flown_as_
     tr = ParcelTracker(cfg)
     tr.reset((1.0, 0.0, 0.0), 0.0)
     dev = (0.3, 0.4, 0.0)
-    v = tr.step(0.1, (1.0, 0.0, 0.0), uniform, lambda p: dev)
+    v = tr.step(0.1, (1.0, 0.0, 0.0), uniform, lambda p, t: dev)
     assert tr.parcel_m == pytest.approx((1.0, 0.04, 0.0))        # 0.4 m/s across for 0.1 s, none along
     # feed-forward 2 + 0.3 along, 0.4 across; feedback to parcel - 0.4 * 0.5 across = -0.16 m
     assert v == pytest.approx((2.3, 0.4 - 0.16, 0.0))
     t, pos = 0.1, (1.0, 0.0, 0.0)
     for _ in range(20):                                          # a vehicle that flies the command
         t += 0.05
-        v = tr.step(t, pos, uniform, lambda p: dev)
+        v = tr.step(t, pos, uniform, lambda p, t: dev)
         pos = (pos[0] + 0.05 * v[0], pos[1] + 0.05 * v[1], pos[2])
     assert pos[1] > 0.3 and tr.parcel_m[1] > pos[1]               # the deviation is flown, not cancelled
     assert tr.step(t + 0.05, pos, uniform) == pytest.approx((2.0, tr.parcel_m[1] - pos[1], 0.0))  # none: field only
+
+
+def test_the_tracker_gives_the_deviation_the_field_direction_at_the_parcel():
+    """With ``KineticAxes.CROSS_STREAM`` (``ScalarField.deviation`` turns the deviation with ``cross_stream``)
+    the deviation's along-stream part is not flown: the vehicle crosses each slice at the field's speed, as
+    without deviations, and deviates across the stream at the deviation's full magnitude."""
+    cfg = TrackingConfig(gain_1_s=1.0, integral_gain_1_s2=0.0, bias_time_constant_s=0.0, lookahead_s=0.5)
+    tr = ParcelTracker(cfg)
+    tr.reset((1.0, 0.0, 0.0), 0.0)
+    seen = []
+
+    def turned(p, t):
+        seen.append(t)
+        return cross_stream((-0.3, 0.4, 0.0), t)                 # upstream and across, turned across
+
+    v = tr.step(0.1, (1.0, 0.0, 0.0), uniform, turned)
+    assert seen[-1] == pytest.approx((1.0, 0.0, 0.0))            # the uniform field's direction
+    assert tr.parcel_m == pytest.approx((1.0, 0.05, 0.0))        # 0.5 m/s across for 0.1 s
+    # feed-forward 2 along (not 1.7), 0.5 across; feedback to parcel - 0.5 * 0.5 across = -0.2 m
+    assert v == pytest.approx((2.0, 0.5 - 0.2, 0.0))
+    v = tr.step(0.2, (1.2, 0.0, 0.0), uniform, lambda p, t: cross_stream((-2.5, 0.0, 0.0), t))
+    assert v[0] == pytest.approx(2.0)                            # straight upstream: nothing flown
 
 
 def test_resume_keeps_the_streamline_and_does_not_integrate_the_interruption():

@@ -8,7 +8,7 @@ import pytest
 from fisc_agent.flight.control import ScalarField
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import MapError, decode_map, encode_map, load_map
-from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig
+from fisc_agent.flight.tracking import ParcelTracker, TrackingConfig, cross_stream
 from fisc_agent.map.wall import WALL_ARRAY, DuctWall, map_wall, reflect_at_wall, rejoin_inset_m, rejoin_point
 from fisc_ground.maps.duct_wall import duct_wall_from_reference
 from fisc_ground.maps.build import default_map_path
@@ -91,6 +91,28 @@ def test_the_agents_deviation_never_heads_out_within_the_margin_and_is_the_simul
     assert 60 < outward < 140                                  # about half of the drawn directions head out
 
 
+def test_a_cross_stream_deviation_is_turned_before_the_mirror_so_it_never_heads_out_beside_a_diverging_wall():
+    """The default ``KineticAxes.CROSS_STREAM`` beside the diffuser's wall, where the stream tilts outward: the
+    deviation is turned across the stream first and mirrored after, so within the margin it never heads
+    out, and it keeps the CV's spread.  Turned after the mirror (the order of a first version), a mostly
+    upstream deviation became a full-speed outward one: a real PX4 left the map so near x = 13 m."""
+    sfield, wall = _default()
+    near = (10.5, 0.0, float(wall.radius_at(10.5)) - 0.3)
+    v = sfield.flight(near, None, 0, 0.0, "staggered", 0.0)      # the field steps outward with the staircase
+    stream = tuple(c / math.hypot(*v) for c in v)
+    assert stream[2] > 0.5                                       # tilted outward by more than 30 degrees
+    spread = float(sfield.field.spread_m_s[sfield.cv_of(*near)])
+    turned_late = 0
+    for agent in range(200):
+        plain = ScalarField(sfield.field, wall=wall).deviation(near, None, agent, 0.0)
+        mirrored = ScalarField(sfield.field, wall=wall).deviation(near, None, agent, 0.0, wall_margin_m=0.5)
+        kept = ScalarField(sfield.field, wall=wall).deviation(near, None, agent, 0.0, wall_margin_m=0.5, stream=stream)
+        assert kept[2] <= 1e-12                                  # never toward the wall
+        assert math.hypot(*kept) == pytest.approx(spread)       # at the CV's spread
+        turned_late += cross_stream(mirrored, stream)[2] > 1e-9
+    assert turned_late > 10                                      # the other order heads out for some
+
+
 def test_a_kinetic_parcel_heading_for_the_wall_stays_inside_it():
     """An ideal vehicle (velocity = command) under streamline tracking whose deviation keeps pointing
     outward: with the wall it stays inside the real duct; reflected at the staircase only (the
@@ -101,7 +123,7 @@ def test_a_kinetic_parcel_heading_for_the_wall_stays_inside_it():
         tracker = ParcelTracker(TrackingConfig(lookahead_s=0.5), x_outlet_m=15.0)
         pos, worst, dt = (1.0, 0.0, 0.0), -math.inf, 0.05
 
-        def outward(p):  # a deviation of 0.4 m/s straight away from the axis (+y on it)
+        def outward(p, stream):  # a deviation of 0.4 m/s straight away from the axis (+y on it)
             r = math.hypot(p[1], p[2])
             d = np.array([[0.0, 0.4 * p[1] / r, 0.4 * p[2] / r]]) if r > 0 else np.array([[0.0, 0.4, 0.0]])
             if margin is not None:

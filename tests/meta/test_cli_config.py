@@ -27,7 +27,7 @@ AGENT = {
     "--track-gain": "TrackingConfig.gain_1_s", "--track-integral-gain": "TrackingConfig.integral_gain_1_s2",
     "--track-max-correction": "TrackingConfig.max_correction_m_s",
     "--lookahead": "AgentConfig.lookahead_s AgentConfig.lookahead_auto",
-    "--feedforward-gain": "TrackingConfig.feedforward_gain TrackingConfig.feedforward_auto", "--online-gain-time": "TrackingConfig.online_gain_time_s", "--entry-stagger": "AgentConfig.entry_stagger_s",
+    "--feedforward-gain": "TrackingConfig.feedforward_gain TrackingConfig.feedforward_auto", "--online-gain-time": "TrackingConfig.online_gain_time_s", "--kinetic-axes": "TrackingConfig.kinetic_axes", "--entry-stagger": "AgentConfig.entry_stagger_s",
     "--entry-slots": "AgentConfig.entry_slots", "--rate": "AgentConfig.rate_hz",
     "--entry-radius-fraction": "AgentConfig.entry_radius_fraction",
     "--origin": "AgentConfig.origin_ned_m", "--yaw": "AgentConfig.yaw_deg",

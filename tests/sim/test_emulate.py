@@ -123,7 +123,8 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
                position_rate_hz=20.0, telemetry="full", log_level="WARNING",
                entry_radius_fraction=EmulateConfig().entry_radius_fraction)
     agent = agent_config(_AgentJob(**job, tracking=EmulateConfig().tracking), 3, 14999)
-    assert agent.tracking == TrackingConfig()      # fisc-agent's own default, as on a real vehicle
+    # fisc-agent's own default, as on a real vehicle, but for the deviations' axes (below)
+    assert agent.tracking == TrackingConfig(kinetic_axes=agent.tracking.kinetic_axes)
     assert (agent.agent_id, agent.mode, agent.lookahead_s, agent.mavlink_url) == (
         3, "kinetic", 0.5, "udpout:127.0.0.1:14999")
     assert agent.entry_radius_fraction == 1.0  # entries over every inlet CV, as fisc-sim run injects
@@ -146,6 +147,11 @@ def test_emulated_agents_track_their_streamline_unless_flown_open_loop():
     assert agent.wall_margin_m is None
     fleet = agent_config(_AgentJob(**job, tracking=True, fleet_mode=True), 3, 14999)
     assert fleet.wall_margin_m == AgentConfig.wall_margin_m and fleet.wall_margin_m is not None
+    # and their deviations isotropic (fisc-sim run's), but across the stream on a fleet (fisc-agent's default)
+    from fisc_agent.flight.tracking import KineticAxes, TrackingConfig
+
+    assert agent.tracking.kinetic_axes is KineticAxes.ISOTROPIC
+    assert fleet.tracking.kinetic_axes is TrackingConfig.kinetic_axes is KineticAxes.CROSS_STREAM
 
 
 def test_the_emulated_safety_net_needs_a_swarm_to_hear_the_others():
