@@ -92,8 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MAVLink client library (mavsdk needs the mavsdk package)")
     p.add_argument("--mode", choices=COMMAND_MODES, default=None,
                    help="command mode (default: the map's recommended mode; mean for a schema-1 map; with "
-                        "streamline tracking a recommended kinetic mode is flown as staggered, an explicit "
-                        "--mode kinetic flies its deviations on the tracking parcel)")
+                        "streamline tracking kinetic flies the staggered field with its deviations on the tracking "
+                        "parcel, turned within --wall-margin of the map's real wall; a map without that wall flies "
+                        "a recommended kinetic as staggered)")
     p.add_argument("--preset", choices=("paper",), default=None,
                    help="paper: the paper's Algorithm 1 (mean commands, open loop, no look-ahead) whatever the map "
                         "recommends")

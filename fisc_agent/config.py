@@ -50,8 +50,10 @@ class AgentConfig:
     """MAVLink backend: ``pymavlink`` (default) or ``mavsdk`` (optional dependency, PX4 only)."""
     mode: str | None = None
     """Command mode (``fisc_agent.map.lookup.COMMAND_MODES``, DESIGN.md section 3); None: the map's
-    recommended mode (``mean`` for a schema-1 map), except that under streamline tracking a
-    recommended ``kinetic`` is flown as ``staggered``; ``kinetic`` given here flies its deviations."""
+    recommended mode (``mean`` for a schema-1 map).  Under streamline tracking ``kinetic`` flies the
+    ``staggered`` field with its deviations, turned before the map's real wall; a map without the wall
+    (``duct_wall_m``) or ``wall_margin_m`` None flies a recommended ``kinetic`` as ``staggered``, one given
+    here with its deviations turning at the staircase (``point_command.tracked_mode``)."""
     lookahead_s: float | None = None
     """Command look-ahead t_lead [s] (``fisc_agent.map.lookup.lookahead_point``); None: the map's
     recommended value (0 for a schema-1 map).  A lag identified in flight is passed the same way."""

@@ -101,13 +101,14 @@ class Navigator:
         self.tracker.clear()  # a parcel of the old map means nothing in the new one
         mode = sfield.settings(self.cfg.mode).mode
         # kinetic under streamline tracking: the parcel follows the staggered field and carries the
-        # agent's deviation (ParcelTracker.step), when the mode was asked for explicitly
-        self.tracked_mode, self.kinetic = tracked_mode(mode, self.cfg.mode)
+        # agent's deviation (ParcelTracker.step), turned before the map's real wall where it has one
+        wall_known = sfield.wall is not None and self.cfg.wall_margin_m is not None
+        self.tracked_mode, self.kinetic = tracked_mode(mode, self.cfg.mode, wall_known)
         self._point_cmd = point_command(sfield, self.tracked_mode, self.cfg.agent_id)
         if mode == "kinetic" and not self.kinetic and self.cfg.tracking.gain_1_s > 0.0:
-            log.warning("the map recommends mode kinetic; under streamline tracking its deviations are flown only "
-                        "with an explicit --mode kinetic (which turns them within --wall-margin of the map's real "
-                        "wall: docs/deployment.md); flying the map's staggered field")
+            log.warning("the map recommends mode kinetic but carries no real wall (duct_wall_m) to turn its deviations "
+                        "before (or --wall-margin is off): flying the map's staggered field without them; an explicit "
+                        "--mode kinetic flies them turning at the CV staircase (docs/deployment.md)")
         if self.response is None:
             self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self.lookahead_s())
 

@@ -24,13 +24,17 @@ PointCommand = Callable[[float, float, float], "Vec | None"]
 """Map-frame command at a point, None outside the map's CVs."""
 
 
-def tracked_mode(resolved_mode: str, explicit_mode: str | None) -> tuple[str, bool]:
+def tracked_mode(resolved_mode: str, explicit_mode: str | None, wall_known: bool) -> tuple[str, bool]:
     """(the field a streamline-tracking agent samples, whether it flies the kinetic deviations) for the
-    command mode it resolved (``ScalarField.settings``) and the mode it was given (None: the map's
-    recommendation).  ``kinetic`` is flown on the ``staggered`` field, its deviations carried by the
-    parcel only when asked for explicitly (a real duct's wall: ``AgentConfig.wall_margin_m``)."""
+    command mode it resolved (``ScalarField.settings``), the mode it was given (None: the map's
+    recommendation) and whether it can turn the deviations before the duct's real wall (``wall_known``: the
+    map carries ``duct_wall_m`` and ``AgentConfig.wall_margin_m`` is set).  ``kinetic`` is flown on the
+    ``staggered`` field, its deviations carried by the parcel (across the stream by default,
+    ``TrackingConfig.kinetic_axes``) when asked for explicitly, or recommended by a map that carries the
+    wall: without it they would turn only at the CV staircase, whose outer cubes lie partly outside a real
+    duct, so a recommendation alone then flies the staggered field."""
     kinetic = resolved_mode == "kinetic"
-    return ("staggered" if kinetic else resolved_mode), kinetic and explicit_mode == "kinetic"
+    return ("staggered" if kinetic else resolved_mode), kinetic and (explicit_mode == "kinetic" or wall_known)
 
 
 def point_command(sfield: ScalarField, mode: str, agent_id: int) -> PointCommand:

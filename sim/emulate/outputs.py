@@ -14,6 +14,7 @@ import numpy as np
 
 from fisc_agent.flight.frames import DEFAULT_ORIGIN_NED_M, DeploymentTransform
 from fisc_agent.flight.point_command import tracked_mode
+from fisc_agent.map.wall import WALL_ARRAY
 from fisc_agent.map.lookup import CommandField, map_flight_settings
 from fisc_agent.map.codec import CommandMap
 from fisc_agent.map.separation import map_separation
@@ -53,12 +54,15 @@ class EmulateResult:
 
 def _run_config(config: EmulateConfig, map_path: Path, cmap: CommandMap):
     """The ``fisc-sim run`` settings of the emulation's report and reference run: its mode is the one the
-    agents fly (with ``fleet_mode``, a recommended ``kinetic`` flown on the staggered field)."""
+    agents fly (with ``fleet_mode``, a recommended ``kinetic`` flown on the staggered field, with its
+    deviations where the map carries the duct's real wall: ``fisc-sim run``'s ``kinetic``, whose deviations
+    are isotropic where the agents' are turned across the stream)."""
     from sim.run import RunConfig
 
     mode = config.mode
     if mode is None and config.fleet_mode and config.preset != "paper" and config.tracking:
-        mode = tracked_mode(map_flight_settings(cmap).mode, None)[0]
+        field, deviations = tracked_mode(map_flight_settings(cmap).mode, None, WALL_ARRAY in cmap.arrays)
+        mode = "kinetic" if deviations else field
     return RunConfig(map=str(map_path), scenario="reservoir", agents=config.agents, duration_s=config.duration_s,
                      average_window_s=config.average_window_s, sample_interval_s=config.sample_interval_s,
                      mode=mode, lookahead_s=config.lookahead_s, preset=config.preset,

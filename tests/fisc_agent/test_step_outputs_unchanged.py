@@ -14,7 +14,8 @@ earlier host).  The flights:
   ``Runner.step()`` benchmark's own flight);
 - ``plant-<mode>``: a vehicle that flies the agent's setpoints (first-order velocity lag, no noise)
   from the inlet with exit policy ``loop``: FLOW, past the outlet, JOIN back to the inlet, FLOW again, in
-  the map's recommended mode (``staggered`` under tracking) and in ``slot``, ``mean``, ``interpolated``
+  the map's recommended mode (``kinetic`` under tracking: the staggered field with the deviations turned
+  across the stream, since 2026-12-07, when its record was rewritten; ``staggered`` before) and in ``slot``, ``mean``, ``interpolated``
   and explicit ``kinetic``: ``plant-kinetic`` with the deviations isotropic (``KineticAxes.ISOTROPIC``, the
   only way before 2026-12-07, recorded then), ``plant-kinetic-cross-stream`` turned across the stream (the
   default since, its record added then).

@@ -222,14 +222,18 @@ def test_resume_keeps_the_streamline_and_does_not_integrate_the_interruption():
     assert tr.parcel_m == pytest.approx((2.0, 0.4, 0.0))
 
 
-@pytest.mark.parametrize("resolved, explicit, expected", [
-    ("kinetic", None, ("staggered", False)),  # the map's recommendation: the staggered field, no deviations
-    ("kinetic", "kinetic", ("staggered", True)),  # asked for: the deviations ride on the parcel
-    ("staggered", "staggered", ("staggered", False)),
-    ("slot", None, ("slot", False)),
-    ("mean", "mean", ("mean", False)),
+@pytest.mark.parametrize("resolved, explicit, wall_known, expected", [
+    ("kinetic", None, True, ("staggered", True)),       # the map's recommendation, its real wall known: deviations
+    ("kinetic", None, False, ("staggered", False)),     # no wall to turn them before: the staggered field alone
+    ("kinetic", "kinetic", True, ("staggered", True)),  # asked for: the deviations ride on the parcel
+    ("kinetic", "kinetic", False, ("staggered", True)),  # asked for without a wall: turned at the staircase
+    ("staggered", "staggered", True, ("staggered", False)),
+    ("staggered", None, True, ("staggered", False)),
+    ("slot", None, True, ("slot", False)),
+    ("mean", "mean", False, ("mean", False)),
 ])
-def test_a_tracking_agent_flies_kinetic_deviations_only_when_asked_for(resolved, explicit, expected):
+def test_a_tracking_agent_flies_kinetic_deviations_where_it_knows_the_wall_or_when_asked_for(resolved, explicit,
+                                                                                           wall_known, expected):
     from fisc_agent.flight.point_command import tracked_mode
 
-    assert tracked_mode(resolved, explicit) == expected
+    assert tracked_mode(resolved, explicit, wall_known) == expected

@@ -106,9 +106,17 @@ def test_fleet_mode_lets_the_agents_resolve_the_recommended_mode_as_on_a_real_fl
     assert EmulateConfig(fleet_mode=True).agent_settings("kinetic").mode is None
     assert EmulateConfig(fleet_mode=True, mode="slot").agent_settings("kinetic").mode == "slot"
     assert EmulateConfig(fleet_mode=True, preset="paper").agent_settings("kinetic").mode == "mean"
-    # the report and the reference run name the field the agents fly
+    # the report and the reference run name what the agents fly: the staggered field with the deviations where the
+    # map carries the duct's real wall (fisc-sim run's kinetic), without them where it does not
+    import dataclasses
+
+    from fisc_agent.map.wall import WALL_ARRAY
+
     m = tmp_path / "m.fiscmap"
-    assert _run_config(EmulateConfig(fleet_mode=True), m, cmap).mode == "staggered"
+    assert WALL_ARRAY in cmap.arrays
+    assert _run_config(EmulateConfig(fleet_mode=True), m, cmap).mode == "kinetic"
+    bare = dataclasses.replace(cmap, arrays={k: v for k, v in cmap.arrays.items() if k != WALL_ARRAY})
+    assert _run_config(EmulateConfig(fleet_mode=True), m, bare).mode == "staggered"
     assert _run_config(EmulateConfig(), m, cmap).mode is None
     assert _run_config(EmulateConfig(fleet_mode=True, tracking=False), m, cmap).mode is None  # open loop: kinetic
     assert _run_config(EmulateConfig(fleet_mode=True, mode="slot"), m, cmap).mode == "slot"
