@@ -95,9 +95,9 @@ def test_one_px4_from_the_ground_through_the_duct_and_out(shared_path, tmp_path,
     """Take-off, join, the pass and the exit hold on one real PX4, in the local frame, with either
     MAVLink backend (MAVSDK: its own mavsdk_server, its offboard plugin and actions).
 
-    The agent's default under streamline tracking: the map's staggered field without the kinetic
-    deviations (``realised_spread_ratio`` is printed: ~0.46 of the fitted spread, the tracking error;
-    an explicit ``--mode kinetic`` flies them, see the next test)."""
+    The agent's default under streamline tracking: the map's staggered field with the kinetic deviations
+    turned across the stream (since 2026-12-07; before, without them: ``realised_spread_ratio``, printed,
+    was ~0.46 of the fitted spread, the tracking error alone)."""
     if backend == "mavsdk":
         require_module("mavsdk", extra="mavsdk")  # the optional MAVSDK backend
     log = tmp_path / "agent1.csv"
