@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "pass, forgetting over this time, and set the feed-forward gain from it [s]; off: keep the "
                         "gain identified before the pass")
     t.add_argument("--kinetic-axes", choices=[k.value for k in KineticAxes], default=TrackingConfig.kinetic_axes.value,
-                   help="--mode kinetic: fly the deviation across the stream only, at its full magnitude (the fitted "
+                   help="kinetic mode under tracking: fly the deviation across the stream only, at its full magnitude (the fitted "
                         "velocity spread without slowing a vehicle along the stream), or isotropic as fisc-sim run's "
                         "agents do (default %(default)s)")
     t.add_argument("--drag-feedforward", choices=("on", "off"), default="on",
