@@ -637,6 +637,22 @@ def latest_states(logs: list[Path]) -> list[str]:
     return out
 
 
+def mission_story(logs: list[Path]) -> str:
+    """Each agent's mission as its flight log tells it, one line per agent: the states it went
+    through with their reasons (for the end of an assertion message, where a CI's tail shows it)."""
+    lines = []
+    for i, p in enumerate(logs):
+        try:
+            rows = read_flight_log(p)
+        except (OSError, KeyError) as e:
+            lines.append(f"agent {i}: no flight log ({e})")
+            continue
+        steps = [f"{r['state']} ({r['reason']})" for k, r in enumerate(rows)
+                 if k == 0 or (r["state"], r["reason"]) != (rows[k - 1]["state"], rows[k - 1]["reason"])]
+        lines.append(f"agent {i}: " + " > ".join(steps))
+    return "\n".join(lines)
+
+
 @dataclass(frozen=True)
 class SignedMapOnZenoh:
     """A ground key, the embedded default map fitted and signed with it, and Zenoh configs on loopback."""

@@ -37,8 +37,8 @@ from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
 
 from .conftest import Processes, cli, poll, run_cli
-from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, TRUTH_EXCURSION_M, latest_states, Px4Sitl, Track, ground, ok,
-                       px4_ulog, signed_map_on_zenoh, truth_on_wall_clock, truth_pass, ulog_summary)
+from .sitl_kit import (MAP_ANCHOR, MAX_EXCURSION_M, TRUTH_EXCURSION_M, latest_states, mission_story, Px4Sitl, Track,
+                       ground, ok, px4_ulog, signed_map_on_zenoh, truth_on_wall_clock, truth_pass, ulog_summary)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -147,7 +147,7 @@ def test_px4_fleet_over_zenoh_with_anchors_status_hold_resume_and_a_strangers_ma
             # everyone through its laps and holding after the outlet
             done = poll(lambda: all(s == "HOLD" for s in states()) and all(
                 any(r["state"] == "EXIT" for r in read_flight_log(p)) for p in logs), 240.0 + 90.0 * LAPS, 1.0)
-            assert done, (states(), procs.report())
+            assert done, f"{procs.report()}\n{states()}\n{mission_story(logs)}"
         finally:
             procs.stop_all(order=lambda p: 0 if p.name.startswith("agent") else 1)
         ulog_paths = [px4_ulog(run, i) for i in range(N)]
