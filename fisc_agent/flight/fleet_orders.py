@@ -1,0 +1,80 @@
+"""Fleet orders carried out by the mission (hold, land, go, takeover, resume): the part of
+``fisc_agent.flight.mission.Mission`` that acts on what ``authority.fleet_action`` decides (pure, no I/O).
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fisc_agent.flight.authority import AuthorityCause, FleetAction, fleet_action
+from fisc_agent.flight.control import Vec
+from fisc_agent.flight.failsafe import PositionHealth
+from fisc_agent.flight.mission_types import (Authority, Cause, FleetOrder, HoldCause, Reason, State, VehicleStatus,
+                                             FLYING)
+
+log = logging.getLogger("fisc_agent.flight.mission")
+"""The mission's logger: fleet orders are logged as the mission's own lines."""
+
+
+class FleetOrders:
+    """Mixin of ``Mission``: the fleet orders queued by ``Mission.command``, applied by ``Mission.step``."""
+
+    def _fleet(self, t: float, order: FleetOrder, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        verdict = fleet_action(order, self.authority, s.armed, self.state == State.HOLD)
+        scope = "addressed" if order.addressed else "swarm-wide"
+        if verdict.note:
+            log.warning("fleet command %s (%s) in state %s: %s", order.command.value, scope, self.state.value,
+                        verdict.note)
+        else:
+            log.info("fleet command %s (%s) in state %s", order.command.value, scope, self.state.value)
+        action = verdict.action
+        if action == FleetAction.HOLD:
+            if self.state in FLYING or self.state == State.HOLD:
+                self._hold(t, Reason(HoldCause.FLEET), latched=True, armed=s.armed or self._hold_armed)
+            elif self.state in (State.WAIT_POSITION, State.STANDBY, State.ARM):
+                resume_to = State.STANDBY if self.state != State.WAIT_POSITION else State.WAIT_POSITION
+                self._hold(t, Reason(HoldCause.FLEET_ON_GROUND), latched=True, armed=s.armed)
+                self._resume_state = resume_to
+        elif action == FleetAction.LAND:
+            if self.state != State.DONE:
+                self._go(t, State.LAND, Reason(Cause.FLEET_LAND))
+        elif action == FleetAction.END:
+            if self.state != State.DONE:
+                self._go(t, State.DONE, Reason(Cause.FLEET_LAND_DISARMED))
+        elif action == FleetAction.GO:
+            self._go_given = True
+            self._restored_fleet_hold = False
+            if self.hold_cause == HoldCause.FLEET_ON_GROUND:
+                self._go(t, State.STANDBY, Reason(Cause.GO))
+        elif action == FleetAction.TAKEOVER:
+            self._take_over(t, s, pos, ph)
+        elif action == FleetAction.RESUME:
+            self._resume(t, pos, ph)
+
+    def _take_over(self, t: float, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        """An addressed takeover or resume hands the armed vehicle to the agent."""
+        if ph != PositionHealth.OK or pos is None or self.sfield is None:
+            log.warning("takeover refused: no good position or no map yet")
+            return
+        given_back = self.authority == Authority.HANDS_OFF
+        self._set_authority(Authority.COMMAND, AuthorityCause.GIVEN_BACK if given_back else AuthorityCause.TAKEOVER)
+        self._modes.last_seen = s.mode  # the mode it is in now is the baseline, not a change
+        cv = self.sfield.cv_of(*pos)
+        if self._home is None:
+            self._home = (pos[0], pos[1], pos[2] - self.cfg.takeoff_alt_m)
+        self._enter(t, State.FLOW if cv >= 0 else State.JOIN, Reason(Cause.TAKING_OVER), pos)
+
+    def _resume(self, t: float, pos: Vec | None, ph: PositionHealth) -> None:
+        if ph != PositionHealth.OK and self.hold_cause != HoldCause.FLEET_ON_GROUND:
+            log.warning("fleet resume refused: position is %s", ph.value)
+            return
+        nxt = self._resume_state
+        if self.hold_cause == HoldCause.GEOFENCE:
+            nxt = State.RETURN
+        elif self.hold_cause == HoldCause.EXIT:
+            nxt = State.JOIN
+        elif nxt == State.FLOW and self.sfield is not None and pos is not None and (
+                self.sfield.cv_of(*pos) < 0 or self.nav.rejoin_target(pos) is not None):
+            nxt = State.RETURN  # the hold left it outside the map or at its wall: back in first
+        self._restored_fleet_hold = False
+        self._enter(t, nxt, Reason(Cause.FLEET_RESUME), pos)
