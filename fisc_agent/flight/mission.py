@@ -359,7 +359,7 @@ class Mission(FleetOrders):
         if self.state == State.HOLD:
             fresh = pos if ph == PositionHealth.OK and s.integrity_ok else None
             heard = s.heartbeat_age_s <= cfg.stale_timeout_s
-            vel, want_mode, want_armed, takeoff = self._hold_output(t, heard, fresh, seen)
+            vel, want_mode, want_armed, takeoff = self._hold_output(t, heard, fresh, seen, s.armed)
         elif self.state == State.LAND:
             vel, want_mode = self._handover.velocity(t, seen), ModeClass.LAND
             if not s.armed:
@@ -420,10 +420,15 @@ class Mission(FleetOrders):
             return self.nav.goto(pos, self.nav.waypoints[0], cfg.join_speed_m_s)
         return self.nav.exit_velocity(pos)
 
-    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None, mode=ModeClass.UNKNOWN) -> HoldOutput:
+    def _hold_output(self, t: float, heard: bool = True, pos: Vec | None = None, mode=ModeClass.UNKNOWN,
+                     armed: bool = False) -> HoldOutput:
         """The hold's output: offboard/guided for ``hold_grace_s`` (from a fresh ``pos`` back to the hold's spot,
         ``Navigator.hold_spot``; else zero velocity), then the autopilot's hold mode (``Handover`` in the vehicle's
-        ``mode``), not while the autopilot is unheard (blind, it could land on a failsafe's Land)."""
+        ``mode``), not while the autopilot is unheard (blind, it could land on a failsafe's Land); on the ground,
+        ``FleetOrders.ground_hold_output``."""
+        on_ground = self.ground_hold_output(t, armed)
+        if on_ground is not None:
+            return on_ground
         if self.hands_off or not self._hold_armed:
             return None, None, None, None
         jump = self.hold_cause == HoldCause.POSITION_JUMP  # an estimator reset ends by itself: no escalation before

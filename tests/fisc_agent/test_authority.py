@@ -19,6 +19,7 @@ from fisc_agent.flight.flightlog import FlightLog, rotate
 from fisc_agent.flight.health import LandedState, SystemState, VehicleHealth
 from fisc_agent.flight.integrity import IntegrityConfig
 from fisc_agent.flight.mission import Mission
+from fisc_agent.flight.fleet_orders import ARM_ANSWER_S
 from fisc_agent.flight.mission_types import JUMP_HOLD_GRACE_S
 from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, State
 from fisc_agent.flight.readiness import HealthKind, arming_blockers, battery_low, distance_to_box_m, health_problems
@@ -341,6 +342,74 @@ def test_a_position_jump_hold_escalates_only_after_the_estimator_reset_could_hav
         assert m.hold_cause == HoldCause.POSITION_JUMP and expected_s <= held_s < expected_s + 2 * DT, held_s
         assert outs[-2].want_mode == "offboard" and outs[-2].velocity_m_s == (0.0, 0.0, 0.0)
     assert JUMP_HOLD_GRACE_S == IntegrityConfig.consistent_s + 1.0
+
+
+class LateArmVehicle(HealthVehicle):
+    """Arms only when ``answer`` is set: an arm request still on its way when the agent's mission moves on."""
+
+    def __init__(self):
+        super().__init__()
+        self.answer = False
+
+    def apply(self, out, cfg):
+        if not self.answer:
+            out = out._replace(want_armed=None)
+        super().apply(out, cfg)
+
+
+def _held_in_arm(sfield):
+    """A vehicle whose arming is slow, a fleet hold in ARM after the arm request went out."""
+    cfg, _, _ = make(sfield)
+    m, v = Mission(cfg, sfield), LateArmVehicle()
+    run(m, v, cfg, lambda m, v, o: o.want_armed and v.mode == OFFBOARD)   # the request is out
+    m.command("hold")
+    t_hold = v.t
+    outs = run_for(m, v, cfg, 0.5)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND and not v.armed
+    return cfg, m, v, t_hold, outs
+
+
+@pytest.mark.parametrize("disarmed_by_autopilot", [False, True])
+def test_an_arm_landing_after_a_fleet_hold_in_arm_is_kept_streamed_and_resumed(sfield, disarmed_by_autopilot):
+    """Real PX4 (2026-12-07): a hold 0.6 s after the arm request left the vehicle armed without setpoints;
+    PX4 changed its mode, the agent went hands-off and the flight ended.  Now the hold streams zero velocity in
+    offboard while the answer may come and while its vehicle is armed; a resume takes off, or re-arms if the
+    autopilot disarmed it on the ground meanwhile."""
+    cfg, m, v, t_hold, outs = _held_in_arm(sfield)
+    assert all(o.velocity_m_s == (0.0, 0.0, 0.0) and o.want_mode == OFFBOARD and o.want_armed is None for o in outs)
+    v.answer = True                                  # the autopilot's answer: armed, in offboard
+    v.armed = True
+    outs = run_for(m, v, cfg, 10.0)                  # long past the answer's window: armed, still streamed
+    assert v.t - t_hold > ARM_ANSWER_S + 5
+    assert all(o.velocity_m_s == (0.0, 0.0, 0.0) and o.want_mode == OFFBOARD for o in outs)
+    assert m.authority == Authority.COMMAND and m.hold_cause == HoldCause.FLEET_ON_GROUND and v.pos[2] == v.ground_z
+    if disarmed_by_autopilot:                        # PX4's pre-flight disarm (COM_DISARM_PRFLT)
+        v.armed = False
+        outs = run_for(m, v, cfg, 2.0)
+        assert silent(outs) and m.hold_cause == HoldCause.FLEET_ON_GROUND and m.authority == Authority.COMMAND
+    m.command("resume")
+    run(m, v, cfg, lambda m, v, o: m.state == State.JOIN, max_s=v.t + 15)
+    expect = [State.STANDBY, State.ARM] if disarmed_by_autopilot else [State.ARM]
+    assert [tr.dst for tr in m.transitions if tr.t_s >= t_hold][1:len(expect) + 1] == expect
+    assert not m.hands_off
+
+
+def test_a_fleet_hold_in_arm_stops_streaming_when_the_arm_was_never_answered(sfield):
+    cfg, m, v, t_hold, outs = _held_in_arm(sfield)
+    outs = run_for(m, v, cfg, ARM_ANSWER_S + 1.0)
+    times = [t_hold + 0.5 + DT * (k + 1) for k in range(len(outs))]
+    streamed = [t for t, o in zip(times, outs) if o.velocity_m_s is not None]
+    assert streamed and max(streamed) < t_hold + ARM_ANSWER_S + 2 * DT   # the answer's window, then silence
+    assert silent(o for t, o in zip(times, outs) if t > t_hold + ARM_ANSWER_S + 2 * DT)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND and not v.armed
+
+
+def test_a_fleet_hold_before_arming_streams_nothing(sfield):
+    cfg, m, v = make_h(sfield, go=False)
+    run_for(m, v, cfg, 1.0)
+    m.command("hold")
+    outs = run_for(m, v, cfg, 1.0)
+    assert m.hold_cause == HoldCause.FLEET_ON_GROUND and silent(outs)
 
 
 def test_restart_restores_a_fleet_hold_on_the_ground(sfield):
