@@ -197,7 +197,7 @@ class Runner:
             parcel_map_m=k.parcel_map_m, authority=self.mission.authority.value, battery_pct=k.health.battery_pct,
             landed=k.health.landed.value, health_problems=health_problems(k.health, self.cfg.min_battery_pct),
             nearest_neighbour_m=k.net.nearest_m if k.net is not None else math.inf,
-            net_ids=k.net.acting if k.net is not None else ())
+            net_ids=k.net.acting if k.net is not None else (), gnss_velocity_map_m_s=k.gnss_velocity_map_m_s)
 
     # ---- the tick ------------------------------------------------------------------------
     def _apply_pending(self) -> list[FleetOrder]:
@@ -403,7 +403,7 @@ class Runner:
             setpoint_map_m_s=sp, cmap=self.cmap, link_ok=link_ok, heartbeat_age_s=hb_age, position_age_s=pos_age,
             autopilot=self.adapter.name if self.adapter else None, armed=link.armed, mode=mode,
             laps=self.mission.laps, parcel_map_m=self.mission.tracker.parcel_m if out.state == State.FLOW else None,
-            health=health, net=net)
+            health=health, net=net, gnss_velocity_map_m_s=gnss_xy)
         self.ticks += 1
         if self.on_tick is not None:
             self.on_tick(self.snapshot())

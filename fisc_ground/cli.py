@@ -103,7 +103,7 @@ def run_score_flight(args: argparse.Namespace) -> int:
     from fisc_agent.map.wall import map_wall
     from fisc_ground.maps.duct_wall import duct_wall_from_reference
     from fisc_agent.map.separation import map_separation
-    from fisc_ground.fields.flight_score import score_track, track_from_rows, wall_track_from_rows
+    from fisc_ground.fields.flight_score import gnss_vx_from_rows, score_track, track_from_rows, wall_track_from_rows
     from fisc_ground.reference.load import load_reference
 
     cmap = load_map(args.map)
@@ -117,13 +117,15 @@ def run_score_flight(args: argparse.Namespace) -> int:
     for path in args.logs:
         rows = read_flight_log(path)
         tracks.append(wall_track_from_rows(rows))
-        score = score_track(*track_from_rows(rows), ref, cmap.scale, *args.x_range, wall=wall)
+        score = score_track(*track_from_rows(rows), ref, cmap.scale, *args.x_range, wall=wall,
+                            gnss_vx_m_s=gnss_vx_from_rows(rows))
         if args.json:
             print(json.dumps({"log": str(path), **score.as_dict()}))
         else:
             print(f"{path}: {'crossed' if score.crossed else 'did not cross'}"
                   f"{' (held)' if score.held else ''}, max excursion {sig3(score.max_excursion_m)} m, "
-                  f"velocity nRMSE {sig3(score.velocity_nrmse)} ({score.n_samples} samples, peak flown "
+                  f"velocity nRMSE {sig3(score.velocity_nrmse)} (by the GNSS receiver's velocity "
+                  f"{sig3(score.velocity_nrmse_gnss)}; {score.n_samples} samples, peak flown "
                   f"{sig3(score.peak_flown_m_s)} of {sig3(score.peak_target_m_s)} m/s), crossing {sig3(score.crossing_time_s)} s")
     if len(args.logs) >= 2:
         _print_fleet_approach(args, tracks, map_separation(cmap.body).d_min_m)
@@ -406,7 +408,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("score-flight", help="score flown passes (fisc-agent --flight-log) against the CFD",
                        description="Per flight log: crossed without a hold, largest excursion outside the duct wall, "
-                                   "axial-velocity nRMSE against S x the CFD, crossing time (fisc_ground.fields.flight_score).")
+                                   "axial-velocity nRMSE against S x the CFD (by the autopilot's velocity estimate, "
+                                   "and by the GNSS receiver's own velocity where the log has it), crossing time "
+                                   "(fisc_ground.fields.flight_score).")
     p.add_argument("logs", metavar="LOG", type=Path, nargs="+", help="flight log CSV files")
     p.add_argument("--map", required=True, type=Path, help="the map flown (its scale S and reference)")
     p.add_argument("--reference", help="reference flow (default: the one recorded in the map)")

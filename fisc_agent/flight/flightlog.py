@@ -21,9 +21,11 @@ from fisc_agent.flight.tick import AgentSnapshot
 
 COLUMNS = ("time_s", "wall_time_s", "state", "reason", "x_m", "y_m", "z_m", "vx_m_s", "vy_m_s", "vz_m_s",
            "sp_x_m_s", "sp_y_m_s", "sp_z_m_s", "cv", "parcel_x_m", "parcel_y_m", "parcel_z_m", "mode", "armed",
-           "nearest_neighbour_m", "net_ids")
-"""Column names, in order (map frame: x along the tunnel axis, z up).  ``nearest_neighbour_m``: the
-safety net's nearest neighbour (empty: none heard); ``net_ids``: the neighbours it acted on, ``;``-joined."""
+           "nearest_neighbour_m", "net_ids", "gnss_vx_m_s", "gnss_vy_m_s")
+"""Column names, in order (map frame: x along the tunnel axis, z up).  ``vx_m_s`` ... are the autopilot's
+velocity estimate; ``gnss_vx_m_s``, ``gnss_vy_m_s`` the GNSS receiver's own horizontal velocity (empty: none
+fresh).  ``nearest_neighbour_m``: the safety net's nearest neighbour (empty: none heard); ``net_ids``: the
+neighbours it acted on, ``;``-joined."""
 
 KEEP_ROTATED = 9
 """Older logs kept beside a new one (``<file>.1`` newest ... ``<file>.9`` oldest)."""
@@ -47,6 +49,10 @@ def _xyz(v: tuple[float, float, float] | None) -> list[str]:
     return ["", "", ""] if v is None else [f"{c:.4f}" for c in v]
 
 
+def _xy(v: tuple[float, float] | None) -> list[str]:
+    return ["", ""] if v is None else [f"{c:.4f}" for c in v]
+
+
 class FlightLog:
     """CSV writer of ``AgentSnapshot`` rows, one per tick (a previous log at the path is rotated, never truncated)."""
 
@@ -66,7 +72,7 @@ class FlightLog:
                           *_xyz(s.velocity_map_m_s), *_xyz(s.setpoint_map_m_s), s.cv_id, *_xyz(s.parcel_map_m),
                           s.mode, int(s.armed),
                           f"{s.nearest_neighbour_m:.3f}" if math.isfinite(s.nearest_neighbour_m) else "",
-                          ";".join(map(str, s.net_ids))])
+                          ";".join(map(str, s.net_ids)), *_xy(s.gnss_velocity_map_m_s)])
         if s.time_s - self._last_flush_s >= self._flush_period_s:
             self._fh.flush()
             self._last_flush_s = s.time_s

@@ -56,6 +56,8 @@ class TickRecord(NamedTuple):
     """The autopilot's health report."""
     net: NetAction | None = None
     """What the separation safety net did this tick (None: it did not run)."""
+    gnss_velocity_map_m_s: tuple[float, float] | None = None
+    """The GNSS receiver's own horizontal velocity (a fresh GPS_RAW_INT), map x and y [m/s] (None: none fresh)."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +120,9 @@ class AgentSnapshot:
     """Distance to the nearest neighbour heard (safety net's view) [m] (inf: none heard or net off)."""
     net_ids: tuple[int, ...] = ()
     """Neighbours the safety net acted on this tick (closing too fast, or inside d_min); () none."""
+    gnss_velocity_map_m_s: tuple[float, float] | None = None
+    """The GNSS receiver's own horizontal velocity, map x and y [m/s] (None: none fresh): a measurement beside
+    the autopilot's estimate (``velocity_map_m_s``), whose error PX4 SIH's EKF makes two to three times larger."""
 
 
 NET_STATES = frozenset({State.JOIN, State.FLOW, State.RETURN, State.EXIT})

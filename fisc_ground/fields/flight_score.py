@@ -51,6 +51,11 @@ class FlightScore:
     """Largest flown axial velocity in the duct [m/s]."""
     peak_target_m_s: float
     """Largest target (S x CFD axial velocity) along the track [m/s]."""
+    velocity_nrmse_gnss: float = math.nan
+    """The same nRMSE with the GNSS receiver's own axial velocity in place of the autopilot's estimate, over the
+    scored samples that carry one (nan: none; flight logs before the ``gnss_vx_m_s`` column).  Beside
+    ``velocity_nrmse`` it tells the estimator's share of the figure: PX4 SIH's EKF velocity errs by 0.11-0.16 m/s
+    RMS in the duct, its GNSS velocity by 0.05-0.07 (three stock PX4, 2026-12-07)."""
 
     def as_dict(self) -> dict:
         """JSON-ready fields (non-finite floats as None)."""
@@ -59,8 +64,10 @@ class FlightScore:
 
 def score_track(time_s: np.ndarray, pos_m: np.ndarray, vel_m_s: np.ndarray, states: np.ndarray,
                 ref: ReferenceField, scale: float, x_lo_m: float = 0.0, x_hi_m: float = 15.0,
-                wall: DuctWall | None = None) -> FlightScore:
-    """Score a pass.  ``pos_m``/``vel_m_s`` (n, 3) map frame, ``states`` (n,) mission state names."""
+                wall: DuctWall | None = None, gnss_vx_m_s: np.ndarray | None = None) -> FlightScore:
+    """Score a pass.  ``pos_m``/``vel_m_s`` (n, 3) map frame, ``states`` (n,) mission state names;
+    ``gnss_vx_m_s`` (n,) the GNSS receiver's axial velocity where a row has one (nan elsewhere), scored
+    as ``FlightScore.velocity_nrmse_gnss``."""
     wall = wall or duct_wall_from_reference(ref)
     states = np.asarray(states).astype(str)
     x = pos_m[:, 0]
@@ -90,7 +97,13 @@ def score_track(time_s: np.ndarray, pos_m: np.ndarray, vel_m_s: np.ndarray, stat
     flown = vel_m_s[flow, 0]
     peak = float(np.max(np.abs(target)))
     nrmse = float(np.sqrt(np.mean((flown - target) ** 2)) / peak) if peak > 0 else math.nan
-    return FlightScore(crossed, held, max_exc, nrmse, t_cross, n, float(flown.max()), peak)
+    nrmse_gnss = math.nan
+    if gnss_vx_m_s is not None and peak > 0:
+        g = np.asarray(gnss_vx_m_s, dtype=float)[flow]
+        has = np.isfinite(g)
+        if has.any():
+            nrmse_gnss = float(np.sqrt(np.mean((g[has] - target[has]) ** 2)) / peak)
+    return FlightScore(crossed, held, max_exc, nrmse, t_cross, n, float(flown.max()), peak, nrmse_gnss)
 
 
 def track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -100,6 +113,13 @@ def track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray,
     pos = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows]).reshape(-1, 3)
     vel = np.array([[float(r["vx_m_s"]), float(r["vy_m_s"]), float(r["vz_m_s"])] for r in rows]).reshape(-1, 3)
     return t, pos, vel, np.array([r["state"] for r in rows])
+
+
+def gnss_vx_from_rows(rows: list[dict[str, str]]) -> np.ndarray:
+    """(n,) the GNSS receiver's axial velocity of the rows ``track_from_rows`` keeps, nan where a row has none
+    (an empty cell, or a log written before the ``gnss_vx_m_s`` column)."""
+    rows = [r for r in rows if r["x_m"] != "" and r["vx_m_s"] != ""]
+    return np.array([float(r["gnss_vx_m_s"]) if r.get("gnss_vx_m_s") else math.nan for r in rows])
 
 
 def realised_spread_ratio(pos_m: np.ndarray, vel_m_s: np.ndarray, states: np.ndarray, field: CommandField) -> float:

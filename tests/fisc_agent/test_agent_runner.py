@@ -490,7 +490,9 @@ def test_without_the_safety_net_the_agent_flies_through_the_neighbour():
 
 
 @pytest.mark.parametrize("age_s, used", [(0.0, True), (0.5, True), (0.55, False)])
-def test_a_fresh_gnss_velocity_reaches_the_mission_in_the_map_frame(age_s, used):
+def test_a_fresh_gnss_velocity_reaches_the_mission_in_the_map_frame(age_s, used, tmp_path):
+    """... and the snapshot and the flight log's ``gnss_vx_m_s``, ``gnss_vy_m_s`` (empty when none is fresh)."""
+    from fisc_agent.flight.flightlog import FlightLog, read_flight_log
     from fisc_agent.mavlink.interfaces import GnssVelocity
 
     cfg, clock, link, r = make(yaw_deg=90.0)      # the map's x axis points East
@@ -499,10 +501,17 @@ def test_a_fresh_gnss_velocity_reaches_the_mission_in_the_map_frame(age_s, used)
     r.mission.step = lambda s: (seen.append(s.gnss_vel_m_s), step(s))[1]
     link.gnss = GnssVelocity(clock.t - age_s, (0.3, 1.2))   # 0.3 m/s north, 1.2 m/s east
     r.step()
+    log = FlightLog(tmp_path / "f.csv")
+    log.write(r.snapshot())
+    log.close()
+    row = read_flight_log(tmp_path / "f.csv")[-1]
     if used:
         assert seen[-1] == pytest.approx((1.2, -0.3))         # east is map +x, north map -y
+        assert r.snapshot().gnss_velocity_map_m_s == seen[-1]
+        assert (float(row["gnss_vx_m_s"]), float(row["gnss_vy_m_s"])) == pytest.approx((1.2, -0.3))
     else:
         assert seen[-1] is None                               # older than GNSS_FRESH_S: the position's rate
+        assert r.snapshot().gnss_velocity_map_m_s is None and row["gnss_vx_m_s"] == row["gnss_vy_m_s"] == ""
 
 
 class DragLink(MemoryLink):

@@ -213,18 +213,21 @@ def test_plot_writes_the_paper_figures(tmp_path, default_map):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size > 10_000
 
 
-def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_map, tmp_path):
-    """`fisc-ground score-flight LOG --map MAP --json`: a synthetic pass along y = 0 at a height that
-    puts it 0.2 m outside the map's wall at the throat, inside elsewhere, flown at S x the CFD speed."""
+def _synthetic_pass(default_map, path, above_wall_m: float, estimate_bias_m_s: float = 0.0,
+                    gnss_every: int = 0, columns=None):
+    """A pass along y = 0 at ``above_wall_m`` over the map's wall at its throat, flown at S x the CFD speed;
+    the logged (estimated) velocity off by ``estimate_bias_m_s``; every ``gnss_every``-th row with the GNSS
+    velocity, exact (0: none); written with ``columns`` (default: the flight log's)."""
     from fisc_agent.flight.flightlog import COLUMNS
     from fisc_agent.map.wall import map_wall
     from fisc_ground.reference.builtin import load_builtin
 
+    columns = columns or COLUMNS
     cmap = load_map(default_map)
     wall = map_wall(cmap.arrays)
     ref = load_builtin("cd_nozzle_inviscid")
     throat = float(wall.x_m[np.argmin(wall.radius_m)])
-    z = float(wall.radius_at(throat)) + 0.2
+    z = float(wall.radius_at(throat)) + above_wall_m
     rows = []
     for k, x in enumerate(np.arange(-0.5, 15.6, 0.1)):
         p = np.array([x, 0.0, z])
@@ -232,16 +235,45 @@ def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_m
         u = cmap.scale * float(ref.velocity_m_s[j, 0])
         row = dict.fromkeys(COLUMNS, "")
         row.update(time_s=f"{0.1 * k:.4f}", state="FLOW" if x < 15.0 else "EXIT", x_m=f"{x:.4f}", y_m="0.0",
-                   z_m=f"{z:.4f}", vx_m_s=f"{u:.4f}", vy_m_s="0.0", vz_m_s="0.0")
+                   z_m=f"{z:.4f}", vx_m_s=f"{u + estimate_bias_m_s:.4f}", vy_m_s="0.0", vz_m_s="0.0")
+        if gnss_every and k % gnss_every == 0:
+            row.update(gnss_vx_m_s=f"{u:.4f}", gnss_vy_m_s="0.0")
         rows.append(row)
-    log = tmp_path / "pass.csv"
-    log.write_text(",".join(COLUMNS) + "\n" + "".join(",".join(r[c] for c in COLUMNS) + "\n" for r in rows))
+    path.write_text(",".join(columns) + "\n" + "".join(",".join(r[c] for c in columns) + "\n" for r in rows))
+    return path
+
+
+def _score_flight_json(log, default_map) -> dict:
     out = fisc_ground("score-flight", str(log), "--map", str(default_map), "--json")
     assert out.returncode == 0, out.stderr
-    score = json.loads(out.stdout.splitlines()[0])
+    return json.loads(out.stdout.splitlines()[0])
+
+
+def test_score_flight_measures_a_pass_against_the_wall_the_map_carries(default_map, tmp_path):
+    """`fisc-ground score-flight LOG --map MAP --json`: a synthetic pass along y = 0 at a height that
+    puts it 0.2 m outside the map's wall at the throat, inside elsewhere, flown at S x the CFD speed."""
+    score = _score_flight_json(_synthetic_pass(default_map, tmp_path / "pass.csv", 0.2), default_map)
     assert score["crossed"] and not score["held"]
     assert score["max_excursion_m"] == pytest.approx(0.2, abs=0.02)   # the wall's narrowest station, sampled
     assert score["velocity_nrmse"] < 0.01                               # it flew S x the CFD at its nodes
+    assert score["velocity_nrmse_gnss"] is None                         # no GNSS velocity logged
+
+
+def test_score_flight_scores_the_gnss_velocity_beside_the_estimate(default_map, tmp_path):
+    """An estimate 0.2 m/s slow and an exact GNSS velocity on every third row: the estimate's nRMSE is the
+    bias over the peak, the GNSS one ~0; a log written before the GNSS columns still scores, without it."""
+    log = _synthetic_pass(default_map, tmp_path / "biased.csv", -0.5, estimate_bias_m_s=-0.2, gnss_every=3)
+    score = _score_flight_json(log, default_map)
+    assert score["velocity_nrmse"] == pytest.approx(0.2 / score["peak_target_m_s"], rel=1e-3)
+    assert score["velocity_nrmse_gnss"] < 0.01
+    from fisc_agent.flight.flightlog import COLUMNS
+
+    old = [c for c in COLUMNS if not c.startswith("gnss_")]
+    score = _score_flight_json(_synthetic_pass(default_map, tmp_path / "old.csv", -0.5, -0.2, 3, old), default_map)
+    assert score["velocity_nrmse"] == pytest.approx(0.2 / score["peak_target_m_s"], rel=1e-3)
+    assert score["velocity_nrmse_gnss"] is None
+    text = fisc_ground("score-flight", str(log), "--map", str(default_map))
+    assert text.returncode == 0 and "by the GNSS receiver's velocity" in text.stdout, text
 
 
 def _log(path, t_wall, xyz):

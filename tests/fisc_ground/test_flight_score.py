@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from fisc_ground.fields.flight_score import score_track
 from fisc_ground.reference.builtin import load_builtin
@@ -45,3 +46,26 @@ def test_no_entry_no_crossing(ref):
     t, pos, vel, st = track(["TAKEOFF", "HOLD", "JOIN"], [-3, -3, -1])
     s = score_track(t, pos, vel, st, ref, 0.5)
     assert not s.crossed and not s.held and s.n_samples == 0
+
+
+@pytest.mark.parametrize("offsets, rms", [
+    (None, None),                                       # not given: nan
+    ([np.nan] * 3, None),                               # no scored row carries one: nan
+    ([0.0, 0.0, 0.0], 0.0),                             # exact on the scored rows (JOIN, EXIT rows off by 4)
+    ([0.0, np.nan, 0.5], np.sqrt(0.5 ** 2 / 2)),        # only the rows that carry one count
+])
+def test_the_gnss_velocity_is_scored_on_the_same_samples(ref, offsets, rms):
+    t, pos, vel, st = track(["JOIN", "FLOW", "FLOW", "FLOW", "EXIT", "EXIT"], [-1, 1, 2, 3, 16, 17])
+    _, j = cKDTree(ref.points_m).query(pos[1:4])
+    target = 0.5 * ref.velocity_m_s[j, 0]
+    vel[1:4, 0] = target                                # the estimate flies the target exactly
+    g = None
+    if offsets is not None:
+        g = np.full(6, 4.0)                             # far off where not scored
+        g[1:4] = target + np.asarray(offsets)
+    s = score_track(t, pos, vel, st, ref, 0.5, gnss_vx_m_s=g)
+    assert s.velocity_nrmse == pytest.approx(0.0, abs=1e-12) and s.n_samples == 3
+    if rms is None:
+        assert np.isnan(s.velocity_nrmse_gnss) and s.as_dict()["velocity_nrmse_gnss"] is None
+    else:
+        assert s.velocity_nrmse_gnss == pytest.approx(rms / np.max(np.abs(target)), abs=1e-12)
