@@ -8,7 +8,7 @@ would change its mode, which reads as someone else's).  So for ``ARM_ANSWER_S`` 
 as long as the vehicle is armed while the agent is in command, the hold streams zero velocity in
 offboard/guided (``ground_hold_output``).  Disarmed again (the autopilot's pre-flight disarm), the
 vehicle simply waits on the ground; a ``resume`` while it is still armed goes on to the take-off
-(``ARM``), otherwise to ``STANDBY`` and a new arming.  (Eight stock PX4, 2026-12-07: a hold 0.6 s after the
+(``ARM``), otherwise to ``STANDBY`` and a new arming.  (A stock PX4 (SIH), 2026-12-07: a hold 0.6 s after the
 arm request left the vehicle armed without setpoints; PX4 changed its mode within 1 s, the agent went
 hands-off and the flight ended when PX4 disarmed it.)
 """

@@ -45,12 +45,9 @@ def rotate(path: Path, keep: int = KEEP_ROTATED) -> Path | None:
     return kept
 
 
-def _xyz(v: tuple[float, float, float] | None) -> list[str]:
-    return ["", "", ""] if v is None else [f"{c:.4f}" for c in v]
-
-
-def _xy(v: tuple[float, float] | None) -> list[str]:
-    return ["", ""] if v is None else [f"{c:.4f}" for c in v]
+def _cells(v: tuple[float, ...] | None, n: int = 3) -> list[str]:
+    """The ``n`` components of ``v`` as cells (empty cells for None)."""
+    return [""] * n if v is None else [f"{c:.4f}" for c in v]
 
 
 class FlightLog:
@@ -68,11 +65,11 @@ class FlightLog:
 
     def write(self, s: AgentSnapshot) -> None:
         """One row for one tick."""
-        self._w.writerow([f"{s.time_s:.4f}", f"{s.wall_time_s:.4f}", s.state, s.reason, *_xyz(s.position_map_m),
-                          *_xyz(s.velocity_map_m_s), *_xyz(s.setpoint_map_m_s), s.cv_id, *_xyz(s.parcel_map_m),
+        self._w.writerow([f"{s.time_s:.4f}", f"{s.wall_time_s:.4f}", s.state, s.reason, *_cells(s.position_map_m),
+                          *_cells(s.velocity_map_m_s), *_cells(s.setpoint_map_m_s), s.cv_id, *_cells(s.parcel_map_m),
                           s.mode, int(s.armed),
                           f"{s.nearest_neighbour_m:.3f}" if math.isfinite(s.nearest_neighbour_m) else "",
-                          ";".join(map(str, s.net_ids)), *_xy(s.gnss_velocity_map_m_s)])
+                          ";".join(map(str, s.net_ids)), *_cells(s.gnss_velocity_map_m_s, 2)])
         if s.time_s - self._last_flush_s >= self._flush_period_s:
             self._fh.flush()
             self._last_flush_s = s.time_s
