@@ -96,19 +96,29 @@ def score_track(time_s: np.ndarray, pos_m: np.ndarray, vel_m_s: np.ndarray, stat
     target = scale * ref.velocity_m_s[j, 0]
     flown = vel_m_s[flow, 0]
     peak = float(np.max(np.abs(target)))
-    nrmse = float(np.sqrt(np.mean((flown - target) ** 2)) / peak) if peak > 0 else math.nan
+    nrmse = _nrmse(flown, target, peak)
     nrmse_gnss = math.nan
-    if gnss_vx_m_s is not None and peak > 0:
+    if gnss_vx_m_s is not None:
         g = np.asarray(gnss_vx_m_s, dtype=float)[flow]
         has = np.isfinite(g)
         if has.any():
-            nrmse_gnss = float(np.sqrt(np.mean((g[has] - target[has]) ** 2)) / peak)
+            nrmse_gnss = _nrmse(g[has], target[has], peak)
     return FlightScore(crossed, held, max_exc, nrmse, t_cross, n, float(flown.max()), peak, nrmse_gnss)
+
+
+def _nrmse(flown: np.ndarray, target: np.ndarray, peak: float) -> float:
+    """RMS of ``flown - target`` over ``peak`` (nan for a zero peak)."""
+    return float(np.sqrt(np.mean((flown - target) ** 2)) / peak) if peak > 0 else math.nan
+
+
+def _track_rows(rows: list[dict[str, str]]) -> list[dict[str, str]]:
+    """The rows of a flight log that carry a position and a velocity (the ones a track is made of)."""
+    return [r for r in rows if r["x_m"] != "" and r["vx_m_s"] != ""]
 
 
 def track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(time_s, pos_m, vel_m_s, states) of the rows of a flight log that carry a position."""
-    rows = [r for r in rows if r["x_m"] != "" and r["vx_m_s"] != ""]
+    rows = _track_rows(rows)
     t = np.array([float(r["time_s"]) for r in rows])
     pos = np.array([[float(r["x_m"]), float(r["y_m"]), float(r["z_m"])] for r in rows]).reshape(-1, 3)
     vel = np.array([[float(r["vx_m_s"]), float(r["vy_m_s"]), float(r["vz_m_s"])] for r in rows]).reshape(-1, 3)
@@ -118,7 +128,7 @@ def track_from_rows(rows: list[dict[str, str]]) -> tuple[np.ndarray, np.ndarray,
 def gnss_vx_from_rows(rows: list[dict[str, str]]) -> np.ndarray:
     """(n,) the GNSS receiver's axial velocity of the rows ``track_from_rows`` keeps, nan where a row has none
     (an empty cell, or a log written before the ``gnss_vx_m_s`` column)."""
-    rows = [r for r in rows if r["x_m"] != "" and r["vx_m_s"] != ""]
+    rows = _track_rows(rows)
     return np.array([float(r["gnss_vx_m_s"]) if r.get("gnss_vx_m_s") else math.nan for r in rows])
 
 
