@@ -199,6 +199,10 @@ FAILSAFE_EXCURSION_M = 0.45
 Hold brakes.  That is PX4's own stopping distance, not the agent's flight: 0.16 m inside to 0.03 m
 outside (2 runs, 2026-12-01), 0.342 m (tuned gains, 2026-12-04), 0.344 m (stock gains, 2026-12-05) beyond
 the wall.  A lab sizes its airspace for it (docs/deployment.md, COM_OF_LOSS_T)."""
+FAILSAFE_STOP_S = 5.0
+"""PX4's failsafe has stopped a killed agent's vehicle this long after the kill (measured: it comes to rest
+2-3 s after; COM_OF_LOSS_T 0.5 s, then Hold's braking) [s].  ``FAILSAFE_EXCURSION_M`` judges this window
+only: after it the vehicle is agent-less in PX4's Hold, whose wander in SIH is PX4's (reported, not judged)."""
 PX4_SIH_AIRFRAMES = {"quadx": (10040, "sihsim_quadx"), "hex": (10044, "sihsim_hex")}
 """PX4's SIH multicopters in the shared build (``etc/init.d-posix/airframes``): name -> (SYS_AUTOSTART,
 PX4_SIM_MODEL).  start.sh flies the quadcopter; the hexacopter is another airframe with its own stock

@@ -89,8 +89,8 @@ from .outcomes import (HUB_OBSERVE_S, NEWCOMER_AFTER_S, SLOT_S, heard_throughout
                        lab_port_holder_loses_no_link, lab_port_holder_silence_is_alarmed,
                        monitor_restart_hears_everyone, nothing_stale_alarmed, stale_alarm_names)
 from ..e2e.conftest import Proc, poll
-from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, MAP_ANCHOR, MAX_EXCURSION_M, PX4_SIH_ESTIMATE_ERROR_M,
-                            TRUTH_EXCURSION_M, Px4Sitl, SitlRun,
+from ..e2e.sitl_kit import (FAILSAFE_EXCURSION_M, FAILSAFE_STOP_S, MAP_ANCHOR, MAX_EXCURSION_M,
+                            PX4_SIH_ESTIMATE_ERROR_M, TRUTH_EXCURSION_M, Px4Sitl, SitlRun,
                             Track, px4_pid, px4_ulog, truth_on_wall_clock, truth_pass, ulog_summary, ulog_topic,
                             view_excursion_m)
 
@@ -100,9 +100,6 @@ SWARM = "px4faults"
 N = 3
 FAILSAFE_PARAMS = {"COM_OF_LOSS_T": 0.5, "COM_OBL_RC_ACT": 5}
 """docs/deployment.md's offboard-loss failsafe (0.5 s, Hold); every other parameter stock."""
-FAILSAFE_STOP_S = 5.0
-"""PX4's failsafe has stopped the killed agent's vehicle this long after the kill (measured: it
-comes to rest 2-3 s after; COM_OF_LOSS_T 0.5 s, then Hold's braking) [s]."""
 FAILSAFE_WITHIN_S = 2.0
 """PX4 sets ``failsafe`` within this long of its agent's kill (COM_OF_LOSS_T 0.5 s, the clock fit
 and the 5 Hz vehicle_status log) [s]."""
