@@ -318,7 +318,7 @@ class Mission(FleetOrders):
                                                                   f"{cfg.min_battery_pct:.0f} %: no new pass, landing"))
                 st = State.LAND
             else:
-                vel = nav.join_step(pos, cv, s.wall_time_s)
+                vel = nav.join_step(pos, cv, s.wall_time_s, s.vel_m_s)
                 if vel is None:
                     self._go(t, State.FLOW, Reason(Cause.ENTERED_MAP, f"entered the map at CV {cv}"))
                     st = State.FLOW

@@ -19,7 +19,7 @@ from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, appr
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
-                                      ScheduleSource, entry_schedule, entry_slot_open, final_leg_speed_m_s)
+                                      entry_schedule, entry_slot_open, final_leg_speed_m_s, schedule_messages)
 from fisc_agent.flight.point_command import PointCommand, point_command, tracked_mode
 from fisc_agent.flight.tracking import DeviationFn, KineticAxes, ParcelTracker
 from fisc_agent.map.separation import Separation
@@ -95,7 +95,8 @@ class Navigator:
         self.entry = entry_point(self.cfg.agent_id, self.geom, sfield, self.cfg.entry_radius_fraction)
         schedule = entry_schedule(self.cfg.entry_stagger_s, self.cfg.entry_slots, sfield.separation)
         if schedule != self.schedule:
-            self._log_schedule(schedule, sfield)
+            for level, message in schedule_messages(schedule, sfield.separation, self.cfg.agent_id):
+                log.log(level, message)
         self.schedule = schedule
         self.tracker.x_outlet_m = self.geom.x_outlet_m
         self.tracker.clear()  # a parcel of the old map means nothing in the new one
@@ -111,20 +112,6 @@ class Navigator:
                         "--mode kinetic flies them turning at the CV staircase (docs/deployment.md)")
         if self.response is None:
             self.tracker.cfg = replace(self.tracker.cfg, lookahead_s=self.lookahead_s())
-
-    def _log_schedule(self, schedule: EntrySchedule, sfield: ScalarField) -> None:
-        sep = sfield.separation
-        if schedule.source is ScheduleSource.MAP:
-            log.info("entry: the map's admission budget, one window of %.2f s per vehicle, %d per cycle (at most %s "
-                     "vehicles in the tunnel at d_min %.2f m)", schedule.stagger_s, schedule.slots,
-                     sep.max_in_tunnel, sep.d_min_m)
-            if self.cfg.agent_id >= schedule.slots:
-                log.warning("agent id %d is beyond the map's %d entry windows: it shares the window of id %d (a fleet "
-                            "larger than the map's budget)", self.cfg.agent_id, schedule.slots,
-                            self.cfg.agent_id % schedule.slots)
-        elif schedule.source is ScheduleSource.NONE:
-            log.warning("the map records no admission budget (fitted before issue 37): entering without a stagger; "
-                        "refit it or give --entry-stagger SECONDS")
 
     # ---- identification ------------------------------------------------------------------
     def record_response(self, t: float, sp_m_s: Vec, vel_m_s: Vec) -> None:
@@ -279,9 +266,10 @@ class Navigator:
         legs = [distance(a, b) for a, b in zip(path, path[1:])]
         hi = self._top_join_speed_m_s()
         due_s = self._final_leg_due_s()
-        if wall_time_s + sum(legs) / hi - due_s <= ENTRY_TIMING_TOLERANCE_S:
-            return False
-        late_s = wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s
+        sure_s = wall_time_s + sum(legs) / hi - due_s
+        if sure_s <= ENTRY_TIMING_TOLERANCE_S:
+            return False   # (approach_time_s stops a waypoint radius short: it can be less than sure_s)
+        late_s = max(sure_s, wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s)
         self.lead_learnt_s = min(MAX_LEAD_LEARNT_S, self.lead_learnt_s + late_s)
         self._give_up_window(pos, late_s, "on its way: at top speed at the staging point")
         return True
@@ -314,7 +302,7 @@ class Navigator:
         self._give_up_window(pos, late_s, "at the staging point")
         return True
 
-    def join_step(self, pos: Vec, cv: int, wall_time_s: float) -> Vec | None:
+    def join_step(self, pos: Vec, cv: int, wall_time_s: float, vel_m_s: Vec | None = None) -> Vec | None:
         """JOIN's velocity: along the waypoints, waiting at the wait point for the agent's entry window
         (on the shared clock ``wall_time_s``), then across the inlet plane at the flow's own speed;
         None once the last waypoint is passed inside the map (the vehicle has entered the flow)."""
@@ -347,7 +335,10 @@ class Navigator:
         vel = self.goto(pos, self.waypoints[self.wp_index], speed := self._join_speed(pos, wall_time_s))
         if self.wp_index == last:  # final leg: across the inlet plane at the flow's own speed (final_leg_speed_m_s)
             self.identify()
-            vx = final_leg_speed_m_s(self.geom.x_inlet_m - pos[0], self._crawl_m_s(), self.lookahead_s(), speed)
+            vx = final_leg_speed_m_s(self.geom.x_inlet_m - pos[0], self._crawl_m_s(), self.lookahead_s(), speed,
+                                     time_left_s=None if self.crossing_due_s is None
+                                     else self.crossing_due_s - JOIN_LEG_ALLOWANCE_S - wall_time_s,
+                                     vx_m_s=None if vel_m_s is None else vel_m_s[0])
             vel = (self.unbiased((vx, 0.0, 0.0))[0], vel[1], vel[2])
         return vel
 
