@@ -53,12 +53,14 @@ def keep_apart_pairs(pos, vel, cmd, ids, pairs, d_min_m, horizon_s, pass_margin_
                 nv[0] = 1.0 if ids[me] < ids[nb] else -1.0
                 nv[1] = 0.0
                 nv[2] = 0.0
-            allowed = max(0.0, -(vel[nb, 0] * nv[0] + vel[nb, 1] * nv[1] + vel[nb, 2] * nv[2]))
+            away = -(vel[nb, 0] * nv[0] + vel[nb, 1] * nv[1] + vel[nb, 2] * nv[2])
             gap = dist - d_min_m
             if horizon_s > 0:
-                allowed += max(0.0, gap) / horizon_s
+                allowed = max(0.0, away + max(0.0, gap) / horizon_s)
             elif gap >= 0:
                 allowed = math.inf
+            else:
+                allowed = max(0.0, away)
             depth = push_gain_1_s * max(0.0, -gap)
             for k in range(3):
                 push[me, k] += depth * nv[k]

@@ -11,11 +11,12 @@ the map frame and velocities and commands in NED, so both are turned to the map 
 (``MAP_TO_NED`` is its own inverse) and the result back.
 
 Candidate pairs.  The pairs handed to ``keep_apart_pairs`` are those of
-``cKDTree(pos).query_pairs(r)`` with ``r = d_min + T * max_i |cmd_i|`` (times 1 + 1e-9 for
-rounding; ``T`` the horizon, ``effective_horizon_s`` for the plant's lag ``tau_v_s``), recomputed every
-step from the commands of that step.  This is exact, not an approximation: a pair acts on agent i
-only inside d_min or when i's commanded speed towards the neighbour, at most ``|cmd_i|``, exceeds
-``(d - d_min) / T``.  With the 1.5 s horizon that was 3.9 m on the default map (d_min 0.92 m, 2 m/s):
+``cKDTree(pos).query_pairs(r)`` with ``r = d_min + T * (max_i |cmd_i| + max_j |vel_j|)`` (times 1 + 1e-9
+for rounding; ``T`` the horizon, ``effective_horizon_s`` for the plant's lag ``tau_v_s``), recomputed every
+step from the commands and velocities of that step.  This is exact, not an approximation: a pair acts on
+agent i only inside d_min or when i's commanded speed towards the neighbour, at most ``|cmd_i|``, exceeds
+``(d - d_min) / T`` less the neighbour's speed towards i, at most ``|vel_j|``.  (Before 2026-12-07 the
+neighbour's speed towards i did not count, and the radius was ``d_min + T max_i |cmd_i|``.)  With the 1.5 s horizon that was 3.9 m on the default map (d_min 0.92 m, 2 m/s):
 ~1.5 x 10^5 pairs among 850 agents spread over the tunnel (the main job's density without the net; with
 it the net empties the tunnel, docs/deployment.md).
 
@@ -56,12 +57,18 @@ def pairs_kernel():
     return jit_safety_net.keep_apart_pairs
 
 
-def candidate_reach_m(d_min_m: float, command_m_s: np.ndarray, horizon_s: float) -> float:
-    """The radius within which a pair can act this step [m]: ``d_min + horizon_s max_i |cmd_i|``
-    (module docstring), d_min with no agents."""
-    cmd = np.asarray(command_m_s, dtype=float).reshape(-1, 3)
-    top = float(np.sqrt(np.max(np.einsum("ij,ij->i", cmd, cmd)))) if cmd.shape[0] else 0.0
-    return float(d_min_m + horizon_s * top)
+def _top_speed_m_s(v_m_s: np.ndarray) -> float:
+    """The largest row norm of ``v_m_s`` (n, 3); 0 for none."""
+    v = np.asarray(v_m_s, dtype=float).reshape(-1, 3)
+    return float(np.sqrt(np.max(np.einsum("ij,ij->i", v, v)))) if v.shape[0] else 0.0
+
+
+def candidate_reach_m(d_min_m: float, command_m_s: np.ndarray, horizon_s: float,
+                      velocity_m_s: np.ndarray | None = None) -> float:
+    """The radius within which a pair can act this step [m]: ``d_min + horizon_s (max_i |cmd_i| +
+    max_j |vel_j|)`` (module docstring), d_min with no agents."""
+    vel = _top_speed_m_s(velocity_m_s) if velocity_m_s is not None else 0.0
+    return float(d_min_m + horizon_s * (_top_speed_m_s(command_m_s) + vel))
 
 
 def candidate_pairs(pos_m: np.ndarray, reach_m: float) -> np.ndarray:
@@ -135,7 +142,7 @@ class SwarmSafetyNet:
                 ids: np.ndarray) -> tuple[np.ndarray, int]:
         """``filtered_map`` and the number of candidate pairs evaluated."""
         cfg = self.config
-        reach = candidate_reach_m(self.d_min_m, cmd_m_s, self.horizon_s) * (1.0 + _REACH_MARGIN)
+        reach = candidate_reach_m(self.d_min_m, cmd_m_s, self.horizon_s, vel_m_s) * (1.0 + _REACH_MARGIN)
         pairs = candidate_pairs(pos_m, reach)
         if self._kernel is None:
             return (keep_apart_pairs(pos_m, vel_m_s, cmd_m_s, ids, pairs, self.d_min_m, cfg, self.lag_s, self.duct),

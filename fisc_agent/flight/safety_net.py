@@ -21,9 +21,13 @@ Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep
   that has landed or lost its link for that long is not where it was.
 - **No closing in.**  With ``n`` the unit vector from the neighbour to this vehicle and ``d`` the
   distance, the commanded speed towards the neighbour, ``c = -v . n``, is cut to
-  ``max(0, -v_j . n) + max(0, d - r_j) / horizon_s``: the neighbour's own speed away along the same
+  ``max(0, -v_j . n + max(0, d - r_j) / horizon_s)``: the neighbour's own speed away along the same
   line (zero for a stale report), so a column that moves together keeps moving, plus what reaches the
-  keep-out radius no sooner than ``horizon_s``.  A vehicle that is not closing fast is left alone; one
+  keep-out radius no sooner than ``horizon_s``; a neighbour coming towards the vehicle takes its speed off
+  that, so the pair together closes no faster than one vehicle would on a still neighbour.  (Until
+  2026-12-07 only the speed away counted: head on, each of two vehicles allowed itself the whole
+  ``gap / horizon_s``, the pair closed at twice the designed rate on lags of 0.7-0.9 s, and two stock PX4
+  meeting on their join routes at 2.1 and 0.9 m/s came 0.48 m apart by SIH's truth.)  A vehicle that is not closing fast is left alone; one
   closing fast starts braking ``horizon_s`` of closing before the radius.  (Acting only inside d_min
   is too late: a vehicle closing at 1.5 m/s on a lag of 0.9 s, stock PX4's, is through the 0.42 m
   of margin a 0.92 m d_min leaves between two 0.25 m radii before it has slowed.)
@@ -251,12 +255,12 @@ def _pair_terms(rel_m: np.ndarray, tie_sign: np.ndarray, v_m_s: np.ndarray, v_nb
     n[apart] = rel_m[apart] / dist[apart, None]
     n[~apart, 0] = tie_sign[~apart]
     v_nb = np.where(fresh[:, None], v_nb_m_s, 0.0)
-    allowed = np.maximum(0.0, -np.einsum("ij,ij->i", v_nb, n))
+    away = -np.einsum("ij,ij->i", v_nb, n)   # the neighbour's speed away from the vehicle (< 0: closing)
     gap = dist - radius_m
     if horizon_s > 0:
-        allowed = allowed + np.maximum(0.0, gap) / horizon_s
+        allowed = np.maximum(0.0, away + np.maximum(0.0, gap) / horizon_s)
     else:
-        allowed = np.where(gap >= 0, np.inf, allowed)
+        allowed = np.where(gap >= 0, np.inf, np.maximum(0.0, away))
     passing = closest_approach_m(rel_m, v_m_s - v_nb, horizon_s) >= radius_m + cfg.pass_margin_m
     push = (cfg.push_gain_1_s * np.maximum(0.0, -gap))[:, None] * n
     return _PairTerms(n, allowed, ~passing, gap, push)
@@ -315,15 +319,17 @@ def keep_apart(position_m: Vec, velocity_m_s: Vec, agent_id: int, reports: Neigh
     rel = np.asarray(position_m, dtype=float) - pos_nb
     dist = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     v = np.asarray(velocity_m_s, dtype=float)
-    # cheap first cut: closing at most |v|, a pair acts only inside r + horizon |v|
+    # cheap first cut: a pair acts only inside r + horizon (|v| + the neighbour's speed, while fresh)
     horizon = effective_horizon_s(cfg, lag_s)
-    near = kept & (dist < radius + horizon * math.sqrt(v @ v))
+    fresh = np.asarray(reports.age_s) <= cfg.fresh_s
+    nb_speed = np.where(fresh, np.linalg.norm(reports.velocity_m_s, axis=1), 0.0)
+    near = kept & (dist < radius + horizon * (math.sqrt(v @ v) + nb_speed))
     nearest = float(dist[kept].min()) if kept.any() else math.inf
     if not near.any():
         return NetAction(velocity_m_s, (), nearest)
     ids = np.asarray(reports.ids)[near]
     t = _pair_terms(rel[near], np.where(int(agent_id) < ids, 1.0, -1.0), np.broadcast_to(v, (len(ids), 3)),
-                    reports.velocity_m_s[near], radius[near], np.asarray(reports.age_s)[near] <= cfg.fresh_s, cfg,
+                    reports.velocity_m_s[near], radius[near], fresh[near], cfg,
                     horizon)
     # the oracle of ``sequential_cuts``: the limits the command breaks one at a time, nearest gap first
     w = v.copy()
@@ -355,7 +361,8 @@ def keep_apart_pairs(position_m: np.ndarray, velocity_m_s: np.ndarray, command_m
     """The net for a whole swarm whose members hear each other at once (reports of age 0: the
     simulator's view): ``command_m_s`` (n, 3) after the net.  ``pairs`` (m, 2): index pairs (i, j),
     each unordered pair once, to be checked: every pair that can act, i.e. within d_min plus the
-    horizon times the fastest commanded speed (a vehicle closes at most at its own commanded speed).  ``lag_s``: the vehicles' velocity
+    horizon times the fastest commanded speed and the fastest velocity (a vehicle closes at most at its
+    own commanded speed, and its limit falls by the neighbour's speed towards it).  ``lag_s``: the vehicles' velocity
     lag; ``duct``: the wall rule.  Agrees with ``keep_apart`` applied to each vehicle with fresh
     reports of all the others."""
     cmd = np.asarray(command_m_s, dtype=float)

@@ -47,6 +47,36 @@ def test_outside_d_min_closing_is_limited_to_reach_it_no_sooner_than_the_horizon
     assert act.velocity_m_s == pytest.approx((min(speed, 0.25), 0.4, 0.0), abs=1e-15)
 
 
+@pytest.mark.parametrize("towards, speed, want", [
+    (0.1, 0.15 - 1e-6, None),    # a neighbour coming at 0.1 m/s leaves 0.25 - 0.1 m/s: just under, untouched
+    (0.1, 0.15, None),           # exactly the limit: untouched
+    (0.1, 0.15 + 1e-6, 0.15),    # just over: cut to it
+    (0.25, 0.5, 0.0),            # coming at the whole gap / horizon: stop (not back: moving away is the push's)
+    (0.8, 0.5, 0.0),             # faster than that: still stop, never reverse
+    (-0.3, 0.5, None),           # moving away at 0.3: 0.25 + 0.3 allowed, 0.5 untouched
+    (0.0, 0.3, 0.25),            # still: the whole gap / horizon
+])
+def test_a_neighbour_coming_towards_the_vehicle_takes_its_speed_off_the_closing_allowed(towards, speed, want):
+    # d_min 1 m, 0.375 m outside it, horizon 1.5 s: 0.25 m/s in all for the pair (head on, 0.48 m by SIH's truth
+    # on two stock PX4 when each allowed itself the whole 0.25)
+    act = keep_apart((0.0, 0.0, 0.0), (speed, 0.4, 0.0), 1, one((1.375, 0.0, 0.0), vel=(-towards, 0.0, 0.0)), 1.0)
+    assert act.active is (want is not None)
+    assert act.velocity_m_s == pytest.approx((speed if want is None else want, 0.4, 0.0), abs=1e-12)
+
+
+def test_a_stale_neighbours_velocity_takes_nothing_off_but_its_radius_grows():
+    # 0.6 s old (fresh 0.5 s): no velocity, keep-out 1 + 2 x 0.1 m; its position not extrapolated beyond 0.5 s
+    act = keep_apart((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 1, one((2.5, 0.0, 0.0), vel=(-0.5, 0.0, 0.0), age=0.6), 1.0)
+    pos_then = 2.5 - 0.5 * 0.5
+    assert act.velocity_m_s == pytest.approx(((pos_then - 1.2) / 1.5, 0.0, 0.0), abs=1e-12)
+
+
+def test_a_fast_neighbour_far_out_head_on_is_heard_beyond_the_vehicles_own_reach():
+    # 0.5 m/s for 1.5 s reaches 0.75 m beyond d_min; a neighbour 3 m beyond it coming at 2 m/s leaves none
+    act = keep_apart((0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 1, one((4.0, 0.0, 0.0), vel=(-2.0, 0.0, 0.0)), 1.0)
+    assert act.acting == (7,) and act.velocity_m_s == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+
+
 def test_with_no_horizon_the_net_acts_only_inside_d_min():
     cfg = SafetyNetConfig(horizon_s=0.0)
     assert not keep_apart((0.0, 0.0, 0.0), (5.0, 0.0, 0.0), 1, one((D + 1e-6, 0.0, 0.0)), D, cfg).active
