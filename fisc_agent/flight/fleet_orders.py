@@ -35,13 +35,38 @@ ARM_ANSWER_S = 3.0
 the hold keeps the offboard stream alive that long even while the vehicle is still disarmed."""
 
 
+RESUME_WAIT_S = 5.0
+"""A fleet ``resume`` refused because the position is not good (stale or lost) is carried out if it becomes
+good within this long [s]; after that it is dropped (said), and the operator sends it again.  (Sent once, a
+resume refused for a moment's stale position under load left a vehicle in its hold for good.)"""
+
+
 class FleetOrders:
     """Mixin of ``Mission``: the fleet orders queued by ``Mission.command``, applied by ``Mission.step``."""
 
     _arm_answer_until_s: float = -math.inf
     """Until when (mission time) an arm request interrupted by a fleet hold may still be answered [s]."""
+    _resume_wait_until_s: float | None = None
+    """A refused resume waits for a good position until then (mission time) [s]; None: none waiting."""
+
+    def _retry_resume(self, t: float, pos: Vec | None, ph: PositionHealth, armed: bool) -> None:
+        """Each step: carry out a resume refused for its position once the position is good, if still held."""
+        until = self._resume_wait_until_s
+        if until is None:
+            return
+        if self.state != State.HOLD:
+            self._resume_wait_until_s = None
+        elif ph == PositionHealth.OK:
+            self._resume_wait_until_s = None
+            log.info("fleet resume: the position is good again; resuming")
+            self._resume(t, pos, ph, armed)
+        elif t > until:
+            self._resume_wait_until_s = None
+            log.warning("fleet resume dropped: the position is still %s after %.0f s; send resume again", ph.value,
+                        RESUME_WAIT_S)
 
     def _fleet(self, t: float, order: FleetOrder, s: VehicleStatus, pos: Vec | None, ph: PositionHealth) -> None:
+        self._resume_wait_until_s = None   # a newer order replaces a resume still waiting for its position
         verdict = fleet_action(order, self.authority, s.armed, self.state == State.HOLD)
         scope = "addressed" if order.addressed else "swarm-wide"
         if verdict.note:
@@ -98,7 +123,9 @@ class FleetOrders:
 
     def _resume(self, t: float, pos: Vec | None, ph: PositionHealth, armed: bool) -> None:
         if ph != PositionHealth.OK and self.hold_cause != HoldCause.FLEET_ON_GROUND:
-            log.warning("fleet resume refused: position is %s", ph.value)
+            log.warning("fleet resume refused: position is %s; carried out if it is good within %.0f s", ph.value,
+                        RESUME_WAIT_S)
+            self._resume_wait_until_s = t + RESUME_WAIT_S
             return
         nxt = self._resume_state
         if self.hold_cause == HoldCause.GEOFENCE:

@@ -220,6 +220,7 @@ class Mission(FleetOrders):
         for order in self._pending:
             self._fleet(t, order, s, pos, ph)
         self._pending.clear()
+        self._retry_resume(t, pos, ph, s.armed)
 
         # -- who is in charge ------------------------------------------------------------------
         landed = not s.armed and (self.state in FLYING or self.state in (State.LAND, State.HOLD))

@@ -19,7 +19,7 @@ from fisc_agent.flight.flightlog import FlightLog, rotate
 from fisc_agent.flight.health import LandedState, SystemState, VehicleHealth
 from fisc_agent.flight.integrity import IntegrityConfig
 from fisc_agent.flight.mission import Mission
-from fisc_agent.flight.fleet_orders import ARM_ANSWER_S
+from fisc_agent.flight.fleet_orders import ARM_ANSWER_S, RESUME_WAIT_S
 from fisc_agent.flight.mission_types import JUMP_HOLD_GRACE_S
 from fisc_agent.flight.mission_types import Authority, Cause, FleetOrder, HoldCause, MissionCommand, State
 from fisc_agent.flight.readiness import HealthKind, arming_blockers, battery_low, distance_to_box_m, health_problems
@@ -491,3 +491,43 @@ def test_a_blind_position_hold_requests_no_mode_before_the_link_is_called_lost(s
     v2.drop_position = True                         # only the position stops: the autopilot is heard
     run_for(m2, v2, cfg2, cfg2.stale_timeout_s + cfg2.hold_grace_s + 0.2)
     assert v2.mode == "hold"
+
+
+def _lost_and_held(sfield):
+    """A vehicle flowing, then its position lost until the mission holds (latched): (cfg, mission, vehicle)."""
+    cfg, m, v = make(sfield, hold_grace_s=0.3, stale_timeout_s=0.5)
+    run(m, v, cfg, lambda m, v, o: m.state == State.FLOW)
+    v.drop_position = True
+    run(m, v, cfg, lambda m, v, o: o.want_mode == "hold", max_s=v.t + 3)
+    assert m.state == State.HOLD and m.hold_cause == HoldCause.POSITION_STALE
+    return cfg, m, v
+
+
+@pytest.mark.parametrize("back_after_s, resumed", [(0.0, True), (RESUME_WAIT_S - 0.2, True),
+                                                    (RESUME_WAIT_S + 0.2, False)])
+def test_a_resume_refused_for_its_position_is_carried_out_once_the_position_is_good_within_the_wait(
+        sfield, back_after_s, resumed, caplog):
+    caplog.set_level("INFO", logger="fisc_agent.flight.mission")
+    cfg, m, v = _lost_and_held(sfield)
+    m.command("resume")
+    run_for(m, v, cfg, DT)
+    assert m.state == State.HOLD                                # refused: the position is lost
+    run_for(m, v, cfg, back_after_s)
+    assert m.state == State.HOLD
+    v.drop_position = False
+    run_for(m, v, cfg, 0.5)
+    assert (m.state == State.FLOW) is resumed, (m.state, m.reason)
+    said = [r.getMessage() for r in caplog.records]
+    assert any(t.startswith("fleet resume: the position is good again") for t in said) is resumed
+    assert any(t.startswith("fleet resume dropped: the position is still lost") for t in said) is not resumed
+
+
+def test_a_newer_fleet_order_replaces_a_resume_waiting_for_its_position(sfield):
+    cfg, m, v = _lost_and_held(sfield)
+    m.command("resume")
+    run_for(m, v, cfg, DT)
+    m.command("hold")                                           # the operator holds again before the fix is back
+    run_for(m, v, cfg, DT)
+    v.drop_position = False
+    run_for(m, v, cfg, 1.0)
+    assert m.state == State.HOLD and m.hold_cause == HoldCause.FLEET

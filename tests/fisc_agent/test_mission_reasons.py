@@ -343,7 +343,7 @@ def test_failsafes_and_refusals_are_logged_in_full(sfield, caplog):
     assert len(lost) == 1 and re.fullmatch(r"position lost for \d+\.\d s: requesting the autopilot's hold mode", lost[0])
     m.command("resume")
     run_for(m, v, cfg, DT)
-    assert ("WARNING", "fleet resume refused: position is lost") in _log(caplog)
+    assert ("WARNING", "fleet resume refused: position is lost; carried out if it is good within 5 s") in _log(caplog)
     v.drop_position, v.mute = False, True
     run(m, v, cfg, lambda m, v, o: m.hold_cause == HoldCause.LINK_LOST, max_s=v.t + 10)
     age = v.t - DT - v.last_hb
