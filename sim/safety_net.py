@@ -10,15 +10,15 @@ Frames.  The net needs positions, velocities and commands in one frame: the swar
 the map frame and velocities and commands in NED, so both are turned to the map frame
 (``MAP_TO_NED`` is its own inverse) and the result back.
 
-Candidate pairs.  The pairs handed to ``keep_apart_pairs`` are those of
-``cKDTree(pos).query_pairs(r)`` with ``r = d_min + T * (max_i |cmd_i| + max_j |vel_j|)`` (times 1 + 1e-9
-for rounding; ``T`` the horizon, ``effective_horizon_s`` for the plant's lag ``tau_v_s``), recomputed every
-step from the commands and velocities of that step.  This is exact, not an approximation: a pair acts on
-agent i only inside d_min or when i's commanded speed towards the neighbour, at most ``|cmd_i|``, exceeds
-``(d - d_min) / T`` less the neighbour's speed towards i, at most ``|vel_j|``.  (Before 2026-12-07 the
-neighbour's speed towards i did not count, and the radius was ``d_min + T max_i |cmd_i|``.)  With the 1.5 s horizon that was 3.9 m on the default map (d_min 0.92 m, 2 m/s):
-~1.5 x 10^5 pairs among 850 agents spread over the tunnel (the main job's density without the net; with
-it the net empties the tunnel, docs/deployment.md).
+Candidate pairs. The pairs handed to ``keep_apart_pairs`` are those of ``cKDTree(pos).query_pairs(r)`` with
+``r = d_min + T * (max_i |cmd_i| + max_j |vel_j|)`` (times 1 + 1e-9 for rounding; ``T`` the horizon,
+``effective_horizon_s`` for the plant's lag ``tau_v_s``), recomputed every step from the commands and
+velocities of that step. This is exact, not an approximation: a pair acts on agent i only inside d_min or when
+i's commanded speed towards the neighbour, at most ``|cmd_i|``, exceeds ``(d - d_min) / T`` less the
+neighbour's speed towards i, at most ``|vel_j|``. (Before 2026-12-07 the neighbour's speed towards i did not
+count, and the radius was ``d_min + T max_i |cmd_i|``.) With the 1.5 s horizon that was 3.9 m on the default
+map (d_min 0.92 m, 2 m/s): ~1.5 x 10^5 pairs among 850 agents spread over the tunnel (the main job's density
+without the net; with it the net empties the tunnel, docs/deployment.md).
 
 The duct (``DuctAxis``) is the CVs' length along x about the map's x axis: the net's correction never
 points away from it there (the wall rule of ``fisc_agent.flight.safety_net``).

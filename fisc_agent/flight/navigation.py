@@ -269,7 +269,8 @@ class Navigator:
         sure_s = wall_time_s + sum(legs) / hi - due_s
         if sure_s <= ENTRY_TIMING_TOLERANCE_S:
             return False   # (approach_time_s stops a waypoint radius short: it can be less than sure_s)
-        late_s = max(sure_s, wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s)
+        modelled_s = wall_time_s + sum(approach_time_s(d, hi, self.cfg.waypoint_radius_m) for d in legs) - due_s
+        late_s = max(sure_s, modelled_s)
         self.lead_learnt_s = min(MAX_LEAD_LEARNT_S, self.lead_learnt_s + late_s)
         self._give_up_window(pos, late_s, "on its way: at top speed at the staging point")
         return True

@@ -27,10 +27,10 @@ Per neighbour j (``keep_apart``; the vectorised form for a whole swarm is ``keep
   that, so the pair together closes no faster than one vehicle would on a still neighbour.  (Until
   2026-12-07 only the speed away counted: head on, each of two vehicles allowed itself the whole
   ``gap / horizon_s``, the pair closed at twice the designed rate on lags of 0.7-0.9 s, and two stock PX4
-  meeting on their join routes at 2.1 and 0.9 m/s came 0.48 m apart by SIH's truth.)  A vehicle that is not closing fast is left alone; one
-  closing fast starts braking ``horizon_s`` of closing before the radius.  (Acting only inside d_min
-  is too late: a vehicle closing at 1.5 m/s on a lag of 0.9 s, stock PX4's, is through the 0.42 m
-  of margin a 0.92 m d_min leaves between two 0.25 m radii before it has slowed.)
+  meeting on their join routes at 2.1 and 0.9 m/s came 0.48 m apart by SIH's truth.)  A vehicle that is
+  not closing fast is left alone; one closing fast starts braking ``horizon_s`` of closing before the radius.
+  (Acting only inside d_min is too late: a vehicle closing at 1.5 m/s on a lag of 0.9 s, stock PX4's, is
+  through the 0.42 m of margin a 0.92 m d_min leaves between two 0.25 m radii before it has slowed.)
 - **Passing is not closing.**  The closing cut applies only to a pair whose straight-line closest
   approach within the horizon (this vehicle at its command, the neighbour at its reported velocity while
   fresh, still otherwise) comes nearer than ``r_j + pass_margin_m``: a vehicle that flies past a
@@ -362,8 +362,8 @@ def keep_apart_pairs(position_m: np.ndarray, velocity_m_s: np.ndarray, command_m
     simulator's view): ``command_m_s`` (n, 3) after the net.  ``pairs`` (m, 2): index pairs (i, j),
     each unordered pair once, to be checked: every pair that can act, i.e. within d_min plus the
     horizon times the fastest commanded speed and the fastest velocity (a vehicle closes at most at its
-    own commanded speed, and its limit falls by the neighbour's speed towards it).  ``lag_s``: the vehicles' velocity
-    lag; ``duct``: the wall rule.  Agrees with ``keep_apart`` applied to each vehicle with fresh
+    own commanded speed, and its limit falls by the neighbour's speed towards it).  ``lag_s``: the
+    vehicles' velocity lag; ``duct``: the wall rule.  Agrees with ``keep_apart`` applied to each vehicle with fresh
     reports of all the others."""
     cmd = np.asarray(command_m_s, dtype=float)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)

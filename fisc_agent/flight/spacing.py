@@ -144,7 +144,8 @@ FINAL_LEG_LEAST_CRAWL = 0.5
 """A timed final leg (``final_leg_speed_m_s``) ahead of its crossing slows down to this fraction of the crawl."""
 FINAL_LEG_MOST_CRAWL = 1.5
 """A timed final leg behind its crossing flies up to this multiple of the crawl in its brake zone: a stock PX4
-flew 0.30 m/s there for a setpoint of 0.43 (its steady gain at that speed 0.7) and crossed 1.1 s late."""
+flew 0.30 m/s there for a setpoint of 0.43 (its steady gain at that speed 0.7) and crossed 1.1 s late
+(three stock PX4, 2026-12-07, with the crawl as the brake zone's most)."""
 FINAL_LEG_MIN_BRAKE_M = 0.5
 """Least distance before the inlet plane from which a join's final leg flies the crawl (one 0.5 m slice) [m]."""
 
@@ -157,14 +158,14 @@ def final_leg_speed_m_s(to_plane_m: float, crawl_m_s: float, lag_s: float, cap_m
     the plane on (two of the vehicle's lags at the crawl: a first-order lag's excess speed falls to 14 %), and
     before that a proportional approach to that point on top of the crawl, within ``cap_m_s``.
 
-    ``time_left_s``: the time until the crossing it aims at (the staging point's due time plus the leg at
-    the crawl, ``Navigator.join_step``).  The speed is then the one that reaches the brake point ``brake /
-    crawl`` before that crossing (in the brake zone: the plane at it), within ``FINAL_LEG_LEAST_CRAWL`` x the
-    crawl and the approach (at least ``FINAL_LEG_MOST_CRAWL`` x the crawl, within ``cap_m_s``); with ``vx_m_s``, the vehicle's velocity
-    along x, reckoned from where its lag ``lag_s`` takes it.  Recomputed every tick, it makes up a lag or a
-    low gain and holds back a vehicle that arrived at its staging point at speed.  Without it (the
-    approach alone) crossings spread over 3.8 s (-3.5 to +0.3 s from their due times, 52 crossings of
-    stock PX4, 2026-12-07) for windows of 4.23 s, and two vehicles came 0.45 m apart at the inlet.
+    ``time_left_s``: the time until the crossing it aims at (the staging point's due time plus the leg at the
+    crawl, ``Navigator.join_step``). The speed is then the one that reaches the brake point ``brake / crawl``
+    before that crossing (in the brake zone: the plane at it), within ``FINAL_LEG_LEAST_CRAWL`` x the crawl and
+    the approach (at least ``FINAL_LEG_MOST_CRAWL`` x the crawl, within ``cap_m_s``); with ``vx_m_s``, the
+    vehicle's velocity along x, reckoned from where its lag ``lag_s`` takes it. Recomputed every tick, it makes
+    up a lag or a low gain and holds back a vehicle that arrived at its staging point at speed. Without it (the
+    approach alone) crossings spread over 3.8 s (-3.5 to +0.3 s from their due times, 52 crossings of stock PX4,
+    2026-12-07) for windows of 4.23 s, and two vehicles came 0.45 m apart at the inlet.
 
     The proportional approach all the way to the entry point crossed the plane still fast (eight stock PX4,
     2026-12-07: 0.70 m/s in the inlet's first 0.25 m for a 0.42 setpoint; the inlet slice read 0.7 of its
