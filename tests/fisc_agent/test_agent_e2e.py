@@ -150,7 +150,9 @@ def test_explicit_kinetic_mode_under_streamline_tracking_flies_the_fitted_spread
         pos = np.array([s.position_map_m for s in flow])
         vel = np.array([s.velocity_map_m_s for s in flow])
         ratio = realised_spread_ratio(pos, vel, np.array(["FLOW"] * len(flow)), CommandField.from_map(cmap))
-        assert 0.6 <= ratio <= 1.4, ratio
+        # one pass over a real-time UDP link: 0.58-0.76 in six runs (2026-12-07, before and after that day's
+        # final-leg change; a CI run failed at 0.58 against a bound of 0.6); the field alone leaves 0.1-0.5
+        assert 0.55 <= ratio <= 1.4, ratio
         assert pos[:, 0].max() > MapGeometry.from_field(CommandField.from_map(cmap)).x_outlet_m - cmap.cell_size_m
     finally:
         emu.stop()

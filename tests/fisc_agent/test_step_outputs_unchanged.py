@@ -20,6 +20,9 @@ earlier host).  The flights:
   only way before 2026-12-07, recorded then), ``plant-kinetic-cross-stream`` turned across the stream (the
   default since, its record added then).
 
+Rewritten on 2026-12-07 for an intended change: the join's final leg timed to its crossing
+(``spacing.final_leg_speed_m_s``), which crosses the inlet later in the ``plant-*`` flights' second pass.
+
 Regenerate the golden file (only for an intended change of behaviour) with
 ``python tests/fisc_agent/test_step_outputs_unchanged.py --write``.
 """
