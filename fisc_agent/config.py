@@ -147,7 +147,7 @@ class AgentConfig:
     exit_clearance_m: float = 5.0
     """With exit ``hold``/``land``: the first row of hold spots lies this far downstream of the outlet
     plane; the exit climbs over the spots until ``exit_clearance_m - exit_spacing_m`` beyond the outlet
-    (``control.exit_waypoints``), so a vehicle keeps moving downstream as it leaves the stream
+    (``routes.exit_waypoints``), so a vehicle keeps moving downstream as it leaves the stream
     (with 0.5 m of room, a leader slowed there and its follower came within 0.47 m on real PX4) [m]."""
     exit_spacing_m: float = 3.0
     """With exit ``hold``/``land``: least horizontal distance between two agents' hold spots, and so

@@ -14,8 +14,8 @@ from dataclasses import replace
 
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
-                                       exit_waypoints, goto_velocity, hold_point, join_waypoints, lap_return_waypoints,
-                                       speed_for_arrival)
+                                       goto_velocity, hold_point, speed_for_arrival)
+from fisc_agent.flight.routes import exit_waypoints, join_waypoints, lap_return_waypoints
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
@@ -365,7 +365,7 @@ class Navigator:
 
     def plan_exit(self, pos: Vec, min_z_m: float | None) -> None:
         """The exit from past the outlet ``pos`` to the agent's hold spot (``target``), over the spots
-        of the others (``control.exit_waypoints``).  ``min_z_m``: the spot's least altitude."""
+        of the others (``routes.exit_waypoints``).  ``min_z_m``: the spot's least altitude."""
         assert self.geom is not None
         cfg = self.cfg
         self.target = hold_point(cfg.agent_id, self.geom, self.geom.x_outlet_m + cfg.exit_clearance_m,

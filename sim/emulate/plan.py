@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fisc_agent.flight.control import MapGeometry, ScalarField, entry_points, join_waypoints
+from fisc_agent.flight.control import MapGeometry, ScalarField, entry_points
+from fisc_agent.flight.routes import join_waypoints
 from fisc_agent.flight.frames import DeploymentTransform
 from fisc_agent.map.lookup import CommandField
 from fisc_agent.map.codec import MAGIC, CommandMap, load_map
@@ -46,7 +47,7 @@ def launch_plan(field: CommandField, n_agents: int, transform: DeploymentTransfo
     launched within the first half of ``duration_s``, the rate is raised to N / (duration / 2).
     Vehicle i's planned arrival is i / rate; its launch is that minus its predicted travel time:
     ``overhead_s`` (arm, OFFBOARD/GUIDED, climb-out to ``takeoff_alt_m``) plus the length of its
-    join path (``fisc_agent.flight.control.join_waypoints`` to its ``entry_point``) at ``join_speed_m_s``.
+    join path (``fisc_agent.flight.routes.join_waypoints`` to its ``entry_point``) at ``join_speed_m_s``.
     Launch times are then shifted so that the earliest is 0.  Start positions: a square grid of
     ``spacing_m`` on the ground (D = 0), centred on the tunnel axis laterally, its first row
     ``gap_m`` upstream of the staging plane, filled in id order.

@@ -10,9 +10,9 @@ admitted from the map's flux budget (``--entry-stagger auto``, windows on the sh
 their vehicle's velocity gain in flight.  The vehicles must stay ``MIN_SEPARATION_M`` apart by SIH's ground
 truth (not PX4's estimates, off by up to 0.5 m) over the whole flight: they wait for their
 windows above their own launch points, fly ``LAPS`` passes (``--exit-policy loop``: a lap's return
-flies back over the tunnel and waits above its launch point again, ``control.lap_return_waypoints``)
+flies back over the tunnel and waits above its launch point again, ``routes.lap_return_waypoints``)
 and then hold after the outlet each at its own point (``control.hold_point``), reached over the
-others (``control.exit_waypoints``).  Every uninterrupted pass must score a ground-truth velocity
+others (``routes.exit_waypoints``).  Every uninterrupted pass must score a ground-truth velocity
 nRMSE of at most ``MAX_VELOCITY_NRMSE`` and stay within ``sitl_kit.MAX_EXCURSION_M`` (0.3 m) of the wall by
 PX4's estimate, as the ground station sees it (``sitl_kit.TRUTH_EXCURSION_M`` by the truth: the estimator's
 error added).  The agents' safety nets (``--safety-net on``, the default)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from fisc_agent.flight.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
-                                goto_velocity, join_waypoints, max_command_speed)
+                                goto_velocity, max_command_speed)
+from fisc_agent.flight.routes import join_waypoints
 from fisc_agent.map.hashing import slot_hash, slot_hash_int
 from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.map.codec import MapError
@@ -155,7 +156,7 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
 
 @pytest.mark.parametrize("exit_yz", [(0.0, 0.0), (1.0, -0.8), (-1.2, 1.0)])
 def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_wait_point(field, exit_yz):
-    from fisc_agent.flight.control import lap_return_waypoints
+    from fisc_agent.flight.routes import lap_return_waypoints
 
     g = MapGeometry.from_field(field)
     pos = (g.x_outlet_m + 0.2, *exit_yz)
@@ -180,7 +181,7 @@ def test_a_laps_return_flies_over_the_tunnel_and_comes_down_only_above_its_own_w
 def test_a_return_to_a_wait_point_under_the_tunnel_comes_down_upstream_of_the_entry_corridor(field, wait_xy):
     """Launched under the inlet (PX4 SITL's instance 0 is), a vehicle coming down above its wait point would
     descend through the corridor where the others enter: it comes down upstream of it and flies in level."""
-    from fisc_agent.flight.control import OVERFLY_M, lap_return_waypoints
+    from fisc_agent.flight.routes import OVERFLY_M, lap_return_waypoints
 
     g = MapGeometry.from_field(field)
     margin, staging = 0.5, 1.5
@@ -205,7 +206,7 @@ def test_a_return_to_a_wait_point_under_the_tunnel_comes_down_upstream_of_the_en
 
 @pytest.mark.parametrize("dx, dy", [(-1e-6, 0.0), (0.0, 1e-6)])
 def test_a_wait_point_just_outside_the_corridor_is_reached_straight_down(field, dx, dy):
-    from fisc_agent.flight.control import lap_return_waypoints
+    from fisc_agent.flight.routes import lap_return_waypoints
 
     g = MapGeometry.from_field(field)
     margin, staging = 0.5, 1.5

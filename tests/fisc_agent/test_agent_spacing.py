@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from fisc_agent.config import AgentConfig
-from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, OVERFLY_M, MapGeometry, ScalarField, approach_time_s,
-                                       entry_point, entry_points, exit_waypoints, hold_point, hold_points,
-                                       distance, speed_for_arrival)
+from fisc_agent.flight.control import (GOLDEN_ANGLE_RAD, MapGeometry, ScalarField, approach_time_s, entry_point,
+                                       entry_points, hold_point, hold_points, distance, speed_for_arrival)
+from fisc_agent.flight.routes import OVERFLY_M, exit_waypoints
 from fisc_agent.flight.spacing import (final_leg_speed_m_s, ENTRY_POINTS, ENTRY_TIMING_TOLERANCE_S, HOLD_FLOOR_MARGIN_M, JOIN_LEG_ALLOWANCE_S,
                                        VOGEL_64_MIN_SPACING, check_min_distance, entry_slot_open, hold_altitude_m,
                                        hold_sites, lattice_hold_points,
