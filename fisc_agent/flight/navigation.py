@@ -15,7 +15,7 @@ from dataclasses import replace
 from fisc_agent.config import AgentConfig
 from fisc_agent.flight.control import (ZERO, MapGeometry, ScalarField, Vec, approach_time_s, distance, entry_point,
                                        goto_velocity, hold_point, speed_for_arrival)
-from fisc_agent.flight.routes import exit_waypoints, join_waypoints, lap_return_waypoints
+from fisc_agent.flight.routes import exit_waypoints, give_up_waypoints, join_waypoints, lap_return_waypoints
 from fisc_agent.flight.mission_types import KEEPING_SPOT, Cause, HoldCause
 from fisc_agent.flight.identify import OnlineGain, ResponseRecorder, VehicleResponse, feedforward_from_gain
 from fisc_agent.flight.spacing import (ENTRY_TIMING_TOLERANCE_S, JOIN_LEG_ALLOWANCE_S, MAX_LEAD_LEARNT_S, EntrySchedule,
@@ -211,15 +211,17 @@ class Navigator:
         return 0.3 if v_in is None else max(0.3, self.tracker.cfg.feedforward_gain * v_in[0])
 
     def _give_up_window(self, pos: Vec, late_s: float, where: str) -> None:
-        """Not entering in this window: back the way it came to the wait point for the next one (its own
-        join route, away from the staging points where the routes meet); counted in ``late_entries``.
-        (Up over the tunnel from where it gave up, a vehicle 3.9 s late at its staging point climbed
-        beside the next one arriving at its own: 0.58 m apart by SIH's ground truth, eight stock PX4.)"""
+        """Not entering in this window: back to the wait point for the next one by its own join route, its
+        part in the staging plane flown back upstream of it (``routes.give_up_waypoints``); counted in
+        ``late_entries``.  (Up over the tunnel from where it gave up, a vehicle 3.9 s late at its staging
+        point climbed beside the next one arriving at its own: 0.58 m apart by SIH's ground truth, eight
+        stock PX4.)"""
         log.warning("%s %.1f s after its due time (more than %.1f s): not entering; back to the wait point for "
                     "the next entry window", where, late_s, ENTRY_TIMING_TOLERANCE_S)
         self.late_entries += 1
         wait_at = self.waypoints[self.wait_index]
-        self._plan_join_via(pos, self.waypoints[self.wait_index + 1:self.wp_index][::-1], wait_at)
+        passed = self.waypoints[self.wait_index + 1:self.wp_index]
+        self._plan_join_via(pos, give_up_waypoints(pos, passed, wait_at, self.geom, self.cfg.staging_m)[:-1], wait_at)
 
     def _late_across(self, pos: Vec, wall_time_s: float) -> bool:
         """On the final leg, not yet across the inlet plane more than ``ENTRY_TIMING_TOLERANCE_S`` after
@@ -281,7 +283,7 @@ class Navigator:
         way: the safety net, a lag beyond the governor's reach)?  Then the agent does not enter: entering
         late, it would start across next to the vehicle of the following window (on eight real PX4 one
         so delayed 4 s by the net entered 1.8 s before the next, and the two came within 0.47 m by SIH's
-        ground truth).  It flies back the way it came to its wait point (``_give_up_window``) and
+        ground truth).  It flies back by its own route to its wait point (``_give_up_window``) and
         waits for its next window; counted in ``late_entries``.  Its joins then leave earlier by the
         delay (``lead_learnt_s``) and the arrival governor (``_join_speed``) aims that much before the
         due time, so a vehicle late by habit reaches the staging point when due (stock PX4 with the net

@@ -85,3 +85,28 @@ def exit_waypoints(pos: Vec, spot: Vec, geom: MapGeometry, clearance_m: float, p
     z_top = max(geom.hi_m[2] + margin_m, spot[2] + overfly_m)
     x, y, _ = pos
     return [(max(x, geom.x_outlet_m + clearance_m - pitch_m), y, z_top), (spot[0], spot[1], z_top), spot]
+
+
+def give_up_waypoints(pos: Vec, passed: list[Vec], wait_at: Vec, geom: MapGeometry, staging_m: float = 1.5,
+                      back_m: float = OVERFLY_M) -> list[Vec]:
+    """Waypoints back to ``wait_at`` for a join that gives its entry window up at ``pos``, having passed
+    ``passed`` (its route's waypoints after the wait point, in the order flown).
+
+    Back the way it came, its own route, away from the others' wait points; but not through the staging
+    plane (``staging_m`` before the inlet): there every join's last legs converge on the inlet, so a leg
+    flown back there runs head on into the next vehicle coming up its own, nearly parallel, leg (eight stock
+    PX4 SITL, 2026-12-07: 0.48 m apart by SIH's ground truth, the safety net acting on both).  A join that
+    reached the plane (a passed waypoint in it) first backs off ``back_m`` upstream of it, straight from
+    ``pos``, and flies the part of its route in the plane that far upstream; the legs before the plane it
+    flies back as they were.  Returns ``[..., wait_at]``."""
+    xs = geom.x_inlet_m - staging_m
+    back = passed[::-1]
+    if not any(abs(p[0] - xs) <= 1e-9 for p in passed):
+        return back + [wait_at]
+    xb = xs - back_m
+    route = [(xb, pos[1], pos[2])] if xb < pos[0] <= geom.x_inlet_m else []
+    for p in back:
+        q = (xb, p[1], p[2]) if abs(p[0] - xs) <= 1e-9 else p
+        if not route or q != route[-1]:
+            route.append(q)
+    return route + [wait_at]

@@ -8,7 +8,7 @@ import pytest
 
 from fisc_agent.flight.control import (MapGeometry, ScalarField, check_map, clamp_speed, clamp_velocity, entry_point,
                                 goto_velocity, max_command_speed)
-from fisc_agent.flight.routes import join_waypoints
+from fisc_agent.flight.routes import OVERFLY_M, give_up_waypoints, join_waypoints
 from fisc_agent.map.hashing import slot_hash, slot_hash_int
 from fisc_agent.map.lookup import CommandField, return_command
 from fisc_agent.map.codec import MapError
@@ -152,6 +152,86 @@ def test_join_waypoints_stay_outside_the_tunnel_until_the_inlet(field, sfield, s
         if starts_inside and a == start:
             continue  # leaving the box is the first move
         assert not _segment_enters_box(a, b, g, 0.5), (a, b)
+
+
+def _dense(path, step_m=0.02):
+    """Points every ``step_m`` along a polyline, as an (n, 3) array."""
+    out = []
+    for a, b in zip(path[:-1], path[1:]):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        s = np.linspace(0.0, 1.0, max(2, int(np.linalg.norm(b - a) / step_m) + 1))[:, None]
+        out.append(a + s * (b - a))
+    return np.vstack(out)
+
+
+def _length_near(path, others, within_m, step_m=0.02):
+    """Length of ``path`` [m] closer than ``within_m`` to any of the polylines ``others``."""
+    from scipy.spatial import cKDTree
+
+    pts = _dense(path, step_m)
+    tree = cKDTree(np.vstack([_dense(other, step_m) for other in others]))
+    return float(np.sum(tree.query(pts)[0] < within_m)) * step_m
+
+
+def test_a_give_up_in_the_staging_plane_backs_off_and_does_not_fly_down_the_next_joins_leg(field, sfield):
+    """The loop's fleet (PX4 SITL launches it so): eight vehicles waiting 3 m apart in a row under the inlet.
+    Their joins' legs in the staging plane converge on the inlet, nearly parallel.  Flown back the way it came,
+    a join giving its window up on that leg ran along the next one's for metres (eight stock PX4: 0.48 m by
+    SIH's ground truth, head on); backing off upstream first, its way back comes within d_min of another
+    join's leg in the plane only where it leaves the plane, and where it crosses the plane at its own corner
+    (as every join of its own does)."""
+    g = MapGeometry.from_field(field)
+    d_min, staging = 0.924, 1.5
+    waits = [(g.x_inlet_m, 3.0 * k, g.lo_m[2] - 6.0) for k in range(8)]
+    routes = [[w] + join_waypoints(w, entry_point(k, g, sfield), g, staging, 1.0) for k, w in enumerate(waits)]
+    assert all(len(r) == 4 for r in routes)                         # wait, corner, S, entry
+    worst_back, worst_new = 0.0, 0.0
+    for k, (wait, corner, s_pt, _) in enumerate(routes):
+        legs = [r[1:3] for j, r in enumerate(routes) if j != k]     # the others' legs in the staging plane
+        for frac in (0.3, 0.6, 0.9, 1.0):
+            pos = tuple(a + frac * (b - a) for a, b in zip(corner, s_pt))
+            passed = [corner, s_pt] if frac == 1.0 else [corner]
+            back = [pos] + passed[::-1] + [wait]
+            new = [pos] + give_up_waypoints(pos, passed, wait, g, staging)
+            worst_back = max(worst_back, _length_near(back, legs, d_min))
+            # its joins fly to their corner (``own``); coming back it crosses the plane there, as far again
+            own = _length_near([corner, wait], legs, d_min)
+            worst_new = max(worst_new, _length_near(new, legs, d_min) - 2 * own)
+            assert new[-1] == wait and new[1][0] == corner[0] - OVERFLY_M
+    assert worst_back > 10.0 and worst_new <= d_min + 0.05, (worst_back, worst_new)
+
+
+def test_give_up_waypoints_at_the_boundaries(field):
+    g = MapGeometry.from_field(field)
+    xs = g.x_inlet_m - 1.5
+    xb = xs - OVERFLY_M
+    wait = (g.x_inlet_m + 0.6, 8.0, -8.0)
+    low = (wait[0], wait[1], g.lo_m[2] - 1.0)          # a descent under the tunnel before the plane
+    corner, s_pt = (xs, 8.0, -8.0), (xs, 0.2, 0.1)
+    # not yet in the staging plane: back the way it came, as it came
+    assert give_up_waypoints((xs + 0.5, 8.0, -8.0), [], wait, g) == [wait]
+    assert give_up_waypoints((xs + 0.5, 8.0, -8.0), [low], wait, g) == [low, wait]
+    # at its corner in the plane: straight upstream, then to the wait point
+    assert give_up_waypoints(corner, [corner], wait, g) == [(xb, 8.0, -8.0), wait]
+    # on the leg in the plane and at S: the leg flown OVERFLY_M upstream
+    mid = (xs, 4.0, -4.0)
+    assert give_up_waypoints(mid, [corner], wait, g) == [(xb, 4.0, -4.0), (xb, 8.0, -8.0), wait]
+    assert give_up_waypoints(s_pt, [corner, s_pt], wait, g) == [(xb, 0.2, 0.1), (xb, 8.0, -8.0), wait]
+    # the descent before the plane is kept as it was flown
+    route = give_up_waypoints(s_pt, [(wait[0], 8.0, low[2]), (xs, 8.0, low[2]), s_pt], wait, g)
+    assert route == [(xb, 0.2, 0.1), (xb, 8.0, low[2]), (wait[0], 8.0, low[2]), wait]
+    # where it is: on the final leg up to the inlet plane (equal included) it backs off; at the back-off
+    # plane or upstream of it, it does not move there first
+    for x, moved in ((g.x_inlet_m, True), (g.x_inlet_m - 0.1, True), (xb + 1e-6, True), (xb, False),
+                     (xb - 0.1, False)):
+        route = give_up_waypoints((x, 0.2, 0.1), [corner, s_pt], wait, g)
+        assert route[0] == (xb, 0.2, 0.1) and len(route) == 3, x        # the same first point either way ...
+        assert give_up_waypoints((x, 0.3, 0.1), [corner, s_pt], wait, g)[0] == ((xb, 0.3, 0.1) if moved
+                                                                             else (xb, 0.2, 0.1)), x
+    # past the inlet plane (in the flow, never a give-up): not moved
+    assert give_up_waypoints((g.x_inlet_m + 1e-6, 0.3, 0.1), [corner, s_pt], wait, g)[0] == (xb, 0.2, 0.1)
+    # the back-off distance is the parameter's
+    assert give_up_waypoints(corner, [corner], wait, g, back_m=2.5)[0] == (xs - 2.5, 8.0, -8.0)
 
 
 @pytest.mark.parametrize("exit_yz", [(0.0, 0.0), (1.0, -0.8), (-1.2, 1.0)])

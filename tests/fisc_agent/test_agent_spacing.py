@@ -359,10 +359,11 @@ def test_a_join_at_its_staging_point_within_the_tolerance_enters_and_one_later_d
     # ... and its joins leave earlier by the delay (the lead from the same wait point, plus what it learnt)
     assert nav.lead_learnt_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)
     assert nav.entry_lead_s == pytest.approx(lead + nav.lead_learnt_s, abs=1e-9)
-    # back the way it came, away from the staging points where the routes meet, to its wait point again
-    assert nav.waypoints[:nav.wait_index + 1] == planned[1:-1][::-1] + [planned[0]]   # S itself first: passed at once
-    back = nav.waypoints[nav.wp_index]                                        # S passed at once: the next one back
-    assert back == planned[1] and sum(v * (b - a) for v, a, b in zip(vel, s_pt, back)) > 0
+    # back by its own route to its wait point again, its leg in the staging plane (where the routes meet)
+    # flown OVERFLY_M upstream of it: straight upstream first (routes.give_up_waypoints)
+    xb = s_pt[0] - OVERFLY_M
+    assert nav.waypoints[:nav.wait_index + 1] == [(xb, *s_pt[1:]), (xb, *planned[1][1:]), planned[0]]
+    assert nav.wp_index == 0 and vel[0] < 0 and vel[1] == vel[2] == 0.0
     assert nav.waypoints[-1] == planned[-1]                                   # the same entry point
 
 
@@ -500,8 +501,11 @@ def test_a_join_not_across_the_inlet_by_its_crossing_due_time_gives_its_window_u
     assert nav.late_entries == 1 and not nav.entry_cleared and nav.crossing_due_s is None
     assert nav.lead_learnt_s == 0.0                                     # not its way to the staging point...
     assert nav.leg_lead_s == pytest.approx(ENTRY_TIMING_TOLERANCE_S + 1e-6, abs=1e-9)   # ... but its final leg
-    assert nav.waypoints[:nav.wait_index + 1] == planned[1:-1][::-1] + [planned[0]]   # back through S, the way it came
-    assert sum(v * (b - a) for v, a, b in zip(vel, mid, nav.waypoints[nav.wp_index])) > 0
+    # straight upstream from its final leg to OVERFLY_M before the staging plane, then by its route's corner
+    # (flown that far upstream) to its wait point
+    xb = s_pt[0] - OVERFLY_M
+    assert nav.waypoints[:nav.wait_index + 1] == [(xb, *mid[1:]), (xb, *planned[1][1:]), planned[0]]
+    assert nav.wp_index == 0 and vel[0] < 0 and vel[1] == vel[2] == 0.0
 
 
 @pytest.mark.parametrize("early_s, leg_lead_after", [(ENTRY_TIMING_TOLERANCE_S, 3.0),
