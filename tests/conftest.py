@@ -19,6 +19,7 @@ from typing import Callable
 import pytest
 
 from .optional import ci, missing_optional
+from .sitl_groups import pytest_collection_modifyitems  # noqa: F401 (a hook, here to be found)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,6 +46,23 @@ def resolve_shared(*parts: str) -> Path:
 def shared_path() -> Callable[..., Path]:
     """``shared_path("reference", "cd_nozzle", "axisym_cells.csv")`` -> Path (see ``resolve_shared``)."""
     return resolve_shared
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _own_lab_port_per_worker():
+    """Under xdist each worker is a lab of its own: a test that leaves ``FISC_ZENOH_PORT`` unset would meet
+    the other worker's processes on the default lab port (7447).  Each worker sets it to a free port of
+    its own once; a test that sets it still wins."""
+    from fisc_agent.zenoh.session import PORT_ENV
+
+    from .ports import free_tcp_port
+
+    own = bool(os.environ.get("PYTEST_XDIST_WORKER")) and PORT_ENV not in os.environ
+    if own:
+        os.environ[PORT_ENV] = str(free_tcp_port())
+    yield
+    if own:
+        os.environ.pop(PORT_ENV, None)
 
 
 @pytest.fixture(autouse=True)

@@ -15,6 +15,11 @@ import socket
 from pathlib import Path
 
 _RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+SITL_PORTS = range(13000, 19000)
+"""Never handed out: the ports PX4 SITL binds and sends to (13030+i, 13280+i, 14030+i, 14280+i, 14540-14549,
+14550, 14580+i, 18570+i: ``../shared/sitl/px4/etc/init.d-posix/px4-rc.mavlink``; ArduPilot SITL sends to
+14540+i and 14550).  Under ``pytest -n 2`` the real-autopilot tests fly on one worker while the other runs
+the rest: a port of theirs given to another test would take a vehicle's link."""
 
 
 def _candidates() -> range:
@@ -31,6 +36,8 @@ def _free_port(kind: int) -> int:
     rng = random.Random()  # seeded from the OS: parallel test processes pick different ports
     for _ in range(500):
         port = rng.choice(ports)
+        if port in SITL_PORTS:
+            continue
         with socket.socket(socket.AF_INET, kind) as s:
             try:
                 s.bind(("127.0.0.1", port))

@@ -207,7 +207,7 @@ def v2_bytes(code=1, flags=1, swarm=b"alpha", targets=(), seq=1, issued_ms=1_000
 UNSIGNED = {"flags": 0, "sig": bytes(64)}
 
 
-@pytest.mark.parametrize("raw, kw, message", [
+REFUSED = [
     (b"FCMD\x02", {}, "truncated: command has 5 bytes"),
     (b"FCMD\x02\x01", {}, "truncated: command has 6 bytes, at least 100 needed"),  # 6 bytes pass the first check
     (b"XCMD\x02\x01" + bytes(100), {}, "magic: not a FISC fleet command"),
@@ -226,7 +226,13 @@ UNSIGNED = {"flags": 0, "sig": bytes(64)}
     (v2_bytes(swarm=b"\xff\xfe", **UNSIGNED), {"allow": True}, "swarm: name is not UTF-8"),
     (v2_bytes(code=4), {}, "start-at: start-at needs a start time, and only start-at carries one"),
     (v2_bytes(code=5, start_ms=5), {}, "start-at: start-at needs a start time, and only start-at carries one"),
-])
+]
+"""(raw command, decode's keywords, its error); named by position and check, not by the bytes: the keys are made
+afresh in each process, and the workers of ``pytest -n 2`` must collect the same test ids."""
+
+
+@pytest.mark.parametrize("raw, kw, message", REFUSED,
+                         ids=[f"{i}-{message.split(':')[0]}" for i, (_, _, message) in enumerate(REFUSED)])
 def test_every_refused_command_names_its_check_and_why(raw, kw, message):
     with pytest.raises(CommandError) as err:
         decode_command(raw, kw.get("trusted", [PUB]), **({"allow_unsigned": True} if kw.get("allow") else {}))
