@@ -363,7 +363,13 @@ class Runner:
         net = self._safety_net(out, pos, pos_age)
 
         sp: Vec | None = None
-        if out.velocity_m_s is not None:
+        # stopped within this tick (SIGSTOP, swap) past the link timeout: what it computed is an old view, and a
+        # setpoint sent now would end an autopilot failsafe's Land (PX4 falls back to OFFBOARD when setpoints come
+        # back; PX4 SITL, the agent stopped between reading its clock and sending); the next tick finds the stall
+        stalled_s = self.clock() - now
+        if stalled_s > self.cfg.link_timeout_s:
+            log.warning("control tick stopped for %.1f s mid-way: its setpoint and commands are not sent", stalled_s)
+        elif out.velocity_m_s is not None:
             if self._stream_start is None:
                 self._stream_start = now
                 v_prev = vel if (vel is not None and pos_age <= self.cfg.stale_timeout_s) else ZERO
@@ -392,7 +398,7 @@ class Runner:
         else:
             self._stream_start = None
         stream_s = now - self._stream_start if self._stream_start is not None else 0.0
-        if self.commander is not None and link_ok:
+        if self.commander is not None and link_ok and stalled_s <= self.cfg.link_timeout_s:
             self.commander.reconcile(now, out.want_mode, out.want_armed, out.takeoff_alt_m, link.armed, mode,
                                      stream_s, mode_age)
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
@@ -459,14 +465,19 @@ class Runner:
     def shutdown(self, settle_s: float = 0.3) -> None:
         """Leave the vehicle safe: zero-velocity setpoints, then the autopilot's hold mode.
 
-        Called on SIGINT/SIGTERM and at the end of ``run``.  A vehicle that is landing, on the
-        ground (disarmed) or under pilot control is left alone.
+        Called on SIGINT/SIGTERM and at the end of ``run``.  Only a vehicle heard afresh (within
+        ``link_timeout_s``) flying the agent's setpoints (OFFBOARD / GUIDED) is touched: one that is landing,
+        on the ground (disarmed), under pilot control or already holding, or whose link is lost (its
+        HEARTBEAT old: an autopilot failsafe may be landing it, and a setpoint would end that Land), is left
+        alone.
         """
         link = self.link
         try:
             link.poll()
             state = self.mission.state
-            flying = link.armed and (state in FLYING or (state == State.HOLD and not self.mission.hands_off))
+            heard = link.last_heartbeat_t is not None and self.clock() - link.last_heartbeat_t <= self.cfg.link_timeout_s
+            flying = (heard and link.armed and link.mode == ModeClass.OFFBOARD
+                      and (state in FLYING or (state == State.HOLD and not self.mission.hands_off)))
             if flying and self.adapter is not None:
                 log.info("shutdown: zero-velocity hold, then the autopilot's hold mode")
                 t_end = self.clock() + settle_s

@@ -25,6 +25,7 @@ from fisc_ground.fields.flight_score import realised_spread_ratio
 from fisc_ground.maps.build import build_default_map
 from sim.autopilot import server
 from ..optional import require_module
+from ..sitl_groups import SITL_GROUP
 
 pytestmark = pytest.mark.slow
 
@@ -136,6 +137,9 @@ def test_emulated_autopilot_ground_to_inlet_through_the_tunnel_and_out(personali
         emu.stop()
 
 
+# one pass over a real-time link: under -n 2, run beside the SITL flights, it read 0.48; in their group it runs
+# alone on its worker (the other one has finished the fast tests by then)
+@pytest.mark.xdist_group(SITL_GROUP)
 def test_explicit_kinetic_mode_under_streamline_tracking_flies_the_fitted_spread():
     """``--mode kinetic`` with tracking: the vehicle flies the map's deviations (the swarm's pressure),
     about the fitted spread, where the field alone leaves only its tracking error (~0.1-0.5)."""

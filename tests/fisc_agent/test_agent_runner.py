@@ -266,6 +266,51 @@ def test_shutdown_holds_a_flying_vehicle_and_closes():
     assert link.closed
 
 
+class StoppedMidTickLink(MemoryLink):
+    """The agent is stopped (SIGSTOP) inside a tick, after it read its clock: the clock jumps by
+    ``stop_s`` during the next poll, once."""
+
+    stop_s = 0.0
+
+    def poll(self):
+        n = super().poll()
+        if self.stop_s:
+            self.clock.t += self.stop_s
+            self.stop_s = 0.0
+        return n
+
+
+@pytest.mark.parametrize("stop_s, sent", [(3.0, True), (3.0 + 1e-6, False), (6.0, False)])
+def test_a_tick_stopped_mid_way_past_the_link_timeout_sends_nothing(stop_s, sent):
+    """PX4 SITL under load: the agent frozen between reading its clock and sending sent that tick's setpoint
+    after the freeze, over PX4's offboard-loss Land, and PX4 took OFFBOARD back.  Stopped longer than
+    ``link_timeout_s`` (3 s) within a tick, it sends neither setpoint nor command; the next tick finds the stall."""
+    cfg, clock, link, r = make(link=StoppedMidTickLink)
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    assert cfg.link_timeout_s == 3.0
+    n_sp, n_cmd = len(link.setpoints), len(link.commands)
+    link.stop_s = stop_s
+    r.step()
+    assert (len(link.setpoints) == n_sp + 1) == sent and len(link.commands) == n_cmd
+
+
+@pytest.mark.parametrize("mode, age_s, holds", [(ModeClass.OFFBOARD, 3.0, True), (ModeClass.OFFBOARD, 3.0 + 1e-6, False),
+                                                (ModeClass.LAND, 0.0, False), (ModeClass.OTHER, 0.0, False),
+                                                (ModeClass.HOLD, 0.0, False)])
+def test_shutdown_touches_only_a_vehicle_heard_afresh_flying_the_agents_setpoints(mode, age_s, holds):
+    """A HEARTBEAT older than the link timeout (the agent stalled, the link cut: an autopilot failsafe may be
+    landing the vehicle), or a mode not the agent's: shutdown sends nothing."""
+    cfg, clock, link, r = make()
+    tick_until(r, clock, lambda: r.mission.state == State.FLOW)
+    link.vehicle_mode = mode
+    link.poll = lambda: 0                        # nothing more heard
+    link.last_heartbeat_t = clock.t - age_s
+    n_sp, n_cmd = len(link.setpoints), len(link.commands)
+    r.shutdown()
+    assert (len(link.setpoints) > n_sp) == holds and (len(link.commands) > n_cmd) == holds
+    assert link.closed
+
+
 def test_shutdown_on_the_ground_sends_nothing():
     cfg, clock, link, r = make()
     r.step()
