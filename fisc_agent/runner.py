@@ -327,8 +327,7 @@ class Runner:
         for result in link.pop_results():
             if self.commander is not None:
                 self.commander.on_result(result)
-        # ages are >= 0: a message received during this tick's poll is newer than ``now``
-        hb_age = max(0.0, now - link.last_heartbeat_t) if link.last_heartbeat_t is not None else math.inf
+        hb_age = self._heartbeat_age_s(now)
         mode_t = link.mode_t_s
         mode_age = max(0.0, now - mode_t) if mode_t is not None else math.inf
         mode = link.mode if self.adapter is not None else ModeClass.UNKNOWN
@@ -363,11 +362,11 @@ class Runner:
         net = self._safety_net(out, pos, pos_age)
 
         sp: Vec | None = None
-        # stopped within this tick (SIGSTOP, swap) past the link timeout: what it computed is an old view, and a
-        # setpoint sent now would end an autopilot failsafe's Land (PX4 falls back to OFFBOARD when setpoints come
-        # back; PX4 SITL, the agent stopped between reading its clock and sending); the next tick finds the stall
+        # stopped within this tick (SIGSTOP) past the link timeout: a setpoint sent now would end a failsafe's Land
+        # (PX4 falls back to OFFBOARD when setpoints come back); the next tick finds the stall
         stalled_s = self.clock() - now
-        if stalled_s > self.cfg.link_timeout_s:
+        stopped = stalled_s > self.cfg.link_timeout_s
+        if stopped:
             log.warning("control tick stopped for %.1f s mid-way: its setpoint and commands are not sent", stalled_s)
         elif out.velocity_m_s is not None:
             if self._stream_start is None:
@@ -398,7 +397,7 @@ class Runner:
         else:
             self._stream_start = None
         stream_s = now - self._stream_start if self._stream_start is not None else 0.0
-        if self.commander is not None and link_ok and stalled_s <= self.cfg.link_timeout_s:
+        if self.commander is not None and link_ok and not stopped:
             self.commander.reconcile(now, out.want_mode, out.want_armed, out.takeoff_alt_m, link.armed, mode,
                                      stream_s, mode_age)
         if now - self._last_hb_sent >= HEARTBEAT_PERIOD_S:
@@ -462,20 +461,23 @@ class Runner:
                     self.rlog.event("loop:sleep", logging.ERROR, "control loop sleep failed (%s); ticking on", exc)
         return self.mission.state
 
+    def _heartbeat_age_s(self, now: float) -> float:
+        """Age of the last HEARTBEAT at ``now`` (>= 0: one got in this tick's poll is newer), inf before one."""
+        t = self.link.last_heartbeat_t
+        return max(0.0, now - t) if t is not None else math.inf
+
     def shutdown(self, settle_s: float = 0.3) -> None:
         """Leave the vehicle safe: zero-velocity setpoints, then the autopilot's hold mode.
 
-        Called on SIGINT/SIGTERM and at the end of ``run``.  Only a vehicle heard afresh (within
-        ``link_timeout_s``) flying the agent's setpoints (OFFBOARD / GUIDED) is touched: one that is landing,
-        on the ground (disarmed), under pilot control or already holding, or whose link is lost (its
-        HEARTBEAT old: an autopilot failsafe may be landing it, and a setpoint would end that Land), is left
-        alone.
+        Called on SIGINT/SIGTERM and at the end of ``run``.  Only a vehicle heard within ``link_timeout_s``
+        flying the agent's setpoints (OFFBOARD / GUIDED) is touched: landing, disarmed, under pilot control,
+        holding or unheard (a failsafe may be landing it: a setpoint would end that Land), it is left alone.
         """
         link = self.link
         try:
             link.poll()
             state = self.mission.state
-            heard = link.last_heartbeat_t is not None and self.clock() - link.last_heartbeat_t <= self.cfg.link_timeout_s
+            heard = self._heartbeat_age_s(self.clock()) <= self.cfg.link_timeout_s
             flying = (heard and link.armed and link.mode == ModeClass.OFFBOARD
                       and (state in FLYING or (state == State.HOLD and not self.mission.hands_off)))
             if flying and self.adapter is not None:

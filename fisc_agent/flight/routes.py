@@ -100,13 +100,13 @@ def give_up_waypoints(pos: Vec, passed: list[Vec], wait_at: Vec, geom: MapGeomet
     ``pos``, and flies the part of its route in the plane that far upstream; the legs before the plane it
     flies back as they were.  Returns ``[..., wait_at]``."""
     xs = geom.x_inlet_m - staging_m
-    back = passed[::-1]
-    if not any(abs(p[0] - xs) <= 1e-9 for p in passed):
-        return back + [wait_at]
+    in_plane = [abs(p[0] - xs) <= 1e-9 for p in passed]
+    if not any(in_plane):
+        return passed[::-1] + [wait_at]
     xb = xs - back_m
     route = [(xb, pos[1], pos[2])] if xb < pos[0] <= geom.x_inlet_m else []
-    for p in back:
-        q = (xb, p[1], p[2]) if abs(p[0] - xs) <= 1e-9 else p
+    for p, flat in zip(passed[::-1], in_plane[::-1]):
+        q = (xb, p[1], p[2]) if flat else p
         if not route or q != route[-1]:
             route.append(q)
     return route + [wait_at]
